@@ -1,0 +1,188 @@
+#include "breast_sim/core/mesh/tet_mesh.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <sstream>
+#include <stdexcept>
+#include <unordered_map>
+
+#include <Eigen/Geometry>
+
+namespace breast_sim::core {
+
+double signedTetVolume(const Eigen::Vector3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& c,
+                       const Eigen::Vector3d& d) {
+  return (b - a).dot((c - a).cross(d - a)) / 6.0;
+}
+
+TetMesh::TetMesh(Points nodes_m, Tets tets, std::vector<int> region_labels)
+    : nodes_(std::move(nodes_m)), tets_(std::move(tets)), region_labels_(std::move(region_labels)) {
+  const int n = numNodes();
+  for (int i = 0; i < n; ++i) {
+    if (!nodes_.row(i).allFinite()) {
+      std::ostringstream msg;
+      msg << "TetMesh: node " << i << " has a non-finite coordinate (" << nodes_.row(i) << ")";
+      throw std::invalid_argument(msg.str());
+    }
+  }
+  if (region_labels_.empty()) region_labels_.assign(tets_.rows(), 0);
+  if (static_cast<Eigen::Index>(region_labels_.size()) != tets_.rows()) {
+    throw std::invalid_argument("TetMesh: " + std::to_string(region_labels_.size()) +
+                                " region labels given for " + std::to_string(tets_.rows()) +
+                                " tetrahedra; give one per tetrahedron or none");
+  }
+  for (int t = 0; t < numTets(); ++t) {
+    for (int k = 0; k < 4; ++k) {
+      const int v = tets_(t, k);
+      if (v < 0 || v >= n) {
+        throw std::invalid_argument("TetMesh: tetrahedron " + std::to_string(t) + " refers to node " +
+                                    std::to_string(v) + ", but the mesh has " + std::to_string(n) +
+                                    " nodes (indices are 0-based)");
+      }
+    }
+    std::array<int, 4> s{tets_(t, 0), tets_(t, 1), tets_(t, 2), tets_(t, 3)};
+    std::sort(s.begin(), s.end());
+    if (std::adjacent_find(s.begin(), s.end()) != s.end()) {
+      throw std::invalid_argument("TetMesh: tetrahedron " + std::to_string(t) +
+                                  " repeats a node; it has zero volume");
+    }
+    const double vol = signedTetVolume(nodes_.row(tets_(t, 0)), nodes_.row(tets_(t, 1)),
+                                       nodes_.row(tets_(t, 2)), nodes_.row(tets_(t, 3)));
+    if (vol == 0.0 || !std::isfinite(vol)) {
+      throw std::invalid_argument("TetMesh: tetrahedron " + std::to_string(t) +
+                                  " has zero volume (its four nodes are coplanar)");
+    }
+    if (vol < 0.0) std::swap(tets_(t, 2), tets_(t, 3));
+  }
+  boundary_ = extractBoundary(tets_, nodes_);
+}
+
+void TetMesh::setNodeSet(const std::string& name, std::vector<int> node_indices) {
+  if (name.empty()) throw std::invalid_argument("TetMesh::setNodeSet: the node-set name is empty");
+  for (int v : node_indices) {
+    if (v < 0 || v >= numNodes()) {
+      throw std::invalid_argument("TetMesh::setNodeSet: node set '" + name + "' holds node " +
+                                  std::to_string(v) + ", but the mesh has " +
+                                  std::to_string(numNodes()) + " nodes");
+    }
+  }
+  std::sort(node_indices.begin(), node_indices.end());
+  node_indices.erase(std::unique(node_indices.begin(), node_indices.end()), node_indices.end());
+  node_sets_[name] = std::move(node_indices);
+}
+
+const std::vector<int>& TetMesh::nodeSet(const std::string& name) const {
+  auto it = node_sets_.find(name);
+  if (it == node_sets_.end()) {
+    std::string have;
+    for (const auto& kv : node_sets_) have += (have.empty() ? "" : ", ") + kv.first;
+    throw std::out_of_range("TetMesh: no node set named '" + name + "' (present: " +
+                            (have.empty() ? "none" : have) + ")");
+  }
+  return it->second;
+}
+
+Eigen::VectorXd TetMesh::tetVolumes() const {
+  Eigen::VectorXd v(numTets());
+  for (int t = 0; t < numTets(); ++t) {
+    v[t] = signedTetVolume(nodes_.row(tets_(t, 0)), nodes_.row(tets_(t, 1)), nodes_.row(tets_(t, 2)),
+                           nodes_.row(tets_(t, 3)));
+  }
+  return v;
+}
+
+double TetMesh::volume() const { return tetVolumes().sum(); }
+
+Eigen::Vector3d TetMesh::boundsMin() const {
+  return numNodes() ? Eigen::Vector3d(nodes_.colwise().minCoeff().transpose()) : Eigen::Vector3d::Zero();
+}
+Eigen::Vector3d TetMesh::boundsMax() const {
+  return numNodes() ? Eigen::Vector3d(nodes_.colwise().maxCoeff().transpose()) : Eigen::Vector3d::Zero();
+}
+
+std::vector<bool> TetMesh::usedNodes() const {
+  std::vector<bool> used(numNodes(), false);
+  for (int t = 0; t < numTets(); ++t)
+    for (int k = 0; k < 4; ++k) used[tets_(t, k)] = true;
+  return used;
+}
+
+namespace {
+// Faces of a positively oriented tet (a,b,c,d), each ordered so its normal points out of the tet.
+constexpr int kFaces[4][3] = {{1, 2, 3}, {0, 3, 2}, {0, 1, 3}, {0, 2, 1}};
+
+struct FaceKey {
+  std::array<int, 3> v;
+  bool operator==(const FaceKey& o) const { return v == o.v; }
+};
+struct FaceKeyHash {
+  size_t operator()(const FaceKey& k) const {
+    size_t h = static_cast<size_t>(k.v[0]) * 73856093u;
+    h ^= static_cast<size_t>(k.v[1]) * 19349663u + (h << 6) + (h >> 2);
+    h ^= static_cast<size_t>(k.v[2]) * 83492791u + (h << 6) + (h >> 2);
+    return h;
+  }
+};
+}  // namespace
+
+BoundarySurface extractBoundary(const Tets& tets, const Points& positions) {
+  // Count each face by its sorted node triple; faces seen once are on the boundary.
+  std::unordered_map<FaceKey, int, FaceKeyHash> count;
+  count.reserve(static_cast<size_t>(tets.rows()) * 3);
+  for (Eigen::Index t = 0; t < tets.rows(); ++t) {
+    for (const auto& f : kFaces) {
+      FaceKey key{{tets(t, f[0]), tets(t, f[1]), tets(t, f[2])}};
+      std::sort(key.v.begin(), key.v.end());
+      ++count[key];
+    }
+  }
+  BoundarySurface b;
+  std::vector<std::array<int, 3>> tris;
+  for (Eigen::Index t = 0; t < tets.rows(); ++t) {
+    for (const auto& f : kFaces) {
+      FaceKey key{{tets(t, f[0]), tets(t, f[1]), tets(t, f[2])}};
+      std::sort(key.v.begin(), key.v.end());
+      if (count[key] == 1) {
+        tris.push_back({tets(t, f[0]), tets(t, f[1]), tets(t, f[2])});
+        b.owner_tet.push_back(static_cast<int>(t));
+      }
+    }
+  }
+  b.triangles.resize(static_cast<Eigen::Index>(tris.size()), 3);
+  b.normals.resize(static_cast<Eigen::Index>(tris.size()), 3);
+  for (size_t i = 0; i < tris.size(); ++i) {
+    for (int k = 0; k < 3; ++k) {
+      b.triangles(static_cast<Eigen::Index>(i), k) = tris[i][k];
+      b.nodes.push_back(tris[i][k]);
+    }
+    const Eigen::Vector3d a = positions.row(tris[i][0]);
+    const Eigen::Vector3d n = (Eigen::Vector3d(positions.row(tris[i][1])) - a)
+                                  .cross(Eigen::Vector3d(positions.row(tris[i][2])) - a);
+    const double len = n.norm();
+    b.normals.row(static_cast<Eigen::Index>(i)) = len > 0 ? Eigen::Vector3d(n / len) : Eigen::Vector3d::Zero();
+  }
+  std::sort(b.nodes.begin(), b.nodes.end());
+  b.nodes.erase(std::unique(b.nodes.begin(), b.nodes.end()), b.nodes.end());
+  return b;
+}
+
+bool isClosedManifold(const Triangles& triangles) {
+  // Each directed edge must appear exactly once, and its reverse exactly once.
+  std::unordered_map<long long, int> directed;
+  directed.reserve(static_cast<size_t>(triangles.rows()) * 3);
+  auto key = [](long long a, long long b) { return (a << 32) | b; };
+  for (Eigen::Index f = 0; f < triangles.rows(); ++f) {
+    for (int e = 0; e < 3; ++e) {
+      const long long a = triangles(f, e), b = triangles(f, (e + 1) % 3);
+      if (++directed[key(a, b)] > 1) return false;
+    }
+  }
+  for (const auto& kv : directed) {
+    const long long a = kv.first >> 32, b = kv.first & 0xffffffffLL;
+    if (directed.find(key(b, a)) == directed.end()) return false;
+  }
+  return !directed.empty();
+}
+
+}  // namespace breast_sim::core
