@@ -1,0 +1,35 @@
+# Shared set-up for the quick-start commands. Source it; it does not run anything by itself.
+# Debian's ROS 1 lives in /usr and needs Debian's python3, so /usr/bin goes first in PATH.
+export PATH="/usr/local/sbin:/usr/sbin:/usr/bin:/sbin:/bin:${PATH}"
+BREAST_SIM_SRC="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# Everything built lives outside the source tree.
+BREAST_SIM_WORK="${BREAST_SIM_WORK:-${HOME:-/root}/.cache/breast_sim}"
+BREAST_SIM_WS="${BREAST_SIM_WORK}/catkin_ws"
+BREAST_SIM_CORE_BUILD="${BREAST_SIM_WORK}/core_build"
+BREAST_SIM_JOBS="${BREAST_SIM_JOBS:-$(nproc)}"
+export ROS_HOME="${BREAST_SIM_WORK}/ros_home"
+export ROS_LOG_DIR="${ROS_HOME}/log"
+
+log() { printf '[breast_sim] %s\n' "$*"; }
+
+install_deps() {
+  bash "${BREAST_SIM_SRC}/scripts/install_deps.sh"
+}
+
+# Builds the catkin workspace (Release, -O3) with this checkout linked in as src/breast_sim.
+build_catkin_ws() {
+  mkdir -p "${BREAST_SIM_WS}/src" "${ROS_LOG_DIR}"
+  ln -sfn "${BREAST_SIM_SRC}" "${BREAST_SIM_WS}/src/breast_sim"
+  log "building catkin workspace ${BREAST_SIM_WS} (Release, -O3)"
+  (cd "${BREAST_SIM_WS}" && catkin_make -j"${BREAST_SIM_JOBS}" \
+      -DCMAKE_BUILD_TYPE=Release -DPYTHON_EXECUTABLE=/usr/bin/python3 "$@")
+}
+
+# Builds the ROS-free core with plain CMake (catkin is never looked for).
+build_core() {
+  log "building the ROS-free core with plain CMake in ${BREAST_SIM_CORE_BUILD}"
+  cmake -S "${BREAST_SIM_SRC}" -B "${BREAST_SIM_CORE_BUILD}" -DBREAST_SIM_CORE_ONLY=ON \
+        -DCMAKE_BUILD_TYPE=Release >"${BREAST_SIM_WORK}/core_configure.log" 2>&1 \
+    || { cat "${BREAST_SIM_WORK}/core_configure.log"; return 1; }
+  cmake --build "${BREAST_SIM_CORE_BUILD}" -j"${BREAST_SIM_JOBS}" "$@"
+}

@@ -1,0 +1,70 @@
+#include <gtest/gtest.h>
+
+#include "breast_sim/core/model/point_embedding.h"
+
+using namespace breast_sim::core;
+
+namespace {
+TetMesh cubeMesh(double h) {
+  Points x(8, 3);
+  for (int i = 0; i < 8; ++i) x.row(i) << h * (i & 1), h * ((i >> 1) & 1), h * ((i >> 2) & 1);
+  Tets t(6, 4);
+  t << 0, 1, 3, 7, 0, 1, 7, 5, 0, 5, 7, 4, 0, 3, 2, 7, 0, 2, 6, 7, 0, 6, 4, 7;
+  return TetMesh(x, t);
+}
+}  // namespace
+
+TEST(PointEmbedding, BarycentricWeightsReproduceThePoint) {
+  const TetMesh m = cubeMesh(0.02);
+  Points p(3, 3);
+  p << 0.005, 0.012, 0.017, 0.019, 0.001, 0.002, 0.01, 0.01, 0.01;
+  const PointEmbedding e(m, p, {"a", "b", "c"});
+  for (int i = 0; i < 3; ++i) {
+    SCOPED_TRACE("point " + std::to_string(i));
+    EXPECT_GE(e.points()[i].weights.minCoeff(), -1e-10);
+    EXPECT_NEAR(e.points()[i].weights.sum(), 1.0, 1e-12);
+  }
+  const Points back = e.positions(m.nodes());
+  EXPECT_LT((back - p).cwiseAbs().maxCoeff(), 1e-15);
+}
+
+TEST(PointEmbedding, AffineDisplacementIsInterpolatedExactly) {
+  const TetMesh m = cubeMesh(0.03);
+  Eigen::Matrix3d A;
+  A << 0.1, -0.2, 0.05, 0.3, 0.0, -0.1, 0.02, 0.04, -0.3;
+  const Eigen::RowVector3d b(0.001, -0.002, 0.003);
+  Points u(m.numNodes(), 3);
+  for (int i = 0; i < m.numNodes(); ++i) u.row(i) = m.nodes().row(i) * A.transpose() + b;
+  Points p(2, 3);
+  p << 0.011, 0.022, 0.004, 0.029, 0.015, 0.027;
+  const PointEmbedding e(m, p);
+  const Points up = e.interpolate(u);
+  for (int i = 0; i < 2; ++i) {
+    const Eigen::RowVector3d expected = p.row(i) * A.transpose() + b;
+    EXPECT_LT((up.row(i) - expected).norm(), 1e-15);
+  }
+}
+
+TEST(PointEmbedding, PointOutsideTheMeshIsAClearError) {
+  const TetMesh m = cubeMesh(0.02);
+  Points p(1, 3);
+  p << 0.025, 0.01, 0.01;  // 5 mm beyond the x = 20 mm face
+  try {
+    PointEmbedding e(m, p, {"lesion_1"});
+    FAIL() << "expected an error";
+  } catch (const std::invalid_argument& ex) {
+    const std::string what = ex.what();
+    EXPECT_NE(what.find("lesion_1"), std::string::npos) << what;
+    EXPECT_NE(what.find("5 mm outside"), std::string::npos) << what;
+  }
+}
+
+TEST(PointEmbedding, PointJustOutsideIsSnappedWithinTolerance) {
+  const TetMesh m = cubeMesh(0.02);
+  Points p(1, 3);
+  p << 0.0203, 0.01, 0.01;  // 0.3 mm outside
+  const PointEmbedding e(m, p, {"near_skin"}, 1e-3);
+  EXPECT_NEAR(e.points()[0].outside_distance_m, 3e-4, 1e-9);
+  const Points q = e.positions(m.nodes());
+  EXPECT_NEAR(q(0, 0), 0.02, 1e-12);  // projected onto the face
+}

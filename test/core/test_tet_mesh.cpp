@@ -1,0 +1,143 @@
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/mesh/tet_quality.h"
+
+using namespace breast_sim::core;
+
+namespace {
+
+// Unit cube [0,1]³ (scaled by `h` metres) split into 6 tetrahedra around the diagonal 0–6.
+TetMesh cubeMesh(double h = 1.0) {
+  Points x(8, 3);
+  for (int i = 0; i < 8; ++i) x.row(i) << h * (i & 1), h * ((i >> 1) & 1), h * ((i >> 2) & 1);
+  Tets t(6, 4);
+  t << 0, 1, 3, 7,  0, 1, 7, 5,  0, 5, 7, 4,  0, 3, 2, 7,  0, 2, 6, 7,  0, 6, 4, 7;
+  return TetMesh(x, t, {1, 1, 1, 2, 2, 2});
+}
+
+Eigen::Vector3d regular(int i) {
+  const Eigen::Vector3d v[4] = {{1, 1, 1}, {1, -1, -1}, {-1, 1, -1}, {-1, -1, 1}};
+  return v[i];
+}
+
+}  // namespace
+
+TEST(TetMesh, ConstructorMakesEveryTetrahedronPositive) {
+  const TetMesh m = cubeMesh();
+  for (int t = 0; t < m.numTets(); ++t) {
+    SCOPED_TRACE("tet " + std::to_string(t));
+    EXPECT_GT(signedTetVolume(m.nodes().row(m.tets()(t, 0)), m.nodes().row(m.tets()(t, 1)),
+                              m.nodes().row(m.tets()(t, 2)), m.nodes().row(m.tets()(t, 3))), 0.0);
+  }
+  EXPECT_NEAR(m.volume(), 1.0, 1e-14);
+}
+
+TEST(TetMesh, CubeBoundaryIsClosedWithOutwardNormals) {
+  const TetMesh m = cubeMesh(0.01);
+  const BoundarySurface& b = m.boundary();
+  EXPECT_EQ(b.triangles.rows(), 12);  // two triangles per cube face
+  EXPECT_TRUE(isClosedManifold(b.triangles));
+  EXPECT_EQ(b.nodes.size(), 8u);
+  const Eigen::Vector3d centre(0.005, 0.005, 0.005);
+  for (Eigen::Index f = 0; f < b.triangles.rows(); ++f) {
+    const Eigen::Vector3d c = (m.nodes().row(b.triangles(f, 0)) + m.nodes().row(b.triangles(f, 1)) +
+                               m.nodes().row(b.triangles(f, 2))).transpose() / 3.0;
+    EXPECT_GT((c - centre).dot(b.normals.row(f).transpose()), 0.0) << "face " << f;
+    EXPECT_NEAR(b.normals.row(f).norm(), 1.0, 1e-12);
+  }
+  // Divergence theorem: the boundary encloses the mesh volume.
+  double vol = 0;
+  for (Eigen::Index f = 0; f < b.triangles.rows(); ++f)
+    vol += signedTetVolume(Eigen::Vector3d::Zero(), m.nodes().row(b.triangles(f, 0)),
+                           m.nodes().row(b.triangles(f, 1)), m.nodes().row(b.triangles(f, 2)));
+  EXPECT_NEAR(vol, m.volume(), 1e-15);
+}
+
+TEST(TetMesh, OpenSurfaceIsNotClosed) {
+  Triangles tris(2, 3);
+  tris << 0, 1, 2, 0, 2, 3;
+  EXPECT_FALSE(isClosedManifold(tris));
+  Triangles twice(2, 3);
+  twice << 0, 1, 2, 0, 1, 2;  // same orientation twice: not a consistent closed surface
+  EXPECT_FALSE(isClosedManifold(twice));
+}
+
+TEST(TetMesh, RejectsBadInputWithAClearMessage) {
+  Points x(4, 3);
+  x << 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1;
+  Tets out_of_range(1, 4);
+  out_of_range << 0, 1, 2, 4;
+  try {
+    TetMesh m(x, out_of_range);
+    FAIL() << "expected an error";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("node 4"), std::string::npos) << e.what();
+  }
+  Tets repeated(1, 4);
+  repeated << 0, 1, 2, 2;
+  EXPECT_THROW(TetMesh(x, repeated), std::invalid_argument);
+  Points flat = x;
+  flat(3, 2) = 0.0;  // coplanar
+  Tets ok(1, 4);
+  ok << 0, 1, 2, 3;
+  EXPECT_THROW(TetMesh(flat, ok), std::invalid_argument);
+  Points nan = x;
+  nan(2, 1) = std::nan("");
+  EXPECT_THROW(TetMesh(nan, ok), std::invalid_argument);
+  EXPECT_THROW(TetMesh(x, ok, {1, 2}), std::invalid_argument);
+}
+
+TEST(TetMesh, NodeSetsAreSortedUniqueAndValidated) {
+  TetMesh m = cubeMesh();
+  m.setNodeSet("chest_wall", {3, 1, 1, 0});
+  EXPECT_EQ(m.nodeSet("chest_wall"), (std::vector<int>{0, 1, 3}));
+  EXPECT_THROW(m.setNodeSet("skin", {8}), std::invalid_argument);
+  EXPECT_THROW(m.setNodeSet("", {1}), std::invalid_argument);
+  try {
+    m.nodeSet("nipple");
+    FAIL();
+  } catch (const std::out_of_range& e) {
+    EXPECT_NE(std::string(e.what()).find("chest_wall"), std::string::npos) << e.what();
+  }
+}
+
+TEST(TetQuality, RegularTetrahedronIsIdeal) {
+  const TetQuality q = tetQuality(regular(0), regular(1), regular(2), regular(3));
+  EXPECT_NEAR(q.aspect_ratio, 1.0, 1e-12);
+  EXPECT_NEAR(q.min_dihedral_deg, std::acos(1.0 / 3.0) * 180.0 / M_PI, 1e-9);
+  EXPECT_NEAR(std::abs(q.volume_m3), 8.0 / 3.0, 1e-12);
+}
+
+TEST(TetQuality, SliverHasSmallDihedralAndLargeAspectRatio) {
+  // Four nearly coplanar points on a square: the classic sliver.
+  const TetQuality q = tetQuality({0, 0, 0}, {1, 0, 0}, {1, 1, 1e-3}, {0, 1, 0});
+  EXPECT_LT(q.min_dihedral_deg, 1.0);
+  EXPECT_GT(q.aspect_ratio, 100.0);
+}
+
+TEST(TetQuality, QualityIsScaleInvariant) {
+  const TetQuality a = tetQuality({0, 0, 0}, {1, 0, 0}, {0.3, 1, 0}, {0.2, 0.4, 0.8});
+  const TetQuality b = tetQuality({0, 0, 0}, {1e-3, 0, 0}, {0.3e-3, 1e-3, 0}, {0.2e-3, 0.4e-3, 0.8e-3});
+  EXPECT_NEAR(a.aspect_ratio, b.aspect_ratio, 1e-9);
+  EXPECT_NEAR(a.min_dihedral_deg, b.min_dihedral_deg, 1e-9);
+  EXPECT_NEAR(a.volume_m3 * 1e-9, b.volume_m3, 1e-20);
+}
+
+TEST(TetQuality, InvertedElementsAreDetected) {
+  const TetMesh m = cubeMesh();
+  EXPECT_TRUE(invertedTets(m.tets(), m.nodes()).empty());
+  Points moved = m.nodes();
+  moved(7, 0) = -2.0;  // push the far corner through the opposite faces
+  moved(7, 1) = -2.0;
+  moved(7, 2) = -2.0;
+  const auto bad = invertedTets(m.tets(), moved);
+  EXPECT_FALSE(bad.empty());
+  const QualityStats s = qualityStats(m.tets(), moved);
+  EXPECT_EQ(s.num_inverted, static_cast<int>(bad.size()));
+  const QualityStats rest = qualityStats(m.tets(), m.nodes());
+  EXPECT_EQ(rest.num_inverted, 0);
+  EXPECT_NEAR(rest.total_volume_m3, 1.0, 1e-14);
+}
