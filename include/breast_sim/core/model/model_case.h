@@ -1,0 +1,63 @@
+#pragma once
+/// @file model_case.h
+/// A case: where the tissue comes from (the built-in phantom or a label image), its lesions and how
+/// to mesh it; and the simulation model built from it.
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "breast_sim/core/image/label_image.h"
+#include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/mesh/tet_quality.h"
+#include "breast_sim/core/model/image_mesher.h"
+#include "breast_sim/core/model/point_embedding.h"
+#include "breast_sim/core/model/tissue_labels.h"
+
+namespace breast_sim::core {
+
+struct Phantom;  // model/phantom.h
+
+/// Everything needed to build a simulation model.
+struct ModelCase {
+  std::string name;                        ///< case name (file stem)
+  std::string source_path;                 ///< the YAML file it came from, if any
+  LabelImage image;                        ///< the prone segmentation
+  TissueLabels labels;                     ///< which label values are which tissue
+  std::vector<Lesion> lesions;             ///< lesions in the prone image [m]
+  std::vector<Eigen::Vector3d> nipples_m;  ///< nipple points [m] (may be empty)
+  MeshingOptions meshing;
+  double lesion_snap_tolerance_m = 2e-3;   ///< a lesion this close outside the mesh is snapped onto it [m]
+  std::shared_ptr<const Phantom> phantom;  ///< set when the case is the software phantom
+};
+
+/// Loads a YAML case file. Top-level maps:
+///  - `phantom:` the software phantom's parameters (model/phantom.h), or
+///  - `image:` {path (relative to the YAML file), labels: {fat: [...], fibroglandular: [...], skin:
+///    [...], lesion: [...], chest_wall: [...]}, nipples_mm: [[x, y, z], ...]};
+///  - `lesions:` optional list of {name, position_mm: [x, y, z], radius_mm} (LPS patient space, mm),
+///    added to the phantom's own lesions;
+///  - `meshing:` {target_elements, interior_size_mm, skin_size_factor, grading_distance_mm,
+///    lesion_size_factor, lesion_grading_distance_mm, facet_angle_deg, facet_distance_mm,
+///    cell_radius_edge_ratio, perturb, exude, lesion_snap_tolerance_mm}.
+/// Other top-level maps are left to later stages (simulation, sliding, …).
+/// @throws std::runtime_error naming the file, the key and what is expected.
+ModelCase loadModelCase(const std::string& yaml_path);
+
+/// The simulation model: the tissue mesh with its node sets and the embedded lesions.
+struct SimulationModel {
+  TetMesh mesh;                  ///< node sets: chest_wall, skin, nipple (if nipples given)
+  std::vector<Lesion> lesions;
+  PointEmbedding lesion_embedding;
+  MeshingReport meshing;
+  QualityStats quality;
+};
+
+/// Meshes the case's image and embeds its lesions. The nipple node set holds the skin node nearest
+/// each nipple point.
+/// @throws as meshLabelImage and PointEmbedding do; messages name the case.
+SimulationModel buildSimulationModel(const ModelCase& model_case);
+
+}  // namespace breast_sim::core
