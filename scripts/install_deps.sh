@@ -9,7 +9,7 @@ PACKAGES=(
   # core numerics and science libraries
   libeigen3-dev libsuitesparse-dev libopenblas0-pthread libopenblas-pthread-dev
   libcgal-dev libgmp-dev libmpfr-dev libboost-dev libboost-program-options-dev
-  libvtk9-dev libpcl-dev libopencv-dev libyaml-cpp-dev zlib1g-dev
+  libvtk9-dev libpcl-dev libopencv-dev libyaml-cpp-dev zlib1g-dev nlohmann-json3-dev
   libgtest-dev googletest
   # ROS 1 (Debian ships it into /usr)
   ros-core-dev catkin python3-catkin-pkg python3-rostest librostest-dev

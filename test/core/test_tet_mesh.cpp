@@ -105,10 +105,14 @@ TEST(TetMesh, NodeSetsAreSortedUniqueAndValidated) {
 }
 
 TEST(TetQuality, RegularTetrahedronIsIdeal) {
-  const TetQuality q = tetQuality(regular(0), regular(1), regular(2), regular(3));
+  const TetQuality q = tetQuality(regular(0), regular(1), regular(3), regular(2));  // positive order
+  EXPECT_GT(q.volume_m3, 0.0);
   EXPECT_NEAR(q.aspect_ratio, 1.0, 1e-12);
   EXPECT_NEAR(q.min_dihedral_deg, std::acos(1.0 / 3.0) * 180.0 / M_PI, 1e-9);
-  EXPECT_NEAR(std::abs(q.volume_m3), 8.0 / 3.0, 1e-12);
+  EXPECT_NEAR(q.volume_m3, 8.0 / 3.0, 1e-12);
+  const TetQuality inverted = tetQuality(regular(0), regular(1), regular(2), regular(3));
+  EXPECT_LT(inverted.volume_m3, 0.0);
+  EXPECT_EQ(inverted.min_dihedral_deg, 0.0);  // meaningless for an inverted element: reported as 0
 }
 
 TEST(TetQuality, SliverHasSmallDihedralAndLargeAspectRatio) {

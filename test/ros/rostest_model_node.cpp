@@ -2,6 +2,7 @@
 // bad case is refused with a reason while the last good model stays published.
 #include <gtest/gtest.h>
 #include <ros/ros.h>
+#include <ros/topic.h>
 
 #include <breast_sim/LesionArray.h>
 #include <breast_sim/LoadCase.h>

@@ -1,0 +1,101 @@
+#pragma once
+/// @file image_io_detail.h
+/// Internal helpers shared by the label-image readers and writers (label_image.cpp, nrrd_io.cpp,
+/// metaimage_io.cpp, nifti_io.cpp). Not part of the public API: include label_image.h instead.
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "breast_sim/core/image/label_image.h"
+
+namespace breast_sim::core::image_io {
+
+/// Throws std::runtime_error("<path>: <what>").
+[[noreturn]] void fail(const std::string& path, const std::string& what);
+
+/// Voxel value types found in image files.
+enum class ScalarType { kUint8, kInt8, kUint16, kInt16, kUint32, kInt32, kUint64, kInt64, kFloat32,
+                        kFloat64 };
+/// Bytes per value.
+std::size_t scalarSize(ScalarType type);
+/// "uint8", "int16", "float", … (for messages).
+const char* scalarName(ScalarType type);
+
+// ---- text -----------------------------------------------------------------------------------------
+std::string toLower(std::string s);
+std::string trim(const std::string& s);
+/// Case-insensitive suffix test.
+bool endsWith(const std::string& s, const std::string& suffix);
+/// Whitespace-separated tokens.
+std::vector<std::string> splitWords(const std::string& s);
+/// Whole-string number parses; false on any trailing character or an empty string.
+bool parseDouble(const std::string& s, double& value);
+bool parseLong(const std::string& s, long& value);
+/// Shortest round-trip-safe decimal text of v (up to 15 significant digits, so 0.5 prints "0.5").
+std::string formatNumber(double v);
+
+// ---- files ----------------------------------------------------------------------------------------
+/// Whole file as bytes. @throws via fail() when it cannot be opened or read.
+std::string readFileBytes(const std::string& path);
+/// Whole file, gunzipped if it is gzip (zlib's transparent gzread). A truncated gzip stream
+/// returns the bytes decoded so far; corrupt data throws.
+std::string readFileMaybeGzipped(const std::string& path);
+/// Writes bytes, replacing the file. @throws via fail().
+void writeFileBytes(const std::string& path, const std::string& bytes);
+/// `name` relative to the directory of `header_path`, unless `name` is absolute.
+std::string siblingPath(const std::string& header_path, const std::string& name);
+/// File name without directory and without `ext` (which `path` is known to end with).
+std::string stemOf(const std::string& path, const std::string& ext);
+
+// ---- compression ----------------------------------------------------------------------------------
+/// Inflates a gzip or zlib stream (detected from its header; concatenated gzip members are
+/// followed). Stops after `max_bytes` output bytes. A stream that ends early returns what was
+/// decoded (the caller reports the byte counts); corrupt data throws via fail() naming `path`.
+std::string inflateBytes(const char* data, std::size_t n, std::size_t max_bytes,
+                         const std::string& path);
+enum class Wrapper { kGzip, kZlib };
+/// Deflates at zlib's default level with a gzip or zlib wrapper.
+std::string deflateBytes(const std::string& data, Wrapper wrapper);
+
+// ---- voxel values ---------------------------------------------------------------------------------
+/// Converts size.prod() binary values to labels (value · slope + inter when slope ≠ 1 or
+/// inter ≠ 0). @throws via fail() naming the value and voxel (i, j, k) when a value is not an
+/// integer in [0, 65535].
+void decodeLabels(const char* bytes, ScalarType type, bool big_endian, const Eigen::Vector3i& size,
+                  const std::string& path, std::vector<std::uint16_t>& labels, double slope = 1.0,
+                  double inter = 0.0);
+/// Parses size.prod() whitespace- (or comma-) separated numbers into labels, with the checks of
+/// decodeLabels and a count check.
+void decodeAsciiLabels(const char* begin, const char* end, const Eigen::Vector3i& size,
+                       const std::string& path, std::vector<std::uint16_t>& labels);
+/// uint8 when every label is ≤ 255, else uint16.
+ScalarType narrowestLabelType(const LabelImage& image);
+/// Labels as little-endian uint8 or uint16 bytes.
+std::string encodeLabels(const LabelImage& image, ScalarType type);
+bool hostIsBigEndian();
+
+// ---- geometry -------------------------------------------------------------------------------------
+/// Splits axis vectors (columns, any length unit) into lengths and an orthonormal direction
+/// (re-orthonormalised to machine precision). Returns false when the axes are not orthogonal
+/// within 1e-4 (cosine); throws via fail() naming `what` when an axis is zero or not finite.
+bool splitAxes(const Eigen::Matrix3d& axes, const std::string& path, const std::string& what,
+               Eigen::Vector3d& lengths, Eigen::Matrix3d& direction);
+/// Largest |cosine| between two axis columns, and which pair.
+double largestAxisCosine(const Eigen::Matrix3d& axes, int& a, int& b);
+/// MetaImage/ITK "AnatomicalOrientation" letters of an LPS direction ("RAI" for identity), or
+/// "???" when an axis is oblique.
+std::string anatomicalOrientation(const Eigen::Matrix3d& direction);
+
+// ---- formats --------------------------------------------------------------------------------------
+LabelImage readNrrd(const std::string& path);
+void writeNrrd(const std::string& path, const LabelImage& image);
+LabelImage readMetaImage(const std::string& path);
+void writeMetaImage(const std::string& path, const LabelImage& image);
+LabelImage readNifti(const std::string& path);
+void writeNifti(const std::string& path, const LabelImage& image);
+
+}  // namespace breast_sim::core::image_io

@@ -1,0 +1,277 @@
+#pragma once
+/// @file mesh_io.h
+/// Reading and writing tetrahedral meshes: Gmsh MSH 2.2 / 4.1 (ASCII and binary), VTK XML `.vtu` and
+/// legacy `.vtk` unstructured grids, TetGen `.node`/`.ele`, and Abaqus / CalculiX `.inp` (C3D4).
+///
+/// \note Units: a file's coordinates times `length_unit_m` are metres. Readers multiply by it, writers
+/// divide by it (1.0 for files in metres, 1e-3 for files in millimetres).
+/// \note Orientation: tetrahedra come back positively oriented whatever their order in the file,
+/// because TetMesh's constructor swaps the last two nodes of negatively oriented ones. Writers write
+/// the mesh's (positive) order.
+/// \note Order: nodes keep their order in the file. Tetrahedra are sorted by their element number where
+/// the format numbers them (.msh, .inp, .ele), which undoes the grouping by region some writers do.
+/// Nodes no tetrahedron uses (e.g. those of skipped surface elements) are kept.
+/// \note Errors: a malformed file raises std::runtime_error whose message starts with the path and
+/// the place, then says what is wrong: "mesh.msh:12: expected 4 node indices for element 7, got 3"
+/// for text, "mesh.msh: byte 1234: …" for binary data, "mesh.vtu: …" for files read by VTK (which
+/// reports no place). A file that cannot be opened or written raises std::runtime_error naming it.
+
+#include <cstddef>
+#include <cstring>
+#include <string>
+#include <string_view>
+#include <unordered_map>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "breast_sim/core/mesh/tet_mesh.h"
+
+namespace breast_sim::core {
+
+/// A named array attached to the points or the cells of a mesh, for visualization (ParaView, Slicer).
+struct MeshField {
+  std::string name;
+  /// #N×C for point data or #T×C for cell data; C components (1 = scalar, 3 = vector).
+  Eigen::MatrixXd values;
+  /// The values are lengths [m] (e.g. a displacement): writers divide them by `length_unit_m` like the
+  /// coordinates, so "Warp By Vector" with scale 1 shows the deformed shape. Other values are written
+  /// as they are.
+  bool is_length = false;
+};
+
+/// Fields written beside a mesh. Names must be non-empty and unique within point_data and within
+/// cell_data; "region" (cell) and "nodeset_*" (point) are reserved for the mesh's own data.
+struct MeshFields {
+  std::vector<MeshField> point_data;  ///< rows = #N
+  std::vector<MeshField> cell_data;   ///< rows = #T
+};
+
+/// Mesh file formats, chosen from the extension (case-insensitive).
+enum class MeshFileFormat {
+  kGmsh,       ///< .msh
+  kVtu,        ///< .vtu (VTK XML unstructured grid)
+  kVtkLegacy,  ///< .vtk (VTK legacy unstructured grid)
+  kTetGen,     ///< .node + .ele (either path)
+  kAbaqusInp,  ///< .inp
+};
+
+/// @throws std::runtime_error naming the path and the supported extensions when the extension is
+///         none of .msh .vtu .vtk .node .ele .inp.
+MeshFileFormat meshFileFormat(const std::string& path);
+
+enum class GmshVersion { kMsh22, kMsh41 };
+
+/// How to write a .msh file. The default (2.2 ASCII) is the one nearly every tool reads.
+struct GmshOptions {
+  GmshVersion version = GmshVersion::kMsh22;
+  bool binary = false;  ///< little-endian binary, as Gmsh writes on x86
+};
+
+/// How to write a .vtu / .vtk file.
+struct VtkOptions {
+  /// .vtu: appended raw data, zlib-compressed; .vtk: legacy binary. false writes ASCII (VTK then
+  /// prints coordinates with fewer digits than a double holds).
+  bool binary = true;
+};
+
+struct MeshWriteOptions {
+  GmshOptions gmsh;  ///< used for .msh only
+  VtkOptions vtk;    ///< used for .vtu and .vtk only
+};
+
+// ---- by extension ---------------------------------------------------------------------------------
+
+/// Reads a tetrahedral mesh, choosing the reader from the extension: .msh .vtu .vtk .node .ele .inp.
+/// @param length_unit_m  metres per file length unit (1e-3 for a file in mm); must be > 0
+/// @throws std::runtime_error for an unknown extension, an unreadable or malformed file
+TetMesh readTetMesh(const std::string& path, double length_unit_m = 1.0);
+
+/// Writes a tetrahedral mesh, choosing the writer from the extension.
+/// @param fields  point and cell data; only .vtu and .vtk can hold them
+/// @param length_unit_m  metres per file length unit; must be > 0
+/// @throws std::invalid_argument when fields are given for a format that cannot hold them or a field
+///         is malformed (naming it); std::runtime_error for an unknown extension or a failed write
+void writeTetMesh(const std::string& path, const TetMesh& mesh, const MeshFields& fields = {},
+                  double length_unit_m = 1.0, const MeshWriteOptions& options = {});
+
+// ---- Gmsh -----------------------------------------------------------------------------------------
+
+/// Reads Gmsh MSH 2.0–2.2 or 4.1, ASCII or binary (little-endian). Only 4-node tetrahedra (type 4)
+/// become elements; points, lines, triangles and other types are skipped.
+/// Region label of a tetrahedron: MSH 4.1: the first physical tag of its volume entity, or the
+/// entity tag when the entity has none; MSH 2.x: its first tag (physical), or its second
+/// (elementary) when the physical tag is 0, or 0 when it has no tags.
+/// Node sets: each *named* physical group ($PhysicalNames) of dimension 0, 1 or 2 becomes a node set
+/// holding the nodes of its elements. MSH 4.0 and 3.x are not supported.
+TetMesh readGmsh(const std::string& path, double length_unit_m = 1.0);
+
+/// Writes tetrahedra (type 4) with their region labels. MSH 2.2: tags (label, label); MSH 4.1: one
+/// volume entity per label, whose physical tag is the label. Node sets are not written.
+void writeGmsh(const std::string& path, const TetMesh& mesh, const GmshOptions& options = {},
+               double length_unit_m = 1.0);
+
+// ---- VTK ------------------------------------------------------------------------------------------
+
+/// Reads a VTK unstructured grid with the VTK library: XML (.vtu) or legacy (.vtk) by extension.
+/// Only VTK_TETRA cells become elements; other cells are skipped (their points are kept).
+/// Region labels come from the first integer-valued cell array named "region", "label" or
+/// "gmsh:physical" (0 if none). Point arrays "nodeset_<name>" become node sets (nodes with a
+/// non-zero value).
+/// @param fields  if not null, receives the other point arrays and the other cell arrays (restricted
+///                to the tetrahedra), as stored in the file (not scaled; is_length is false)
+TetMesh readVtkUnstructured(const std::string& path, double length_unit_m = 1.0,
+                            MeshFields* fields = nullptr);
+
+/// Writes a .vtu (XML) file for ParaView and 3D Slicer: points (double), VTK_TETRA cells, cell data
+/// "region" (Int32) and `fields.cell_data`, point data `fields.point_data` (Float64) and one Int32
+/// 0/1 array "nodeset_<name>" per node set. Rest positions are the points; show a deformation with
+/// a displacement field and "Warp By Vector".
+/// @throws std::invalid_argument naming a field whose row count is not #N (point) / #T (cell), whose
+///         name is empty, repeated or reserved, or that has no column
+void writeVtu(const std::string& path, const TetMesh& mesh, const MeshFields& fields = {},
+              double length_unit_m = 1.0, const VtkOptions& options = {});
+
+/// Same content as writeVtu, in the legacy .vtk format.
+void writeVtkLegacy(const std::string& path, const TetMesh& mesh, const MeshFields& fields = {},
+                    double length_unit_m = 1.0, const VtkOptions& options = {});
+
+// ---- TetGen ---------------------------------------------------------------------------------------
+
+/// Reads a TetGen pair `<base>.node` + `<base>.ele`; `path` may name either. Node numbers may start at
+/// 0 or 1 (any numbering in fact: .ele refers to the numbers of .node). The first element attribute,
+/// if any, is the region label (it must be an integer). '#' starts a comment. Only 4-node elements
+/// are supported (a 10-node .ele is rejected).
+TetMesh readTetGen(const std::string& path, double length_unit_m = 1.0);
+
+/// Writes `<base>.node` (1-based, no attributes or markers) and `<base>.ele` (4 nodes, the region
+/// label as the one attribute); `path` may name either file. Node sets are not written.
+void writeTetGen(const std::string& path, const TetMesh& mesh, double length_unit_m = 1.0);
+
+// ---- Abaqus / CalculiX ----------------------------------------------------------------------------
+
+/// Reads an Abaqus / CalculiX input file: *NODE, *ELEMENT with TYPE=C3D4 (other element types'
+/// data lines are skipped), *NSET (ids, names of earlier sets, or GENERATE) and *ELSET.
+/// Keywords and parameters are case-insensitive; lines starting with "**" are comments; other
+/// keywords are skipped with their data lines; *INCLUDE is not supported.
+/// Region label from the element set (ELSET= of *ELEMENT, or a later *ELSET listing the element):
+/// the integer the name ends with ("REGION_29" → 29, "EB-3" → 3, "R_-2" → −2), otherwise the 1-based
+/// rank of the name among the distinct element-set names in order of appearance; 0 without a set.
+/// Node sets: every *NSET, and NSET= of *NODE, under its name as written.
+TetMesh readAbaqusInp(const std::string& path, double length_unit_m = 1.0);
+
+/// Writes *NODE (1-based), one "*ELEMENT, TYPE=C3D4, ELSET=REGION_<label>" block per label
+/// (element number = tet index + 1), and one *NSET per node set.
+void writeAbaqusInp(const std::string& path, const TetMesh& mesh, double length_unit_m = 1.0);
+
+// ---------------------------------------------------------------------------------------------------
+/// Internal helpers shared by the readers and writers (mesh_io.cpp, gmsh_io.cpp, vtk_mesh_io.cpp,
+/// tetgen_io.cpp, abaqus_io.cpp). Not part of the public API.
+namespace mesh_io_detail {
+
+/// A whole file in memory with a read position, for text and binary parsing in linear time.
+/// Errors name the path and the line (text) or byte offset (binary) of a position.
+class FileCursor {
+ public:
+  /// Reads the whole file. @throws std::runtime_error naming the path if it cannot be read.
+  explicit FileCursor(std::string path);
+
+  const std::string& path() const { return path_; }
+  const std::string& data() const { return data_; }
+  std::size_t pos() const { return pos_; }
+  void setPos(std::size_t pos) { pos_ = pos; }
+  bool atEnd() const { return pos_ >= data_.size(); }
+  /// 1-based line number of a byte position.
+  int lineAt(std::size_t pos) const;
+
+  /// Throws "<path>:<line of pos>: <what>".
+  [[noreturn]] void failAtLine(std::size_t pos, const std::string& what) const;
+  /// Throws "<path>:<line of the read position>: <what>".
+  [[noreturn]] void fail(const std::string& what) const { failAtLine(pos_, what); }
+  /// Throws "<path>: byte <offset>: <what>".
+  [[noreturn]] void failAtByte(std::size_t offset, const std::string& what) const;
+
+  // ---- text
+  /// Skips spaces, tabs, carriage returns and newlines.
+  void skipWhitespace();
+  /// Next whitespace-separated token (skipping whitespace first); empty at the end of the file.
+  std::string_view token();
+  /// The rest of the current line without its line break; moves past the line break.
+  std::string_view line();
+  /// Whole-token number parses; fail() with "expected <what>, got '<token>'" otherwise.
+  long long integerToken(const char* what);
+  double realToken(const char* what);
+
+  // ---- binary
+  /// Reads sizeof(T) bytes in host (little-endian) order; failAtByte() with "truncated: expected
+  /// <what>" when the file ends before.
+  template <typename T>
+  T binary(const char* what) {
+    requireBytes(sizeof(T), what);
+    T v;
+    std::memcpy(&v, data_.data() + pos_, sizeof(T));
+    pos_ += sizeof(T);
+    return v;
+  }
+  /// Fails unless `n` more bytes are present.
+  void requireBytes(std::size_t n, const char* what) const;
+
+ private:
+  std::string path_;
+  std::string data_;
+  std::size_t pos_ = 0;
+};
+
+/// Whole-string number parses of a token (no surrounding whitespace allowed).
+bool parseInteger(std::string_view s, long long& value);
+bool parseReal(std::string_view s, double& value);
+/// Splits a line into tokens: on whitespace, or when `commas` is true on commas (each token then
+/// trimmed of whitespace; an empty field between two commas is kept empty, a trailing comma adds none).
+void splitTokens(std::string_view line, bool commas, std::vector<std::string_view>& out);
+
+/// Maps file node numbers to 0-based indices: a dense table for numbers below a bound that grows
+/// with the count, a hash map beyond, so reading stays linear for any numbering.
+class NumberMap {
+ public:
+  /// false if `number` was already present.
+  bool insert(long long number, int index);
+  /// -1 when absent.
+  int find(long long number) const {
+    if (number >= 0 && number < static_cast<long long>(dense_.size()) && dense_[number] >= 0)
+      return dense_[number];
+    if (sparse_.empty()) return -1;
+    auto it = sparse_.find(number);
+    return it == sparse_.end() ? -1 : it->second;
+  }
+
+ private:
+  std::vector<int> dense_;
+  std::unordered_map<long long, int> sparse_;
+  std::size_t count_ = 0;
+};
+
+/// Shortest decimal text that reads back to exactly the same double.
+void appendReal(std::string& out, double v);
+void appendInteger(std::string& out, long long v);
+/// Appends the bytes of a trivially copyable value.
+template <typename T>
+void appendBinary(std::string& out, const T& v) {
+  out.append(reinterpret_cast<const char*>(&v), sizeof(T));
+}
+/// Writes bytes, replacing the file. @throws std::runtime_error naming the path.
+void writeFile(const std::string& path, const std::string& bytes);
+
+/// @throws std::invalid_argument unless length_unit_m is finite and > 0.
+void checkLengthUnit(double length_unit_m, const char* function);
+/// Builds the mesh, turning TetMesh's std::invalid_argument into std::runtime_error("<path>: …").
+TetMesh makeMesh(const std::string& path, Points nodes_m, Tets tets, std::vector<int> labels);
+/// Adds a node set, likewise turning std::invalid_argument into std::runtime_error("<path>: …").
+void addNodeSet(const std::string& path, TetMesh& mesh, const std::string& name,
+                std::vector<int> nodes);
+/// Sorts tets and labels together by element number when not already sorted; fails (naming the path)
+/// on a repeated number.
+void sortByElementNumber(const std::string& path, std::vector<long long>& numbers, Tets& tets,
+                         std::vector<int>& labels);
+
+}  // namespace mesh_io_detail
+}  // namespace breast_sim::core

@@ -1,0 +1,391 @@
+// Abaqus / CalculiX .inp reader and writer for linear tetrahedra (C3D4).
+// Format reference: Abaqus Keywords Reference (*NODE, *ELEMENT, *NSET, *ELSET); CalculiX CrunchiX
+// User's Manual, section 7 "Input deck format".
+
+#include <algorithm>
+#include <cctype>
+#include <limits>
+#include <map>
+#include <stdexcept>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "breast_sim/core/mesh/mesh_io.h"
+
+namespace breast_sim::core {
+namespace {
+
+using mesh_io_detail::appendInteger;
+using mesh_io_detail::appendReal;
+using mesh_io_detail::FileCursor;
+
+std::string upper(std::string_view s) {
+  std::string u(s);
+  std::transform(u.begin(), u.end(), u.begin(), [](unsigned char c) { return static_cast<char>(std::toupper(c)); });
+  return u;
+}
+
+std::string_view trim(std::string_view s) {
+  while (!s.empty() && std::isspace(static_cast<unsigned char>(s.front()))) s.remove_prefix(1);
+  while (!s.empty() && std::isspace(static_cast<unsigned char>(s.back()))) s.remove_suffix(1);
+  return s;
+}
+
+struct Keyword {
+  std::string name;                           // upper case, without '*'
+  std::map<std::string, std::string> params;  // upper-case key → value as written (flags map to "")
+};
+
+Keyword parseKeyword(std::string_view line) {
+  std::vector<std::string_view> fields;
+  mesh_io_detail::splitTokens(line.substr(1), true, fields);
+  Keyword kw;
+  if (fields.empty()) return kw;
+  kw.name = upper(fields[0]);
+  for (std::size_t i = 1; i < fields.size(); ++i) {
+    const std::size_t eq = fields[i].find('=');
+    std::string key = upper(trim(fields[i].substr(0, eq)));
+    std::string value = eq == std::string_view::npos ? "" : std::string(trim(fields[i].substr(eq + 1)));
+    if (value.size() >= 2 && value.front() == '"' && value.back() == '"') value = value.substr(1, value.size() - 2);
+    if (!key.empty()) kw.params[key] = value;
+  }
+  return kw;
+}
+
+/// "REGION_29" → 29, "EB-3" → 3, "R_-2" → −2 (a '-' counts as a sign only after '_' or at the start).
+bool integerSuffix(const std::string& name, int& value) {
+  std::size_t start = name.size();
+  while (start > 0 && std::isdigit(static_cast<unsigned char>(name[start - 1]))) --start;
+  const std::size_t digits = name.size() - start;
+  if (digits == 0 || digits > 9) return false;
+  long long v = std::stoll(name.substr(start));
+  if (start > 0 && name[start - 1] == '-' && (start == 1 || name[start - 2] == '_')) v = -v;
+  value = static_cast<int>(v);
+  return true;
+}
+
+class InpReader {
+ public:
+  InpReader(const std::string& path, double unit) : f_(path), unit_(unit) {}
+
+  TetMesh read() {
+    while (!f_.atEnd()) {
+      const std::size_t pos = f_.pos();
+      const std::string_view line = trim(f_.line());
+      if (line.empty() || line.substr(0, 2) == "**") continue;
+      if (line.front() == '*') {
+        if (!pending_.empty()) failPendingElement();
+        keyword(parseKeyword(line), pos);
+      } else {
+        data(line, pos);
+      }
+    }
+    if (!pending_.empty()) failPendingElement();
+    return build();
+  }
+
+ private:
+  enum class Mode { kNone, kSkip, kNode, kTet, kNset, kElset };
+
+  void keyword(const Keyword& kw, std::size_t pos) {
+    auto param = [&](const char* key) -> const std::string* {
+      auto it = kw.params.find(key);
+      return it == kw.params.end() ? nullptr : &it->second;
+    };
+    generate_ = param("GENERATE") != nullptr;
+    if (kw.name == "NODE") {
+      mode_ = Mode::kNode;
+      const std::string* nset = param("NSET");
+      current_nset_ = nset && !nset->empty() ? &nsets_[*nset] : nullptr;
+    } else if (kw.name == "ELEMENT") {
+      const std::string* type = param("TYPE");
+      if (!type || type->empty()) f_.failAtLine(pos, "*ELEMENT without TYPE=");
+      if (upper(*type) != "C3D4") {
+        mode_ = Mode::kSkip;
+        skipped_types_.push_back(*type);
+        return;
+      }
+      mode_ = Mode::kTet;
+      const std::string* elset = param("ELSET");
+      current_label_ = elset && !elset->empty() ? labelFor(*elset) : 0;
+      current_labelled_ = elset && !elset->empty();
+      current_elset_ = current_labelled_ ? &elset_members_[*elset] : nullptr;
+    } else if (kw.name == "NSET") {
+      const std::string* name = param("NSET");
+      if (!name || name->empty()) f_.failAtLine(pos, "*NSET without NSET=");
+      mode_ = Mode::kNset;
+      current_nset_ = &nsets_[*name];
+    } else if (kw.name == "ELSET") {
+      const std::string* name = param("ELSET");
+      if (!name || name->empty()) f_.failAtLine(pos, "*ELSET without ELSET=");
+      mode_ = Mode::kElset;
+      elset_assignments_.push_back({labelFor(*name), {}});
+      current_elset_ = &elset_members_[*name];
+    } else if (kw.name == "INCLUDE") {
+      f_.failAtLine(pos, "*INCLUDE is not supported; merge the included file into this one");
+    } else {
+      mode_ = Mode::kSkip;  // *HEADING, *MATERIAL, *STEP, … and their data lines
+    }
+  }
+
+  int labelFor(const std::string& name) {
+    auto it = elset_label_.find(name);
+    if (it != elset_label_.end()) return it->second;
+    int label = static_cast<int>(elset_label_.size()) + 1;  // rank in order of appearance
+    integerSuffix(name, label);
+    elset_label_.emplace(name, label);
+    return label;
+  }
+
+  long long integer(std::string_view t, std::size_t pos, const char* what) const {
+    long long v = 0;
+    if (!mesh_io_detail::parseInteger(t, v)) f_.failAtLine(pos, std::string("expected ") + what + ", got '" + std::string(t) + "'");
+    return v;
+  }
+
+  void data(std::string_view line, std::size_t pos) {
+    switch (mode_) {
+      case Mode::kNone: f_.failAtLine(pos, "data line before any keyword");
+      case Mode::kSkip: return;
+      case Mode::kNode: return nodeLine(line, pos);
+      case Mode::kTet: return elementLine(line, pos);
+      case Mode::kNset:
+      case Mode::kElset: return setLine(line, pos);
+    }
+  }
+
+  void nodeLine(std::string_view line, std::size_t pos) {
+    mesh_io_detail::splitTokens(line, true, tokens_);
+    const long long number = integer(tokens_[0], pos, "a node number");
+    double x[3] = {0, 0, 0};  // omitted coordinates are 0 in Abaqus
+    for (std::size_t k = 0; k < 3 && k + 1 < tokens_.size(); ++k) {
+      if (tokens_[k + 1].empty()) continue;
+      if (!mesh_io_detail::parseReal(tokens_[k + 1], x[k])) {
+        f_.failAtLine(pos, "expected a coordinate of node " + std::to_string(number) + ", got '" +
+                               std::string(tokens_[k + 1]) + "'");
+      }
+    }
+    const int index = static_cast<int>(xyz_.size() / 3);
+    if (!node_index_.insert(number, index)) f_.failAtLine(pos, "node " + std::to_string(number) + " is defined twice");
+    for (double v : x) xyz_.push_back(v * unit_);
+    if (current_nset_) current_nset_->push_back({number, pos});
+  }
+
+  void elementLine(std::string_view line, std::size_t pos) {
+    // A line ending in a comma continues on the next one.
+    const bool continues = line.back() == ',';
+    if (pending_.empty()) pending_pos_ = pos;
+    mesh_io_detail::splitTokens(line, true, tokens_);
+    for (std::string_view t : tokens_) {
+      if (!t.empty()) pending_.push_back(integer(t, pos, pending_.empty() ? "an element number" : "a node number"));
+    }
+    if (continues && pending_.size() < 5) return;
+    if (pending_.size() != 5) failPendingElement();
+    element_numbers_.push_back(pending_[0]);
+    element_nodes_.insert(element_nodes_.end(), pending_.begin() + 1, pending_.end());
+    element_pos_.push_back(pending_pos_);
+    element_labels_.push_back(current_label_);
+    element_labelled_.push_back(current_labelled_);
+    if (current_elset_) current_elset_->push_back(pending_[0]);
+    pending_.clear();
+  }
+
+  [[noreturn]] void failPendingElement() const {
+    f_.failAtLine(pending_pos_, "expected 4 node indices for C3D4 element " +
+                                    (pending_.empty() ? std::string("?") : std::to_string(pending_[0])) + ", got " +
+                                    std::to_string(pending_.empty() ? 0 : pending_.size() - 1));
+  }
+
+  void setLine(std::string_view line, std::size_t pos) {
+    mesh_io_detail::splitTokens(line, true, tokens_);
+    std::vector<long long> numbers;
+    if (generate_) {
+      if (tokens_.size() < 2 || tokens_.size() > 3) f_.failAtLine(pos, "expected 'first, last[, increment]' after GENERATE");
+      const long long first = integer(tokens_[0], pos, "the first number");
+      const long long last = integer(tokens_[1], pos, "the last number");
+      const long long step = tokens_.size() == 3 ? integer(tokens_[2], pos, "the increment") : 1;
+      if (step <= 0 || last < first || (last - first) / step > 100000000) {
+        f_.failAtLine(pos, "bad GENERATE range " + std::to_string(first) + ", " + std::to_string(last) + ", " +
+                               std::to_string(step));
+      }
+      for (long long v = first; v <= last; v += step) numbers.push_back(v);
+    } else {
+      for (std::string_view t : tokens_) {
+        if (t.empty()) continue;
+        long long v = 0;
+        if (mesh_io_detail::parseInteger(t, v)) {
+          numbers.push_back(v);
+          continue;
+        }
+        // The name of an earlier set of the same kind.
+        const std::string name(t);
+        if (mode_ == Mode::kNset) {
+          auto it = nsets_.find(name);
+          if (it == nsets_.end() || &it->second == current_nset_) {
+            f_.failAtLine(pos, "expected a node number or the name of an earlier node set, got '" + name + "'");
+          }
+          const auto copy = it->second;
+          current_nset_->insert(current_nset_->end(), copy.begin(), copy.end());
+        } else {
+          auto it = elset_members_.find(name);
+          if (it == elset_members_.end() || &it->second == current_elset_) {
+            f_.failAtLine(pos, "expected an element number or the name of an earlier element set, got '" + name + "'");
+          }
+          numbers.insert(numbers.end(), it->second.begin(), it->second.end());
+        }
+      }
+    }
+    if (mode_ == Mode::kNset) {
+      for (long long v : numbers) current_nset_->push_back({v, pos});
+    } else {
+      auto& members = elset_assignments_.back().second;
+      members.insert(members.end(), numbers.begin(), numbers.end());
+      current_elset_->insert(current_elset_->end(), numbers.begin(), numbers.end());
+    }
+  }
+
+  TetMesh build() {
+    const std::size_t t = element_numbers_.size();
+    if (t == 0) {
+      std::string skipped;
+      for (const auto& s : skipped_types_) skipped += (skipped.empty() ? "" : ", ") + s;
+      throw std::runtime_error(f_.path() + ": no C3D4 elements in the file" +
+                               (skipped.empty() ? std::string() : " (skipped element types: " + skipped + ")"));
+    }
+    const Eigen::Index n = static_cast<Eigen::Index>(xyz_.size() / 3);
+    Points nodes = Eigen::Map<const Points>(xyz_.data(), n, 3);
+    Tets tets(static_cast<Eigen::Index>(t), 4);
+    for (std::size_t e = 0; e < t; ++e) {
+      for (int k = 0; k < 4; ++k) {
+        const long long v = element_nodes_[4 * e + k];
+        const int index = node_index_.find(v);
+        if (index < 0) {
+          f_.failAtLine(element_pos_[e], "element " + std::to_string(element_numbers_[e]) + " refers to node " +
+                                             std::to_string(v) + ", which no *NODE line defines");
+        }
+        tets(static_cast<Eigen::Index>(e), k) = index;
+      }
+    }
+    // *ELSET blocks label the elements that no ELSET= of their *ELEMENT (nor an earlier *ELSET) labelled.
+    if (!elset_assignments_.empty()) {
+      mesh_io_detail::NumberMap element_index;
+      for (std::size_t e = 0; e < t; ++e) {
+        if (!element_index.insert(element_numbers_[e], static_cast<int>(e))) {
+          f_.failAtLine(element_pos_[e], "element " + std::to_string(element_numbers_[e]) + " is defined twice");
+        }
+      }
+      for (const auto& [label, members] : elset_assignments_) {
+        for (long long number : members) {
+          const int e = element_index.find(number);
+          if (e >= 0 && !element_labelled_[e]) {  // other numbers belong to skipped element types
+            element_labels_[e] = label;
+            element_labelled_[e] = true;
+          }
+        }
+      }
+    }
+    mesh_io_detail::sortByElementNumber(f_.path(), element_numbers_, tets, element_labels_);
+    TetMesh mesh = mesh_io_detail::makeMesh(f_.path(), std::move(nodes), std::move(tets), std::move(element_labels_));
+    for (const auto& [name, entries] : nsets_) {
+      std::vector<int> set;
+      set.reserve(entries.size());
+      for (const auto& [number, pos] : entries) {
+        const int index = node_index_.find(number);
+        if (index < 0) {
+          f_.failAtLine(pos, "node set '" + name + "' refers to node " + std::to_string(number) +
+                                 ", which no *NODE line defines");
+        }
+        set.push_back(index);
+      }
+      mesh_io_detail::addNodeSet(f_.path(), mesh, name, std::move(set));
+    }
+    return mesh;
+  }
+
+  FileCursor f_;
+  double unit_;
+  Mode mode_ = Mode::kNone;
+  bool generate_ = false;
+  std::vector<std::string_view> tokens_;
+
+  std::vector<double> xyz_;
+  mesh_io_detail::NumberMap node_index_;
+
+  std::vector<long long> element_numbers_;
+  std::vector<long long> element_nodes_;  // 4 node numbers per element, resolved at the end
+  std::vector<std::size_t> element_pos_;
+  std::vector<int> element_labels_;
+  std::vector<bool> element_labelled_;
+  std::vector<long long> pending_;  // element being read, possibly over several lines
+  std::size_t pending_pos_ = 0;
+  int current_label_ = 0;
+  bool current_labelled_ = false;
+  std::vector<std::string> skipped_types_;
+
+  std::map<std::string, int> elset_label_;
+  std::map<std::string, std::vector<long long>> elset_members_;
+  std::vector<long long>* current_elset_ = nullptr;
+  std::vector<std::pair<int, std::vector<long long>>> elset_assignments_;
+
+  // name → (node number, position of the line that named it)
+  std::map<std::string, std::vector<std::pair<long long, std::size_t>>> nsets_;
+  std::vector<std::pair<long long, std::size_t>>* current_nset_ = nullptr;
+};
+
+void checkSetName(const std::string& name) {
+  const bool bad = name.empty() || name.front() == '*' ||
+                   std::any_of(name.begin(), name.end(), [](unsigned char c) { return c == ',' || c == '=' || std::isspace(c); });
+  if (bad) {
+    throw std::invalid_argument("writeAbaqusInp: node set name '" + name +
+                                "' cannot be written to .inp (empty, starts with '*', or holds ',', '=' or a space)");
+  }
+}
+
+}  // namespace
+
+TetMesh readAbaqusInp(const std::string& path, double length_unit_m) {
+  mesh_io_detail::checkLengthUnit(length_unit_m, "readAbaqusInp");
+  return InpReader(path, length_unit_m).read();
+}
+
+void writeAbaqusInp(const std::string& path, const TetMesh& mesh, double length_unit_m) {
+  mesh_io_detail::checkLengthUnit(length_unit_m, "writeAbaqusInp");
+  for (const auto& kv : mesh.nodeSets()) checkSetName(kv.first);
+  std::string out;
+  out.reserve(64 * static_cast<std::size_t>(mesh.numNodes() + mesh.numTets()) + 1024);
+  out += "** breast_sim tetrahedral mesh; one length unit = ";
+  appendReal(out, length_unit_m);
+  out += " m\n*HEADING\nbreast_sim tetrahedral mesh\n*NODE\n";
+  for (int i = 0; i < mesh.numNodes(); ++i) {
+    appendInteger(out, i + 1);
+    for (int k = 0; k < 3; ++k) {
+      out += ", ";
+      appendReal(out, mesh.nodes()(i, k) / length_unit_m);
+    }
+    out += '\n';
+  }
+  std::map<int, std::vector<int>> by_label;
+  for (int e = 0; e < mesh.numTets(); ++e) by_label[mesh.regionLabels()[e]].push_back(e);
+  for (const auto& [label, tets] : by_label) {
+    out += "*ELEMENT, TYPE=C3D4, ELSET=REGION_" + std::to_string(label) + "\n";
+    for (int e : tets) {
+      appendInteger(out, e + 1);
+      for (int k = 0; k < 4; ++k) {
+        out += ", ";
+        appendInteger(out, mesh.tets()(e, k) + 1);
+      }
+      out += '\n';
+    }
+  }
+  for (const auto& [name, nodes] : mesh.nodeSets()) {
+    out += "*NSET, NSET=" + name + "\n";
+    for (std::size_t i = 0; i < nodes.size(); ++i) {
+      appendInteger(out, nodes[i] + 1);
+      out += (i % 16 == 15 || i + 1 == nodes.size()) ? "\n" : ", ";  // at most 16 entries per data line
+    }
+  }
+  mesh_io_detail::writeFile(path, out);
+}
+
+}  // namespace breast_sim::core

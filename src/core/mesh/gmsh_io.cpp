@@ -1,0 +1,805 @@
+// Gmsh MSH 2.2 and 4.1 reader and writer, ASCII and binary.
+// Format reference: Gmsh reference manual, section "MSH file format" (4.1) and "Legacy formats" (2.2).
+
+#include <algorithm>
+#include <array>
+#include <limits>
+#include <map>
+#include <stdexcept>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "breast_sim/core/mesh/mesh_io.h"
+
+namespace breast_sim::core {
+namespace {
+
+using mesh_io_detail::appendBinary;
+using mesh_io_detail::appendInteger;
+using mesh_io_detail::appendReal;
+using mesh_io_detail::FileCursor;
+using mesh_io_detail::NumberMap;
+
+constexpr int kTet4 = 4;
+
+// Nodes per element of Gmsh's element types up to 4th order; -1 for types we do not know, which a
+// text file can still skip line by line but a binary file cannot.
+int gmshNodesPerElement(long long type) {
+  switch (type) {
+    case 1: return 2;    case 2: return 3;    case 3: return 4;    case 4: return 4;
+    case 5: return 8;    case 6: return 6;    case 7: return 5;    case 8: return 3;
+    case 9: return 6;    case 10: return 9;   case 11: return 10;  case 12: return 27;
+    case 13: return 18;  case 14: return 14;  case 15: return 1;   case 16: return 8;
+    case 17: return 20;  case 18: return 15;  case 19: return 13;  case 20: return 9;
+    case 21: return 10;  case 22: return 12;  case 23: return 15;  case 24: return 15;
+    case 25: return 21;  case 26: return 4;   case 27: return 5;   case 28: return 6;
+    case 29: return 20;  case 30: return 35;  case 31: return 56;  case 92: return 64;
+    case 93: return 125;
+    default: return -1;
+  }
+}
+
+int gmshElementDimension(long long type) {
+  switch (type) {
+    case 15: return 0;
+    case 1: case 8: case 26: case 27: case 28: return 1;
+    case 2: case 3: case 9: case 10: case 16: case 20: case 21: case 22: case 23: case 24: case 25:
+      return 2;
+    default: return 3;
+  }
+}
+
+class GmshReader {
+ public:
+  GmshReader(const std::string& path, double length_unit_m) : f_(path), unit_(length_unit_m) {}
+
+  TetMesh read() {
+    while (true) {
+      f_.skipWhitespace();
+      if (f_.atEnd()) break;
+      const std::size_t section_pos = f_.pos();
+      const std::string_view t = f_.token();
+      if (t.size() < 2 || t[0] != '$') {
+        f_.failAtLine(section_pos, "expected a section such as $MeshFormat, $Nodes or $Elements, got '" +
+                                       std::string(t.substr(0, 40)) + "'");
+      }
+      const std::string name(t.substr(1));
+      if (name != "MeshFormat" && version_ == Version::kUnknown) {
+        f_.failAtLine(section_pos, "expected $MeshFormat first, got $" + name);
+      }
+      if (name == "MeshFormat") {
+        readFormat();
+        expectEnd(name, false);
+      } else if (name == "PhysicalNames") {
+        readPhysicalNames();
+        expectEnd(name, false);
+      } else if (name == "Entities" && version_ == Version::k41) {
+        readEntities();
+        expectEnd(name, binary_);
+      } else if (name == "Nodes") {
+        if (have_nodes_) f_.failAtLine(section_pos, "a second $Nodes section");
+        version_ == Version::k41 ? readNodes41() : readNodes2();
+        have_nodes_ = true;
+        expectEnd(name, binary_);
+      } else if (name == "Elements") {
+        if (!have_nodes_) f_.failAtLine(section_pos, "$Elements before $Nodes");
+        if (have_elements_) f_.failAtLine(section_pos, "a second $Elements section");
+        version_ == Version::k41 ? readElements41() : readElements2();
+        have_elements_ = true;
+        expectEnd(name, binary_);
+      } else {
+        // Sections we do not use ($Comments, $Periodic, $NodeData, $PartitionedEntities, …).
+        const std::string end = "$End" + name;
+        const std::size_t found = f_.data().find(end, f_.pos());
+        if (found == std::string::npos) f_.failAtLine(section_pos, "section $" + name + " has no " + end);
+        f_.setPos(found + end.size());
+      }
+    }
+    const std::size_t eof = f_.data().size();
+    if (version_ == Version::kUnknown) f_.failAtLine(eof, "no $MeshFormat section: not a Gmsh .msh file");
+    if (!have_nodes_) f_.failAtLine(eof, "reached the end of the file without a $Nodes section");
+    if (!have_elements_) f_.failAtLine(eof, "reached the end of the file without an $Elements section");
+    if (labels_.empty()) {
+      throw std::runtime_error(f_.path() + ": no 4-node tetrahedra (element type 4) in the file; " +
+                               std::to_string(skipped_) + " other elements were skipped");
+    }
+    return build();
+  }
+
+ private:
+  enum class Version { kUnknown, k2, k41 };
+
+  [[noreturn]] void failAt(std::size_t pos, bool binary, const std::string& what) const {
+    if (binary) f_.failAtByte(pos, what);
+    f_.failAtLine(pos, what);
+  }
+
+  void expectEnd(const std::string& name, bool binary) {
+    f_.skipWhitespace();
+    const std::size_t pos = f_.pos();
+    const std::string_view t = f_.token();
+    if (t != "$End" + name) {
+      failAt(pos, binary, "expected $End" + name + ", got " +
+                              (t.empty() ? std::string("the end of the file") : "'" + std::string(t.substr(0, 40)) + "'") +
+                              " (wrong element or node count?)");
+    }
+  }
+
+  // Next non-blank line, with the position of its start.
+  std::string_view nextLine(std::size_t& pos, const char* while_reading) {
+    f_.skipWhitespace();
+    pos = f_.pos();
+    if (f_.atEnd()) f_.fail(std::string("reached the end of the file while reading ") + while_reading);
+    return f_.line();
+  }
+
+  long long tokenInteger(std::string_view t, std::size_t line_pos, const char* what) const {
+    long long v = 0;
+    if (!mesh_io_detail::parseInteger(t, v)) {
+      f_.failAtLine(line_pos, std::string("expected ") + what + ", got '" + std::string(t) + "'");
+    }
+    return v;
+  }
+
+  double tokenReal(std::string_view t, std::size_t line_pos, const char* what) const {
+    double v = 0;
+    if (!mesh_io_detail::parseReal(t, v)) {
+      f_.failAtLine(line_pos, std::string("expected ") + what + ", got '" + std::string(t) + "'");
+    }
+    return v;
+  }
+
+  long long countToken(const char* what) {
+    const std::size_t pos = (f_.skipWhitespace(), f_.pos());
+    const long long n = f_.integerToken(what);
+    if (n < 0 || n > std::numeric_limits<int>::max()) {
+      f_.failAtLine(pos, std::string("expected ") + what + ", got " + std::to_string(n));
+    }
+    return n;
+  }
+
+  std::size_t binaryCount(const char* what) {
+    const std::size_t pos = f_.pos();
+    const auto n = f_.binary<std::uint64_t>(what);
+    if (n > static_cast<std::uint64_t>(std::numeric_limits<int>::max())) {
+      f_.failAtByte(pos, std::string("implausible ") + what + " " + std::to_string(n));
+    }
+    return static_cast<std::size_t>(n);
+  }
+
+  void readFormat() {
+    const std::size_t pos = (f_.skipWhitespace(), f_.pos());
+    const std::string version(f_.token());
+    const long long file_type = f_.integerToken("the file type (0 ASCII, 1 binary)");
+    const long long data_size = f_.integerToken("the data size");
+    if (version == "4.1") {
+      version_ = Version::k41;
+    } else if (version == "2" || version == "2.0" || version == "2.1" || version == "2.2") {
+      version_ = Version::k2;
+    } else if (version == "4" || version == "4.0") {
+      f_.failAtLine(pos, "MSH 4.0 is not supported; save the mesh as MSH 4.1 or 2.2");
+    } else {
+      f_.failAtLine(pos, "unsupported MSH version '" + version + "'; MSH 2.2 and 4.1 are supported");
+    }
+    if (file_type != 0 && file_type != 1) {
+      f_.failAtLine(pos, "file type must be 0 (ASCII) or 1 (binary), got " + std::to_string(file_type));
+    }
+    binary_ = file_type == 1;
+    if (!binary_) return;
+    if (data_size != 8) {
+      f_.failAtLine(pos, "binary data size " + std::to_string(data_size) + " is not supported (only 8)");
+    }
+    f_.line();
+    const std::size_t one_pos = f_.pos();
+    const int one = f_.binary<int>("the integer 1 that tells the byte order");
+    if (one != 1) {
+      f_.failAtByte(one_pos, one == 0x01000000 ? "big-endian binary files are not supported"
+                                              : "expected the integer 1 that tells the byte order, got " +
+                                                    std::to_string(one));
+    }
+  }
+
+  void readPhysicalNames() {
+    const long long n = countToken("the number of physical names");
+    for (long long i = 0; i < n; ++i) {
+      std::size_t pos = 0;
+      const std::string_view line = nextLine(pos, "$PhysicalNames");
+      mesh_io_detail::splitTokens(line, false, tokens_);
+      if (tokens_.size() < 3) f_.failAtLine(pos, "expected: dimension tag \"name\"");
+      const int dim = static_cast<int>(tokenInteger(tokens_[0], pos, "a physical group dimension"));
+      const int tag = static_cast<int>(tokenInteger(tokens_[1], pos, "a physical tag"));
+      const std::size_t q0 = line.find('"');
+      const std::size_t q1 = line.rfind('"');
+      std::string name = (q0 != std::string_view::npos && q1 > q0) ? std::string(line.substr(q0 + 1, q1 - q0 - 1))
+                                                                 : std::string(tokens_[2]);
+      physical_names_[{dim, tag}] = std::move(name);
+    }
+  }
+
+  void readEntities() {
+    if (binary_) {
+      std::array<std::size_t, 4> count{};
+      for (auto& c : count) c = binaryCount("an entity count");
+      for (int dim = 0; dim < 4; ++dim) {
+        for (std::size_t e = 0; e < count[dim]; ++e) {
+          const int tag = f_.binary<int>("an entity tag");
+          f_.requireBytes((dim == 0 ? 3 : 6) * sizeof(double), "an entity's coordinates");
+          f_.setPos(f_.pos() + (dim == 0 ? 3 : 6) * sizeof(double));
+          const std::size_t nphys = binaryCount("a physical tag count");
+          f_.requireBytes(nphys * sizeof(int), "physical tags");
+          std::vector<int> phys(nphys);
+          for (auto& p : phys) p = f_.binary<int>("a physical tag");
+          entity_physicals_[{dim, tag}] = std::move(phys);
+          if (dim > 0) {
+            const std::size_t nbound = binaryCount("a bounding entity count");
+            f_.requireBytes(nbound * sizeof(int), "bounding entity tags");
+            f_.setPos(f_.pos() + nbound * sizeof(int));
+          }
+        }
+      }
+      return;
+    }
+    std::array<long long, 4> count{};
+    for (auto& c : count) c = countToken("an entity count");
+    for (int dim = 0; dim < 4; ++dim) {
+      for (long long e = 0; e < count[dim]; ++e) {
+        const int tag = static_cast<int>(f_.integerToken("an entity tag"));
+        for (int k = 0; k < (dim == 0 ? 3 : 6); ++k) f_.realToken("an entity coordinate");
+        const long long nphys = countToken("a physical tag count");
+        std::vector<int> phys(static_cast<std::size_t>(nphys));
+        for (auto& p : phys) p = static_cast<int>(f_.integerToken("a physical tag"));
+        entity_physicals_[{dim, tag}] = std::move(phys);
+        if (dim > 0) {
+          const long long nbound = countToken("a bounding entity count");
+          for (long long b = 0; b < nbound; ++b) f_.integerToken("a bounding entity tag");
+        }
+      }
+    }
+  }
+
+  void addNode(long long tag, double x, double y, double z, std::size_t pos, bool binary) {
+    if (!node_index_.insert(tag, static_cast<int>(xyz_.size() / 3))) {
+      failAt(pos, binary, "node tag " + std::to_string(tag) + " appears twice");
+    }
+    xyz_.push_back(x * unit_);
+    xyz_.push_back(y * unit_);
+    xyz_.push_back(z * unit_);
+  }
+
+  void readNodes2() {
+    const long long n = countToken("the number of nodes");
+    xyz_.reserve(static_cast<std::size_t>(3 * n));
+    if (binary_) {
+      f_.line();
+      f_.requireBytes(static_cast<std::size_t>(n) * (sizeof(int) + 3 * sizeof(double)), "the binary node data");
+      for (long long i = 0; i < n; ++i) {
+        const std::size_t pos = f_.pos();
+        const int tag = f_.binary<int>("a node tag");
+        const double x = f_.binary<double>("x"), y = f_.binary<double>("y"), z = f_.binary<double>("z");
+        addNode(tag, x, y, z, pos, true);
+      }
+      return;
+    }
+    for (long long i = 0; i < n; ++i) {
+      std::size_t pos = 0;
+      mesh_io_detail::splitTokens(nextLine(pos, "$Nodes"), false, tokens_);
+      if (tokens_.size() != 4) {
+        f_.failAtLine(pos, "expected a node tag and 3 coordinates, got " + std::to_string(tokens_.size()) + " values");
+      }
+      addNode(tokenInteger(tokens_[0], pos, "a node tag"), tokenReal(tokens_[1], pos, "a coordinate"),
+              tokenReal(tokens_[2], pos, "a coordinate"), tokenReal(tokens_[3], pos, "a coordinate"), pos, false);
+    }
+  }
+
+  void readNodes41() {
+    if (binary_) {
+      const std::size_t blocks = binaryCount("the number of node blocks");
+      const std::size_t total = binaryCount("the number of nodes");
+      f_.binary<std::uint64_t>("the smallest node tag");
+      f_.binary<std::uint64_t>("the largest node tag");
+      xyz_.reserve(3 * total);
+      std::vector<long long> tags;
+      for (std::size_t b = 0; b < blocks; ++b) {
+        const int dim = f_.binary<int>("an entity dimension");
+        f_.binary<int>("an entity tag");
+        const int parametric = f_.binary<int>("the parametric flag");
+        const std::size_t block_pos = f_.pos();
+        const std::size_t n = binaryCount("the number of nodes in a block");
+        if (xyz_.size() / 3 + n > total) {
+          f_.failAtByte(block_pos, "node blocks hold more than the " + std::to_string(total) + " nodes announced");
+        }
+        const std::size_t per_node = 3 + (parametric ? static_cast<std::size_t>(std::max(dim, 0)) : 0);
+        f_.requireBytes(n * sizeof(std::uint64_t), "node tags");
+        tags.resize(n);
+        for (auto& t : tags) t = static_cast<long long>(f_.binary<std::uint64_t>("a node tag"));
+        f_.requireBytes(n * per_node * sizeof(double), "node coordinates");
+        for (std::size_t i = 0; i < n; ++i) {
+          const std::size_t pos = f_.pos();
+          const double x = f_.binary<double>("x"), y = f_.binary<double>("y"), z = f_.binary<double>("z");
+          f_.setPos(f_.pos() + (per_node - 3) * sizeof(double));
+          addNode(tags[i], x, y, z, pos, true);
+        }
+      }
+      if (xyz_.size() / 3 != total) {
+        f_.failAtByte(f_.pos(), "node blocks hold " + std::to_string(xyz_.size() / 3) + " nodes, " +
+                                    std::to_string(total) + " announced");
+      }
+      return;
+    }
+    const long long blocks = countToken("the number of node blocks");
+    const long long total = countToken("the number of nodes");
+    f_.integerToken("the smallest node tag");
+    f_.integerToken("the largest node tag");
+    xyz_.reserve(static_cast<std::size_t>(3 * total));
+    std::vector<long long> tags;
+    for (long long b = 0; b < blocks; ++b) {
+      const int dim = static_cast<int>(f_.integerToken("an entity dimension"));
+      f_.integerToken("an entity tag");
+      const long long parametric = f_.integerToken("the parametric flag");
+      const std::size_t block_pos = (f_.skipWhitespace(), f_.pos());
+      const long long n = countToken("the number of nodes in a block");
+      if (static_cast<long long>(xyz_.size() / 3) + n > total) {
+        f_.failAtLine(block_pos, "node blocks hold more than the " + std::to_string(total) + " nodes announced");
+      }
+      const std::size_t per_node = 3 + (parametric ? static_cast<std::size_t>(std::max(dim, 0)) : 0);
+      tags.resize(static_cast<std::size_t>(n));
+      for (auto& t : tags) t = f_.integerToken("a node tag");
+      for (long long i = 0; i < n; ++i) {
+        std::size_t pos = 0;
+        mesh_io_detail::splitTokens(nextLine(pos, "$Nodes"), false, tokens_);
+        if (tokens_.size() != per_node) {
+          f_.failAtLine(pos, "expected " + std::to_string(per_node) + " coordinates for node " +
+                                 std::to_string(tags[i]) + ", got " + std::to_string(tokens_.size()));
+        }
+        addNode(tags[i], tokenReal(tokens_[0], pos, "a coordinate"), tokenReal(tokens_[1], pos, "a coordinate"),
+                tokenReal(tokens_[2], pos, "a coordinate"), pos, false);
+      }
+    }
+    if (static_cast<long long>(xyz_.size() / 3) != total) {
+      f_.fail("node blocks hold " + std::to_string(xyz_.size() / 3) + " nodes, " + std::to_string(total) +
+              " announced");
+    }
+  }
+
+  int nodeIndex(long long tag, long long element, std::size_t pos, bool binary) const {
+    const int index = node_index_.find(tag);
+    if (index < 0) {
+      failAt(pos, binary, "element " + std::to_string(element) + " refers to node " + std::to_string(tag) +
+                              ", which is not in $Nodes");
+    }
+    return index;
+  }
+
+  void addTet(long long number, const long long* node_tags, int label, std::size_t pos, bool binary) {
+    for (int k = 0; k < 4; ++k) tet_nodes_.push_back(nodeIndex(node_tags[k], number, pos, binary));
+    labels_.push_back(label);
+    numbers_.push_back(number);
+  }
+
+  // Node sets from named physical groups of dimension 0–2: the names of the groups an element is in.
+  void namedGroups(int dim, const int* phys, std::size_t nphys, std::vector<const std::string*>& out) const {
+    out.clear();
+    if (dim > 2 || physical_names_.empty()) return;
+    for (std::size_t i = 0; i < nphys; ++i) {
+      auto it = physical_names_.find({dim, phys[i]});
+      if (it != physical_names_.end()) out.push_back(&it->second);
+    }
+  }
+
+  void addToGroups(const std::vector<const std::string*>& groups, long long number, const long long* node_tags,
+                   int nn, std::size_t pos, bool binary) {
+    for (const std::string* name : groups) {
+      std::vector<int>& set = node_sets_[*name];
+      for (int k = 0; k < nn; ++k) set.push_back(nodeIndex(node_tags[k], number, pos, binary));
+    }
+  }
+
+  void readElements2() {
+    const long long n = countToken("the number of elements");
+    labels_.reserve(static_cast<std::size_t>(n));
+    std::vector<long long> values;
+    std::vector<const std::string*> groups;
+    if (binary_) {
+      f_.line();
+      long long done = 0;
+      while (done < n) {
+        const std::size_t header_pos = f_.pos();
+        const int type = f_.binary<int>("an element type");
+        const int follow = f_.binary<int>("an element count");
+        const int ntags = f_.binary<int>("a tag count");
+        const int nn = gmshNodesPerElement(type);
+        if (nn < 0) f_.failAtByte(header_pos, "unknown element type " + std::to_string(type) + "; cannot skip it");
+        if (follow < 0 || follow > n - done || ntags < 0 || ntags > 1000) {
+          f_.failAtByte(header_pos, "implausible element block header (type " + std::to_string(type) + ", " +
+                                        std::to_string(follow) + " elements, " + std::to_string(ntags) + " tags)");
+        }
+        const std::size_t per = static_cast<std::size_t>(1 + ntags + nn);
+        f_.requireBytes(static_cast<std::size_t>(follow) * per * sizeof(int), "the binary element data");
+        values.resize(per);
+        for (int e = 0; e < follow; ++e) {
+          const std::size_t pos = f_.pos();
+          for (auto& v : values) v = f_.binary<int>("element data");
+          handleElement2(type, ntags, values.data(), nn, pos, true, groups);
+        }
+        done += follow;
+      }
+      return;
+    }
+    for (long long i = 0; i < n; ++i) {
+      std::size_t pos = 0;
+      mesh_io_detail::splitTokens(nextLine(pos, "$Elements"), false, tokens_);
+      if (tokens_.size() < 3) {
+        f_.failAtLine(pos, "expected an element number, type and tag count, got " + std::to_string(tokens_.size()) +
+                               " values");
+      }
+      const long long number = tokenInteger(tokens_[0], pos, "an element number");
+      const long long type = tokenInteger(tokens_[1], pos, "an element type");
+      const long long ntags = tokenInteger(tokens_[2], pos, "a tag count");
+      if (ntags < 0 || 3 + ntags > static_cast<long long>(tokens_.size())) {
+        f_.failAtLine(pos, "element " + std::to_string(number) + " announces " + std::to_string(ntags) +
+                               " tags but the line has " + std::to_string(tokens_.size() - 3) + " values after them");
+      }
+      const long long nn = static_cast<long long>(tokens_.size()) - 3 - ntags;
+      if (type == kTet4 && nn != 4) {
+        f_.failAtLine(pos, "expected 4 node indices for element " + std::to_string(number) + ", got " +
+                               std::to_string(nn));
+      }
+      values.resize(static_cast<std::size_t>(1 + ntags + nn));
+      values[0] = number;
+      for (std::size_t k = 1; k < values.size(); ++k) {
+        values[k] = tokenInteger(tokens_[k + 2], pos, k <= static_cast<std::size_t>(ntags) ? "an element tag" : "a node tag");
+      }
+      handleElement2(type, static_cast<int>(ntags), values.data(), static_cast<int>(nn), pos, false, groups);
+    }
+  }
+
+  // values = number, tags…, node tags…
+  void handleElement2(long long type, int ntags, const long long* values, int nn, std::size_t pos, bool binary,
+                      std::vector<const std::string*>& groups) {
+    const long long number = values[0];
+    const long long* tags = values + 1;
+    const long long* nodes = values + 1 + ntags;
+    if (type == kTet4) {
+      // Physical tag; files saved without physical groups carry 0 there, then the elementary tag.
+      const int label = ntags == 0 ? 0 : (tags[0] != 0 || ntags == 1) ? static_cast<int>(tags[0]) : static_cast<int>(tags[1]);
+      addTet(number, nodes, label, pos, binary);
+      return;
+    }
+    ++skipped_;
+    if (ntags >= 1) {
+      const int phys = static_cast<int>(tags[0]);
+      namedGroups(gmshElementDimension(type), &phys, 1, groups);
+      addToGroups(groups, number, nodes, nn, pos, binary);
+    }
+  }
+
+  int volumeLabel(int entity_tag) const {
+    auto it = entity_physicals_.find({3, entity_tag});
+    return (it != entity_physicals_.end() && !it->second.empty()) ? it->second.front() : entity_tag;
+  }
+
+  void blockGroups(int dim, int entity_tag, std::vector<const std::string*>& groups) const {
+    groups.clear();
+    auto it = entity_physicals_.find({dim, entity_tag});
+    if (it != entity_physicals_.end()) namedGroups(dim, it->second.data(), it->second.size(), groups);
+  }
+
+  void readElements41() {
+    std::vector<long long> values;
+    std::vector<const std::string*> groups;
+    if (binary_) {
+      const std::size_t blocks = binaryCount("the number of element blocks");
+      const std::size_t total = binaryCount("the number of elements");
+      f_.binary<std::uint64_t>("the smallest element tag");
+      f_.binary<std::uint64_t>("the largest element tag");
+      labels_.reserve(total);
+      std::size_t done = 0;
+      for (std::size_t b = 0; b < blocks; ++b) {
+        const std::size_t header_pos = f_.pos();
+        const int dim = f_.binary<int>("an entity dimension");
+        const int entity = f_.binary<int>("an entity tag");
+        const int type = f_.binary<int>("an element type");
+        const std::size_t n = binaryCount("the number of elements in a block");
+        const int nn = gmshNodesPerElement(type);
+        if (nn < 0) f_.failAtByte(header_pos, "unknown element type " + std::to_string(type) + "; cannot skip it");
+        if (done + n > total) {
+          f_.failAtByte(header_pos, "element blocks hold more than the " + std::to_string(total) +
+                                        " elements announced");
+        }
+        const std::size_t per = static_cast<std::size_t>(1 + nn);
+        f_.requireBytes(n * per * sizeof(std::uint64_t), "the binary element data");
+        const int label = volumeLabel(entity);
+        blockGroups(dim, entity, groups);
+        values.resize(per);
+        for (std::size_t e = 0; e < n; ++e) {
+          const std::size_t pos = f_.pos();
+          for (auto& v : values) v = static_cast<long long>(f_.binary<std::uint64_t>("element data"));
+          if (type == kTet4) {
+            addTet(values[0], values.data() + 1, label, pos, true);
+          } else {
+            ++skipped_;
+            addToGroups(groups, values[0], values.data() + 1, nn, pos, true);
+          }
+        }
+        done += n;
+      }
+      if (done != total) {
+        f_.failAtByte(f_.pos(), "element blocks hold " + std::to_string(done) + " elements, " +
+                                    std::to_string(total) + " announced");
+      }
+      return;
+    }
+    const long long blocks = countToken("the number of element blocks");
+    const long long total = countToken("the number of elements");
+    f_.integerToken("the smallest element tag");
+    f_.integerToken("the largest element tag");
+    labels_.reserve(static_cast<std::size_t>(total));
+    long long done = 0;
+    for (long long b = 0; b < blocks; ++b) {
+      const std::size_t header_pos = (f_.skipWhitespace(), f_.pos());
+      const int dim = static_cast<int>(f_.integerToken("an entity dimension"));
+      const int entity = static_cast<int>(f_.integerToken("an entity tag"));
+      const long long type = f_.integerToken("an element type");
+      const long long n = countToken("the number of elements in a block");
+      if (done + n > total) {
+        f_.failAtLine(header_pos, "element blocks hold more than the " + std::to_string(total) + " elements announced");
+      }
+      const int label = volumeLabel(entity);
+      blockGroups(dim, entity, groups);
+      for (long long e = 0; e < n; ++e) {
+        std::size_t pos = 0;
+        mesh_io_detail::splitTokens(nextLine(pos, "$Elements"), false, tokens_);
+        if (tokens_.empty()) f_.failAtLine(pos, "expected an element");
+        const long long number = tokenInteger(tokens_[0], pos, "an element number");
+        const long long nn = static_cast<long long>(tokens_.size()) - 1;
+        if (type == kTet4 && nn != 4) {
+          f_.failAtLine(pos, "expected 4 node indices for element " + std::to_string(number) + ", got " +
+                                 std::to_string(nn));
+        }
+        if (type != kTet4 && groups.empty()) {
+          ++skipped_;
+          continue;
+        }
+        values.resize(static_cast<std::size_t>(nn));
+        for (long long k = 0; k < nn; ++k) values[k] = tokenInteger(tokens_[k + 1], pos, "a node tag");
+        if (type == kTet4) {
+          addTet(number, values.data(), label, pos, false);
+        } else {
+          ++skipped_;
+          addToGroups(groups, number, values.data(), static_cast<int>(nn), pos, false);
+        }
+      }
+      done += n;
+    }
+    if (done != total) {
+      f_.fail("element blocks hold " + std::to_string(done) + " elements, " + std::to_string(total) + " announced");
+    }
+  }
+
+  TetMesh build() {
+    const Eigen::Index n = static_cast<Eigen::Index>(xyz_.size() / 3);
+    Points nodes = Eigen::Map<const Points>(xyz_.data(), n, 3);
+    const Eigen::Index t = static_cast<Eigen::Index>(labels_.size());
+    Tets tets = Eigen::Map<const Tets>(tet_nodes_.data(), t, 4);
+    mesh_io_detail::sortByElementNumber(f_.path(), numbers_, tets, labels_);
+    TetMesh mesh = mesh_io_detail::makeMesh(f_.path(), std::move(nodes), std::move(tets), std::move(labels_));
+    for (auto& [name, set] : node_sets_) mesh_io_detail::addNodeSet(f_.path(), mesh, name, std::move(set));
+    return mesh;
+  }
+
+  FileCursor f_;
+  double unit_;
+  Version version_ = Version::kUnknown;
+  bool binary_ = false;
+  bool have_nodes_ = false;
+  bool have_elements_ = false;
+
+  std::vector<double> xyz_;
+  NumberMap node_index_;
+  std::vector<int> tet_nodes_;
+  std::vector<int> labels_;
+  std::vector<long long> numbers_;
+  std::size_t skipped_ = 0;
+  std::vector<std::string_view> tokens_;
+
+  std::map<std::pair<int, int>, std::string> physical_names_;         // (dim, physical tag) → name
+  std::map<std::pair<int, int>, std::vector<int>> entity_physicals_;  // (dim, entity tag) → physical tags
+  std::map<std::string, std::vector<int>> node_sets_;
+};
+
+// ---- writing -------------------------------------------------------------------------------------
+
+void appendLine(std::string& out, std::initializer_list<long long> values) {
+  bool first = true;
+  for (long long v : values) {
+    if (!first) out += ' ';
+    appendInteger(out, v);
+    first = false;
+  }
+  out += '\n';
+}
+
+void appendNodeText(std::string& out, long long tag, const TetMesh& mesh, int i, double unit) {
+  appendInteger(out, tag);
+  for (int k = 0; k < 3; ++k) {
+    out += ' ';
+    appendReal(out, mesh.nodes()(i, k) / unit);
+  }
+  out += '\n';
+}
+
+void writeGmsh22(std::string& out, const TetMesh& mesh, bool binary, double unit) {
+  const int n = mesh.numNodes();
+  const int t = mesh.numTets();
+  out += binary ? "$MeshFormat\n2.2 1 8\n" : "$MeshFormat\n2.2 0 8\n";
+  if (binary) {
+    appendBinary(out, 1);
+    out += '\n';
+  }
+  out += "$EndMeshFormat\n$Nodes\n";
+  appendLine(out, {n});
+  for (int i = 0; i < n; ++i) {
+    if (binary) {
+      appendBinary(out, i + 1);
+      for (int k = 0; k < 3; ++k) appendBinary(out, mesh.nodes()(i, k) / unit);
+    } else {
+      appendNodeText(out, i + 1, mesh, i, unit);
+    }
+  }
+  if (binary) out += '\n';
+  out += "$EndNodes\n$Elements\n";
+  appendLine(out, {t});
+  // Two tags: physical = elementary = the region label.
+  if (binary && t > 0) {
+    appendBinary(out, kTet4);
+    appendBinary(out, t);
+    appendBinary(out, 2);
+  }
+  for (int e = 0; e < t; ++e) {
+    const int label = mesh.regionLabels()[e];
+    const auto& tet = mesh.tets().row(e);
+    if (binary) {
+      for (int v : {e + 1, label, label, tet(0) + 1, tet(1) + 1, tet(2) + 1, tet(3) + 1}) appendBinary(out, v);
+    } else {
+      appendLine(out, {e + 1, kTet4, 2, label, label, tet(0) + 1, tet(1) + 1, tet(2) + 1, tet(3) + 1});
+    }
+  }
+  if (binary) out += '\n';
+  out += "$EndElements\n";
+}
+
+void writeGmsh41(std::string& out, const TetMesh& mesh, bool binary, double unit) {
+  const int n = mesh.numNodes();
+  const int t = mesh.numTets();
+  // One volume entity per region label (tags 1, 2, … in label order), its physical tag the label.
+  std::map<int, std::vector<int>> by_label;
+  for (int e = 0; e < t; ++e) by_label[mesh.regionLabels()[e]].push_back(e);
+  auto size = [](std::size_t v) { return static_cast<std::uint64_t>(v); };
+
+  out += binary ? "$MeshFormat\n4.1 1 8\n" : "$MeshFormat\n4.1 0 8\n";
+  if (binary) {
+    appendBinary(out, 1);
+    out += '\n';
+  }
+  out += "$EndMeshFormat\n$Entities\n";
+  const std::size_t volumes = std::max<std::size_t>(by_label.size(), 1);
+  if (binary) {
+    for (std::size_t c : {std::size_t{0}, std::size_t{0}, std::size_t{0}, volumes}) appendBinary(out, size(c));
+  } else {
+    appendLine(out, {0, 0, 0, static_cast<long long>(volumes)});
+  }
+  auto appendVolume = [&](int tag, const std::vector<int>* tets, const int* label) {
+    Eigen::Vector3d lo = Eigen::Vector3d::Zero(), hi = Eigen::Vector3d::Zero();
+    bool any = false;
+    auto grow = [&](int v) {
+      const Eigen::Vector3d p = mesh.nodes().row(v).transpose() / unit;
+      lo = any ? lo.cwiseMin(p) : p;
+      hi = any ? hi.cwiseMax(p) : p;
+      any = true;
+    };
+    if (tets) {
+      for (int e : *tets)
+        for (int k = 0; k < 4; ++k) grow(mesh.tets()(e, k));
+    } else {
+      for (int v = 0; v < n; ++v) grow(v);
+    }
+    if (binary) {
+      appendBinary(out, tag);
+      for (int k = 0; k < 3; ++k) appendBinary(out, lo(k));
+      for (int k = 0; k < 3; ++k) appendBinary(out, hi(k));
+      appendBinary(out, size(label ? 1 : 0));
+      if (label) appendBinary(out, *label);
+      appendBinary(out, size(0));
+    } else {
+      appendInteger(out, tag);
+      for (int k = 0; k < 6; ++k) {
+        out += ' ';
+        appendReal(out, k < 3 ? lo(k) : hi(k - 3));
+      }
+      out += label ? " 1 " + std::to_string(*label) + " 0\n" : " 0 0\n";
+    }
+  };
+  if (by_label.empty()) {
+    appendVolume(1, nullptr, nullptr);
+  } else {
+    int tag = 1;
+    for (const auto& [label, tets] : by_label) appendVolume(tag++, &tets, &label);
+  }
+  if (binary) out += '\n';
+  out += "$EndEntities\n$Nodes\n";
+  // All nodes in one block on volume 1.
+  if (binary) {
+    for (std::size_t c : {std::size_t{1}, std::size_t(n), std::size_t{1}, std::size_t(n)}) appendBinary(out, size(c));
+    appendBinary(out, 3);
+    appendBinary(out, 1);
+    appendBinary(out, 0);
+    appendBinary(out, size(n));
+    for (int i = 0; i < n; ++i) appendBinary(out, size(i + 1));
+    for (int i = 0; i < n; ++i)
+      for (int k = 0; k < 3; ++k) appendBinary(out, mesh.nodes()(i, k) / unit);
+    out += '\n';
+  } else {
+    appendLine(out, {1, n, 1, n});
+    appendLine(out, {3, 1, 0, n});
+    for (int i = 0; i < n; ++i) appendLine(out, {i + 1});
+    for (int i = 0; i < n; ++i) {
+      for (int k = 0; k < 3; ++k) {
+        if (k) out += ' ';
+        appendReal(out, mesh.nodes()(i, k) / unit);
+      }
+      out += '\n';
+    }
+  }
+  out += "$EndNodes\n$Elements\n";
+  // Element tag = tet index + 1, grouped by label; readers sort them back by tag.
+  if (binary) {
+    for (std::size_t c : {by_label.size(), std::size_t(t), std::size_t{1}, std::size_t(t)}) appendBinary(out, size(c));
+  } else {
+    appendLine(out, {static_cast<long long>(by_label.size()), t, 1, t});
+  }
+  int entity = 1;
+  for (const auto& [label, tets] : by_label) {
+    if (binary) {
+      appendBinary(out, 3);
+      appendBinary(out, entity);
+      appendBinary(out, kTet4);
+      appendBinary(out, size(tets.size()));
+      for (int e : tets) {
+        appendBinary(out, size(e + 1));
+        for (int k = 0; k < 4; ++k) appendBinary(out, size(mesh.tets()(e, k) + 1));
+      }
+    } else {
+      appendLine(out, {3, entity, kTet4, static_cast<long long>(tets.size())});
+      for (int e : tets) {
+        const auto& tet = mesh.tets().row(e);
+        appendLine(out, {e + 1, tet(0) + 1, tet(1) + 1, tet(2) + 1, tet(3) + 1});
+      }
+    }
+    ++entity;
+  }
+  if (binary) out += '\n';
+  out += "$EndElements\n";
+}
+
+}  // namespace
+
+TetMesh readGmsh(const std::string& path, double length_unit_m) {
+  mesh_io_detail::checkLengthUnit(length_unit_m, "readGmsh");
+  return GmshReader(path, length_unit_m).read();
+}
+
+void writeGmsh(const std::string& path, const TetMesh& mesh, const GmshOptions& options, double length_unit_m) {
+  mesh_io_detail::checkLengthUnit(length_unit_m, "writeGmsh");
+  std::string out;
+  // Rough size so big meshes do not reallocate often: ~60 bytes per node and per element in text.
+  out.reserve(64 * static_cast<std::size_t>(mesh.numNodes() + mesh.numTets()) + 1024);
+  if (options.version == GmshVersion::kMsh41) {
+    writeGmsh41(out, mesh, options.binary, length_unit_m);
+  } else {
+    writeGmsh22(out, mesh, options.binary, length_unit_m);
+  }
+  mesh_io_detail::writeFile(path, out);
+}
+
+}  // namespace breast_sim::core

@@ -1,0 +1,206 @@
+#include "breast_sim/core/model/model_case.h"
+
+#include <filesystem>
+#include <limits>
+#include <set>
+#include <sstream>
+#include <stdexcept>
+
+#include <yaml-cpp/yaml.h>
+
+#include "breast_sim/core/model/phantom.h"
+
+namespace breast_sim::core {
+namespace {
+
+namespace fs = std::filesystem;
+
+[[noreturn]] void fail(const std::string& file, const std::string& key, const std::string& what) {
+  throw std::runtime_error(file + ": '" + key + "': " + what);
+}
+
+double number(const YAML::Node& n, const std::string& file, const std::string& key) {
+  try {
+    return n.as<double>();
+  } catch (const YAML::Exception&) {
+    fail(file, key, "expected a number, got '" + YAML::Dump(n) + "'");
+  }
+}
+
+Eigen::Vector3d vec3(const YAML::Node& n, const std::string& file, const std::string& key) {
+  if (!n.IsSequence() || n.size() != 3) fail(file, key, "expected [x, y, z] in mm, got '" + YAML::Dump(n) + "'");
+  return Eigen::Vector3d(number(n[0], file, key), number(n[1], file, key), number(n[2], file, key));
+}
+
+std::set<std::uint16_t> labelSet(const YAML::Node& n, const std::string& file, const std::string& key) {
+  if (!n.IsSequence()) fail(file, key, "expected a list of label values, e.g. [1, 29]");
+  std::set<std::uint16_t> out;
+  for (const auto& v : n) {
+    const double x = number(v, file, key);
+    if (x < 0 || x > 65535 || x != static_cast<int>(x)) fail(file, key, "label " + YAML::Dump(v) + " is not an integer in [0, 65535]");
+    out.insert(static_cast<std::uint16_t>(x));
+  }
+  return out;
+}
+
+void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, const std::string& file,
+               const std::string& section) {
+  if (!map.IsMap()) fail(file, section, "expected a map of keys");
+  for (const auto& kv : map) {
+    const std::string k = kv.first.as<std::string>();
+    if (!allowed.count(k)) {
+      std::string list;
+      for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + a;
+      fail(file, section + "." + k, "unknown key; the keys of '" + section + "' are: " + list);
+    }
+  }
+}
+
+MeshingOptions parseMeshing(const YAML::Node& m, const std::string& file, double* snap_tolerance_m) {
+  MeshingOptions o;
+  checkKeys(m, {"target_elements", "interior_size_mm", "skin_size_factor", "grading_distance_mm",
+                "lesion_size_factor", "lesion_grading_distance_mm", "facet_angle_deg", "facet_distance_mm",
+                "cell_radius_edge_ratio", "perturb", "exude", "max_size_iterations", "max_elements",
+                "lesion_snap_tolerance_mm"},
+            file, "meshing");
+  auto get = [&](const char* key, double scale, double& out) {
+    if (m[key]) out = number(m[key], file, std::string("meshing.") + key) * scale;
+  };
+  double target = o.target_elements, iters = o.max_size_iterations, maxe = o.max_elements;
+  get("target_elements", 1.0, target);
+  get("interior_size_mm", 1e-3, o.interior_size_m);
+  get("skin_size_factor", 1.0, o.skin_size_factor);
+  get("grading_distance_mm", 1e-3, o.grading_distance_m);
+  get("lesion_size_factor", 1.0, o.lesion_size_factor);
+  get("lesion_grading_distance_mm", 1e-3, o.lesion_grading_distance_m);
+  get("facet_angle_deg", 1.0, o.facet_angle_deg);
+  get("facet_distance_mm", 1e-3, o.facet_distance_m);
+  get("cell_radius_edge_ratio", 1.0, o.cell_radius_edge_ratio);
+  get("max_size_iterations", 1.0, iters);
+  get("max_elements", 1.0, maxe);
+  get("lesion_snap_tolerance_mm", 1e-3, *snap_tolerance_m);
+  o.target_elements = static_cast<int>(target);
+  o.max_size_iterations = static_cast<int>(iters);
+  o.max_elements = static_cast<int>(std::min(maxe, 2e9));
+  for (const char* key : {"perturb", "exude"}) {
+    if (!m[key]) continue;
+    try {
+      (std::string(key) == "perturb" ? o.perturb : o.exude) = m[key].as<bool>();
+    } catch (const YAML::Exception&) {
+      fail(file, std::string("meshing.") + key, "expected true or false");
+    }
+  }
+  try {
+    o.validate();
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(file + ": " + e.what());
+  }
+  return o;
+}
+
+}  // namespace
+
+ModelCase loadModelCase(const std::string& yaml_path) {
+  if (!fs::exists(yaml_path)) throw std::runtime_error(yaml_path + ": no such case file");
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(yaml_path);
+  } catch (const YAML::Exception& e) {
+    throw std::runtime_error(yaml_path + ":" + std::to_string(e.mark.line + 1) + ": not valid YAML: " + e.msg);
+  }
+  if (!root.IsMap()) throw std::runtime_error(yaml_path + ": expected a map with 'phantom:' or 'image:' at the top");
+  ModelCase c;
+  c.source_path = yaml_path;
+  c.name = fs::path(yaml_path).stem().string();
+  const bool has_phantom = static_cast<bool>(root["phantom"]);
+  const bool has_image = static_cast<bool>(root["image"]);
+  if (has_phantom == has_image)
+    throw std::runtime_error(yaml_path + ": give exactly one of 'phantom:' (the software phantom) or 'image:' "
+                                         "(a label image), found " + (has_phantom ? "both" : "neither"));
+  if (has_phantom) {
+    auto phantom = std::make_shared<Phantom>(generatePhantom(loadPhantomParams(yaml_path)));
+    c.image = phantom->labels;
+    c.nipples_m = phantom->nipples_m;
+    c.lesions = phantom->lesions;
+    c.phantom = phantom;
+  } else {
+    const YAML::Node img = root["image"];
+    checkKeys(img, {"path", "labels", "nipples_mm"}, yaml_path, "image");
+    if (!img["path"]) fail(yaml_path, "image.path", "missing: give the label image file (NIfTI, NRRD or MetaImage)");
+    fs::path p = img["path"].as<std::string>();
+    if (p.is_relative()) p = fs::path(yaml_path).parent_path() / p;
+    c.image = readLabelImage(p.lexically_normal().string());
+    if (img["labels"]) {
+      const YAML::Node l = img["labels"];
+      checkKeys(l, {"fat", "fibroglandular", "skin", "lesion", "chest_wall"}, yaml_path, "image.labels");
+      if (l["fat"]) c.labels.fat = labelSet(l["fat"], yaml_path, "image.labels.fat");
+      if (l["fibroglandular"]) c.labels.fibroglandular = labelSet(l["fibroglandular"], yaml_path, "image.labels.fibroglandular");
+      if (l["skin"]) c.labels.skin = labelSet(l["skin"], yaml_path, "image.labels.skin");
+      if (l["lesion"]) c.labels.lesion = labelSet(l["lesion"], yaml_path, "image.labels.lesion");
+      if (l["chest_wall"]) c.labels.chest_wall = labelSet(l["chest_wall"], yaml_path, "image.labels.chest_wall");
+      try {
+        c.labels.validate();
+      } catch (const std::invalid_argument& e) {
+        throw std::runtime_error(yaml_path + ": " + e.what());
+      }
+    }
+    if (img["nipples_mm"]) {
+      if (!img["nipples_mm"].IsSequence()) fail(yaml_path, "image.nipples_mm", "expected a list of [x, y, z] in mm");
+      for (const auto& n : img["nipples_mm"]) c.nipples_m.push_back(vec3(n, yaml_path, "image.nipples_mm") * 1e-3);
+    }
+  }
+  if (root["lesions"]) {
+    if (!root["lesions"].IsSequence()) fail(yaml_path, "lesions", "expected a list of {name, position_mm, radius_mm}");
+    for (const auto& l : root["lesions"]) {
+      checkKeys(l, {"name", "position_mm", "radius_mm"}, yaml_path, "lesions[]");
+      Lesion les;
+      les.name = l["name"] ? l["name"].as<std::string>() : "L" + std::to_string(c.lesions.size() + 1);
+      if (!l["position_mm"]) fail(yaml_path, "lesions[" + les.name + "].position_mm", "missing");
+      les.position_m = vec3(l["position_mm"], yaml_path, "lesions[" + les.name + "].position_mm") * 1e-3;
+      if (l["radius_mm"]) les.radius_m = number(l["radius_mm"], yaml_path, "lesions[].radius_mm") * 1e-3;
+      if (les.radius_m < 0) fail(yaml_path, "lesions[" + les.name + "].radius_mm", "must be ≥ 0");
+      c.lesions.push_back(les);
+    }
+  }
+  if (root["meshing"]) c.meshing = parseMeshing(root["meshing"], yaml_path, &c.lesion_snap_tolerance_m);
+  return c;
+}
+
+SimulationModel buildSimulationModel(const ModelCase& model_case) {
+  std::vector<RefinementPoint> refine;
+  for (const auto& l : model_case.lesions) refine.push_back({l.position_m, l.radius_m});
+  SimulationModel model;
+  model.mesh = meshLabelImage(model_case.image, model_case.labels, refine, model_case.meshing, &model.meshing);
+
+  if (!model_case.nipples_m.empty()) {
+    const auto& skin = model.mesh.nodeSet(node_sets::kSkin);
+    std::vector<int> nipple;
+    for (const auto& p : model_case.nipples_m) {
+      int best = -1;
+      double best_d = std::numeric_limits<double>::infinity();
+      for (int v : skin) {
+        const double d = (model.mesh.nodes().row(v).transpose() - p).squaredNorm();
+        if (d < best_d) best_d = d, best = v;
+      }
+      if (best >= 0) nipple.push_back(best);
+    }
+    model.mesh.setNodeSet(node_sets::kNipple, nipple);
+  }
+
+  Points lesion_points(static_cast<Eigen::Index>(model_case.lesions.size()), 3);
+  std::vector<std::string> names;
+  for (size_t i = 0; i < model_case.lesions.size(); ++i) {
+    lesion_points.row(static_cast<Eigen::Index>(i)) = model_case.lesions[i].position_m.transpose();
+    names.push_back(model_case.lesions[i].name);
+  }
+  try {
+    model.lesion_embedding = PointEmbedding(model.mesh, lesion_points, names, model_case.lesion_snap_tolerance_m);
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument("case '" + model_case.name + "': " + e.what());
+  }
+  model.lesions = model_case.lesions;
+  model.quality = qualityStats(model.mesh.tets(), model.mesh.nodes());
+  return model;
+}
+
+}  // namespace breast_sim::core

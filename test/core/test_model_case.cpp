@@ -1,0 +1,100 @@
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+
+#include "breast_sim/core/mesh/tet_quality.h"
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/model/phantom.h"
+
+using namespace breast_sim::core;
+namespace fs = std::filesystem;
+
+namespace {
+
+const std::string kConfig = std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/";
+
+std::string writeTemp(const std::string& name, const std::string& text) {
+  const fs::path dir = fs::temp_directory_path() / "breast_sim_test_model_case";
+  fs::create_directories(dir);
+  const fs::path p = dir / name;
+  std::ofstream(p) << text;
+  return p.string();
+}
+
+void expectErrorMentions(const std::string& yaml_path, const std::string& needle) {
+  try {
+    const ModelCase c = loadModelCase(yaml_path);
+    buildSimulationModel(c);
+    FAIL() << "expected an error mentioning '" << needle << "'";
+  } catch (const std::exception& e) {
+    EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+  }
+}
+
+}  // namespace
+
+TEST(ModelCase, DefaultPhantomModelIsClosedValidAndKeepsTheAnalyticVolume) {
+  const ModelCase c = loadModelCase(kConfig + "phantom_default.yaml");
+  ASSERT_TRUE(c.phantom);
+  const SimulationModel m = buildSimulationModel(c);
+  SCOPED_TRACE(std::to_string(m.mesh.numTets()) + " tets");
+  EXPECT_TRUE(isClosedManifold(m.mesh.boundary().triangles));
+  EXPECT_EQ(m.quality.num_inverted, 0);
+  EXPECT_NEAR(m.mesh.volume() / c.phantom->prone_volume_m3, 1.0, 0.02)
+      << "mesh " << m.mesh.volume() * 1e6 << " cm3, analytic " << c.phantom->prone_volume_m3 * 1e6 << " cm3";
+  // Chest-wall nodes lie on the planar wall y = 0; the nipple node at the apex.
+  const auto& chest = m.mesh.nodeSet(node_sets::kChestWall);
+  ASSERT_FALSE(chest.empty());
+  for (int v : chest) EXPECT_NEAR(m.mesh.nodes()(v, 1), 0.0, 2e-3) << "chest-wall node " << v;
+  ASSERT_EQ(m.mesh.nodeSet(node_sets::kNipple).size(), c.nipples_m.size());
+  const int nipple = m.mesh.nodeSet(node_sets::kNipple)[0];
+  EXPECT_LT((m.mesh.nodes().row(nipple).transpose() - c.nipples_m[0]).norm(), 3e-3);
+  // Lesions are embedded inside (not snapped).
+  ASSERT_EQ(m.lesion_embedding.size(), static_cast<int>(c.lesions.size()));
+  for (const auto& e : m.lesion_embedding.points()) EXPECT_EQ(e.outside_distance_m, 0.0);
+}
+
+TEST(ModelCase, VictrePhantomMeshesWithChestWallAndNipple) {
+  ModelCase c = loadModelCase(kConfig + "victre_case.yaml");
+  c.meshing.target_elements = 8000;
+  const SimulationModel m = buildSimulationModel(c);
+  SCOPED_TRACE(std::to_string(m.mesh.numTets()) + " tets");
+  EXPECT_TRUE(isClosedManifold(m.mesh.boundary().triangles));
+  EXPECT_EQ(m.quality.num_inverted, 0);
+  EXPECT_NEAR(m.mesh.numTets() / 8000.0, 1.0, 0.25);
+  EXPECT_NEAR(m.mesh.volume() / m.meshing.voxel_volume_m3, 1.0, 0.03);
+  // The muscle/tissue interface of the VICTRE phantom is near x = 0 (README): chest-wall nodes there.
+  const auto& chest = m.mesh.nodeSet(node_sets::kChestWall);
+  ASSERT_GT(chest.size(), 50u);
+  int near_wall = 0;
+  for (int v : chest) near_wall += m.mesh.nodes()(v, 0) < 6e-3;
+  EXPECT_GT(near_wall, 0.9 * chest.size());
+  const int nipple = m.mesh.nodeSet(node_sets::kNipple).at(0);
+  EXPECT_LT((m.mesh.nodes().row(nipple).transpose() - Eigen::Vector3d(82.2e-3, 0.1e-3, -25.3e-3)).norm(), 5e-3);
+  // Both fat and fibroglandular elements are present.
+  int gland = 0;
+  for (int r : m.mesh.regionLabels()) gland += r == static_cast<int>(TissueClass::kFibroglandular);
+  EXPECT_GT(gland, 0);
+}
+
+TEST(ModelCase, BadCasesNameTheKeyAndTheFix) {
+  expectErrorMentions(writeTemp("none.yaml", "meshing: {target_elements: 100}\n"), "exactly one of");
+  expectErrorMentions(writeTemp("unknown_mesh_key.yaml",
+                                "image: {path: " + std::string(BREAST_SIM_TEST_DATA_DIR) +
+                                    "/victre_labels_1mm.nrrd}\nmeshing: {target_elemnts: 100}\n"),
+                      "meshing.target_elemnts");
+  expectErrorMentions(writeTemp("missing_image.yaml", "image: {path: nowhere.nrrd}\n"), "nowhere.nrrd");
+  expectErrorMentions(writeTemp("bad_size.yaml",
+                                "image: {path: " + std::string(BREAST_SIM_TEST_DATA_DIR) +
+                                    "/victre_labels_1mm.nrrd}\nmeshing: {interior_size_mm: -3}\n"),
+                      "interior_size_m");
+  expectErrorMentions(writeTemp("lesion_outside.yaml",
+                                "image: {path: " + std::string(BREAST_SIM_TEST_DATA_DIR) +
+                                    "/victre_labels_1mm.nrrd}\nmeshing: {target_elements: 3000}\n"
+                                    "lesions:\n  - {name: far_away, position_mm: [300, 0, 0]}\n"),
+                      "far_away");
+  expectErrorMentions(writeTemp("empty.yaml", ""), "expected a map");
+  expectErrorMentions("/nonexistent/case.yaml", "/nonexistent/case.yaml");
+}
