@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -38,6 +39,17 @@ std::string tempPath(const std::string& name) {
   }();
   return (dir / name).string();
 }
+
+/// Removes the temporary folder after the last test.
+class TempFolderCleanup : public ::testing::Environment {
+ public:
+  void TearDown() override {
+    std::error_code ignored;
+    std::filesystem::remove_all(std::filesystem::path(tempPath("x")).parent_path(), ignored);
+  }
+};
+const ::testing::Environment* const kCleanup =
+    ::testing::AddGlobalTestEnvironment(new TempFolderCleanup);
 
 void writeBytes(const std::string& path, const std::string& bytes) {
   std::ofstream out(path, std::ios::binary | std::ios::trunc);
@@ -456,8 +468,17 @@ TEST(LabelImageReader, ReadsTheVictrePhantom) {
 }
 
 TEST(LabelImageReader, ReadsTheHalfMillimetrePhantomQuicklyWithTheDocumentedHistogram) {
-  const std::string path = "/work/shared/data/victre-phantom/breast_labels_0p5mm.nrrd";
-  if (!std::filesystem::exists(path)) GTEST_SKIP() << path << " is not on this machine";
+  // shared/ lies beside the repository (in CI's clone too) and at /work/shared on a workstation.
+  std::string path;
+  for (const std::string& candidate :
+       {std::string(BREAST_SIM_TEST_DATA_DIR "/../../../shared/data/victre-phantom/"),
+        std::string("/work/shared/data/victre-phantom/")}) {
+    if (std::filesystem::exists(candidate + "breast_labels_0p5mm.nrrd")) {
+      path = candidate + "breast_labels_0p5mm.nrrd";
+      break;
+    }
+  }
+  if (path.empty()) GTEST_SKIP() << "breast_labels_0p5mm.nrrd (shared/data/victre-phantom) is absent";
   const auto start = std::chrono::steady_clock::now();
   const LabelImage image = readLabelImage(path);
   const double seconds =
@@ -595,6 +616,30 @@ TEST(LabelImageReader, RejectsMalformedFilesNamingFileAndFault) {
     for (const std::string& s : c.says) {
       EXPECT_NE(message.find(s), std::string::npos) << "'" << s << "' not in: " << message;
     }
+  }
+}
+
+TEST(LabelImageReader, TruncatedCompressedDataSaysHowManyBytesWereExpectedAndFound) {
+  LabelImage image(Eigen::Vector3i(40, 30, 20), mm(1, 1, 1), mm(0, 0, 0));
+  for (std::size_t v = 0; v < image.labels.size(); ++v) {
+    image.labels[v] = static_cast<std::uint16_t>((v * 2654435761u) >> 16);  // incompressible
+  }
+  // Where each format's compressed stream starts: after the NRRD blank line, the MetaImage
+  // ElementDataFile line, or at byte 0 of a .nii.gz.
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {".nrrd", "\n\n"}, {".mha", "ElementDataFile = LOCAL\n"}, {".nii.gz", ""}};
+  for (const auto& [ext, marker] : cases) {
+    SCOPED_TRACE(ext);
+    const std::string path = tempPath("cut" + ext);
+    writeLabelImage(path, image);
+    const std::string bytes = readBytes(path);
+    const std::size_t start = marker.empty() ? 0 : bytes.find(marker) + marker.size();
+    ASSERT_LT(start, bytes.size());
+    writeBytes(path, bytes.substr(0, start + (bytes.size() - start) / 2));
+    const std::string message = errorOf([&] { readLabelImage(path); });
+    EXPECT_NE(message.find("truncated"), std::string::npos) << message;
+    EXPECT_NE(message.find("expected"), std::string::npos) << message;
+    EXPECT_NE(message.find("found"), std::string::npos) << message;
   }
 }
 
