@@ -295,7 +295,7 @@ TetMesh meshLabelImage(const LabelImage& image, const TissueLabels& labels,
                                mesh.nodes().row(b.triangles(f, 2))).transpose() / 3.0;
     const Eigen::Vector3d nrm = b.normals.row(f).transpose();
     int chest_votes = 0, air_votes = 0;
-    for (double step : {0.5, 1.0, 1.5, 2.5}) {
+    for (double step : {0.5, 1.0, 1.5}) {  // voxels outside the face
       const TissueClass tc =
           labels.classify(image.labelAt(c + nrm * (step * image.spacing_m.minCoeff()), 0));
       chest_votes += tc == TissueClass::kChestWall;
