@@ -65,6 +65,10 @@ class GmshReader {
                                        std::string(t.substr(0, 40)) + "'");
       }
       const std::string name(t.substr(1));
+      // MSH 4.1 binary sections start right after the line break that ends their name.
+      if (binary_ && version_ == Version::k41 && (name == "Entities" || name == "Nodes" || name == "Elements")) {
+        f_.line();
+      }
       if (name != "MeshFormat" && version_ == Version::kUnknown) {
         f_.failAtLine(section_pos, "expected $MeshFormat first, got $" + name);
       }

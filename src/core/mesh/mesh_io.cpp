@@ -50,7 +50,9 @@ FileCursor::FileCursor(std::string path) : path_(std::move(path)) {
 int FileCursor::lineAt(std::size_t pos) const {
   // Only called on the way to an error, so counting from the start keeps the happy path free of
   // line bookkeeping.
-  const std::size_t end = std::min(pos, data_.size());
+  std::size_t end = std::min(pos, data_.size());
+  // At the end of a file that ends with a line break, name the last line rather than the empty one after it.
+  if (end == data_.size() && end > 0 && data_[end - 1] == '\n') --end;
   return 1 + static_cast<int>(std::count(data_.begin(), data_.begin() + static_cast<std::ptrdiff_t>(end), '\n'));
 }
 

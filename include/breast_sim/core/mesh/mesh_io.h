@@ -14,7 +14,8 @@
 /// \note Errors: a malformed file raises std::runtime_error whose message starts with the path and
 /// the place, then says what is wrong: "mesh.msh:12: expected 4 node indices for element 7, got 3"
 /// for text, "mesh.msh: byte 1234: …" for binary data, "mesh.vtu: …" for files read by VTK (which
-/// reports no place). A file that cannot be opened or written raises std::runtime_error naming it.
+/// reports no place). A file that cannot be opened or written, or that holds no 4-node tetrahedron,
+/// raises std::runtime_error naming it.
 
 #include <cstddef>
 #include <cstring>
@@ -120,6 +121,8 @@ void writeGmsh(const std::string& path, const TetMesh& mesh, const GmshOptions& 
 /// non-zero value).
 /// @param fields  if not null, receives the other point arrays and the other cell arrays (restricted
 ///                to the tetrahedra), as stored in the file (not scaled; is_length is false)
+/// \bug VTK's legacy reader reports some truncated files only as warnings on stderr; such a file
+///      can read without its last arrays (labels then 0, node sets missing) instead of throwing.
 TetMesh readVtkUnstructured(const std::string& path, double length_unit_m = 1.0,
                             MeshFields* fields = nullptr);
 
@@ -132,7 +135,8 @@ TetMesh readVtkUnstructured(const std::string& path, double length_unit_m = 1.0,
 void writeVtu(const std::string& path, const TetMesh& mesh, const MeshFields& fields = {},
               double length_unit_m = 1.0, const VtkOptions& options = {});
 
-/// Same content as writeVtu, in the legacy .vtk format.
+/// Same content as writeVtu, in the legacy .vtk format (file version 4.2, which old and new VTK-based
+/// tools read).
 void writeVtkLegacy(const std::string& path, const TetMesh& mesh, const MeshFields& fields = {},
                     double length_unit_m = 1.0, const VtkOptions& options = {});
 
@@ -154,9 +158,10 @@ void writeTetGen(const std::string& path, const TetMesh& mesh, double length_uni
 /// data lines are skipped), *NSET (ids, names of earlier sets, or GENERATE) and *ELSET.
 /// Keywords and parameters are case-insensitive; lines starting with "**" are comments; other
 /// keywords are skipped with their data lines; *INCLUDE is not supported.
-/// Region label from the element set (ELSET= of *ELEMENT, or a later *ELSET listing the element):
-/// the integer the name ends with ("REGION_29" → 29, "EB-3" → 3, "R_-2" → −2), otherwise the 1-based
-/// rank of the name among the distinct element-set names in order of appearance; 0 without a set.
+/// Region label from the element set: ELSET= of the C3D4 *ELEMENT block, else the first *ELSET that
+/// lists the element, else 0. A set's label is the integer its name ends with ("REGION_29" → 29,
+/// "EB-3" → 3, "R_-2" → −2), otherwise the 1-based rank of the name among the distinct set names of
+/// C3D4 *ELEMENT blocks and *ELSET keywords, in order of appearance.
 /// Node sets: every *NSET, and NSET= of *NODE, under its name as written.
 TetMesh readAbaqusInp(const std::string& path, double length_unit_m = 1.0);
 

@@ -1,0 +1,623 @@
+#include <gtest/gtest.h>
+
+#include <array>
+#include <chrono>
+#include <cstdlib>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <sstream>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "breast_sim/core/mesh/mesh_io.h"
+#include "breast_sim/core/mesh/tet_mesh.h"
+
+using namespace breast_sim::core;
+namespace fs = std::filesystem;
+
+namespace {
+
+// A fresh directory under the system temp dir, removed with its files at the end of the test.
+class TempDir {
+ public:
+  TempDir() {
+    std::string pattern = (fs::temp_directory_path() / "breast_sim_mesh_io_XXXXXX").string();
+    if (!mkdtemp(pattern.data())) throw std::runtime_error("cannot create a temp dir");
+    dir_ = pattern;
+  }
+  ~TempDir() {
+    std::error_code ec;
+    fs::remove_all(dir_, ec);
+  }
+  std::string path(const std::string& name) const { return (dir_ / name).string(); }
+
+ private:
+  fs::path dir_;
+};
+
+void writeText(const std::string& path, const std::string& text) {
+  std::ofstream(path, std::ios::binary) << text;
+}
+
+std::string readBytes(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::ostringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+// Two unit cubes side by side (scaled by 1 cm and shifted off the origin so coordinates have many
+// digits), 6 tets each, with labels 29, 7 and 0 interleaved so writers that group by label change the
+// order, and two node sets.
+TetMesh twoCubeMesh() {
+  const double h = 0.0123456789;
+  const Eigen::RowVector3d origin(0.1234567891234, -0.0512, 0.3);
+  Points x(12, 3);
+  for (int i = 0; i < 12; ++i) x.row(i) = origin + h * Eigen::RowVector3d(i % 3, (i / 3) % 2, i / 6);
+  // Node (i, j, k) of the 3×2×2 grid has index i + 3j + 6k.
+  auto cube = [](int i0) {
+    const int c[8] = {i0, i0 + 1, i0 + 3, i0 + 4, i0 + 6, i0 + 7, i0 + 9, i0 + 10};  // (x, y, z) bits
+    // Corners by bit pattern xyz: 0=000 1=100 2=010 3=110 4=001 5=101 6=011 7=111, around diagonal 0–7.
+    const int t[6][4] = {{0, 1, 3, 7}, {0, 1, 7, 5}, {0, 5, 7, 4}, {0, 3, 2, 7}, {0, 2, 6, 7}, {0, 6, 4, 7}};
+    std::vector<std::array<int, 4>> tets;
+    for (const auto& tet : t) tets.push_back({c[tet[0]], c[tet[1]], c[tet[2]], c[tet[3]]});
+    return tets;
+  };
+  const auto a = cube(0), b = cube(1);
+  Tets tets(12, 4);
+  std::vector<int> labels;
+  for (int i = 0; i < 6; ++i) {
+    tets.row(2 * i) << a[i][0], a[i][1], a[i][2], a[i][3];
+    tets.row(2 * i + 1) << b[i][0], b[i][1], b[i][2], b[i][3];
+    labels.push_back(29);
+    labels.push_back(i < 2 ? 0 : 7);
+  }
+  TetMesh mesh(x, tets, labels);
+  mesh.setNodeSet(node_sets::kChestWall, {0, 3, 6, 9});  // the face x = x0
+  mesh.setNodeSet(node_sets::kNipple, {11});
+  return mesh;
+}
+
+void expectSameMesh(const TetMesh& expected, const TetMesh& actual, double rel_tol, bool node_sets) {
+  ASSERT_EQ(actual.numNodes(), expected.numNodes());
+  ASSERT_EQ(actual.numTets(), expected.numTets());
+  const double scale = expected.nodes().cwiseAbs().maxCoeff();
+  EXPECT_LE((actual.nodes() - expected.nodes()).cwiseAbs().maxCoeff(), rel_tol * scale);
+  EXPECT_EQ(actual.tets(), expected.tets());
+  EXPECT_EQ(actual.regionLabels(), expected.regionLabels());
+  if (node_sets) {
+    EXPECT_EQ(actual.nodeSets(), expected.nodeSets());
+  }
+}
+
+void expectAllPositive(const TetMesh& m) {
+  for (int t = 0; t < m.numTets(); ++t) {
+    EXPECT_GT(signedTetVolume(m.nodes().row(m.tets()(t, 0)), m.nodes().row(m.tets()(t, 1)),
+                              m.nodes().row(m.tets()(t, 2)), m.nodes().row(m.tets()(t, 3))), 0.0)
+        << "tet " << t;
+  }
+}
+
+std::vector<int> row(const TetMesh& m, int t) { return {m.tets()(t, 0), m.tets()(t, 1), m.tets()(t, 2), m.tets()(t, 3)}; }
+
+// The node sets the hand-written files below give, in the same geometry for every format:
+// A (0,0,0), B (1,0,0), C (0,1,0), D (0,0,1), E (0.5,0.5,−1); tets ABCD (+), ABCE (−), BCDE (−).
+Points handWrittenNodes() {
+  Points x(5, 3);
+  x << 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0.5, 0.5, -1;
+  return x;
+}
+
+// ABCD as written; ABCE and BCDE were negative, so their last two nodes come back swapped.
+void expectHandWrittenTets(const TetMesh& m) {
+  ASSERT_EQ(m.numTets(), 3);
+  EXPECT_EQ(row(m, 0), (std::vector<int>{0, 1, 2, 3}));
+  EXPECT_EQ(row(m, 1), (std::vector<int>{0, 1, 4, 2}));
+  EXPECT_EQ(row(m, 2), (std::vector<int>{1, 2, 4, 3}));
+  expectAllPositive(m);
+}
+
+const char* kMsh41Ascii = R"($MeshFormat
+4.1 0 8
+$EndMeshFormat
+$Comments
+written by hand
+$EndComments
+$PhysicalNames
+3
+2 5 "skin"
+3 29 "glandular"
+3 7 "fat"
+$EndPhysicalNames
+$Entities
+1 0 1 2
+10 0 0 0 0
+3 0 0 -1 1 1 1 1 5 0
+1 0 0 -1 1 1 1 1 29 0
+2 0 0 -1 1 1 1 0 0
+$EndEntities
+$Nodes
+2 5 10 55
+0 10 0 1
+10
+0 0 0
+3 1 0 4
+20
+30
+40
+55
+1 0 0
+0 1 0
+0 0 1
+0.5 0.5 -1
+$EndNodes
+$Elements
+4 5 1 9
+0 10 15 1
+1 10
+2 3 2 1
+2 20 30 40
+3 1 4 2
+4 10 20 30 55
+3 10 20 30 40
+3 2 4 1
+9 20 30 40 55
+$EndElements
+)";
+
+const char* kMsh22Ascii = R"($MeshFormat
+2.2 0 8
+$EndMeshFormat
+$PhysicalNames
+2
+2 5 "skin"
+3 29 "glandular"
+$EndPhysicalNames
+$Nodes
+5
+10 0 0 0
+20 1 0 0
+30 0 1 0
+40 0 0 1
+55 0.5 0.5 -1
+$EndNodes
+$Elements
+5
+1 15 2 0 10 10
+2 2 2 5 3 20 30 40
+4 4 2 29 1 10 20 30 55
+3 4 2 29 1 10 20 30 40
+9 4 2 0 2 20 30 40 55
+$EndElements
+)";
+
+}  // namespace
+
+TEST(MeshIo, EveryFormatRoundTripsNodesTetsLabelsAndNodeSets) {
+  const TetMesh mesh = twoCubeMesh();
+  struct Case {
+    std::string file;
+    MeshWriteOptions options;
+    bool binary;     // coordinates must come back bit for bit
+    bool node_sets;  // the format holds node sets
+  };
+  MeshWriteOptions msh22a, msh22b, msh41a, msh41b, vtk_ascii;
+  msh22b.gmsh = {GmshVersion::kMsh22, true};
+  msh41a.gmsh = {GmshVersion::kMsh41, false};
+  msh41b.gmsh = {GmshVersion::kMsh41, true};
+  vtk_ascii.vtk.binary = false;
+  const std::vector<Case> cases = {
+      {"msh22_ascii.msh", msh22a, false, false}, {"msh22_binary.msh", msh22b, true, false},
+      {"msh41_ascii.msh", msh41a, false, false}, {"msh41_binary.msh", msh41b, true, false},
+      {"binary.vtu", {}, true, true},            {"ascii.vtu", vtk_ascii, false, true},
+      {"binary.vtk", {}, true, true},            {"ascii.vtk", vtk_ascii, false, true},
+      {"mesh.node", {}, false, false},           {"mesh.inp", {}, false, true},
+  };
+  TempDir dir;
+  for (const Case& c : cases) {
+    for (double unit : {1.0, 1e-3}) {
+      SCOPED_TRACE(c.file + " with length unit " + std::to_string(unit) + " m");
+      const std::string path = dir.path(c.file);
+      writeTetMesh(path, mesh, {}, unit, c.options);
+      const TetMesh back = readTetMesh(path, unit);
+      // Text writers print the shortest exact decimal; VTK's ASCII writer prints fewer digits.
+      const bool vtk_ascii_text = !c.binary && c.file.find("vt") != std::string::npos;
+      const double tol = (c.binary && unit == 1.0) ? 0.0 : vtk_ascii_text ? 1e-9 : 1e-12;
+      expectSameMesh(mesh, back, tol, c.node_sets);
+    }
+  }
+}
+
+TEST(MeshIo, LengthUnitScalesCoordinatesOnReadAndWrite) {
+  const TetMesh mesh = twoCubeMesh();
+  TempDir dir;
+  for (const std::string file : {"mm.msh", "mm.inp", "mm.vtu", "mm.ele"}) {
+    SCOPED_TRACE(file);
+    writeTetMesh(dir.path(file), mesh, {}, 1e-3);  // file in mm
+    const TetMesh as_metres = readTetMesh(dir.path(file), 1.0);
+    EXPECT_NEAR(as_metres.nodes()(1, 0), 1000.0 * mesh.nodes()(1, 0), 1e-9);
+    EXPECT_NEAR(readTetMesh(dir.path(file), 1e-3).nodes()(1, 0), mesh.nodes()(1, 0), 1e-15);
+  }
+  EXPECT_THROW(readTetMesh(dir.path("mm.msh"), 0.0), std::invalid_argument);
+  EXPECT_THROW(writeTetMesh(dir.path("x.msh"), mesh, {}, -1.0), std::invalid_argument);
+}
+
+TEST(MeshIo, VtuKeepsPointAndCellFieldsForParaView) {
+  const TetMesh mesh = twoCubeMesh();
+  MeshFields fields;
+  Eigen::MatrixXd displacement = Eigen::MatrixXd::Random(mesh.numNodes(), 3) * 1e-3;  // [m]
+  fields.point_data.push_back({"displacement", displacement, /*is_length=*/true});
+  fields.cell_data.push_back({"von_mises", Eigen::VectorXd::LinSpaced(mesh.numTets(), 0.0, 1e3)});
+  fields.cell_data.push_back({"modulus_factor", Eigen::VectorXd::Constant(mesh.numTets(), 1.5)});
+  TempDir dir;
+  for (const std::string file : {"fields.vtu", "fields.vtk"}) {
+    SCOPED_TRACE(file);
+    writeTetMesh(dir.path(file), mesh, fields, 1e-3);  // coordinates and displacement in mm
+    MeshFields back;
+    const TetMesh m = readVtkUnstructured(dir.path(file), 1e-3, &back);
+    expectSameMesh(mesh, m, 1e-12, true);
+    ASSERT_EQ(back.point_data.size(), 1u);
+    EXPECT_EQ(back.point_data[0].name, "displacement");
+    EXPECT_TRUE(back.point_data[0].values.isApprox(displacement * 1e3, 1e-12));  // stored in mm
+    ASSERT_EQ(back.cell_data.size(), 2u);
+    EXPECT_EQ(back.cell_data[0].name, "von_mises");
+    EXPECT_EQ(back.cell_data[0].values, fields.cell_data[0].values);
+    EXPECT_EQ(back.cell_data[1].values, fields.cell_data[1].values);
+  }
+}
+
+TEST(MeshIo, FieldWithWrongRowCountIsRejectedByName) {
+  const TetMesh mesh = twoCubeMesh();
+  TempDir dir;
+  struct Case {
+    std::string what;
+    MeshFields fields;
+    std::string message;
+  };
+  std::vector<Case> cases(4);
+  cases[0] = {"point field with #N + 1 rows", {}, "point field 'displacement' has 13 rows; expected 12"};
+  cases[0].fields.point_data.push_back({"displacement", Eigen::MatrixXd::Zero(mesh.numNodes() + 1, 3)});
+  cases[1] = {"cell field with #T - 1 rows", {}, "cell field 'von_mises' has 11 rows; expected 12"};
+  cases[1].fields.cell_data.push_back({"von_mises", Eigen::MatrixXd::Zero(mesh.numTets() - 1, 1)});
+  cases[2] = {"reserved name", {}, "'region' is reserved"};
+  cases[2].fields.cell_data.push_back({"region", Eigen::MatrixXd::Zero(12, 1)});
+  cases[3] = {"repeated name", {}, "'s' is given twice"};
+  cases[3].fields.cell_data.push_back({"s", Eigen::MatrixXd::Zero(12, 1)});
+  cases[3].fields.cell_data.push_back({"s", Eigen::MatrixXd::Zero(12, 1)});
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.what);
+    try {
+      writeTetMesh(dir.path("bad.vtu"), mesh, c.fields);
+      ADD_FAILURE() << "no exception";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find(c.message), std::string::npos) << e.what();
+    }
+    EXPECT_FALSE(fs::exists(dir.path("bad.vtu"))) << "nothing is written when a field is bad";
+  }
+}
+
+TEST(MeshIo, FieldsAreRejectedForFormatsThatCannotHoldThem) {
+  const TetMesh mesh = twoCubeMesh();
+  MeshFields fields;
+  fields.cell_data.push_back({"von_mises", Eigen::VectorXd::Zero(mesh.numTets())});
+  TempDir dir;
+  for (const std::string file : {"f.msh", "f.inp", "f.node"}) {
+    SCOPED_TRACE(file);
+    EXPECT_THROW(writeTetMesh(dir.path(file), mesh, fields), std::invalid_argument);
+  }
+}
+
+TEST(MeshIo, HandWrittenMsh41AsciiWithTagGapsAndMixedElementsIsRead) {
+  TempDir dir;
+  writeText(dir.path("hand41.msh"), kMsh41Ascii);
+  const TetMesh m = readTetMesh(dir.path("hand41.msh"));
+  EXPECT_EQ(m.nodes(), handWrittenNodes());  // file order of the tags 10, 20, 30, 40, 55
+  expectHandWrittenTets(m);                   // sorted by element tag 3, 4, 9
+  // Volume 1 has physical tag 29; volume 2 has none, so its entity tag 2 is the label.
+  EXPECT_EQ(m.regionLabels(), (std::vector<int>{29, 29, 2}));
+  // The named surface group "skin" (the triangle 20 30 40) is a node set; the point is skipped.
+  ASSERT_TRUE(m.hasNodeSet("skin"));
+  EXPECT_EQ(m.nodeSet("skin"), (std::vector<int>{1, 2, 3}));
+  EXPECT_EQ(m.nodeSets().size(), 1u);
+}
+
+TEST(MeshIo, HandWrittenMsh22AsciiWithTagGapsAndMixedElementsIsRead) {
+  TempDir dir;
+  writeText(dir.path("hand22.msh"), kMsh22Ascii);
+  const TetMesh m = readTetMesh(dir.path("hand22.msh"));
+  EXPECT_EQ(m.nodes(), handWrittenNodes());
+  expectHandWrittenTets(m);
+  // Element 9 has physical tag 0 (no physical group), so its elementary tag 2 is the label.
+  EXPECT_EQ(m.regionLabels(), (std::vector<int>{29, 29, 2}));
+  EXPECT_EQ(m.nodeSet("skin"), (std::vector<int>{1, 2, 3}));
+}
+
+TEST(MeshIo, HandWrittenAbaqusInpIsRead) {
+  TempDir dir;
+  writeText(dir.path("hand.inp"), R"(** hand-written deck, lengths in mm
+*Heading
+ three tets; this line is free text, 1, 2, 3
+*Node, nset=ALLNODES
+1, 0.0, 0.0, 0.0
+2, 1.0, 0.0, 0.0
+5, 0.0, 1.0, 0.0
+7, 0.0, 0.0, 1.0
+9, 0.5, 0.5, -1.0
+*element, type=S3, elset=SKIN_TRIS
+100, 2, 5, 7
+*ELEMENT, TYPE=C3D4, ELSET=REGION_29
+3, 1, 2, 5, 7
+** an element over two lines, in a set without digits (rank 2 after REGION_29)
+*Element, Type=c3d4, Elset=Fat
+4, 1, 2,
+   5, 9
+*ELEMENT, TYPE=C3D4
+8, 2, 5, 7, 9
+*ELSET, ELSET=Deep
+8, 100
+*NSET, NSET=chest_wall
+1, 2
+*Nset, nset=skin, generate
+5, 9, 2
+*NSET, NSET=both
+chest_wall, 9
+*MATERIAL, NAME=fat
+*ELASTIC
+3000., 0.49
+)");
+  const TetMesh m = readTetMesh(dir.path("hand.inp"), 1e-3);
+  EXPECT_TRUE(m.nodes().isApprox(handWrittenNodes() * 1e-3, 1e-15));
+  expectHandWrittenTets(m);
+  EXPECT_EQ(m.regionLabels(), (std::vector<int>{29, 2, 3}));  // REGION_29, Fat (rank 2), Deep (rank 3)
+  EXPECT_EQ(m.nodeSet("ALLNODES"), (std::vector<int>{0, 1, 2, 3, 4}));
+  EXPECT_EQ(m.nodeSet("chest_wall"), (std::vector<int>{0, 1}));
+  EXPECT_EQ(m.nodeSet("skin"), (std::vector<int>{2, 3, 4}));
+  EXPECT_EQ(m.nodeSet("both"), (std::vector<int>{0, 1, 4}));
+}
+
+TEST(MeshIo, HandWrittenTetGenPairIsReadFromEitherPath) {
+  TempDir dir;
+  writeText(dir.path("hand.node"), R"(# 0-based points, one attribute, boundary markers
+5 3 1 1
+0 0 0 0   7 1
+1 1 0 0   7 1  # inline comment
+
+2 0 1 0   7 0
+3 0 0 1   7 0
+4 0.5 0.5 -1   7 1
+)");
+  writeText(dir.path("hand.ele"), R"(3 4 1
+# region attribute as TetGen writes it
+0 0 1 2 3 29
+1 0 1 2 4 2.9e1
+2 1 2 3 4 -7
+)");
+  for (const std::string file : {"hand.node", "hand.ele"}) {
+    SCOPED_TRACE(file);
+    const TetMesh m = readTetMesh(dir.path(file));
+    EXPECT_EQ(m.nodes(), handWrittenNodes());
+    expectHandWrittenTets(m);
+    EXPECT_EQ(m.regionLabels(), (std::vector<int>{29, 29, -7}));
+  }
+}
+
+TEST(MeshIo, VtkFilesFromOtherToolsGiveTetsAndLabelsAndSkipOtherCells) {
+  TempDir dir;
+  // As meshio writes a Gmsh mesh: labels in "gmsh:physical", a triangle cell among the tetrahedra.
+  writeText(dir.path("other.vtu"), R"(<?xml version="1.0"?>
+<VTKFile type="UnstructuredGrid" version="0.1" byte_order="LittleEndian">
+  <UnstructuredGrid>
+    <Piece NumberOfPoints="5" NumberOfCells="4">
+      <Points>
+        <DataArray type="Float64" NumberOfComponents="3" format="ascii">
+          0 0 0  1 0 0  0 1 0  0 0 1  0.5 0.5 -1
+        </DataArray>
+      </Points>
+      <Cells>
+        <DataArray type="Int64" Name="connectivity" format="ascii">1 2 3  0 1 2 3  0 1 2 4  1 2 3 4</DataArray>
+        <DataArray type="Int64" Name="offsets" format="ascii">3 7 11 15</DataArray>
+        <DataArray type="UInt8" Name="types" format="ascii">5 10 10 10</DataArray>
+      </Cells>
+      <CellData>
+        <DataArray type="Int32" Name="gmsh:physical" format="ascii">5 29 29 2</DataArray>
+      </CellData>
+    </Piece>
+  </UnstructuredGrid>
+</VTKFile>
+)");
+  writeText(dir.path("other.vtk"), R"(# vtk DataFile Version 4.2
+hand-written
+ASCII
+DATASET UNSTRUCTURED_GRID
+POINTS 5 double
+0 0 0 1 0 0 0 1 0 0 0 1 0.5 0.5 -1
+CELLS 4 19
+3 1 2 3
+4 0 1 2 3
+4 0 1 2 4
+4 1 2 3 4
+CELL_TYPES 4
+5
+10
+10
+10
+CELL_DATA 4
+SCALARS label int 1
+LOOKUP_TABLE default
+5 29 29 2
+POINT_DATA 5
+SCALARS nodeset_skin int 1
+LOOKUP_TABLE default
+0 1 1 1 0
+)");
+  for (const std::string file : {"other.vtu", "other.vtk"}) {
+    SCOPED_TRACE(file);
+    const TetMesh m = readTetMesh(dir.path(file));
+    EXPECT_EQ(m.nodes(), handWrittenNodes());
+    expectHandWrittenTets(m);
+    EXPECT_EQ(m.regionLabels(), (std::vector<int>{29, 29, 2}));
+  }
+  EXPECT_EQ(readTetMesh(dir.path("other.vtk")).nodeSet("skin"), (std::vector<int>{1, 2, 3}));
+}
+
+TEST(MeshIo, NegativelyOrientedTetsInAFileComeBackPositive) {
+  // Every writer writes the mesh's positive order, so put a negative tet into each format by hand.
+  TempDir dir;
+  writeText(dir.path("neg.msh"), "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n4\n1 0 0 0\n2 1 0 0\n"
+                                 "3 0 1 0\n4 0 0 1\n$EndNodes\n$Elements\n1\n1 4 2 3 3 1 3 2 4\n$EndElements\n");
+  writeText(dir.path("neg.inp"), "*NODE\n1, 0, 0, 0\n2, 1, 0, 0\n3, 0, 1, 0\n4, 0, 0, 1\n"
+                                 "*ELEMENT, TYPE=C3D4, ELSET=R3\n1, 1, 3, 2, 4\n");
+  writeText(dir.path("neg.node"), "4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n");
+  writeText(dir.path("neg.ele"), "1 4 1\n1 1 3 2 4 3\n");
+  for (const std::string file : {"neg.msh", "neg.inp", "neg.ele"}) {
+    SCOPED_TRACE(file);
+    const TetMesh m = readTetMesh(dir.path(file));
+    EXPECT_EQ(row(m, 0), (std::vector<int>{0, 2, 3, 1}));  // (1 3 2 4) with its last two swapped
+    expectAllPositive(m);
+    EXPECT_NEAR(m.volume(), 1.0 / 6.0, 1e-15);
+    EXPECT_EQ(m.regionLabels(), std::vector<int>{3});
+  }
+}
+
+TEST(MeshIo, MalformedFilesNameTheFileAndThePlace) {
+  TempDir dir;
+  const std::string nodes3 = "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n3\n1 0 0 0\n2 1 0 0\n3 0 1 0\n$EndNodes\n";
+  const std::string nodes4 = "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n4\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n$EndNodes\n";
+  // Binary files cut in the middle of their node data.
+  const TetMesh mesh = twoCubeMesh();
+  MeshWriteOptions b22, b41;
+  b22.gmsh = {GmshVersion::kMsh22, true};
+  b41.gmsh = {GmshVersion::kMsh41, true};
+  writeTetMesh(dir.path("full22.msh"), mesh, {}, 1.0, b22);
+  writeTetMesh(dir.path("full41.msh"), mesh, {}, 1.0, b41);
+  const std::string full22 = readBytes(dir.path("full22.msh"));
+  const std::string full41 = readBytes(dir.path("full41.msh"));
+
+  struct Case {
+    std::string file;
+    std::string text;
+    std::string place;  // ":<line>:" or ": byte "
+    std::string what;
+  };
+  const std::vector<Case> cases = {
+      {"no_elements.msh", nodes3, ":9:", "without an $Elements section"},
+      {"mesh.msh", nodes3 + "$Elements\n1\n7 4 2 1 1 1 2 3\n$EndElements\n", ":12:",
+       "expected 4 node indices for element 7, got 3"},
+      {"bad_number.msh", "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n1\n1 0 0.5abc 0\n$EndNodes\n", ":6:",
+       "got '0.5abc'"},
+      {"out_of_range.msh", nodes4 + "$Elements\n1\n1 4 2 1 1 1 2 3 99\n$EndElements\n", ":13:",
+       "element 1 refers to node 99, which is not in $Nodes"},
+      {"count.msh", nodes4 + "$Elements\n2\n1 4 2 1 1 1 2 3 4\n$EndElements\n", ":14:",
+       "expected an element number, type and tag count, got 1 values"},
+      {"v40.msh", "$MeshFormat\n4 0 8\n$EndMeshFormat\n", ":2:", "MSH 4.0 is not supported"},
+      {"truncated22.msh", full22.substr(0, 200), ": byte ", "truncated"},
+      {"truncated41.msh", full41.substr(0, full41.find("$EndNodes") - 40), ": byte ", "truncated"},
+      {"node.inp", "*NODE\n1, 0, 0, 0\n2, 1, 0, 0\n3, 0, 1, 0\n4, 0, 0, 1\n*ELEMENT, TYPE=C3D4\n\n1, 1, 2, 3, 5\n",
+       ":8:", "element 1 refers to node 5"},
+      {"number.inp", "** comment\n*NODE\n1, 0, zero, 0\n", ":3:", "got 'zero'"},
+      {"short.inp", "*NODE\n1, 0, 0, 0\n*ELEMENT, TYPE=C3D4, ELSET=A\n1, 1, 1\n", ":4:",
+       "expected 4 node indices for C3D4 element 1, got 2"},
+      {"include.inp", "*INCLUDE, INPUT=nodes.inp\n", ":1:", "*INCLUDE is not supported"},
+      {"range.ele", "1 4 0\n1 1 2 3 9\n", ":2:", "tetrahedron 1 refers to node 9"},
+      {"few.ele", "2 4 0\n# one\n1 1 2 3 4\n", ":3:", "after 1 of 2 tetrahedra"},
+      {"word.ele", "1 4 0\n1 1 2 x 4\n", ":2:", "expected a node index, got 'x'"},
+      {"mesh.stl", "solid\n", "mesh.stl", "unknown mesh file extension '.stl'"},
+      {"garbage.vtu", "not xml at all\n", "garbage.vtu", "not a VTK XML unstructured grid"},
+  };
+  writeText(dir.path("range.node"), "4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n");
+  writeText(dir.path("few.node"), "4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n");
+  writeText(dir.path("word.node"), "4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n");
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.file);
+    const std::string path = dir.path(c.file);
+    writeText(path, c.text);
+    try {
+      readTetMesh(path);
+      ADD_FAILURE() << "no exception";
+    } catch (const std::runtime_error& e) {
+      const std::string msg = e.what();
+      EXPECT_EQ(msg.rfind(path, 0), 0u) << "message starts with the path: " << msg;
+      EXPECT_NE(msg.find(c.place), std::string::npos) << "place '" << c.place << "' in: " << msg;
+      EXPECT_NE(msg.find(c.what), std::string::npos) << "'" << c.what << "' in: " << msg;
+    }
+  }
+  // The example from the issue, word for word.
+  try {
+    readTetMesh(dir.path("mesh.msh"));
+  } catch (const std::runtime_error& e) {
+    EXPECT_EQ(std::string(e.what()), dir.path("mesh.msh") + ":12: expected 4 node indices for element 7, got 3");
+  }
+  // A missing file names itself too (both halves of a TetGen pair are needed).
+  for (const std::string file : {"missing.msh", "missing.inp", "missing.vtu", "few_missing.ele"}) {
+    SCOPED_TRACE(file);
+    try {
+      readTetMesh(dir.path(file));
+      ADD_FAILURE() << "no exception";
+    } catch (const std::runtime_error& e) {
+      EXPECT_NE(std::string(e.what()).find("missing."), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("cannot open"), std::string::npos) << e.what();
+    }
+  }
+}
+
+TEST(MeshIo, FormatIsChosenByCaseInsensitiveExtension) {
+  EXPECT_EQ(meshFileFormat("a/b.MSH"), MeshFileFormat::kGmsh);
+  EXPECT_EQ(meshFileFormat("b.Vtu"), MeshFileFormat::kVtu);
+  EXPECT_EQ(meshFileFormat("b.vtk"), MeshFileFormat::kVtkLegacy);
+  EXPECT_EQ(meshFileFormat("b.1.node"), MeshFileFormat::kTetGen);
+  EXPECT_EQ(meshFileFormat("b.ele"), MeshFileFormat::kTetGen);
+  EXPECT_EQ(meshFileFormat("b.INP"), MeshFileFormat::kAbaqusInp);
+  EXPECT_THROW(meshFileFormat("dir.msh/mesh"), std::runtime_error);
+}
+
+TEST(MeshIo, LargeMeshReadsInWellUnderASecond) {
+  // 37³ cubes × 6 = 303,918 tets on 54,872 nodes.
+  const int n = 37, m = n + 1;
+  Points x(m * m * m, 3);
+  for (int i = 0; i < m * m * m; ++i) x.row(i) << 1e-3 * (i % m), 1e-3 * ((i / m) % m), 1e-3 * (i / (m * m));
+  const int t[6][4] = {{0, 1, 3, 7}, {0, 1, 7, 5}, {0, 5, 7, 4}, {0, 3, 2, 7}, {0, 2, 6, 7}, {0, 6, 4, 7}};
+  Tets tets(6 * n * n * n, 4);
+  std::vector<int> labels(tets.rows());
+  int e = 0;
+  for (int k = 0; k < n; ++k)
+    for (int j = 0; j < n; ++j)
+      for (int i = 0; i < n; ++i) {
+        const int c0 = i + m * (j + m * k);
+        const int c[8] = {c0, c0 + 1, c0 + m, c0 + m + 1, c0 + m * m, c0 + m * m + 1, c0 + m * m + m, c0 + m * m + m + 1};
+        for (const auto& tet : t) {
+          tets.row(e) << c[tet[0]], c[tet[1]], c[tet[2]], c[tet[3]];
+          labels[e++] = 1 + (i * 3) / n;
+        }
+      }
+  const TetMesh mesh(x, tets, labels);
+  using Clock = std::chrono::steady_clock;
+  auto seconds = [](Clock::time_point a) { return std::chrono::duration<double>(Clock::now() - a).count(); };
+  const auto t0 = Clock::now();
+  const TetMesh copy(x, tets, labels);
+  const double construct = seconds(t0);
+  std::cout << "[ perf     ] " << mesh.numTets() << " tets, " << mesh.numNodes() << " nodes; TetMesh constructor "
+            << construct << " s (included in every read below)\n";
+
+  TempDir dir;
+  MeshWriteOptions msh41b;
+  msh41b.gmsh = {GmshVersion::kMsh41, true};
+  const std::vector<std::pair<std::string, MeshWriteOptions>> cases = {
+      {"big22.msh", {}}, {"big41b.msh", msh41b}, {"big.inp", {}}, {"big.node", {}}, {"big.vtu", {}}};
+  for (const auto& [file, options] : cases) {
+    SCOPED_TRACE(file);
+    const auto w0 = Clock::now();
+    writeTetMesh(dir.path(file), mesh, {}, 1e-3, options);
+    const double write = seconds(w0);
+    const auto r0 = Clock::now();
+    const TetMesh back = readTetMesh(dir.path(file), 1e-3);
+    const double read = seconds(r0);
+    std::cout << "[ perf     ] " << file << ": write " << write << " s, read " << read << " s ("
+              << fs::file_size(dir.path(file)) / 1e6 << " MB)\n";
+    EXPECT_EQ(back.numTets(), mesh.numTets());
+    // Well under a second on a quiet machine; the bound leaves room for a loaded CI machine.
+    EXPECT_LT(read, 2.0 + construct);
+  }
+}
