@@ -573,7 +573,8 @@ TEST(MeshIo, FormatIsChosenByCaseInsensitiveExtension) {
   EXPECT_THROW(meshFileFormat("dir.msh/mesh"), std::runtime_error);
 }
 
-TEST(MeshIo, LargeMeshReadsInWellUnderASecond) {
+// Read/write speed is measured by bench_mesh_io, not asserted here (timings are noisy).
+TEST(MeshIo, LargeMeshRoundTripsInEveryFormat) {
   // 37³ cubes × 6 = 303,918 tets on 54,872 nodes.
   const int n = 37, m = n + 1;
   Points x(m * m * m, 3);
@@ -593,14 +594,6 @@ TEST(MeshIo, LargeMeshReadsInWellUnderASecond) {
         }
       }
   const TetMesh mesh(x, tets, labels);
-  using Clock = std::chrono::steady_clock;
-  auto seconds = [](Clock::time_point a) { return std::chrono::duration<double>(Clock::now() - a).count(); };
-  const auto t0 = Clock::now();
-  const TetMesh copy(x, tets, labels);
-  const double construct = seconds(t0);
-  std::cout << "[ perf     ] " << mesh.numTets() << " tets, " << mesh.numNodes() << " nodes; TetMesh constructor "
-            << construct << " s (included in every read below)\n";
-
   TempDir dir;
   MeshWriteOptions msh41b;
   msh41b.gmsh = {GmshVersion::kMsh41, true};
@@ -608,16 +601,11 @@ TEST(MeshIo, LargeMeshReadsInWellUnderASecond) {
       {"big22.msh", {}}, {"big41b.msh", msh41b}, {"big.inp", {}}, {"big.node", {}}, {"big.vtu", {}}};
   for (const auto& [file, options] : cases) {
     SCOPED_TRACE(file);
-    const auto w0 = Clock::now();
     writeTetMesh(dir.path(file), mesh, {}, 1e-3, options);
-    const double write = seconds(w0);
-    const auto r0 = Clock::now();
     const TetMesh back = readTetMesh(dir.path(file), 1e-3);
-    const double read = seconds(r0);
-    std::cout << "[ perf     ] " << file << ": write " << write << " s, read " << read << " s ("
-              << fs::file_size(dir.path(file)) / 1e6 << " MB)\n";
-    EXPECT_EQ(back.numTets(), mesh.numTets());
-    // Well under a second on a quiet machine; the bound leaves room for a loaded CI machine.
-    EXPECT_LT(read, 2.0 + construct);
+    ASSERT_EQ(back.numTets(), mesh.numTets());
+    ASSERT_EQ(back.numNodes(), mesh.numNodes());
+    EXPECT_LT((back.nodes() - mesh.nodes()).cwiseAbs().maxCoeff(), 1e-12);
+    EXPECT_EQ(back.regionLabels(), mesh.regionLabels());
   }
 }

@@ -12,6 +12,7 @@
 #include <stdexcept>
 #include <utility>
 
+#include <Eigen/Geometry>
 #include <yaml-cpp/yaml.h>
 
 #include "breast_sim/core/model/tissue_labels.h"
@@ -37,7 +38,7 @@ std::string fmt(double v) {
 std::string mmString(double v_m) { return fmt(v_m / kMm); }
 
 [[noreturn]] void fail(const std::string& key, const std::string& value, const std::string& expected) {
-  throw std::invalid_argument("phantom: " + key + " = " + value + ": expected " + expected);
+  throw std::invalid_argument("key 'phantom." + key + "' = " + value + ": expected " + expected);
 }
 
 // ---------------------------------------------------------------------------------------------------
@@ -516,7 +517,10 @@ std::uint16_t Phantom::analyticLabel(const Eigen::Vector3d& p_m) const {
 namespace {
 
 // Label of one voxel: the centre sample, or the majority of n³ sub-samples (ties keep the centre's
-// label, so a sub-sampled image never differs from the centre-sampled one by a coin flip).
+// label, so a sub-sampled image never differs from the centre-sampled one by a coin flip). Because
+// the sub-samples are symmetric about the centre, a locally planar boundary gives the centre's label
+// anyway: the volume is not closer to the analytic one with n > 1 (numbers in phantom.h), which is why
+// the default is 1. The grid puts voxel faces on the planar wall, so the base is not staircased.
 std::uint16_t voxelLabel(const Phantom& ph, const Eigen::Vector3d& centre, int n, double h) {
   const std::uint16_t centre_label = ph.analyticLabel(centre);
   if (n == 1) return centre_label;

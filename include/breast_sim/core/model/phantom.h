@@ -75,6 +75,12 @@ struct PhantomParams {
   double voxel_size_m = 1e-3;                ///< isotropic voxel size of the label image [m]
   double margin_m = 5e-3;                    ///< air around the phantom [m]; at least 3 voxels are kept
   /// Sub-samples per axis and voxel (1 = voxel centre; n > 1: majority of n³, ties → centre label).
+  /// \note Majority voting does not reduce the staircase bias: sub-samples come in pairs mirrored
+  /// about the centre, so wherever the boundary is locally planar the majority equals the centre
+  /// sample. Measured tissue volume vs analytic, n = 1 / 2 / 3: default case at 1 mm +0.028% for
+  /// all three (identical images); two-breast curved case at 1 mm −0.034% / −0.039% / −0.037%, at
+  /// 2 mm −0.067% / −0.098% / −0.103%. Centre sampling is as close or closer and 2.5–12× faster, hence
+  /// the default 1; n > 1 only smooths labels of thin or small structures (skin, small lesions).
   int supersampling = 1;
   double surface_edge_m = 2e-3;              ///< target edge length of the analytic surfaces [m]
 
@@ -142,7 +148,11 @@ struct PhantomSurface {
 struct Phantom {
   PhantomParams params;
   ChestWall chest_wall;
-  LabelImage labels;  ///< prone segmentation: 0 air, 1 fat, 2 skin, 29 gland, 40 chest wall, 200 lesion
+  /// Prone segmentation: 0 air, 1 fat, 2 skin, 29 gland, 40 chest wall, 200 lesion. Identity
+  /// direction; voxel faces on multiples of the voxel size (so the planar wall y = 0 is a face plane).
+  /// Covers the prone breasts, the chest slab behind them (across the whole image) and the margin;
+  /// the supine shapes may reach beyond it.
+  LabelImage labels;
   std::vector<HalfEllipsoid> prone_breasts;
   std::vector<HalfEllipsoid> supine_breasts;  ///< the supine target shapes
   PhantomSurface prone_surface;
