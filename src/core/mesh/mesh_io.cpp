@@ -1,4 +1,4 @@
-#include "breast_sim/core/mesh/mesh_io.h"
+#include "breast_sim/core/mesh/mesh_io_detail.h"
 
 #include <algorithm>
 #include <cerrno>

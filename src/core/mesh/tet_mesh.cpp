@@ -6,6 +6,7 @@
 #include <sstream>
 #include <stdexcept>
 #include <unordered_map>
+#include <vector>
 
 #include <Eigen/Geometry>
 
@@ -112,55 +113,55 @@ namespace {
 // Faces of a positively oriented tet (a,b,c,d), each ordered so its normal points out of the tet.
 constexpr int kFaces[4][3] = {{1, 2, 3}, {0, 3, 2}, {0, 1, 3}, {0, 2, 1}};
 
-struct FaceKey {
-  std::array<int, 3> v;
-  bool operator==(const FaceKey& o) const { return v == o.v; }
-};
-struct FaceKeyHash {
-  size_t operator()(const FaceKey& k) const {
-    size_t h = static_cast<size_t>(k.v[0]) * 73856093u;
-    h ^= static_cast<size_t>(k.v[1]) * 19349663u + (h << 6) + (h >> 2);
-    h ^= static_cast<size_t>(k.v[2]) * 83492791u + (h << 6) + (h >> 2);
-    return h;
-  }
+struct FaceEntry {
+  std::array<int, 3> key;  // sorted node indices
+  int id;                  // 4 × tet + local face
+  bool operator<(const FaceEntry& o) const { return key < o.key; }
 };
 }  // namespace
 
 BoundarySurface extractBoundary(const Tets& tets, const Points& positions) {
-  // Count each face by its sorted node triple; faces seen once are on the boundary.
-  std::unordered_map<FaceKey, int, FaceKeyHash> count;
-  count.reserve(static_cast<size_t>(tets.rows()) * 3);
-  for (Eigen::Index t = 0; t < tets.rows(); ++t) {
-    for (const auto& f : kFaces) {
-      FaceKey key{{tets(t, f[0]), tets(t, f[1]), tets(t, f[2])}};
-      std::sort(key.v.begin(), key.v.end());
-      ++count[key];
+  // Sort all 4·T faces by their sorted node triple; a face that appears once is on the boundary.
+  // (Sorting is several times faster than hashing here and keeps the output order deterministic.)
+  const Eigen::Index nt = tets.rows();
+  std::vector<FaceEntry> faces(static_cast<size_t>(nt) * 4);
+#pragma omp parallel for schedule(static)
+  for (Eigen::Index t = 0; t < nt; ++t) {
+    for (int f = 0; f < 4; ++f) {
+      FaceEntry& e = faces[static_cast<size_t>(4 * t + f)];
+      e.key = {tets(t, kFaces[f][0]), tets(t, kFaces[f][1]), tets(t, kFaces[f][2])};
+      std::sort(e.key.begin(), e.key.end());
+      e.id = static_cast<int>(4 * t + f);
     }
   }
+  std::sort(faces.begin(), faces.end());
+  std::vector<int> boundary_ids;
+  for (size_t i = 0; i < faces.size();) {
+    size_t j = i + 1;
+    while (j < faces.size() && faces[j].key == faces[i].key) ++j;
+    if (j - i == 1) boundary_ids.push_back(faces[i].id);
+    i = j;
+  }
+  std::sort(boundary_ids.begin(), boundary_ids.end());  // in tet order
+
   BoundarySurface b;
-  std::vector<std::array<int, 3>> tris;
-  for (Eigen::Index t = 0; t < tets.rows(); ++t) {
-    for (const auto& f : kFaces) {
-      FaceKey key{{tets(t, f[0]), tets(t, f[1]), tets(t, f[2])}};
-      std::sort(key.v.begin(), key.v.end());
-      if (count[key] == 1) {
-        tris.push_back({tets(t, f[0]), tets(t, f[1]), tets(t, f[2])});
-        b.owner_tet.push_back(static_cast<int>(t));
-      }
-    }
-  }
-  b.triangles.resize(static_cast<Eigen::Index>(tris.size()), 3);
-  b.normals.resize(static_cast<Eigen::Index>(tris.size()), 3);
-  for (size_t i = 0; i < tris.size(); ++i) {
+  const Eigen::Index nf = static_cast<Eigen::Index>(boundary_ids.size());
+  b.triangles.resize(nf, 3);
+  b.normals.resize(nf, 3);
+  b.owner_tet.resize(static_cast<size_t>(nf));
+  b.nodes.reserve(static_cast<size_t>(nf) * 3);
+  for (Eigen::Index i = 0; i < nf; ++i) {
+    const int t = boundary_ids[static_cast<size_t>(i)] / 4, f = boundary_ids[static_cast<size_t>(i)] % 4;
+    b.owner_tet[static_cast<size_t>(i)] = t;
     for (int k = 0; k < 3; ++k) {
-      b.triangles(static_cast<Eigen::Index>(i), k) = tris[i][k];
-      b.nodes.push_back(tris[i][k]);
+      b.triangles(i, k) = tets(t, kFaces[f][k]);
+      b.nodes.push_back(b.triangles(i, k));
     }
-    const Eigen::Vector3d a = positions.row(tris[i][0]);
-    const Eigen::Vector3d n = (Eigen::Vector3d(positions.row(tris[i][1])) - a)
-                                  .cross(Eigen::Vector3d(positions.row(tris[i][2])) - a);
+    const Eigen::Vector3d a = positions.row(b.triangles(i, 0));
+    const Eigen::Vector3d n = (Eigen::Vector3d(positions.row(b.triangles(i, 1))) - a)
+                                  .cross(Eigen::Vector3d(positions.row(b.triangles(i, 2))) - a);
     const double len = n.norm();
-    b.normals.row(static_cast<Eigen::Index>(i)) = len > 0 ? Eigen::Vector3d(n / len) : Eigen::Vector3d::Zero();
+    b.normals.row(i) = len > 0 ? Eigen::Vector3d(n / len) : Eigen::Vector3d::Zero();
   }
   std::sort(b.nodes.begin(), b.nodes.end());
   b.nodes.erase(std::unique(b.nodes.begin(), b.nodes.end()), b.nodes.end());

@@ -8,7 +8,7 @@
 #include <string>
 #include <vector>
 
-#include "breast_sim/core/mesh/mesh_io.h"
+#include "breast_sim/core/mesh/mesh_io_detail.h"
 
 namespace breast_sim::core {
 namespace {

@@ -28,7 +28,7 @@
 #include <vtkXMLUnstructuredGridReader.h>
 #include <vtkXMLUnstructuredGridWriter.h>
 
-#include "breast_sim/core/mesh/mesh_io.h"
+#include "breast_sim/core/mesh/mesh_io_detail.h"
 
 namespace breast_sim::core {
 namespace {
