@@ -1,5 +1,6 @@
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 
 #include "breast_sim/core/image/label_image.h"
@@ -133,4 +134,25 @@ TEST(ImageMesher, BadInputsAreRejectedWithTheirName) {
   } catch (const std::invalid_argument& e) {
     EXPECT_NE(std::string(e.what()).find("interior_size_m"), std::string::npos) << e.what();
   }
+}
+
+TEST(ImageMesher, FloatingIslandsAreDroppedAndBothBreastsKept) {
+  LabelImage img = hemisphereImage();
+  // A 3-voxel speck of fat floating in air, far from the breast and the wall.
+  for (int k = 60; k < 63; ++k) img.at(5, 5, k) = 1;
+  // A second, large component not touching the wall is kept (≥ 1% of the volume).
+  for (int k = 2; k < 14; ++k)
+    for (int j = 2; j < 14; ++j)
+      for (int i = 55; i < 67; ++i) img.at(i, j, k) = 1;
+  MeshingOptions opt;
+  opt.interior_size_m = 6e-3;
+  MeshingReport rep;
+  const TetMesh m = meshLabelImage(img, TissueLabels{}, {}, opt, &rep);
+  EXPECT_EQ(rep.num_components, 3);  // breast, cube, speck
+  EXPECT_EQ(rep.dropped_components, 1);
+  EXPECT_LE(rep.dropped_volume_m3, 1e-7);  // at most the speck (27 mm³) went
+  EXPECT_NEAR(m.volume() / (2.0 / 3.0 * M_PI * std::pow(kRadius, 3) + 1.728e-6), 1.0, 0.04);
+  for (int v = 0; v < m.numNodes(); ++v) EXPECT_GT(m.nodes().row(v).norm(), 0.0);  // no orphan nodes at origin
+  const std::vector<bool> used = m.usedNodes();
+  EXPECT_EQ(static_cast<int>(std::count(used.begin(), used.end(), true)), m.numNodes());
 }

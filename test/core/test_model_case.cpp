@@ -56,6 +56,30 @@ TEST(ModelCase, DefaultPhantomModelIsClosedValidAndKeepsTheAnalyticVolume) {
   for (const auto& e : m.lesion_embedding.points()) EXPECT_EQ(e.outside_distance_m, 0.0);
 }
 
+TEST(ModelCase, TwoBreastPhantomOnACurvedWallMeshesBothBreasts) {
+  ModelCase c = loadModelCase(kConfig + "phantom_two_breasts.yaml");
+  ASSERT_TRUE(c.phantom);
+  c.meshing.target_elements = 12000;
+  const SimulationModel m = buildSimulationModel(c);
+  SCOPED_TRACE(std::to_string(m.mesh.numTets()) + " tets");
+  EXPECT_TRUE(isClosedManifold(m.mesh.boundary().triangles));
+  EXPECT_EQ(m.quality.num_inverted, 0);
+  EXPECT_NEAR(m.mesh.volume() / c.phantom->prone_volume_m3, 1.0, 0.02);
+  ASSERT_EQ(m.mesh.nodeSet(node_sets::kNipple).size(), 2u);
+  // Chest-wall nodes lie on the cylinder y = R − sqrt(R² − x²), on both sides of the sternum.
+  const double R = c.phantom->params.chest_wall_radius_m;
+  int left = 0, right = 0, on_wall = 0;
+  const auto& chest = m.mesh.nodeSet(node_sets::kChestWall);
+  for (int v : chest) {
+    const double x = m.mesh.nodes()(v, 0), y = m.mesh.nodes()(v, 1);
+    on_wall += std::abs(y - (R - std::sqrt(R * R - x * x))) < 2e-3;
+    (x > 0 ? left : right)++;
+  }
+  EXPECT_GT(on_wall, 0.95 * chest.size());
+  EXPECT_GT(left, 50);
+  EXPECT_GT(right, 50);
+}
+
 TEST(ModelCase, VictrePhantomMeshesWithChestWallAndNipple) {
   ModelCase c = loadModelCase(kConfig + "victre_case.yaml");
   c.meshing.target_elements = 8000;

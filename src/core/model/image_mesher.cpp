@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <iostream>
 #include <memory>
 #include <sstream>
 #include <stdexcept>
@@ -19,7 +20,9 @@
 #include <CGAL/Mesh_complex_3_in_triangulation_3.h>
 #include <CGAL/Mesh_criteria_3.h>
 #include <CGAL/Mesh_triangulation_3.h>
+#include <CGAL/Mesh_3/initialize_triangulation_from_labeled_image.h>
 #include <CGAL/make_mesh_3.h>
+#include <CGAL/refine_mesh_3.h>
 
 #include "breast_sim/core/image/distance_transform.h"
 
@@ -31,6 +34,17 @@ using MeshDomain = CGAL::Labeled_mesh_domain_3<K>;
 using Tr = CGAL::Mesh_triangulation_3<MeshDomain, CGAL::Default, CGAL::Sequential_tag>::type;
 using C3t3 = CGAL::Mesh_complex_3_in_triangulation_3<Tr>;
 using MeshCriteria = CGAL::Mesh_criteria_3<Tr>;
+
+/// CGAL's image initialisation prints progress to std::cout; keep it out of our output.
+class SilenceStdout {
+ public:
+  SilenceStdout() : old_(std::cout.rdbuf(sink_.rdbuf())) {}
+  ~SilenceStdout() { std::cout.rdbuf(old_); }
+ private:
+  std::ostringstream sink_;
+  std::streambuf* old_;
+};
+
 
 // Meshing happens in the image's local frame in millimetres (local = voxel index × spacing [mm]):
 // well-scaled numbers for CGAL, and CGAL's float image translation never loses precision.
@@ -111,15 +125,22 @@ RawMesh runCgal(const CGAL::Image_3& cgal_image, const SizeField& field, double 
   MeshCriteria criteria(p::facet_angle = opt.facet_angle_deg, p::facet_size = field,
                         p::facet_distance = facet_distance_mm,
                         p::cell_radius_edge_ratio = opt.cell_radius_edge_ratio, p::cell_size = field);
+  // Seed the triangulation on every connected component of the tissue (two breasts are two
+  // components; CGAL's default random shooting can miss one), then refine.
   C3t3 c3t3;
+  {
+    SilenceStdout quiet;
+    ::initialize_triangulation_from_labeled_image(c3t3, domain, cgal_image, criteria,
+                                                  static_cast<unsigned char>(0));
+  }
   if (opt.perturb && opt.exude) {
-    c3t3 = CGAL::make_mesh_3<C3t3>(domain, criteria, p::perturb(), p::exude());
+    CGAL::refine_mesh_3(c3t3, domain, criteria, p::perturb(), p::exude());
   } else if (opt.perturb) {
-    c3t3 = CGAL::make_mesh_3<C3t3>(domain, criteria, p::perturb(), p::no_exude());
+    CGAL::refine_mesh_3(c3t3, domain, criteria, p::perturb(), p::no_exude());
   } else if (opt.exude) {
-    c3t3 = CGAL::make_mesh_3<C3t3>(domain, criteria, p::no_perturb(), p::exude());
+    CGAL::refine_mesh_3(c3t3, domain, criteria, p::no_perturb(), p::exude());
   } else {
-    c3t3 = CGAL::make_mesh_3<C3t3>(domain, criteria, p::no_perturb(), p::no_exude());
+    CGAL::refine_mesh_3(c3t3, domain, criteria, p::no_perturb(), p::no_exude());
   }
 
   // Collect the vertices of cells in the complex, renumbered densely.
@@ -149,6 +170,83 @@ RawMesh runCgal(const CGAL::Image_3& cgal_image, const SizeField& field, double 
   return out;
 }
 
+/// Connected components of a tet mesh (by shared nodes): component index per tet, and the count.
+std::vector<int> tetComponents(const TetMesh& mesh, int* count) {
+  std::vector<int> parent(mesh.numNodes());
+  for (int i = 0; i < mesh.numNodes(); ++i) parent[i] = i;
+  auto find = [&](int a) {
+    while (parent[a] != a) a = parent[a] = parent[parent[a]];
+    return a;
+  };
+  for (int t = 0; t < mesh.numTets(); ++t)
+    for (int k = 1; k < 4; ++k) {
+      const int a = find(mesh.tets()(t, 0)), b = find(mesh.tets()(t, k));
+      if (a != b) parent[b] = a;
+    }
+  std::unordered_map<int, int> id;
+  std::vector<int> comp(mesh.numTets());
+  for (int t = 0; t < mesh.numTets(); ++t) {
+    const int r = find(mesh.tets()(t, 0));
+    auto it = id.emplace(r, static_cast<int>(id.size())).first;
+    comp[t] = it->second;
+  }
+  *count = static_cast<int>(id.size());
+  return comp;
+}
+
+/// Removes components that neither touch the chest wall nor hold `min_fraction` of the volume:
+/// segmentation islands that would float free in a simulation (a singular stiffness matrix).
+TetMesh dropFloatingIslands(TetMesh mesh, double min_fraction, MeshingReport* rep) {
+  int n = 0;
+  const std::vector<int> comp = tetComponents(mesh, &n);
+  rep->num_components = n;
+  if (n <= 1) return mesh;
+  const Eigen::VectorXd vol = mesh.tetVolumes();
+  std::vector<double> cvol(n, 0.0);
+  std::vector<char> anchored(n, 0);
+  std::vector<int> node_comp(mesh.numNodes(), -1);
+  for (int t = 0; t < mesh.numTets(); ++t) {
+    cvol[comp[t]] += vol[t];
+    for (int k = 0; k < 4; ++k) node_comp[mesh.tets()(t, k)] = comp[t];
+  }
+  for (int v : mesh.nodeSet(node_sets::kChestWall))
+    if (node_comp[v] >= 0) anchored[node_comp[v]] = 1;
+  const double total = vol.sum();
+  std::vector<char> keep(n);
+  int dropped = 0;
+  for (int c = 0; c < n; ++c) {
+    keep[c] = anchored[c] || cvol[c] >= min_fraction * total;
+    if (!keep[c]) ++dropped, rep->dropped_volume_m3 += cvol[c];
+  }
+  rep->dropped_components = dropped;
+  if (dropped == 0) return mesh;
+  std::vector<int> new_index(mesh.numNodes(), -1);
+  int nn = 0;
+  for (int v = 0; v < mesh.numNodes(); ++v)
+    if (node_comp[v] >= 0 && keep[node_comp[v]]) new_index[v] = nn++;
+  Points x(nn, 3);
+  for (int v = 0; v < mesh.numNodes(); ++v)
+    if (new_index[v] >= 0) x.row(new_index[v]) = mesh.nodes().row(v);
+  std::vector<Eigen::Vector4i> kept;
+  std::vector<int> labels;
+  for (int t = 0; t < mesh.numTets(); ++t)
+    if (keep[comp[t]]) {
+      kept.emplace_back(new_index[mesh.tets()(t, 0)], new_index[mesh.tets()(t, 1)],
+                        new_index[mesh.tets()(t, 2)], new_index[mesh.tets()(t, 3)]);
+      labels.push_back(mesh.regionLabels()[t]);
+    }
+  Tets tets(static_cast<Eigen::Index>(kept.size()), 4);
+  for (size_t i = 0; i < kept.size(); ++i) tets.row(static_cast<Eigen::Index>(i)) = kept[i];
+  TetMesh out(std::move(x), std::move(tets), std::move(labels));
+  for (const auto& [name, nodes] : mesh.nodeSets()) {
+    std::vector<int> mapped;
+    for (int v : nodes)
+      if (new_index[v] >= 0) mapped.push_back(new_index[v]);
+    out.setNodeSet(name, std::move(mapped));
+  }
+  return out;
+}
+
 }  // namespace
 
 void MeshingOptions::validate() const {
@@ -168,6 +266,8 @@ void MeshingOptions::validate() const {
   if (!(facet_distance_m >= 0)) bad("facet_distance_m", facet_distance_m, "0 (automatic) or a positive distance in metres");
   if (!(cell_radius_edge_ratio >= 2)) bad("cell_radius_edge_ratio", cell_radius_edge_ratio, "≥ 2 (CGAL terminates for ≥ 2)");
   if (max_size_iterations < 1) bad("max_size_iterations", max_size_iterations, "≥ 1");
+  if (!(min_island_volume_fraction >= 0 && min_island_volume_fraction < 1))
+    bad("min_island_volume_fraction", min_island_volume_fraction, "a fraction in [0, 1)");
 }
 
 TetMesh meshLabelImage(const LabelImage& image, const TissueLabels& labels,
@@ -311,6 +411,7 @@ TetMesh meshLabelImage(const LabelImage& image, const TissueLabels& labels,
   }
   mesh.setNodeSet(node_sets::kChestWall, std::move(chest));
   mesh.setNodeSet(node_sets::kSkin, std::move(skin));
+  mesh = dropFloatingIslands(std::move(mesh), options.min_island_volume_fraction, &rep);
 
   rep.interior_size_m = interior_mm * 1e-3;
   rep.skin_size_m = skin_mm * 1e-3;

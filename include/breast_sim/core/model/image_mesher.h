@@ -38,6 +38,9 @@ struct MeshingOptions {
   bool perturb = true;                   ///< CGAL sliver perturbation
   bool exude = true;                     ///< CGAL sliver exudation
   int max_size_iterations = 3;           ///< meshing passes allowed to meet target_elements
+  /// Tissue components that do not touch the chest wall and hold less than this fraction of the
+  /// tissue volume are dropped: segmentation islands would float free in a simulation.
+  double min_island_volume_fraction = 0.01;
   /// Rejects inputs that would need more than this many tetrahedra (protects a node from a typo).
   int max_elements = 3'000'000;
 
@@ -56,6 +59,9 @@ struct MeshingReport {
   double voxel_volume_m3 = 0.0;   ///< tissue volume counted in voxels [m³]
   int num_chest_wall_faces = 0;   ///< boundary faces against the chest wall
   int num_skin_faces = 0;         ///< boundary faces against air
+  int num_components = 0;         ///< connected tissue components CGAL meshed
+  int dropped_components = 0;     ///< floating islands removed (see min_island_volume_fraction)
+  double dropped_volume_m3 = 0.0; ///< their volume [m³]
 };
 
 /// Meshes the breast tissue of a label image.
