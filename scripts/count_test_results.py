@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Counts gtest / rostest cases in the JUnit XML files under a folder and prints
 "N passed, N failed" as the last line. Exit status 1 if any failed or nothing ran.
-A marker file '*_build_failed' in the folder counts as one failure (a build that broke)."""
+A marker file '*.failed' in the folder counts as one failure (a build that broke, tests that
+did not run); its text says what."""
 import glob
 import os
 import sys
@@ -34,8 +35,9 @@ def main(root):
                 print(f"FAILED: {suite.get('name')} ran no test case ({os.path.relpath(path, root)})")
         per_file.append((os.path.relpath(path, root), p, f, s))
         passed, failed, skipped = passed + p, failed + f, skipped + s
-    for marker in glob.glob(os.path.join(root, "*_build_failed")):
-        print(f"FAILED: {os.path.basename(marker)}")
+    for marker in sorted(glob.glob(os.path.join(root, "*.failed"))):
+        with open(marker) as f:
+            print(f"FAILED: {f.read().strip()}")
         failed += 1
     for name, p, f, s in per_file:
         print(f"  {name}: {p} passed, {f} failed, {s} skipped")

@@ -18,20 +18,25 @@ if build_core; then
      ctest --output-on-failure -j"${BREAST_SIM_JOBS}" --timeout 900) || status=1
 else
   log "the core failed to build"; status=1
-  echo "core build failed" > "${results}/core_build_failed"
+  echo "the core failed to build" > "${results}/core_build.failed"
 fi
 
 # 2. The catkin workspace: ROS layer, nodes, conversion tests and rostests.
 if build_catkin_ws && (cd "${BREAST_SIM_WS}" && catkin_make -j"${BREAST_SIM_JOBS}" tests \
       -DCMAKE_BUILD_TYPE=Release -DPYTHON_EXECUTABLE=/usr/bin/python3 >/dev/null); then
   log "running ROS tests"
-  (cd "${BREAST_SIM_WS}" && source devel/setup.bash && \
+  rm -rf "${BREAST_SIM_WS}/build/test_results"
+  # ROS's setup scripts read unset variables: source them without -u.
+  (set +u; cd "${BREAST_SIM_WS}" && source devel/setup.bash && \
      catkin_make run_tests -j1 -DCMAKE_BUILD_TYPE=Release -DPYTHON_EXECUTABLE=/usr/bin/python3) || true
   mkdir -p "${results}/ros"
   cp -r "${BREAST_SIM_WS}/build/test_results/breast_sim/." "${results}/ros/" 2>/dev/null || true
+  if ! ls "${results}/ros/"*.xml >/dev/null 2>&1; then
+    echo "the ROS tests wrote no result" > "${results}/ros_tests.failed"
+  fi
 else
   log "the catkin workspace failed to build"; status=1
-  echo "catkin build failed" > "${results}/catkin_build_failed"
+  echo "the catkin workspace failed to build" > "${results}/catkin_build.failed"
 fi
 
 # 3. Count every test case (gtest and rostest) from the XML results.
