@@ -213,6 +213,14 @@ bool parseLong(const std::string& s, long& value) {
   return end == t.c_str() + t.size() && errno != ERANGE;
 }
 
+std::string quoted(const std::string& s) {
+  std::string out = s.substr(0, 60);
+  for (char& c : out) {
+    if (static_cast<unsigned char>(c) < 32 || static_cast<unsigned char>(c) > 126) c = '?';
+  }
+  return "'" + out + (s.size() > 60 ? "…'" : "'");
+}
+
 std::string formatNumber(double v) {
   char buf[40];
   std::snprintf(buf, sizeof buf, "%.15g", v);

@@ -10,14 +10,6 @@
 namespace breast_sim::core::image_io {
 namespace {
 
-std::string quoted(const std::string& s) {
-  std::string out = s.substr(0, 60);
-  for (char& c : out) {
-    if (static_cast<unsigned char>(c) < 32 || static_cast<unsigned char>(c) > 126) c = '?';
-  }
-  return "'" + out + (s.size() > 60 ? "…'" : "'");
-}
-
 bool metaType(const std::string& name, ScalarType& type) {
   // MetaIO's sizes: MET_LONG and MET_ULONG are 4 bytes on every platform (metaTypes.h).
   static const std::map<std::string, ScalarType> kTypes = {

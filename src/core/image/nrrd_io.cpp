@@ -11,14 +11,6 @@ namespace breast_sim::core::image_io {
 namespace {
 
 /// A header line for an error message: short and printable.
-std::string quoted(const std::string& s) {
-  std::string out = s.substr(0, 60);
-  for (char& c : out) {
-    if (static_cast<unsigned char>(c) < 32 || static_cast<unsigned char>(c) > 126) c = '?';
-  }
-  return "'" + out + (s.size() > 60 ? "…'" : "'");
-}
-
 bool nrrdType(const std::string& name, ScalarType& type) {
   static const std::map<std::string, ScalarType> kTypes = {
       {"uchar", ScalarType::kUint8},          {"unsigned char", ScalarType::kUint8},

@@ -35,6 +35,8 @@ std::vector<std::string> splitWords(const std::string& s);
 /// Whole-string number parses; false on any trailing character or an empty string.
 bool parseDouble(const std::string& s, double& value);
 bool parseLong(const std::string& s, long& value);
+/// A header value quoted for an error message: at most 60 characters, non-printable ones as '?'.
+std::string quoted(const std::string& s);
 /// Shortest round-trip-safe decimal text of v (up to 15 significant digits, so 0.5 prints "0.5").
 std::string formatNumber(double v);
 
