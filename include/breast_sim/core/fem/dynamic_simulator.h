@@ -1,0 +1,110 @@
+#pragma once
+/// @file dynamic_simulator.h
+/// Dynamic FEM, M ü + C u̇ + K u = f, with implicit (backward) Euler steps [GW08].
+
+#include <memory>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "breast_sim/core/fem/elastic_material.h"
+#include "breast_sim/core/fem/element_formulation.h"
+#include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/solver/linear_solver.h"
+
+namespace breast_sim::core {
+
+/// Time integration settings.
+struct DynamicsParams {
+  double time_step_s = 0.033;                ///< dt [s], the seed paper's 0.033 s
+  double mass_damping_per_s = 1.0;           ///< Rayleigh α_M [1/s]: C = α_M M + α_K K
+  double stiffness_damping_s = 0.02;         ///< Rayleigh α_K [s]
+  Eigen::Vector3d gravity_mps2 = Eigen::Vector3d::Zero();  ///< g [m/s²]; may change between steps
+  /// @throws std::invalid_argument naming the field and the accepted range.
+  void validate() const;
+};
+
+/// Everything that defines where the simulation is: cheap to copy, so a round-robin history of
+/// states can be kept for time-step reversal.
+struct SimulationState {
+  Eigen::VectorXd displacement_m;  ///< u at t, 3N [m]
+  Eigen::VectorXd velocity_mps;    ///< u̇ at t, 3N [m/s] (backward Euler: (u_t − u_{t−1}) / dt)
+  double time_s = 0.0;
+  long step = 0;
+};
+
+/// What one step did.
+struct StepStats {
+  SolveStats solve;
+  double assembly_seconds = 0.0;  ///< rotations, forces and matrix [s]
+  double setup_seconds = 0.0;     ///< solver factorize() [s]
+  double total_seconds = 0.0;
+};
+
+/// Backward Euler in velocity form, linearised at the start of the step (co-rotated stiffness):
+///   (M(1 + dt α_M) + dt(dt + α_K) K) v_{t+1} = M v_t + dt (f_ext + f_el(x_t)),  u_{t+1} = u_t + dt v_{t+1}
+/// with f_el the elastic forces on the nodes. Fixed nodes keep their displacement; target nodes
+/// reach their prescribed displacement at the end of the next step. Both are imposed by eliminating
+/// their DOFs (unit rows and columns), which keeps the matrix SPD with a fixed pattern.
+class DynamicSimulator {
+ public:
+  /// @param mesh      rest mesh
+  /// @param elements  element formulation built on `mesh`
+  /// @param solver    linear solver; analyzePattern() is called here
+  DynamicSimulator(const TetMesh& mesh, std::unique_ptr<ElementFormulation> elements,
+                   const ElasticMaterial& material, const DynamicsParams& params,
+                   std::unique_ptr<LinearSolver> solver);
+
+  int numNodes() const { return num_nodes_; }
+  const DynamicsParams& params() const { return params_; }
+  void setGravity(const Eigen::Vector3d& g_mps2) { params_.gravity_mps2 = g_mps2; }
+
+  /// Dirichlet: these nodes keep their current displacement. @throws on an index out of range.
+  void fixNodes(const std::vector<int>& nodes);
+  /// Frees every fixed and target node.
+  void clearConstraints();
+  /// Moving displacement constraints: node nodes[i] reaches displacement targets_m.row(i) [m] at
+  /// the end of the next step (used by sliding). Replaces earlier targets of those nodes.
+  void setNodeTargets(const std::vector<int>& nodes, const Points& targets_m);
+
+  /// Adds to the per-node external forces [N]; they accumulate until clearExternalForces() (used by
+  /// surface morphing). Gravity is separate (params().gravity_mps2).
+  void addNodalForces(const std::vector<int>& nodes, const Points& forces_n);
+  void clearExternalForces() { external_force_.setZero(); }
+
+  /// One implicit time step. @throws std::runtime_error if the solver fails.
+  StepStats step();
+
+  const SimulationState& state() const { return state_; }
+  /// Restores a saved state exactly (constraints and external forces are not part of it).
+  /// @throws std::invalid_argument if its size does not match the mesh.
+  void restore(const SimulationState& s);
+  /// #N×3 displacement [m].
+  Points displacement() const;
+  /// Lumped nodal masses [kg], #N.
+  const Eigen::VectorXd& lumpedMass() const { return mass_; }
+  ElementFormulation& elements() { return *elements_; }
+  const ElementFormulation& elements() const { return *elements_; }
+  LinearSolver& solver() { return *solver_; }
+  /// Elastic forces at the current state [N], 3N (updates the element linearisation).
+  const Eigen::VectorXd& elasticForces();
+
+ private:
+  const Points rest_;
+  const int num_nodes_;
+  std::unique_ptr<ElementFormulation> elements_;
+  DynamicsParams params_;
+  std::unique_ptr<LinearSolver> solver_;
+  Eigen::VectorXd mass_;            // per node [kg]
+  Eigen::VectorXd external_force_;  // 3N [N]
+  std::vector<char> constrained_;   // per DOF
+  Eigen::VectorXd constraint_velocity_;  // per DOF, for constrained DOFs [m/s] (targets) or 0
+  std::vector<char> is_target_;     // per DOF: target (1) or fixed (0) when constrained
+  Eigen::VectorXd target_displacement_;  // per DOF [m]
+  SimulationState state_;
+  SparseMatrix A_;
+  Eigen::VectorXd f_el_, rhs_, v_next_;
+  Points x_;
+};
+
+}  // namespace breast_sim::core

@@ -1,0 +1,38 @@
+#pragma once
+/// @file element_formulation.h
+/// What the time integrator needs from an element formulation. Co-rotated linear tetrahedra are one
+/// (corotated_tet_fem.h); a locking-free variant (average nodal pressure, quadratic tetrahedra) can
+/// be another without touching the solvers or the pipeline.
+
+#include <Eigen/Core>
+
+#include "breast_sim/core/fem/block_pattern.h"
+#include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/solver/linear_solver.h"
+
+namespace breast_sim::core {
+
+/// Elastic forces and stiffness of a mesh, linearised about the current pose.
+/// \note Forces are those acting ON the nodes (they point back towards the rest shape); the
+/// stiffness K is the positive semi-definite matrix with f(x + dx) ≈ f(x) − K dx.
+/// \note DOF order: x0 y0 z0 x1 … (3 per node).
+class ElementFormulation {
+ public:
+  virtual ~ElementFormulation() = default;
+
+  /// Updates the per-element linearisation (e.g. rotations) at positions x (#N×3 [m]) and returns
+  /// the elastic forces there: f (3N) [N].
+  virtual void update(const Points& x, Eigen::VectorXd& f) = 0;
+  /// Adds scale · K (from the last update) to A, whose pattern is pattern().matrix().
+  virtual void addStiffness(double scale, SparseMatrix& A) const = 0;
+  virtual const BlockPattern& pattern() const = 0;
+
+  /// Per-element modulus factor E_r (E = E_r · E0), #T, all 1 initially.
+  virtual const Eigen::VectorXd& modulusFactors() const = 0;
+  /// @throws std::invalid_argument if the size is not #T or a factor is not positive and finite.
+  virtual void setModulusFactors(const Eigen::VectorXd& factors) = 0;
+  /// Von Mises norm of the element stress at the last update [Pa], #T (seed equation 1).
+  virtual const Eigen::VectorXd& vonMisesStress() const = 0;
+};
+
+}  // namespace breast_sim::core

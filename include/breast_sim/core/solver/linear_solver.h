@@ -1,0 +1,43 @@
+#pragma once
+/// @file linear_solver.h
+/// The interface every linear solver of the time step implements: CHOLMOD (direct) and PCG with a
+/// geometric multigrid preconditioner [GW08].
+
+#include <string>
+
+#include <Eigen/Core>
+#include <Eigen/SparseCore>
+
+namespace breast_sim::core {
+
+/// Compressed sparse row matrix, the format assembly writes into (3 DOFs per node: x0 y0 z0 x1 …).
+using SparseMatrix = Eigen::SparseMatrix<double, Eigen::RowMajor, int>;
+
+/// What one solve did.
+struct SolveStats {
+  int iterations = 0;             ///< Krylov iterations (0 for a direct solve)
+  double relative_residual = 0.0; ///< ‖b − A x‖ / ‖b‖ at return
+  bool converged = false;
+  double seconds = 0.0;           ///< wall time of solve() [s]
+};
+
+/// Solves A x = b for symmetric positive definite A whose sparsity pattern stays fixed over many
+/// time steps while its values change every step.
+/// \note Dirichlet conditions are applied by the caller before factorize(): the rows and columns of
+/// fixed DOFs are zeroed with a unit diagonal, so A stays SPD and its pattern does not change.
+class LinearSolver {
+ public:
+  virtual ~LinearSolver() = default;
+  /// Symbolic set-up for A's sparsity pattern (ordering, hierarchy structure). Call when it changes.
+  virtual void analyzePattern(const SparseMatrix& A) = 0;
+  /// Numeric set-up for A's values (factorization, coarse operators). Call once per step.
+  /// @throws std::runtime_error when A is not positive definite (names the solver and the column).
+  virtual void factorize(const SparseMatrix& A) = 0;
+  /// Solves A x = b with the last factorized A. On entry x is the initial guess (warm start;
+  /// iterative solvers use it, direct solvers ignore it).
+  virtual SolveStats solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) = 0;
+  /// Short name for tables: "cholmod", "pcg-jacobi", "pcg-multigrid".
+  virtual std::string name() const = 0;
+};
+
+}  // namespace breast_sim::core

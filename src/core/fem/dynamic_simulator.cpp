@@ -1,0 +1,186 @@
+#include "breast_sim/core/fem/dynamic_simulator.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <sstream>
+#include <stdexcept>
+
+namespace breast_sim::core {
+
+namespace {
+double since(std::chrono::steady_clock::time_point t) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+}
+}  // namespace
+
+void DynamicsParams::validate() const {
+  auto bad = [](const char* name, double v, const char* range) {
+    std::ostringstream s;
+    s << "dynamics '" << name << "' = " << v << " is invalid: expected " << range;
+    throw std::invalid_argument(s.str());
+  };
+  if (!(time_step_s > 0) || !std::isfinite(time_step_s)) bad("time_step_s", time_step_s, "a positive time step in s, e.g. 0.033");
+  if (!(mass_damping_per_s >= 0)) bad("mass_damping_per_s", mass_damping_per_s, "≥ 0 [1/s]");
+  if (!(stiffness_damping_s >= 0)) bad("stiffness_damping_s", stiffness_damping_s, "≥ 0 [s]");
+  if (!gravity_mps2.allFinite()) bad("gravity_mps2", gravity_mps2.norm(), "finite components [m/s²]");
+}
+
+DynamicSimulator::DynamicSimulator(const TetMesh& mesh, std::unique_ptr<ElementFormulation> elements,
+                                   const ElasticMaterial& material, const DynamicsParams& params,
+                                   std::unique_ptr<LinearSolver> solver)
+    : rest_(mesh.nodes()), num_nodes_(mesh.numNodes()), elements_(std::move(elements)), params_(params),
+      solver_(std::move(solver)) {
+  params_.validate();
+  material.validate();
+  if (!elements_ || !solver_) throw std::invalid_argument("DynamicSimulator: element formulation and solver are required");
+  const int n3 = 3 * num_nodes_;
+  mass_ = Eigen::VectorXd::Zero(num_nodes_);
+  const Eigen::VectorXd vol = mesh.tetVolumes();
+  for (int e = 0; e < mesh.numTets(); ++e)
+    for (int i = 0; i < 4; ++i) mass_[mesh.tets()(e, i)] += 0.25 * material.density_kg_per_m3 * vol[e];
+  // A node attached to no element keeps a tiny mass so the system stays regular.
+  const double floor = 1e-9 * mass_.maxCoeff();
+  for (int n = 0; n < num_nodes_; ++n) mass_[n] = std::max(mass_[n], floor);
+  external_force_ = Eigen::VectorXd::Zero(n3);
+  constrained_.assign(n3, 0);
+  is_target_.assign(n3, 0);
+  constraint_velocity_ = Eigen::VectorXd::Zero(n3);
+  target_displacement_ = Eigen::VectorXd::Zero(n3);
+  state_.displacement_m = Eigen::VectorXd::Zero(n3);
+  state_.velocity_mps = Eigen::VectorXd::Zero(n3);
+  A_ = elements_->pattern().matrix();
+  f_el_ = Eigen::VectorXd::Zero(n3);
+  rhs_ = Eigen::VectorXd::Zero(n3);
+  v_next_ = Eigen::VectorXd::Zero(n3);
+  x_ = rest_;
+  solver_->analyzePattern(A_);
+}
+
+void DynamicSimulator::fixNodes(const std::vector<int>& nodes) {
+  for (int n : nodes) {
+    if (n < 0 || n >= num_nodes_)
+      throw std::invalid_argument("fixNodes: node " + std::to_string(n) + " is not in [0, " + std::to_string(num_nodes_) + ")");
+    for (int c = 0; c < 3; ++c) {
+      constrained_[3 * n + c] = 1;
+      is_target_[3 * n + c] = 0;
+    }
+  }
+}
+
+void DynamicSimulator::clearConstraints() {
+  std::fill(constrained_.begin(), constrained_.end(), 0);
+  std::fill(is_target_.begin(), is_target_.end(), 0);
+}
+
+void DynamicSimulator::setNodeTargets(const std::vector<int>& nodes, const Points& targets_m) {
+  if (static_cast<Eigen::Index>(nodes.size()) != targets_m.rows())
+    throw std::invalid_argument("setNodeTargets: " + std::to_string(nodes.size()) + " nodes but " +
+                                std::to_string(targets_m.rows()) + " targets");
+  for (size_t i = 0; i < nodes.size(); ++i) {
+    const int n = nodes[i];
+    if (n < 0 || n >= num_nodes_)
+      throw std::invalid_argument("setNodeTargets: node " + std::to_string(n) + " is not in [0, " + std::to_string(num_nodes_) + ")");
+    if (!targets_m.row(static_cast<Eigen::Index>(i)).allFinite())
+      throw std::invalid_argument("setNodeTargets: target of node " + std::to_string(n) + " is not finite");
+    for (int c = 0; c < 3; ++c) {
+      constrained_[3 * n + c] = 1;
+      is_target_[3 * n + c] = 1;
+      target_displacement_[3 * n + c] = targets_m(static_cast<Eigen::Index>(i), c);
+    }
+  }
+}
+
+void DynamicSimulator::addNodalForces(const std::vector<int>& nodes, const Points& forces_n) {
+  if (static_cast<Eigen::Index>(nodes.size()) != forces_n.rows())
+    throw std::invalid_argument("addNodalForces: " + std::to_string(nodes.size()) + " nodes but " +
+                                std::to_string(forces_n.rows()) + " forces");
+  for (size_t i = 0; i < nodes.size(); ++i) {
+    const int n = nodes[i];
+    if (n < 0 || n >= num_nodes_)
+      throw std::invalid_argument("addNodalForces: node " + std::to_string(n) + " is not in [0, " + std::to_string(num_nodes_) + ")");
+    for (int c = 0; c < 3; ++c) external_force_[3 * n + c] += forces_n(static_cast<Eigen::Index>(i), c);
+  }
+}
+
+const Eigen::VectorXd& DynamicSimulator::elasticForces() {
+  for (int n = 0; n < num_nodes_; ++n)
+    x_.row(n) = rest_.row(n) + state_.displacement_m.segment<3>(3 * n).transpose();
+  elements_->update(x_, f_el_);
+  return f_el_;
+}
+
+StepStats DynamicSimulator::step() {
+  StepStats st;
+  const auto t0 = std::chrono::steady_clock::now();
+  const double dt = params_.time_step_s;
+  const int n3 = 3 * num_nodes_;
+  elasticForces();  // rotations at x_t and f_el(x_t)
+
+  // A = M(1 + dt α_M) + dt(dt + α_K) K.
+  std::fill(A_.valuePtr(), A_.valuePtr() + A_.nonZeros(), 0.0);
+  elements_->addStiffness(dt * (dt + params_.stiffness_damping_s), A_);
+  const double mass_scale = 1.0 + dt * params_.mass_damping_per_s;
+  double* values = A_.valuePtr();
+  const int* outer = A_.outerIndexPtr();
+  const int* inner = A_.innerIndexPtr();
+#pragma omp parallel for schedule(static)
+  for (int r = 0; r < n3; ++r) {
+    // Diagonal entry of row r: columns are sorted, find it by binary search.
+    const int* b = inner + outer[r];
+    const int* e = inner + outer[r + 1];
+    const int* d = std::lower_bound(b, e, r);
+    values[outer[r] + (d - b)] += mass_scale * mass_[r / 3];
+    const double g = params_.gravity_mps2[r % 3];
+    rhs_[r] = mass_[r / 3] * state_.velocity_mps[r] + dt * (external_force_[r] + mass_[r / 3] * g + f_el_[r]);
+  }
+
+  // Constrained DOFs: prescribed velocity, eliminated symmetrically.
+  for (int r = 0; r < n3; ++r)
+    constraint_velocity_[r] = !constrained_[r] ? 0.0
+                              : is_target_[r]  ? (target_displacement_[r] - state_.displacement_m[r]) / dt
+                                               : 0.0;
+#pragma omp parallel for schedule(static)
+  for (int r = 0; r < n3; ++r) {
+    if (constrained_[r]) {
+      for (int k = outer[r]; k < outer[r + 1]; ++k) values[k] = inner[k] == r ? 1.0 : 0.0;
+      rhs_[r] = constraint_velocity_[r];
+    } else {
+      // Move the known constrained velocities to the right-hand side and drop their columns.
+      for (int k = outer[r]; k < outer[r + 1]; ++k) {
+        const int c = inner[k];
+        if (constrained_[c]) {
+          rhs_[r] -= values[k] * constraint_velocity_[c];
+          values[k] = 0.0;
+        }
+      }
+    }
+  }
+  st.assembly_seconds = since(t0);
+
+  const auto t1 = std::chrono::steady_clock::now();
+  solver_->factorize(A_);
+  st.setup_seconds = since(t1);
+  v_next_ = state_.velocity_mps;  // warm start
+  st.solve = solver_->solve(rhs_, v_next_);
+  if (!v_next_.allFinite()) throw std::runtime_error("DynamicSimulator: the " + solver_->name() + " solve returned non-finite velocities");
+  state_.velocity_mps = v_next_;
+  state_.displacement_m += dt * v_next_;
+  state_.time_s += dt;
+  ++state_.step;
+  st.total_seconds = since(t0);
+  return st;
+}
+
+void DynamicSimulator::restore(const SimulationState& s) {
+  if (s.displacement_m.size() != 3 * num_nodes_ || s.velocity_mps.size() != 3 * num_nodes_)
+    throw std::invalid_argument("restore: the state has " + std::to_string(s.displacement_m.size()) +
+                                " DOFs, the model " + std::to_string(3 * num_nodes_));
+  state_ = s;
+}
+
+Points DynamicSimulator::displacement() const {
+  return Eigen::Map<const Points>(state_.displacement_m.data(), num_nodes_, 3);
+}
+
+}  // namespace breast_sim::core
