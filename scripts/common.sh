@@ -9,11 +9,29 @@ BREAST_SIM_CORE_BUILD="${BREAST_SIM_WORK}/core_build"
 BREAST_SIM_JOBS="${BREAST_SIM_JOBS:-$(nproc)}"
 export ROS_HOME="${BREAST_SIM_WORK}/ros_home"
 export ROS_LOG_DIR="${ROS_HOME}/log"
+# ROS nodes of the tests talk over loopback by address, so a machine whose hostname does not
+# resolve (a fresh container, a chroot) still runs them. Callers may override both.
+export ROS_IP="${ROS_IP:-127.0.0.1}"
+export ROS_MASTER_URI="${ROS_MASTER_URI:-http://127.0.0.1:11311}"
+unset ROS_HOSTNAME
 
 log() { printf '[breast_sim] %s\n' "$*"; }
 
 install_deps() {
   bash "${BREAST_SIM_SRC}/scripts/install_deps.sh"
+}
+
+# roslaunch (and so rostest) resolves the name "localhost"; a minimal root file system (a container,
+# a chroot) may have no /etc/hosts at all.
+ensure_localhost_resolves() {
+  if ! getent hosts localhost >/dev/null 2>&1; then
+    if [ -w /etc/hosts ] || [ ! -e /etc/hosts ] && [ "$(id -u)" -eq 0 ]; then
+      log "'localhost' does not resolve here: adding '127.0.0.1 localhost' to /etc/hosts"
+      printf '127.0.0.1\tlocalhost\n::1\tlocalhost ip6-localhost ip6-loopback\n' >> /etc/hosts
+    else
+      log "warning: 'localhost' does not resolve and /etc/hosts is not writable; rostest will fail"
+    fi
+  fi
 }
 
 # Builds the catkin workspace (Release, -O3) with this checkout linked in as src/breast_sim.

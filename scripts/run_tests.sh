@@ -6,6 +6,7 @@ set -uo pipefail
 source "$(dirname "$0")/common.sh"
 mkdir -p "${BREAST_SIM_WORK}"
 install_deps || { echo "0 passed, 1 failed"; exit 1; }
+ensure_localhost_resolves
 
 results="${BREAST_SIM_WORK}/test_results"
 rm -rf "${results}"; mkdir -p "${results}/core"
