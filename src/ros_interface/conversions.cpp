@@ -76,6 +76,7 @@ breast_sim::LesionArray toMessage(const std::vector<core::Lesion>& lesions,
   breast_sim::LesionArray msg;
   msg.header.frame_id = frame_id;
   msg.header.stamp = stamp;
+  // interpolate() checks that the field has a row per mesh node.
   const core::Points u = displacement_m.rows() > 0 ? embedding.interpolate(displacement_m)
                                                    : core::Points::Zero(embedding.size(), 3);
   for (size_t i = 0; i < lesions.size(); ++i) {

@@ -54,11 +54,16 @@ bool ModelNode::build(const std::string& case_file, int target_elements, std::st
     core::ModelCase c = core::loadModelCase(case_file);
     if (target_elements > 0) c.meshing.target_elements = target_elements;
     auto model = std::make_shared<const core::SimulationModel>(core::buildSimulationModel(c));
+    // Everything that can fail happens before the swap, so a failure keeps the last good model.
+    const ros::Time now = ros::Time::now();
+    const auto mesh_msg = toMessage(model->mesh, core::Points(), frame_id_, now);
+    const auto lesion_msg = toMessage(model->lesions, model->lesion_embedding, core::Points(), frame_id_, now);
     {
       std::lock_guard<std::mutex> lock(model_mutex_);
       model_ = model;
     }
-    publish();
+    mesh_pub_.publish(mesh_msg);
+    lesions_pub_.publish(lesion_msg);
     std::ostringstream s;
     s << "case '" << c.name << "': " << model->mesh.numTets() << " tetrahedra, " << model->mesh.numNodes()
       << " nodes, " << model->lesions.size() << " lesions, built in "
@@ -70,18 +75,6 @@ bool ModelNode::build(const std::string& case_file, int target_elements, std::st
     *message = std::string("cannot load case '") + case_file + "': " + e.what();
     return false;
   }
-}
-
-void ModelNode::publish() {
-  std::shared_ptr<const core::SimulationModel> model;
-  {
-    std::lock_guard<std::mutex> lock(model_mutex_);
-    model = model_;
-  }
-  if (!model) return;
-  const ros::Time now = ros::Time::now();
-  mesh_pub_.publish(toMessage(model->mesh, core::Points(), frame_id_, now));
-  lesions_pub_.publish(toMessage(model->lesions, model->lesion_embedding, core::Points(), frame_id_, now));
 }
 
 }  // namespace breast_sim::ros_interface

@@ -113,12 +113,21 @@ TEST(ModelCase, BadCasesNameTheKeyAndTheFix) {
   expectErrorMentions(writeTemp("bad_size.yaml",
                                 "image: {path: " + std::string(BREAST_SIM_TEST_DATA_DIR) +
                                     "/victre_labels_1mm.nrrd}\nmeshing: {interior_size_mm: -3}\n"),
-                      "interior_size_m");
+                      "meshing.interior_size_mm");
   expectErrorMentions(writeTemp("lesion_outside.yaml",
                                 "image: {path: " + std::string(BREAST_SIM_TEST_DATA_DIR) +
                                     "/victre_labels_1mm.nrrd}\nmeshing: {target_elements: 3000}\n"
                                     "lesions:\n  - {name: far_away, position_mm: [300, 0, 0]}\n"),
                       "far_away");
   expectErrorMentions(writeTemp("empty.yaml", ""), "expected a map");
+  const std::string victre = "image: {path: " + std::string(BREAST_SIM_TEST_DATA_DIR) + "/victre_labels_1mm.nrrd";
+  expectErrorMentions(writeTemp("nan_target.yaml", victre + "}\nmeshing: {target_elements: .nan}\n"), "meshing.target_elements");
+  expectErrorMentions(writeTemp("huge_target.yaml", victre + "}\nmeshing: {target_elements: 1e12}\n"), "meshing.target_elements");
+  expectErrorMentions(writeTemp("bad_label.yaml", victre + ", labels: {fat: [1.5]}}\n"), "image.labels.fat");
+  expectErrorMentions(writeTemp("path_list.yaml", "image: {path: [a, b]}\n"), "image.path");
+  expectErrorMentions(writeTemp("nan_radius.yaml", victre + "}\nlesions:\n  - {name: L9, position_mm: [40, -10, -10], radius_mm: .nan}\n"),
+                      "lesions[L9].radius_mm");
+  expectErrorMentions(writeTemp("far_nipple.yaml", victre + ", nipples_mm: [[500, 0, 0]]}\nmeshing: {target_elements: 3000}\n"),
+                      "nipple 1");
   expectErrorMentions("/nonexistent/case.yaml", "/nonexistent/case.yaml");
 }

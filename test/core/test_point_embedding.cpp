@@ -1,6 +1,10 @@
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <random>
+
 #include "breast_sim/core/model/point_embedding.h"
+#include "breast_sim/core/mesh/box_mesh.h"
 
 using namespace breast_sim::core;
 
@@ -66,5 +70,34 @@ TEST(PointEmbedding, PointJustOutsideIsSnappedWithinTolerance) {
   const PointEmbedding e(m, p, {"near_skin"}, 1e-3);
   EXPECT_NEAR(e.points()[0].outside_distance_m, 3e-4, 1e-9);
   const Points q = e.positions(m.nodes());
-  EXPECT_NEAR(q(0, 0), 0.02, 1e-12);  // projected onto the face
+  EXPECT_LT((q.row(0) - Eigen::RowVector3d(0.02, 0.01, 0.01)).norm(), 1e-12);  // the closest surface point
+  // Off a corner: the closest point is the corner itself.
+  Points corner(1, 3);
+  corner << 0.0205, -0.0004, 0.0203;
+  const PointEmbedding c(m, corner, {"corner"}, 1e-3);
+  EXPECT_LT((c.positions(m.nodes()).row(0) - Eigen::RowVector3d(0.02, 0.0, 0.02)).norm(), 1e-12);
+  EXPECT_NEAR(c.points()[0].outside_distance_m, std::sqrt(0.5e-3 * 0.5e-3 + 0.4e-3 * 0.4e-3 + 0.3e-3 * 0.3e-3), 1e-12);
+}
+
+TEST(PointEmbedding, GridSearchAgreesWithBruteForceOverAllElements) {
+  // Slow reference: test every element for every point.
+  const TetMesh m = makeBoxMesh({5, 4, 3}, {0.05, 0.04, 0.03});
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> ux(0.0, 0.05), uy(0.0, 0.04), uz(0.0, 0.03);
+  Points p(200, 3);
+  for (int i = 0; i < p.rows(); ++i) p.row(i) << ux(rng), uy(rng), uz(rng);
+  const PointEmbedding e(m, p);
+  for (int i = 0; i < p.rows(); ++i) {
+    bool inside_found = false;
+    for (int t = 0; t < m.numTets() && !inside_found; ++t) {
+      const Eigen::Vector4d w = barycentricCoordinates(p.row(i).transpose(), m.nodes().row(m.tets()(t, 0)),
+                                                       m.nodes().row(m.tets()(t, 1)), m.nodes().row(m.tets()(t, 2)),
+                                                       m.nodes().row(m.tets()(t, 3)));
+      inside_found = w.minCoeff() >= -1e-10;
+    }
+    ASSERT_TRUE(inside_found);
+    EXPECT_GE(e.points()[i].weights.minCoeff(), -1e-10) << "point " << i;
+    EXPECT_LT((e.positions(m.nodes()).row(i) - p.row(i)).norm(), 1e-15);
+  }
+  EXPECT_THROW(e.interpolate(Points::Zero(3, 3)), std::invalid_argument);
 }

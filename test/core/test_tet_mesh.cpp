@@ -1,6 +1,10 @@
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <array>
 #include <cmath>
+#include <map>
+#include <set>
 
 #include "breast_sim/core/mesh/tet_mesh.h"
 #include "breast_sim/core/mesh/tet_quality.h"
@@ -144,4 +148,75 @@ TEST(TetQuality, InvertedElementsAreDetected) {
   const QualityStats rest = qualityStats(m.tets(), m.nodes());
   EXPECT_EQ(rest.num_inverted, 0);
   EXPECT_NEAR(rest.total_volume_m3, 1.0, 1e-14);
+}
+
+TEST(TetMesh, OverlappingOrDuplicateElementsAreRejected) {
+  Points x(5, 3);
+  x << 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0.2, 0.2, 0.2;
+  Tets duplicate(2, 4);
+  duplicate << 0, 1, 2, 3, 0, 1, 2, 3;
+  EXPECT_THROW(TetMesh(x, duplicate), std::invalid_argument);
+  // Node 4 lies inside tet (0,1,2,3): tets (0,1,2,4) and (0,1,2,3) sit on the same side of face 0-1-2.
+  Tets same_side(2, 4);
+  same_side << 0, 1, 2, 3, 0, 1, 2, 4;
+  try {
+    TetMesh m(x, same_side);
+    FAIL() << "expected an error";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("same side"), std::string::npos) << e.what();
+  }
+  Points y(6, 3);
+  y << 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, -1, 0.3, 0.3, 0.5;
+  Tets three(3, 4);
+  three << 0, 1, 2, 3, 0, 2, 1, 4, 0, 1, 2, 5;  // face 0-1-2 in three elements
+  EXPECT_THROW(TetMesh(y, three), std::invalid_argument);
+}
+
+TEST(TetMesh, BoundaryBySortingEqualsANaiveFaceCount) {
+  // Slow reference: count every face in a map.
+  const TetMesh m = cubeMesh();
+  Points x(27, 3);
+  for (int i = 0; i < 27; ++i) x.row(i) << i % 3, (i / 3) % 3, i / 9;
+  std::vector<Eigen::Vector4i> tl;
+  const int kuhn[6][4] = {{0, 1, 3, 7}, {0, 1, 7, 5}, {0, 5, 7, 4}, {0, 3, 2, 7}, {0, 2, 6, 7}, {0, 6, 4, 7}};
+  for (int k = 0; k < 2; ++k)
+    for (int j = 0; j < 2; ++j)
+      for (int i = 0; i < 2; ++i) {
+        int c[8];
+        for (int b = 0; b < 8; ++b) c[b] = (i + (b & 1)) + 3 * (j + ((b >> 1) & 1)) + 9 * (k + ((b >> 2) & 1));
+        for (const auto& t : kuhn) tl.emplace_back(c[t[0]], c[t[1]], c[t[2]], c[t[3]]);
+      }
+  Tets tets(static_cast<Eigen::Index>(tl.size()), 4);
+  for (size_t i = 0; i < tl.size(); ++i) tets.row(static_cast<Eigen::Index>(i)) = tl[i];
+  const TetMesh big(x, tets);
+  std::map<std::array<int, 3>, int> count;
+  for (int t = 0; t < big.numTets(); ++t)
+    for (int f = 0; f < 4; ++f) {
+      std::array<int, 3> key;
+      for (int k = 0, q = 0; k < 4; ++k)
+        if (k != f) key[q++] = big.tets()(t, k);
+      std::sort(key.begin(), key.end());
+      ++count[key];
+    }
+  std::set<std::array<int, 3>> naive;
+  for (const auto& kv : count)
+    if (kv.second == 1) naive.insert(kv.first);
+  std::set<std::array<int, 3>> fast;
+  for (Eigen::Index f = 0; f < big.boundary().triangles.rows(); ++f) {
+    std::array<int, 3> key{big.boundary().triangles(f, 0), big.boundary().triangles(f, 1), big.boundary().triangles(f, 2)};
+    std::sort(key.begin(), key.end());
+    fast.insert(key);
+  }
+  EXPECT_EQ(fast, naive);
+  EXPECT_EQ(naive.size(), 6u * 8u);  // 2×2 squares per side, 2 triangles each
+  EXPECT_EQ(m.boundary().triangles.rows(), 12);
+}
+
+TEST(TetQuality, NanPositionsCountAsInverted) {
+  const TetMesh m = cubeMesh();
+  Points moved = m.nodes();
+  moved(7, 0) = std::nan("");
+  const auto bad = invertedTets(m.tets(), moved);
+  EXPECT_FALSE(bad.empty());
+  EXPECT_EQ(qualityStats(m.tets(), moved).num_inverted, static_cast<int>(bad.size()));
 }

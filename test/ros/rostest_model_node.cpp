@@ -54,6 +54,23 @@ TEST(ModelNode, BadCaseIsRefusedAndTheModelIsKept) {
   EXPECT_EQ(after->header.stamp, before->header.stamp);
 }
 
+TEST(ModelNode, GoodCaseReplacesTheModel) {
+  ros::NodeHandle pnh("~");
+  auto before = waitFor<breast_sim::TetrahedralMesh>("/breast_sim/deformed_mesh", 240.0);
+  ASSERT_TRUE(before);
+  ASSERT_TRUE(ros::service::waitForService("/breast_sim/load_case", ros::Duration(30.0)));
+  breast_sim::LoadCase srv;
+  pnh.getParam("good_case_file", srv.request.case_file);
+  srv.request.target_elements = 2000;
+  ASSERT_TRUE(ros::service::call("/breast_sim/load_case", srv));
+  ASSERT_TRUE(srv.response.success) << srv.response.message;
+  EXPECT_NE(srv.response.message.find("tetrahedra"), std::string::npos) << srv.response.message;
+  auto after = waitFor<breast_sim::TetrahedralMesh>("/breast_sim/deformed_mesh", 10.0);
+  ASSERT_TRUE(after);
+  EXPECT_GT(after->header.stamp, before->header.stamp);
+  EXPECT_LT(after->tetrahedra.size(), before->tetrahedra.size());  // 2000 rather than 3000 elements
+}
+
 int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   ros::init(argc, argv, "model_node_test");

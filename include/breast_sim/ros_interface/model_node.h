@@ -10,8 +10,10 @@
 ///   ~deformed_mesh (breast_sim/TetrahedralMesh)  the model (rest shape until a simulation runs)
 ///   ~lesions (breast_sim/LesionArray)            lesion positions [m]
 /// Services:
-///   ~load_case (breast_sim/LoadCase)  builds a new model in the background; the previous model stays
-///                                     published if anything is wrong with the new case.
+///   ~load_case (breast_sim/LoadCase)  builds a new model and answers when it is published (seconds;
+///                                     the node keeps serving its other callbacks meanwhile); the previous
+///                                     model stays published if anything is wrong with the new case.
+/// \note Shutting down while a model is being built waits for that build to end.
 
 #include <atomic>
 #include <memory>
@@ -38,7 +40,6 @@ class ModelNode {
   bool loadCase(breast_sim::LoadCase::Request& req, breast_sim::LoadCase::Response& res);
   /// Builds a model into a temporary; publishes and swaps it in only when all of it succeeded.
   bool build(const std::string& case_file, int target_elements, std::string* message);
-  void publish();
 
   ros::NodeHandle nh_, pnh_;
   ros::Publisher mesh_pub_, lesions_pub_;

@@ -2,6 +2,8 @@
 
 #include <cmath>
 #include <limits>
+#include <stdexcept>
+#include <string>
 
 namespace breast_sim::core {
 namespace {
@@ -53,6 +55,11 @@ void edt1d(const double* f, double* d, int n, double h, int* v, double* z) {
 std::vector<float> euclideanDistanceTransform(const std::vector<std::uint8_t>& mask,
                                               const Eigen::Vector3i& size,
                                               const Eigen::Vector3d& spacing) {
+  if ((size.array() <= 0).any())
+    throw std::invalid_argument("euclideanDistanceTransform: every size must be positive");
+  if (static_cast<long>(mask.size()) != static_cast<long>(size.x()) * size.y() * size.z())
+    throw std::invalid_argument("euclideanDistanceTransform: mask has " + std::to_string(mask.size()) +
+                                " voxels, size gives " + std::to_string(static_cast<long>(size.x()) * size.y() * size.z()));
   const int nx = size.x(), ny = size.y(), nz = size.z();
   const long nxy = static_cast<long>(nx) * ny;
   const long n = nxy * nz;

@@ -4,6 +4,7 @@
 #include <array>
 #include <cmath>
 #include <sstream>
+#include <string>
 #include <stdexcept>
 #include <unordered_map>
 #include <vector>
@@ -136,10 +137,26 @@ BoundarySurface extractBoundary(const Tets& tets, const Points& positions) {
   }
   std::sort(faces.begin(), faces.end());
   std::vector<int> boundary_ids;
+  // Orientation of a face occurrence relative to its sorted key: even or odd permutation.
+  auto parity = [&](int id) {
+    const int t = id / 4, f = id % 4;
+    const int a = tets(t, kFaces[f][0]), b = tets(t, kFaces[f][1]), c = tets(t, kFaces[f][2]);
+    return (a < b) + (b < c) + (a < c);  // 3 or 1: even; 2 or 0: odd
+  };
   for (size_t i = 0; i < faces.size();) {
     size_t j = i + 1;
     while (j < faces.size() && faces[j].key == faces[i].key) ++j;
-    if (j - i == 1) boundary_ids.push_back(faces[i].id);
+    if (j - i == 1) {
+      boundary_ids.push_back(faces[i].id);
+    } else if (j - i > 2 || (parity(faces[i].id) % 2) == (parity(faces[i + 1].id) % 2)) {
+      // A face in three or more tets, or two tets on the same side of it: overlapping elements.
+      std::string which;
+      for (size_t k = i; k < j; ++k) which += (k > i ? ", " : "") + std::to_string(faces[k].id / 4);
+      throw std::invalid_argument("tetrahedra " + which + " share the face (" + std::to_string(faces[i].key[0]) + ", " +
+                                  std::to_string(faces[i].key[1]) + ", " + std::to_string(faces[i].key[2]) +
+                                  ") " + (j - i > 2 ? "three or more times" : "from the same side") +
+                                  ": the mesh has overlapping or duplicate elements");
+    }
     i = j;
   }
   std::sort(boundary_ids.begin(), boundary_ids.end());  // in tet order

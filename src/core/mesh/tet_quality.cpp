@@ -66,7 +66,7 @@ QualityStats qualityStats(const Tets& tets, const Points& positions) {
     s.total_volume_m3 += q.volume_m3;
     s.min_volume_m3 = std::min(s.min_volume_m3, q.volume_m3);
     s.max_volume_m3 = std::max(s.max_volume_m3, q.volume_m3);
-    if (q.volume_m3 <= 0) ++s.num_inverted;
+    if (!(q.volume_m3 > 0)) ++s.num_inverted;  // NaN counts as inverted
     s.max_aspect_ratio = std::max(s.max_aspect_ratio, q.aspect_ratio);
     sum_ar += std::isfinite(q.aspect_ratio) ? q.aspect_ratio : 0.0;
     s.min_dihedral_deg = std::min(s.min_dihedral_deg, q.min_dihedral_deg);
@@ -83,8 +83,9 @@ std::vector<int> invertedTets(const Tets& tets, const Points& positions, double 
   std::vector<char> bad(n, 0);
 #pragma omp parallel for schedule(static)
   for (int t = 0; t < n; ++t) {
+    // Written as !(v > min) so that a NaN volume (a diverged solve) counts as inverted.
     bad[t] = signedTetVolume(positions.row(tets(t, 0)), positions.row(tets(t, 1)),
-                             positions.row(tets(t, 2)), positions.row(tets(t, 3))) <= min_volume_m3;
+                             positions.row(tets(t, 2)), positions.row(tets(t, 3))) > min_volume_m3 ? 0 : 1;
   }
   std::vector<int> out;
   for (int t = 0; t < n; ++t)

@@ -398,16 +398,28 @@ TetMesh meshLabelImage(const LabelImage& image, const TissueLabels& labels,
     const Eigen::Vector3d c = (mesh.nodes().row(b.triangles(f, 0)) + mesh.nodes().row(b.triangles(f, 1)) +
                                mesh.nodes().row(b.triangles(f, 2))).transpose() / 3.0;
     const Eigen::Vector3d nrm = b.normals.row(f).transpose();
+    // Vote over samples 0.5–1.5 voxels outside the face; samples beyond the image are unknown.
+    // Undecided faces (nothing but tissue or unknown outside, e.g. tissue cut by the image border)
+    // go to the chest wall: a cut through the body is no free skin surface.
     int chest_votes = 0, air_votes = 0;
-    for (double step : {0.5, 1.0, 1.5}) {  // voxels outside the face
-      const TissueClass tc =
-          labels.classify(image.labelAt(c + nrm * (step * image.spacing_m.minCoeff()), 0));
+    const double h = image.spacing_m.minCoeff();
+    for (double step : {0.5, 1.0, 1.5, 2.5, 3.5}) {
+      if (step > 1.5 && chest_votes + air_votes > 0) break;  // further out only when undecided
+      const Eigen::Vector3d q = c + nrm * (step * h);
+      const Eigen::Vector3d ijk = image.physicalToIndex(q);
+      const int i = static_cast<int>(std::lround(ijk.x())), j = static_cast<int>(std::lround(ijk.y())),
+                k = static_cast<int>(std::lround(ijk.z()));
+      if (!image.contains(i, j, k)) continue;
+      const TissueClass tc = labels.classify(image.at(i, j, k));
       chest_votes += tc == TissueClass::kChestWall;
       air_votes += tc == TissueClass::kAir;
     }
-    auto& set = chest_votes > air_votes ? chest : skin;
+    const bool undecided = chest_votes == 0 && air_votes == 0;
+    const bool is_chest = undecided || chest_votes > air_votes;
+    auto& set = is_chest ? chest : skin;
     for (int k = 0; k < 3; ++k) set.push_back(b.triangles(f, k));
-    (chest_votes > air_votes ? rep.num_chest_wall_faces : rep.num_skin_faces)++;
+    (is_chest ? rep.num_chest_wall_faces : rep.num_skin_faces)++;
+    rep.num_undecided_faces += undecided;
   }
   mesh.setNodeSet(node_sets::kChestWall, std::move(chest));
   mesh.setNodeSet(node_sets::kSkin, std::move(skin));

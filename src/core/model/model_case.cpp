@@ -1,5 +1,6 @@
 #include "breast_sim/core/model/model_case.h"
 
+#include <cmath>
 #include <filesystem>
 #include <limits>
 #include <set>
@@ -20,11 +21,28 @@ namespace fs = std::filesystem;
 }
 
 double number(const YAML::Node& n, const std::string& file, const std::string& key) {
+  double v = 0.0;
   try {
-    return n.as<double>();
+    v = n.as<double>();
   } catch (const YAML::Exception&) {
     fail(file, key, "expected a number, got '" + YAML::Dump(n) + "'");
   }
+  if (!std::isfinite(v)) fail(file, key, "expected a finite number, got '" + YAML::Dump(n) + "'");
+  return v;
+}
+
+std::string text(const YAML::Node& n, const std::string& file, const std::string& key) {
+  if (!n.IsScalar()) fail(file, key, "expected a text value, got '" + YAML::Dump(n) + "'");
+  return n.as<std::string>();
+}
+
+/// A whole number in [lo, hi].
+long integer(const YAML::Node& n, const std::string& file, const std::string& key, long lo, long hi) {
+  const double v = number(n, file, key);
+  if (v != std::floor(v) || v < lo || v > hi)
+    fail(file, key, "expected a whole number in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got '" +
+                        YAML::Dump(n) + "'");
+  return static_cast<long>(v);
 }
 
 Eigen::Vector3d vec3(const YAML::Node& n, const std::string& file, const std::string& key) {
@@ -35,11 +53,7 @@ Eigen::Vector3d vec3(const YAML::Node& n, const std::string& file, const std::st
 std::set<std::uint16_t> labelSet(const YAML::Node& n, const std::string& file, const std::string& key) {
   if (!n.IsSequence()) fail(file, key, "expected a list of label values, e.g. [1, 29]");
   std::set<std::uint16_t> out;
-  for (const auto& v : n) {
-    const double x = number(v, file, key);
-    if (x < 0 || x > 65535 || x != static_cast<int>(x)) fail(file, key, "label " + YAML::Dump(v) + " is not an integer in [0, 65535]");
-    out.insert(static_cast<std::uint16_t>(x));
-  }
+  for (const auto& v : n) out.insert(static_cast<std::uint16_t>(integer(v, file, key, 0, 65535)));
   return out;
 }
 
@@ -61,27 +75,29 @@ MeshingOptions parseMeshing(const YAML::Node& m, const std::string& file, double
   checkKeys(m, {"target_elements", "interior_size_mm", "skin_size_factor", "grading_distance_mm",
                 "lesion_size_factor", "lesion_grading_distance_mm", "facet_angle_deg", "facet_distance_mm",
                 "cell_radius_edge_ratio", "perturb", "exude", "max_size_iterations", "max_elements",
-                "lesion_snap_tolerance_mm"},
+                "min_island_volume_fraction", "lesion_snap_tolerance_mm"},
             file, "meshing");
-  auto get = [&](const char* key, double scale, double& out) {
-    if (m[key]) out = number(m[key], file, std::string("meshing.") + key) * scale;
+  // Checked here with the names and units the user typed; MeshingOptions::validate() checks again.
+  auto get = [&](const char* key, double scale, double& out, double lo, bool lo_open, const char* range) {
+    if (!m[key]) return;
+    const std::string k = std::string("meshing.") + key;
+    const double v = number(m[key], file, k);
+    if (v < lo || (lo_open && v == lo)) fail(file, k, std::string("expected ") + range + ", got " + YAML::Dump(m[key]));
+    out = v * scale;
   };
-  double target = o.target_elements, iters = o.max_size_iterations, maxe = o.max_elements;
-  get("target_elements", 1.0, target);
-  get("interior_size_mm", 1e-3, o.interior_size_m);
-  get("skin_size_factor", 1.0, o.skin_size_factor);
-  get("grading_distance_mm", 1e-3, o.grading_distance_m);
-  get("lesion_size_factor", 1.0, o.lesion_size_factor);
-  get("lesion_grading_distance_mm", 1e-3, o.lesion_grading_distance_m);
-  get("facet_angle_deg", 1.0, o.facet_angle_deg);
-  get("facet_distance_mm", 1e-3, o.facet_distance_m);
-  get("cell_radius_edge_ratio", 1.0, o.cell_radius_edge_ratio);
-  get("max_size_iterations", 1.0, iters);
-  get("max_elements", 1.0, maxe);
-  get("lesion_snap_tolerance_mm", 1e-3, *snap_tolerance_m);
-  o.target_elements = static_cast<int>(target);
-  o.max_size_iterations = static_cast<int>(iters);
-  o.max_elements = static_cast<int>(std::min(maxe, 2e9));
+  if (m["target_elements"]) o.target_elements = static_cast<int>(integer(m["target_elements"], file, "meshing.target_elements", 0, 100'000'000));
+  if (m["max_size_iterations"]) o.max_size_iterations = static_cast<int>(integer(m["max_size_iterations"], file, "meshing.max_size_iterations", 1, 20));
+  if (m["max_elements"]) o.max_elements = static_cast<int>(integer(m["max_elements"], file, "meshing.max_elements", 1, 2'000'000'000));
+  get("interior_size_mm", 1e-3, o.interior_size_m, 0.0, true, "a positive size in mm, e.g. 6");
+  get("skin_size_factor", 1.0, o.skin_size_factor, 0.0, true, "a factor in (0, 1]");
+  get("grading_distance_mm", 1e-3, o.grading_distance_m, 0.0, true, "a positive distance in mm");
+  get("lesion_size_factor", 1.0, o.lesion_size_factor, 0.0, true, "a factor in (0, 1]");
+  get("lesion_grading_distance_mm", 1e-3, o.lesion_grading_distance_m, 0.0, true, "a positive distance in mm");
+  get("facet_angle_deg", 1.0, o.facet_angle_deg, 0.0, true, "an angle in (0, 30] degrees");
+  get("facet_distance_mm", 1e-3, o.facet_distance_m, 0.0, false, "0 (automatic) or a positive distance in mm");
+  get("cell_radius_edge_ratio", 1.0, o.cell_radius_edge_ratio, 2.0, false, "a ratio >= 2");
+  get("min_island_volume_fraction", 1.0, o.min_island_volume_fraction, 0.0, false, "a fraction in [0, 1)");
+  get("lesion_snap_tolerance_mm", 1e-3, *snap_tolerance_m, 0.0, false, "a distance >= 0 in mm");
   for (const char* key : {"perturb", "exude"}) {
     if (!m[key]) continue;
     try {
@@ -127,7 +143,7 @@ ModelCase loadModelCase(const std::string& yaml_path) {
     const YAML::Node img = root["image"];
     checkKeys(img, {"path", "labels", "nipples_mm"}, yaml_path, "image");
     if (!img["path"]) fail(yaml_path, "image.path", "missing: give the label image file (NIfTI, NRRD or MetaImage)");
-    fs::path p = img["path"].as<std::string>();
+    fs::path p = text(img["path"], yaml_path, "image.path");
     if (p.is_relative()) p = fs::path(yaml_path).parent_path() / p;
     c.image = readLabelImage(p.lexically_normal().string());
     if (img["labels"]) {
@@ -154,10 +170,10 @@ ModelCase loadModelCase(const std::string& yaml_path) {
     for (const auto& l : root["lesions"]) {
       checkKeys(l, {"name", "position_mm", "radius_mm"}, yaml_path, "lesions[]");
       Lesion les;
-      les.name = l["name"] ? l["name"].as<std::string>() : "L" + std::to_string(c.lesions.size() + 1);
+      les.name = l["name"] ? text(l["name"], yaml_path, "lesions[].name") : "L" + std::to_string(c.lesions.size() + 1);
       if (!l["position_mm"]) fail(yaml_path, "lesions[" + les.name + "].position_mm", "missing");
       les.position_m = vec3(l["position_mm"], yaml_path, "lesions[" + les.name + "].position_mm") * 1e-3;
-      if (l["radius_mm"]) les.radius_m = number(l["radius_mm"], yaml_path, "lesions[].radius_mm") * 1e-3;
+      if (l["radius_mm"]) les.radius_m = number(l["radius_mm"], yaml_path, "lesions[" + les.name + "].radius_mm") * 1e-3;
       if (les.radius_m < 0) fail(yaml_path, "lesions[" + les.name + "].radius_mm", "must be ≥ 0");
       c.lesions.push_back(les);
     }
@@ -173,16 +189,27 @@ SimulationModel buildSimulationModel(const ModelCase& model_case) {
   model.mesh = meshLabelImage(model_case.image, model_case.labels, refine, model_case.meshing, &model.meshing);
 
   if (!model_case.nipples_m.empty()) {
+    // The skin node nearest each nipple point; a point far from the skin is a coordinate mistake.
+    const double tolerance_m = std::max(10e-3, 2.0 * model.meshing.skin_size_m);
     const auto& skin = model.mesh.nodeSet(node_sets::kSkin);
     std::vector<int> nipple;
-    for (const auto& p : model_case.nipples_m) {
+    for (size_t i = 0; i < model_case.nipples_m.size(); ++i) {
+      const Eigen::Vector3d& p = model_case.nipples_m[i];
       int best = -1;
       double best_d = std::numeric_limits<double>::infinity();
       for (int v : skin) {
-        const double d = (model.mesh.nodes().row(v).transpose() - p).squaredNorm();
+        const double d = (model.mesh.nodes().row(v).transpose() - p).norm();
         if (d < best_d) best_d = d, best = v;
       }
-      if (best >= 0) nipple.push_back(best);
+      if (best < 0 || !(best_d <= tolerance_m)) {
+        std::ostringstream s;
+        s.precision(4);
+        s << "case '" << model_case.name << "': nipple " << i + 1 << " at (" << p.x() * 1e3 << ", " << p.y() * 1e3
+          << ", " << p.z() * 1e3 << ") mm is " << best_d * 1e3 << " mm from the nearest skin node (tolerance "
+          << tolerance_m * 1e3 << " mm); give it in the image's patient space (LPS, mm)";
+        throw std::invalid_argument(s.str());
+      }
+      nipple.push_back(best);
     }
     model.mesh.setNodeSet(node_sets::kNipple, nipple);
   }

@@ -21,29 +21,26 @@ Eigen::Vector4d barycentricCoordinates(const Eigen::Vector3d& p, const Eigen::Ve
 
 namespace {
 
-// Distance from p to the closest point of the tetrahedron: 0 inside, else the distance to the
-// nearest face (each face by closest point on triangle).
-double distanceToTriangle(const Eigen::Vector3d& p, const Eigen::Vector3d& a, const Eigen::Vector3d& b,
-                          const Eigen::Vector3d& c) {
-  // Ericson, Real-Time Collision Detection, 5.1.5.
+// Closest point to p on triangle (a, b, c) (Ericson, Real-Time Collision Detection, 5.1.5).
+Eigen::Vector3d closestPointOnTriangle(const Eigen::Vector3d& p, const Eigen::Vector3d& a, const Eigen::Vector3d& b,
+                                       const Eigen::Vector3d& c) {
   const Eigen::Vector3d ab = b - a, ac = c - a, ap = p - a;
   const double d1 = ab.dot(ap), d2 = ac.dot(ap);
-  if (d1 <= 0 && d2 <= 0) return (p - a).norm();
+  if (d1 <= 0 && d2 <= 0) return a;
   const Eigen::Vector3d bp = p - b;
   const double d3 = ab.dot(bp), d4 = ac.dot(bp);
-  if (d3 >= 0 && d4 <= d3) return (p - b).norm();
+  if (d3 >= 0 && d4 <= d3) return b;
   const double vc = d1 * d4 - d3 * d2;
-  if (vc <= 0 && d1 >= 0 && d3 <= 0) return (p - (a + ab * (d1 / (d1 - d3)))).norm();
+  if (vc <= 0 && d1 >= 0 && d3 <= 0) return a + ab * (d1 / (d1 - d3));
   const Eigen::Vector3d cp = p - c;
   const double d5 = ab.dot(cp), d6 = ac.dot(cp);
-  if (d6 >= 0 && d5 <= d6) return (p - c).norm();
+  if (d6 >= 0 && d5 <= d6) return c;
   const double vb = d5 * d2 - d1 * d6;
-  if (vb <= 0 && d2 >= 0 && d6 <= 0) return (p - (a + ac * (d2 / (d2 - d6)))).norm();
+  if (vb <= 0 && d2 >= 0 && d6 <= 0) return a + ac * (d2 / (d2 - d6));
   const double va = d3 * d6 - d5 * d4;
-  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0)
-    return (p - (b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6))))).norm();
+  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
   const double denom = 1.0 / (va + vb + vc);
-  return (p - (a + ab * (vb * denom) + ac * (vc * denom))).norm();
+  return a + ab * (vb * denom) + ac * (vc * denom);
 }
 
 }  // namespace
@@ -103,12 +100,15 @@ PointEmbedding::PointEmbedding(const TetMesh& mesh, const Points& points_m,
       // Outside: the nearest element, searched over boundary-face owners (the nearest point of the
       // mesh lies on its boundary).
       const BoundarySurface& b = mesh.boundary();
+      Eigen::Vector3d closest = q;
       for (Eigen::Index f = 0; f < b.triangles.rows(); ++f) {
-        const double d = distanceToTriangle(q, x.row(b.triangles(f, 0)), x.row(b.triangles(f, 1)),
-                                            x.row(b.triangles(f, 2)));
+        const Eigen::Vector3d cp = closestPointOnTriangle(q, x.row(b.triangles(f, 0)), x.row(b.triangles(f, 1)),
+                                                          x.row(b.triangles(f, 2)));
+        const double d = (cp - q).norm();
         if (d < best_outside) {
           best_outside = d;
           best.tet = b.owner_tet[f];
+          closest = cp;
         }
       }
       if (!(best_outside <= snap_tolerance_m)) {
@@ -120,10 +120,10 @@ PointEmbedding::PointEmbedding(const TetMesh& mesh, const Points& points_m,
           << " mm); check that it is given in the prone image's patient space (LPS, mm) and inside the tissue";
         throw std::invalid_argument(s.str());
       }
-      // Clamp the weights onto the element: drop negative parts and renormalise.
-      Eigen::Vector4d w = barycentricCoordinates(q, vertex(best.tet, 0), vertex(best.tet, 1),
+      // Embed the closest point of the mesh surface (on a face of the owner element).
+      Eigen::Vector4d w = barycentricCoordinates(closest, vertex(best.tet, 0), vertex(best.tet, 1),
                                                  vertex(best.tet, 2), vertex(best.tet, 3));
-      w = w.cwiseMax(0.0);
+      w = w.cwiseMax(0.0);  // round-off only: the point is on the element's face
       best.weights = w / w.sum();
       best.outside_distance_m = best_outside;
     }
@@ -132,6 +132,10 @@ PointEmbedding::PointEmbedding(const TetMesh& mesh, const Points& points_m,
 }
 
 Points PointEmbedding::interpolate(const Points& u) const {
+  const int needed = tets_.rows() ? tets_.maxCoeff() + 1 : 0;
+  if (u.rows() < needed)
+    throw std::invalid_argument("PointEmbedding::interpolate: the field has " + std::to_string(u.rows()) +
+                                " rows; the mesh has " + std::to_string(needed) + " nodes");
   Points out(size(), 3);
   for (int p = 0; p < size(); ++p) {
     const auto& e = points_[p];

@@ -16,6 +16,7 @@ namespace breast_sim::core {
 /// @param size     voxels along i, j, k
 /// @param spacing  voxel size along i, j, k (any unit; the result is in the same unit)
 /// @return size.prod() distances; 0 on the mask; +infinity everywhere if the mask is empty
+/// @throws std::invalid_argument if a size is not positive or the mask has another length
 std::vector<float> euclideanDistanceTransform(const std::vector<std::uint8_t>& mask,
                                               const Eigen::Vector3i& size,
                                               const Eigen::Vector3d& spacing);

@@ -52,7 +52,8 @@ class TetMesh {
   /// @param tets     #T×4 node indices in [0, N)
   /// @param region_labels  #T labels, or empty for all 0
   /// @throws std::invalid_argument naming the offending element or node when an index is out of
-  ///         range, a coordinate is not finite, a tetrahedron repeats a node or has zero volume.
+  ///         range, a coordinate is not finite, a tetrahedron repeats a node or has zero volume, or
+  ///         elements overlap (a face shared by more than two tetrahedra or twice from one side).
   TetMesh(Points nodes_m, Tets tets, std::vector<int> region_labels = {});
 
   int numNodes() const { return static_cast<int>(nodes_.rows()); }
@@ -102,6 +103,8 @@ double signedTetVolume(const Eigen::Vector3d& a, const Eigen::Vector3d& b, const
 
 /// Boundary faces of a tetrahedral connectivity, oriented outward given positively oriented tets.
 /// @param positions  #N×3 positions used for the normals [m]
+/// @throws std::invalid_argument naming the tetrahedra when a face is shared by more than two of
+///         them or by two from the same side (overlapping or duplicate elements).
 BoundarySurface extractBoundary(const Tets& tets, const Points& positions);
 
 /// Whether a triangle surface is closed and edge-manifold: every edge is shared by exactly two

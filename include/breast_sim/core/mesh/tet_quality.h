@@ -22,7 +22,7 @@ TetQuality tetQuality(const Eigen::Vector3d& a, const Eigen::Vector3d& b, const 
 /// Summary over a mesh.
 struct QualityStats {
   int num_tets = 0;
-  int num_inverted = 0;            ///< tets with signed volume ≤ 0
+  int num_inverted = 0;            ///< tets with signed volume ≤ 0 or NaN
   double total_volume_m3 = 0.0;
   double min_volume_m3 = 0.0, max_volume_m3 = 0.0;
   double max_aspect_ratio = 0.0, mean_aspect_ratio = 0.0;
@@ -34,7 +34,8 @@ struct QualityStats {
 QualityStats qualityStats(const Tets& tets, const Points& positions);
 
 /// Indices of tetrahedra whose signed volume at `positions` is ≤ `min_volume_m3` (inverted or
-/// collapsed). Runs in parallel; this is the per-step check of the material update loop.
+/// collapsed) or not a number (a diverged solve). Runs in parallel; this is the per-step check of
+/// the material update loop.
 std::vector<int> invertedTets(const Tets& tets, const Points& positions, double min_volume_m3 = 0.0);
 
 }  // namespace breast_sim::core

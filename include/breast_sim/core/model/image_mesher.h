@@ -59,6 +59,9 @@ struct MeshingReport {
   double voxel_volume_m3 = 0.0;   ///< tissue volume counted in voxels [m³]
   int num_chest_wall_faces = 0;   ///< boundary faces against the chest wall
   int num_skin_faces = 0;         ///< boundary faces against air
+  /// Boundary faces with neither air nor chest wall just outside (tissue cut by the image border,
+  /// or thin tissue folds); they are counted as chest wall (fixed), since a cut is no free skin.
+  int num_undecided_faces = 0;
   int num_components = 0;         ///< connected tissue components CGAL meshed
   int dropped_components = 0;     ///< floating islands removed (see min_island_volume_fraction)
   double dropped_volume_m3 = 0.0; ///< their volume [m³]
@@ -67,8 +70,9 @@ struct MeshingReport {
 /// Meshes the breast tissue of a label image.
 ///
 /// The domain is the union of tissue labels (fat, fibroglandular, skin, lesion); the chest wall and
-/// air are outside. Each boundary face is classified by the label found just outside it: chest wall →
-/// node set "chest_wall", otherwise → "skin" (nodes on the rim between the two are in both).
+/// air are outside. Each boundary face is classified by the labels found 0.5–1.5 voxels outside it:
+/// chest wall → node set "chest_wall", air → "skin" (nodes on the rim between the two are in both);
+/// a face with neither (tissue cut by the image border) counts as chest wall and as undecided.
 /// Element region labels are the TissueClass (as int) of the image at the element, sampled at the
 /// centroid and four inner points (majority); internal tissue interfaces are not meshed conformingly,
 /// so that fibroglandular strands finer than the elements do not force tiny elements.

@@ -35,8 +35,8 @@ class PointEmbedding {
   /// @param mesh       the rest mesh
   /// @param points_m   #P×3 points [m]
   /// @param names      #P names used in error messages (may be empty)
-  /// @param snap_tolerance_m  a point outside the mesh by at most this much is moved onto the
-  ///        nearest element (the meshed surface approximates the image's); 0 = must be inside
+  /// @param snap_tolerance_m  a point outside the mesh by at most this much is moved to the closest
+  ///        point of the mesh surface (the meshed surface approximates the image's); 0 = must be inside
   /// @throws std::invalid_argument naming the point, its position in mm and its distance from the
   ///         mesh when it lies outside by more than the tolerance.
   PointEmbedding(const TetMesh& mesh, const Points& points_m, const std::vector<std::string>& names = {},
@@ -48,6 +48,7 @@ class PointEmbedding {
   /// Displacement of every point interpolated from nodal displacements.
   /// @param nodal_displacement_m  #N×3 [m]
   /// @return #P×3 [m]
+  /// @throws std::invalid_argument when the field has fewer rows than the mesh has nodes.
   Points interpolate(const Points& nodal_displacement_m) const;
 
   /// Positions of the points for nodal positions (rest + displacement) [m]: #P×3.
