@@ -17,6 +17,10 @@ if build_core; then
   log "running core unit tests"
   (cd "${BREAST_SIM_CORE_BUILD}" && GTEST_OUTPUT="xml:${results}/core/" \
      ctest --output-on-failure -j"${BREAST_SIM_JOBS}" --timeout 900) || status=1
+  # A test executable that crashed or timed out wrote no XML: count it as a failure by name.
+  for name in $(cd "${BREAST_SIM_CORE_BUILD}" && ctest -N | awk '/Test +#[0-9]+:/ {print $3}'); do
+    [ -f "${results}/core/${name}.xml" ] || echo "${name} wrote no result (crashed or timed out)" > "${results}/core_${name}.failed"
+  done
 else
   log "the core failed to build"; status=1
   echo "the core failed to build" > "${results}/core_build.failed"
