@@ -122,6 +122,7 @@ int main(int argc, char** argv) {
     s["node_sets"] = nlohmann::json::object();
     for (const auto& kv : m.mesh.nodeSets()) s["node_sets"][kv.first] = kv.second.size();
     s["boundary_faces"] = m.mesh.boundary().triangles.rows();
+    s["prone_gravity_direction"] = {c.prone_gravity_direction.x(), c.prone_gravity_direction.y(), c.prone_gravity_direction.z()};
     s["boundary_closed"] = isClosedManifold(m.mesh.boundary().triangles);
     s["seconds"] = {{"case_and_image", t_case}, {"meshing", m.meshing.seconds}, {"total", t_total}};
     s["meshing"] = {{"passes", m.meshing.passes},
@@ -129,6 +130,10 @@ int main(int argc, char** argv) {
                     {"skin_size_mm", m.meshing.skin_size_m * 1e3},
                     {"facet_distance_mm", m.meshing.facet_distance_m * 1e3},
                     {"chest_wall_faces", m.meshing.num_chest_wall_faces},
+                    {"undecided_faces", m.meshing.num_undecided_faces},
+                    {"components", m.meshing.num_components},
+                    {"dropped_islands", m.meshing.dropped_components},
+                    {"dropped_island_volume_mm3", m.meshing.dropped_volume_m3 * 1e9},
                     {"skin_faces", m.meshing.num_skin_faces}};
     s["quality"] = {{"inverted", m.quality.num_inverted},
                     {"min_dihedral_deg", m.quality.min_dihedral_deg},

@@ -38,6 +38,7 @@ void expectErrorMentions(const std::string& yaml_path, const std::string& needle
 TEST(ModelCase, DefaultPhantomModelIsClosedValidAndKeepsTheAnalyticVolume) {
   const ModelCase c = loadModelCase(kConfig + "phantom_default.yaml");
   ASSERT_TRUE(c.phantom);
+  EXPECT_LT((c.prone_gravity_direction - Eigen::Vector3d(0, -1, 0)).norm(), 1e-12);  // anterior
   const SimulationModel m = buildSimulationModel(c);
   SCOPED_TRACE(std::to_string(m.mesh.numTets()) + " tets");
   EXPECT_TRUE(isClosedManifold(m.mesh.boundary().triangles));
@@ -83,6 +84,7 @@ TEST(ModelCase, TwoBreastPhantomOnACurvedWallMeshesBothBreasts) {
 TEST(ModelCase, VictrePhantomMeshesWithChestWallAndNipple) {
   ModelCase c = loadModelCase(kConfig + "victre_case.yaml");
   c.meshing.target_elements = 8000;
+  EXPECT_EQ(c.prone_gravity_direction, Eigen::Vector3d(1, 0, 0));  // from the case: the image is not LPS
   const SimulationModel m = buildSimulationModel(c);
   SCOPED_TRACE(std::to_string(m.mesh.numTets()) + " tets");
   EXPECT_TRUE(isClosedManifold(m.mesh.boundary().triangles));

@@ -137,11 +137,12 @@ ModelCase loadModelCase(const std::string& yaml_path) {
     auto phantom = std::make_shared<Phantom>(generatePhantom(loadPhantomParams(yaml_path)));
     c.image = phantom->labels;
     c.nipples_m = phantom->nipples_m;
+    c.prone_gravity_direction = phantom->gravity_prone_mps2.normalized();
     c.lesions = phantom->lesions;
     c.phantom = phantom;
   } else {
     const YAML::Node img = root["image"];
-    checkKeys(img, {"path", "labels", "nipples_mm"}, yaml_path, "image");
+    checkKeys(img, {"path", "labels", "nipples_mm", "prone_gravity_direction"}, yaml_path, "image");
     if (!img["path"]) fail(yaml_path, "image.path", "missing: give the label image file (NIfTI, NRRD or MetaImage)");
     fs::path p = text(img["path"], yaml_path, "image.path");
     if (p.is_relative()) p = fs::path(yaml_path).parent_path() / p;
@@ -159,6 +160,11 @@ ModelCase loadModelCase(const std::string& yaml_path) {
       } catch (const std::invalid_argument& e) {
         throw std::runtime_error(yaml_path + ": " + e.what());
       }
+    }
+    if (img["prone_gravity_direction"]) {
+      const Eigen::Vector3d g = vec3(img["prone_gravity_direction"], yaml_path, "image.prone_gravity_direction");
+      if (!(g.norm() > 0)) fail(yaml_path, "image.prone_gravity_direction", "must not be zero: give the chest wall → nipple direction");
+      c.prone_gravity_direction = g.normalized();
     }
     if (img["nipples_mm"]) {
       if (!img["nipples_mm"].IsSequence()) fail(yaml_path, "image.nipples_mm", "expected a list of [x, y, z] in mm");

@@ -28,6 +28,10 @@ struct ModelCase {
   TissueLabels labels;                     ///< which label values are which tissue
   std::vector<Lesion> lesions;             ///< lesions in the prone image [m]
   std::vector<Eigen::Vector3d> nipples_m;  ///< nipple points [m] (may be empty)
+  /// Unit direction of gravity in the prone image (chest wall → nipple), patient space. Anterior,
+  /// (0, −1, 0), for LPS images and the phantom; a case must give it for images whose space is not
+  /// anatomical (e.g. the VICTRE phantom: +x).
+  Eigen::Vector3d prone_gravity_direction{0.0, -1.0, 0.0};
   MeshingOptions meshing;
   double lesion_snap_tolerance_m = 2e-3;   ///< a lesion this close outside the mesh is snapped onto it [m]
   std::shared_ptr<const Phantom> phantom;  ///< set when the case is the software phantom
@@ -36,7 +40,8 @@ struct ModelCase {
 /// Loads a YAML case file. Top-level maps:
 ///  - `phantom:` the software phantom's parameters (model/phantom.h), or
 ///  - `image:` {path (relative to the YAML file), labels: {fat: [...], fibroglandular: [...], skin:
-///    [...], lesion: [...], chest_wall: [...]}, nipples_mm: [[x, y, z], ...]};
+///    [...], lesion: [...], chest_wall: [...]}, nipples_mm: [[x, y, z], ...],
+///    prone_gravity_direction: [x, y, z] (default [0, -1, 0], anterior in LPS)};
 ///  - `lesions:` optional list of {name, position_mm: [x, y, z], radius_mm} (LPS patient space, mm),
 ///    added to the phantom's own lesions;
 ///  - `meshing:` {target_elements, interior_size_mm, skin_size_factor, grading_distance_mm,
