@@ -270,9 +270,10 @@ struct NiftiFields {
   float quatern[3] = {0, 0, 0};
   float qoffset[3] = {0, 0, 0};
   float srow[3][4] = {{0, 0, 0, 0}, {0, 0, 0, 0}, {0, 0, 0, 0}};
+  float vox_offset = 352;
 };
 
-/// 348-byte header + 4-byte extension flag; vox_offset 352, units mm.
+/// 348-byte header + 4-byte extension flag; vox_offset as given (352 by default), units mm.
 std::string niftiHeader(const NiftiFields& f) {
   std::string h(352, '\0');
   const auto put = [&](std::size_t offset, const std::string& bytes) {
@@ -284,7 +285,7 @@ std::string niftiHeader(const NiftiFields& f) {
   put(70, encode<std::int16_t>(f.datatype, be));
   put(72, encode<std::int16_t>(f.bitpix, be));
   for (int d = 0; d < 8; ++d) put(76 + 4 * d, encode<float>(f.pixdim[d], be));
-  put(108, encode<float>(352.0f, be));
+  put(108, encode<float>(f.vox_offset, be));
   put(112, encode<float>(f.scl_slope, be));
   put(116, encode<float>(f.scl_inter, be));
   h[123] = 2;  // NIFTI_UNITS_MM
@@ -432,6 +433,28 @@ TEST(LabelImageWriter, NrrdIsGzipInLps) {
   EXPECT_NE(bytes.find("space origin: (10,-20,30)\n"), std::string::npos);
 }
 
+TEST(LabelImageWriter, NiftiRefusesSizesAbove32767InsteadOfTruncatingThem) {
+  // dim[] is int16: 40000 used to be written as 40000 − 65536 = −25536.
+  const LabelImage wide(Eigen::Vector3i(40000, 2, 1), mm(1, 1, 1), mm(0, 0, 0), 3);
+  for (const std::string ext : {".nii", ".nii.gz"}) {
+    SCOPED_TRACE(ext);
+    const std::string path = tempPath("too_wide" + ext);
+    std::filesystem::remove(path);
+    const std::string message = errorOf([&] { writeLabelImage(path, wide); });
+    EXPECT_EQ(message.rfind(path + ": ", 0), 0u) << message;
+    EXPECT_NE(message.find("size 40000×2×1: axis i has 40000 voxels"), std::string::npos) << message;
+    EXPECT_NE(message.find("at most 32767"), std::string::npos) << message;
+    EXPECT_NE(message.find("write .nrrd or .mha instead"), std::string::npos) << message;
+    EXPECT_FALSE(std::filesystem::exists(path)) << "nothing is written";
+  }
+  // NRRD, as the message suggests, holds it.
+  const std::string nrrd = tempPath("too_wide.nrrd");
+  writeLabelImage(nrrd, wide);
+  const LabelImage back = readLabelImage(nrrd);
+  EXPECT_EQ(back.size, wide.size);
+  EXPECT_TRUE(back.labels == wide.labels);
+}
+
 TEST(LabelImageWriter, RejectsInvalidImagesAndUnknownExtensions) {
   LabelImage bad(Eigen::Vector3i(2, 2, 2), mm(1, 1, 1), mm(0, 0, 0));
   bad.labels.pop_back();
@@ -523,6 +546,14 @@ TEST(LabelImageReader, RejectsMalformedFilesNamingFileAndFault) {
   four_d.dim[4] = 2;
   NiftiFields wrong_size;
   wrong_size.sizeof_hdr = 350;
+  NiftiFields huge_dims;
+  for (int d = 1; d <= 3; ++d) huge_dims.dim[d] = 32767;
+  NiftiFields far_offset;
+  far_offset.vox_offset = 1e30f;  // casting this to size_t was undefined behaviour
+  NiftiFields infinite_offset;
+  infinite_offset.vox_offset = INFINITY;
+  NiftiFields offset_past_end;
+  offset_past_end.vox_offset = 1000;
   const std::vector<BadFile> cases = {
       {"sizes has two values", "two_sizes.nrrd",
        nrrdHeader("type: uint8\nsizes: 7 5\nencoding: raw\n") + std::string(35, '\0'),
@@ -601,6 +632,41 @@ TEST(LabelImageReader, RejectsMalformedFilesNamingFileAndFault) {
        niftiHeader(four_d) + std::string(210, '\0'), {"dim[4] is 2", "more than 3 dimensions"}},
       {"NIfTI shorter than a header", "stub.nii.gz", std::string(100, 'x'),
        {"fewer than a NIfTI-1 header's 348"}},
+      // Each size is fine but the product wraps: 2^22·2^21·2^21 = 2^64 and 2^30·2^30·16 = 2^64
+      // were 0 voxels, which read "successfully" and crashed in labelAt().
+      {"NRRD sizes whose product wraps to 0", "wrap.nrrd",
+       nrrdHeader("type: uint8\nsizes: 4194304 2097152 2097152\nencoding: raw\n") + std::string(16, '\0'),
+       {"header field 'sizes' is '4194304 2097152 2097152'", "4194304×2097152×2097152 ≈ 1.84e+19 voxels",
+        "more than the 2147483648 (2^31) a label image may hold"}},
+      {"NRRD sizes 2^30 2^30 16", "wrap16.nrrd",
+       nrrdHeader("type: uint8\nsizes: 1073741824 1073741824 16\nencoding: gzip\n") + std::string(16, '\0'),
+       {"header field 'sizes' is '1073741824 1073741824 16'", "more than the 2147483648"}},
+      {"NRRD sizes just over 2^31 voxels", "over.nrrd",
+       nrrdHeader("type: uint8\nsizes: 2048 1024 1025\nencoding: raw\n") + std::string(16, '\0'),
+       {"2048×1024×1025 = 2149580800 voxels, more than the 2147483648"}},
+      {"NRRD size above INT_MAX", "int_max.nrrd",
+       nrrdHeader("type: uint8\nsizes: 4294967297 1 1\nencoding: raw\n") + std::string(16, '\0'),
+       {"'sizes' value '4294967297' is not an integer from 1 to 2147483647"}},
+      {"MetaImage DimSize whose product wraps to 0", "wrap.mha",
+       mha_head + "DimSize = 4194304 2097152 2097152\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n" +
+           std::string(16, '\0'),
+       {"header field 'DimSize' is '4194304 2097152 2097152'", "more than the 2147483648"}},
+      {"MetaImage DimSize 2^30 2^30 16", "wrap16.mha",
+       mha_head + "DimSize = 1073741824 1073741824 16\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n" +
+           std::string(16, '\0'),
+       {"header field 'DimSize' is '1073741824 1073741824 16'", "more than the 2147483648"}},
+      {"NIfTI with more than 2^31 voxels", "huge.nii", niftiHeader(huge_dims) + std::string(16, '\0'),
+       {"header field 'dim[1..3]' is '32767 32767 32767'", "32767×32767×32767 = 35181150961663 voxels",
+        "more than the 2147483648"}},
+      {"NIfTI vox_offset 1e30", "far_offset.nii",
+       niftiHeader(far_offset) + markedData<std::uint8_t>(5, false),
+       {"vox_offset is 1.0000000150474662e+30", "expected an integer from 348 to the file size (457 bytes)"}},
+      {"NIfTI vox_offset infinite", "inf_offset.nii",
+       niftiHeader(infinite_offset) + markedData<std::uint8_t>(5, false),
+       {"vox_offset is inf;", "expected an integer from 348"}},
+      {"NIfTI vox_offset past the end of the file", "past_end.nii",
+       niftiHeader(offset_past_end) + markedData<std::uint8_t>(5, false),
+       {"vox_offset is 1000;", "to the file size (457 bytes)"}},
       {"unknown extension", "labels.png", "PNG", {"unknown extension"}},
       {"file missing", "absent.nrrd", "", {"cannot open"}, "", "", true},
   };
@@ -692,6 +758,17 @@ TEST(LabelImage, ValidateRejectsInconsistentImages) {
       {"NaN origin", [](LabelImage& im) { im.origin_m.z() = NAN; }},
       {"sheared direction", [](LabelImage& im) { im.direction(0, 1) = 0.1; }},
       {"scaled direction", [](LabelImage& im) { im.direction *= 2; }},
+      // numVoxels() wraps to 0 here, which matched the empty label vector.
+      {"sizes whose product wraps to 0",
+       [](LabelImage& im) {
+         im.size = Eigen::Vector3i(4194304, 2097152, 2097152);
+         im.labels.clear();
+       }},
+      {"2^30 2^30 16",
+       [](LabelImage& im) {
+         im.size = Eigen::Vector3i(1 << 30, 1 << 30, 16);
+         im.labels.clear();
+       }},
   };
   for (const Case& c : cases) {
     SCOPED_TRACE(c.name);
@@ -700,6 +777,30 @@ TEST(LabelImage, ValidateRejectsInconsistentImages) {
     EXPECT_THROW(image.validate(), std::invalid_argument);
   }
   EXPECT_THROW(LabelImage(Eigen::Vector3i(-1, 2, 2), mm(1, 1, 1), mm(0, 0, 0)), std::invalid_argument);
+  EXPECT_THROW(LabelImage(Eigen::Vector3i(4194304, 2097152, 2097152), mm(1, 1, 1), mm(0, 0, 0)),
+               std::invalid_argument);
+}
+
+TEST(LabelImage, ValidateCountsVoxelsWithoutOverflowUpTo2Pow31) {
+  const auto messageOf = [](const LabelImage& image) -> std::string {
+    try {
+      image.validate();
+    } catch (const std::invalid_argument& e) {
+      return e.what();
+    }
+    return "";
+  };
+  LabelImage image = markedImage(kRotation);
+  image.labels.clear();
+  image.size = Eigen::Vector3i(2048, 1024, 1024);  // exactly 2^31: allowed, so the labels are short
+  EXPECT_EQ(messageOf(image), "LabelImage: 0 labels for 2048×1024×1024 = 2147483648 voxels; "
+                              "expected one label per voxel");
+  image.size = Eigen::Vector3i(2048, 1024, 1025);
+  EXPECT_EQ(messageOf(image), "LabelImage: size 2048×1024×1025 = 2149580800 voxels, more than the "
+                              "2147483648 (2^31) a label image may hold");
+  image.size = Eigen::Vector3i(4194304, 2097152, 2097152);
+  EXPECT_EQ(messageOf(image), "LabelImage: size 4194304×2097152×2097152 ≈ 1.84e+19 voxels, more "
+                              "than the 2147483648 (2^31) a label image may hold");
 }
 
 }  // namespace

@@ -2,8 +2,10 @@
 
 #include <array>
 #include <chrono>
+#include <cstdint>
 #include <cstdlib>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -104,19 +106,20 @@ void expectAllPositive(const TetMesh& m) {
 std::vector<int> row(const TetMesh& m, int t) { return {m.tets()(t, 0), m.tets()(t, 1), m.tets()(t, 2), m.tets()(t, 3)}; }
 
 // The node sets the hand-written files below give, in the same geometry for every format:
-// A (0,0,0), B (1,0,0), C (0,1,0), D (0,0,1), E (0.5,0.5,−1); tets ABCD (+), ABCE (−), BCDE (−).
+// A (0,0,0), B (1,0,0), C (0,1,0), D (0,0,1), E (1,1,−0.5); tets ABCD (+), ABCE (−), BCED (−).
+// The three fill the space around edge BC without overlapping: E lies below ABC and beyond BCD.
 Points handWrittenNodes() {
   Points x(5, 3);
-  x << 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0.5, 0.5, -1;
+  x << 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, 1, 1, -0.5;
   return x;
 }
 
-// ABCD as written; ABCE and BCDE were negative, so their last two nodes come back swapped.
+// ABCD as written; ABCE and BCED were negative, so their last two nodes come back swapped.
 void expectHandWrittenTets(const TetMesh& m) {
   ASSERT_EQ(m.numTets(), 3);
   EXPECT_EQ(row(m, 0), (std::vector<int>{0, 1, 2, 3}));
   EXPECT_EQ(row(m, 1), (std::vector<int>{0, 1, 4, 2}));
-  EXPECT_EQ(row(m, 2), (std::vector<int>{1, 2, 4, 3}));
+  EXPECT_EQ(row(m, 2), (std::vector<int>{1, 2, 3, 4}));
   expectAllPositive(m);
 }
 
@@ -152,7 +155,7 @@ $Nodes
 1 0 0
 0 1 0
 0 0 1
-0.5 0.5 -1
+1 1 -0.5
 $EndNodes
 $Elements
 4 5 1 9
@@ -164,7 +167,7 @@ $Elements
 4 10 20 30 55
 3 10 20 30 40
 3 2 4 1
-9 20 30 40 55
+9 20 30 55 40
 $EndElements
 )";
 
@@ -182,7 +185,7 @@ $Nodes
 20 1 0 0
 30 0 1 0
 40 0 0 1
-55 0.5 0.5 -1
+55 1 1 -0.5
 $EndNodes
 $Elements
 5
@@ -190,7 +193,7 @@ $Elements
 2 2 2 5 3 20 30 40
 4 4 2 29 1 10 20 30 55
 3 4 2 29 1 10 20 30 40
-9 4 2 0 2 20 30 40 55
+9 4 2 0 2 20 30 55 40
 $EndElements
 )";
 
@@ -345,17 +348,17 @@ TEST(MeshIo, HandWrittenAbaqusInpIsRead) {
 2, 1.0, 0.0, 0.0
 5, 0.0, 1.0, 0.0
 7, 0.0, 0.0, 1.0
-9, 0.5, 0.5, -1.0
+9, 1.0, 1.0, -0.5
 *element, type=S3, elset=SKIN_TRIS
 100, 2, 5, 7
 *ELEMENT, TYPE=C3D4, ELSET=REGION_29
 3, 1, 2, 5, 7
-** an element over two lines, in a set without digits (rank 2 after REGION_29)
+** an element over two lines, in a set without digits (numbered after REGION_29)
 *Element, Type=c3d4, Elset=Fat
 4, 1, 2,
    5, 9
 *ELEMENT, TYPE=C3D4
-8, 2, 5, 7, 9
+8, 2, 5, 9, 7
 *ELSET, ELSET=Deep
 8, 100
 *NSET, NSET=chest_wall
@@ -371,11 +374,43 @@ chest_wall, 9
   const TetMesh m = readTetMesh(dir.path("hand.inp"), 1e-3);
   EXPECT_TRUE(m.nodes().isApprox(handWrittenNodes() * 1e-3, 1e-15));
   expectHandWrittenTets(m);
-  EXPECT_EQ(m.regionLabels(), (std::vector<int>{29, 2, 3}));  // REGION_29, Fat (rank 2), Deep (rank 3)
+  // REGION_29 keeps 29; Fat and Deep, without a number, follow it in order of appearance.
+  EXPECT_EQ(m.regionLabels(), (std::vector<int>{29, 30, 31}));
   EXPECT_EQ(m.nodeSet("ALLNODES"), (std::vector<int>{0, 1, 2, 3, 4}));
   EXPECT_EQ(m.nodeSet("chest_wall"), (std::vector<int>{0, 1}));
   EXPECT_EQ(m.nodeSet("skin"), (std::vector<int>{2, 3, 4}));
   EXPECT_EQ(m.nodeSet("both"), (std::vector<int>{0, 1, 4}));
+}
+
+TEST(MeshIo, AbaqusNamedAndNumberedSetsNeverShareALabel) {
+  const std::string nodes = "*NODE\n1, 0, 0, 0\n2, 1, 0, 0\n3, 0, 1, 0\n4, 0, 0, 1\n5, 0.5, 0.5, -1\n";
+  struct Case {
+    std::string name;
+    std::string elements;
+    std::vector<int> labels;
+  };
+  const std::vector<Case> cases = {
+      // FAT used to get rank 1, the label REGION_1 has.
+      {"named set before a numbered one",
+       "*ELEMENT, TYPE=C3D4, ELSET=FAT\n1, 1, 2, 3, 4\n*ELEMENT, TYPE=C3D4, ELSET=REGION_1\n2, 1, 2, 3, 5\n",
+       {2, 1}},
+      {"named *ELSET after numbered blocks",
+       "*ELEMENT, TYPE=C3D4, ELSET=REGION_2\n1, 1, 2, 3, 4\n*ELEMENT, TYPE=C3D4\n2, 1, 2, 3, 5\n"
+       "*ELSET, ELSET=GLAND\n2\n",
+       {2, 3}},
+      {"named sets alone are ranked from 1",
+       "*ELEMENT, TYPE=C3D4, ELSET=FAT\n1, 1, 2, 3, 4\n*ELEMENT, TYPE=C3D4, ELSET=DEEP\n2, 1, 2, 3, 5\n",
+       {1, 2}},
+      {"a negative number does not lower the ranks",
+       "*ELEMENT, TYPE=C3D4, ELSET=R_-2\n1, 1, 2, 3, 4\n*ELEMENT, TYPE=C3D4, ELSET=FAT\n2, 1, 2, 3, 5\n",
+       {-2, 1}},
+  };
+  TempDir dir;
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.name);
+    writeText(dir.path("sets.inp"), nodes + c.elements);
+    EXPECT_EQ(readTetMesh(dir.path("sets.inp")).regionLabels(), c.labels);
+  }
 }
 
 TEST(MeshIo, HandWrittenTetGenPairIsReadFromEitherPath) {
@@ -387,13 +422,13 @@ TEST(MeshIo, HandWrittenTetGenPairIsReadFromEitherPath) {
 
 2 0 1 0   7 0
 3 0 0 1   7 0
-4 0.5 0.5 -1   7 1
+4 1 1 -0.5   7 1
 )");
   writeText(dir.path("hand.ele"), R"(3 4 1
 # region attribute as TetGen writes it
 0 0 1 2 3 29
 1 0 1 2 4 2.9e1
-2 1 2 3 4 -7
+2 1 2 4 3 -7
 )");
   for (const std::string file : {"hand.node", "hand.ele"}) {
     SCOPED_TRACE(file);
@@ -413,11 +448,11 @@ TEST(MeshIo, VtkFilesFromOtherToolsGiveTetsAndLabelsAndSkipOtherCells) {
     <Piece NumberOfPoints="5" NumberOfCells="4">
       <Points>
         <DataArray type="Float64" NumberOfComponents="3" format="ascii">
-          0 0 0  1 0 0  0 1 0  0 0 1  0.5 0.5 -1
+          0 0 0  1 0 0  0 1 0  0 0 1  1 1 -0.5
         </DataArray>
       </Points>
       <Cells>
-        <DataArray type="Int64" Name="connectivity" format="ascii">1 2 3  0 1 2 3  0 1 2 4  1 2 3 4</DataArray>
+        <DataArray type="Int64" Name="connectivity" format="ascii">1 2 3  0 1 2 3  0 1 2 4  1 2 4 3</DataArray>
         <DataArray type="Int64" Name="offsets" format="ascii">3 7 11 15</DataArray>
         <DataArray type="UInt8" Name="types" format="ascii">5 10 10 10</DataArray>
       </Cells>
@@ -433,12 +468,12 @@ hand-written
 ASCII
 DATASET UNSTRUCTURED_GRID
 POINTS 5 double
-0 0 0 1 0 0 0 1 0 0 0 1 0.5 0.5 -1
+0 0 0 1 0 0 0 1 0 0 0 1 1 1 -0.5
 CELLS 4 19
 3 1 2 3
 4 0 1 2 3
 4 0 1 2 4
-4 1 2 3 4
+4 1 2 4 3
 CELL_TYPES 4
 5
 10
@@ -513,7 +548,7 @@ TEST(MeshIo, MalformedFilesNameTheFileAndThePlace) {
       {"count.msh", nodes4 + "$Elements\n2\n1 4 2 1 1 1 2 3 4\n$EndElements\n", ":14:",
        "expected an element number, type and tag count, got 1 values"},
       {"v40.msh", "$MeshFormat\n4 0 8\n$EndMeshFormat\n", ":2:", "MSH 4.0 is not supported"},
-      {"truncated22.msh", full22.substr(0, 200), ": byte ", "truncated"},
+      {"truncated22.msh", full22.substr(0, 200), ":6:", "header says 12 nodes but the file can hold at most 5"},
       {"truncated41.msh", full41.substr(0, full41.find("$EndNodes") - 40), ": byte ", "truncated"},
       {"node.inp", "*NODE\n1, 0, 0, 0\n2, 1, 0, 0\n3, 0, 1, 0\n4, 0, 0, 1\n*ELEMENT, TYPE=C3D4\n\n1, 1, 2, 3, 5\n",
        ":8:", "element 1 refers to node 5"},
@@ -522,7 +557,7 @@ TEST(MeshIo, MalformedFilesNameTheFileAndThePlace) {
        "expected 4 node indices for C3D4 element 1, got 2"},
       {"include.inp", "*INCLUDE, INPUT=nodes.inp\n", ":1:", "*INCLUDE is not supported"},
       {"range.ele", "1 4 0\n1 1 2 3 9\n", ":2:", "tetrahedron 1 refers to node 9"},
-      {"few.ele", "2 4 0\n# one\n1 1 2 3 4\n", ":3:", "after 1 of 2 tetrahedra"},
+      {"few.ele", "2 4 0\n1 1 2 3 4\n# the second tetrahedron is missing\n", ":3:", "after 1 of 2 tetrahedra"},
       {"word.ele", "1 4 0\n1 1 2 x 4\n", ":2:", "expected a node index, got 'x'"},
       {"mesh.stl", "solid\n", "mesh.stl", "unknown mesh file extension '.stl'"},
       {"garbage.vtu", "not xml at all\n", "garbage.vtu", "not a VTK XML unstructured grid"},
@@ -547,6 +582,7 @@ TEST(MeshIo, MalformedFilesNameTheFileAndThePlace) {
   // The example from the issue, word for word.
   try {
     readTetMesh(dir.path("mesh.msh"));
+    ADD_FAILURE() << "no exception";
   } catch (const std::runtime_error& e) {
     EXPECT_EQ(std::string(e.what()), dir.path("mesh.msh") + ":12: expected 4 node indices for element 7, got 3");
   }
@@ -559,6 +595,78 @@ TEST(MeshIo, MalformedFilesNameTheFileAndThePlace) {
     } catch (const std::runtime_error& e) {
       EXPECT_NE(std::string(e.what()).find("missing."), std::string::npos) << e.what();
       EXPECT_NE(std::string(e.what()).find("cannot open"), std::string::npos) << e.what();
+    }
+  }
+}
+
+// Counts from a header used to size reservations: "$Nodes 2000000000" in a tiny file gave a bare
+// std::bad_alloc without the path.
+TEST(MeshIo, HeaderCountsTheFileCannotHoldAreErrorsNamingThePlace) {
+  TempDir dir;
+  const std::string head22 = "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n";
+  const std::string head41 = "$MeshFormat\n4.1 0 8\n$EndMeshFormat\n";
+  const std::string nodes4 = head22 + "$Nodes\n4\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n$EndNodes\n";
+  // Binary MSH 4.1 with the node or element total (the second uint64 after the section name)
+  // raised to 2·10⁹.
+  MeshWriteOptions b41;
+  b41.gmsh = {GmshVersion::kMsh41, true};
+  writeTetMesh(dir.path("full41.msh"), twoCubeMesh(), {}, 1.0, b41);
+  const std::string full41 = readBytes(dir.path("full41.msh"));
+  const auto withTotal = [&](const std::string& section, std::size_t& at) {
+    at = full41.find(section + "\n") + section.size() + 1 + 8;
+    std::string bytes = full41;
+    const std::uint64_t total = 2000000000;
+    std::memcpy(&bytes[at], &total, sizeof total);
+    return bytes;
+  };
+  std::size_t nodes_at = 0, elements_at = 0;
+  const std::string huge_nodes41 = withTotal("$Nodes", nodes_at);
+  const std::string huge_elements41 = withTotal("$Elements", elements_at);
+
+  struct Case {
+    std::string file;
+    std::string text;
+    std::string place;
+    std::string what;
+  };
+  const std::vector<Case> cases = {
+      {"nodes22.msh", head22 + "$Nodes\n2000000000\n1 0 0 0\n$EndNodes\n", ":5:",
+       "header says 2000000000 nodes but the file can hold at most 2 (19 bytes follow, each needs at least 8)"},
+      {"elements22.msh", nodes4 + "$Elements\n2000000000\n1 4 0 1 2 3 4\n$EndElements\n", ":12:",
+       "header says 2000000000 elements but the file can hold at most"},
+      {"binary22.msh", "$MeshFormat\n2.2 1 8\n" + std::string("\1\0\0\0\n", 5) +
+                           "$EndMeshFormat\n$Nodes\n2000000000\n" + std::string(28, '\0') + "\n$EndNodes\n",
+       ":6:", "header says 2000000000 nodes but the file can hold at most 1"},
+      {"nodes41.msh", head41 + "$Nodes\n1 2000000000 1 2000000000\n0 1 0 1\n1\n0 0 0\n$EndNodes\n", ":5:",
+       "header says 2000000000 nodes but the file can hold at most"},
+      {"elements41.msh", head41 +
+           "$Nodes\n1 1 1 1\n0 1 0 1\n1\n0 0 0\n$EndNodes\n$Elements\n1 2000000000 1 2000000000\n"
+           "0 1 15 1\n1 1\n$EndElements\n",
+       ":11:", "header says 2000000000 elements but the file can hold at most"},
+      {"entities41.msh", head41 + "$Entities\n0 0 0 1\n1 0 0 0 1 1 1 2000000000\n$EndEntities\n", ":6:",
+       "header says 2000000000 physical tags but the file can hold at most"},
+      {"binary_nodes41.msh", huge_nodes41, ": byte " + std::to_string(nodes_at) + ":",
+       "header says 2000000000 nodes but the file can hold at most"},
+      {"binary_elements41.msh", huge_elements41, ": byte " + std::to_string(elements_at) + ":",
+       "header says 2000000000 elements but the file can hold at most"},
+      {"huge.node", "# comment\n2000000000 3 0 0\n1 0 0 0\n", ":2:",
+       "header says 2000000000 points but the file can hold at most 1 (8 bytes follow, each needs at least 8)"},
+      {"bad_count.ele", "2000000000 4 0\n1 1 2 3 4\n", ":1:",
+       "header says 2000000000 tetrahedra but the file can hold at most 1"},
+  };
+  writeText(dir.path("bad_count.node"), "4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n");
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.file);
+    const std::string path = dir.path(c.file);
+    writeText(path, c.text);
+    try {
+      readTetMesh(path);
+      ADD_FAILURE() << "no exception";
+    } catch (const std::runtime_error& e) {
+      const std::string msg = e.what();
+      EXPECT_EQ(msg.rfind(path, 0), 0u) << "message starts with the path: " << msg;
+      EXPECT_NE(msg.find(c.place), std::string::npos) << "place '" << c.place << "' in: " << msg;
+      EXPECT_NE(msg.find(c.what), std::string::npos) << "'" << c.what << "' in: " << msg;
     }
   }
 }

@@ -34,7 +34,13 @@ LabelImage::LabelImage(const Eigen::Vector3i& size_in, const Eigen::Vector3d& sp
     msg << "LabelImage: size (" << size.transpose() << ") has a negative entry";
     throw std::invalid_argument(msg.str());
   }
-  labels.assign(static_cast<std::size_t>(numVoxels()), fill);
+  std::int64_t count = 0;
+  if (!image_io::checkedVoxelCount(size, count)) {
+    throw std::invalid_argument("LabelImage: size " + image_io::voxelCountText(size) +
+                                ", more than the " + std::to_string(image_io::kMaxVoxels) +
+                                " (2^31) a label image may hold");
+  }
+  labels.assign(static_cast<std::size_t>(count), fill);
 }
 
 Eigen::Vector3d LabelImage::indexToPhysical(const Eigen::Vector3d& ijk) const {
@@ -66,9 +72,17 @@ void LabelImage::validate() const {
     msg << "size (" << size.transpose() << ") has an entry below 1";
     throw std::invalid_argument(msg.str());
   }
-  if (static_cast<long>(labels.size()) != numVoxels()) {
-    msg << labels.size() << " labels for " << size.x() << "×" << size.y() << "×" << size.z()
-        << " = " << numVoxels() << " voxels";
+  // Counted without overflow: a wrapped product could otherwise match a short label vector and
+  // let at() read past it.
+  std::int64_t count = 0;
+  if (!image_io::checkedVoxelCount(size, count)) {
+    msg << "size " << image_io::voxelCountText(size) << ", more than the "
+        << image_io::kMaxVoxels << " (2^31) a label image may hold";
+    throw std::invalid_argument(msg.str());
+  }
+  if (labels.size() != static_cast<std::uint64_t>(count)) {
+    msg << labels.size() << " labels for " << image_io::voxelCountText(size)
+        << "; expected one label per voxel";
     throw std::invalid_argument(msg.str());
   }
   if (!spacing_m.allFinite() || (spacing_m.array() <= 0.0).any()) {
@@ -135,6 +149,44 @@ namespace image_io {
 
 void fail(const std::string& path, const std::string& what) {
   throw std::runtime_error(path + ": " + what);
+}
+
+bool checkedVoxelCount(const Eigen::Vector3i& size, std::int64_t& count) {
+  if ((size.array() < 0).any()) return false;
+  // Each factor is below 2^31, so each partial product stays below 2^62 as long as the previous
+  // one was within the limit.
+  std::int64_t n = static_cast<std::int64_t>(size.x()) * size.y();
+  if (n > kMaxVoxels) return false;
+  n *= size.z();
+  if (n > kMaxVoxels) return false;
+  count = n;
+  return true;
+}
+
+std::string voxelCountText(const Eigen::Vector3i& size) {
+  std::ostringstream s;
+  s << size.x() << "×" << size.y() << "×" << size.z();
+  const std::int64_t ab = static_cast<std::int64_t>(size.x()) * size.y();  // |ab| < 2^62
+  const std::int64_t c = size.z();
+  if (ab >= 0 && c >= 0 && (c == 0 || ab <= std::numeric_limits<std::int64_t>::max() / c)) {
+    s << " = " << ab * c;
+  } else {
+    s.precision(3);
+    s << " ≈ " << static_cast<double>(ab) * static_cast<double>(c);
+  }
+  s << " voxels";
+  return s.str();
+}
+
+std::int64_t requireVoxelCount(const Eigen::Vector3i& size, const std::string& path,
+                               const std::string& field, const std::string& value) {
+  std::int64_t count = 0;
+  if (!checkedVoxelCount(size, count)) {
+    fail(path, "header field '" + field + "' is " + quoted(value) + ": " + voxelCountText(size) +
+                   ", more than the " + std::to_string(kMaxVoxels) +
+                   " (2^31) a label image may hold; crop or downsample the image");
+  }
+  return count;
 }
 
 std::size_t scalarSize(ScalarType type) {

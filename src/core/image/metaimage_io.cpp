@@ -1,5 +1,6 @@
 // MetaImage reader and writer (ITK's MetaIO: https://itk.org/Wiki/ITK/MetaIO/Documentation).
 
+#include <climits>
 #include <cmath>
 #include <map>
 #include <sstream>
@@ -134,12 +135,14 @@ LabelImage readMetaImage(const std::string& path) {
   std::vector<double> v;
   if (!numbers({"DimSize"}, 3, v)) fail(path, "header field 'DimSize' is missing");
   for (int a = 0; a < 3; ++a) {
-    if (v[a] < 1 || v[a] > (1L << 30) || v[a] != std::floor(v[a])) {
+    if (!(v[a] >= 1 && v[a] <= INT_MAX) || v[a] != std::floor(v[a])) {
       fail(path, "header field 'DimSize' value " + formatNumber(v[a]) +
-                     " is not a positive integer");
+                     " is not an integer from 1 to " + std::to_string(INT_MAX));
     }
     image.size(a) = static_cast<int>(v[a]);
   }
+  // Each size may fit while their product wraps (4194304·2097152·2097152 = 2^64 → 0 voxels).
+  const std::int64_t num_voxels = requireVoxelCount(image.size, path, "DimSize", require("DimSize"));
   Eigen::Vector3d spacing_mm(1, 1, 1);
   if (numbers({"ElementSpacing", "ElementSize"}, 3, v)) spacing_mm << v[0], v[1], v[2];
   Eigen::Vector3d origin_mm(0, 0, 0);
@@ -203,7 +206,7 @@ LabelImage readMetaImage(const std::string& path) {
       begin = static_cast<std::size_t>(header_size);
     }
   }
-  const std::size_t expected = static_cast<std::size_t>(image.numVoxels()) * scalarSize(type);
+  const std::size_t expected = static_cast<std::size_t>(num_voxels) * scalarSize(type);
   const std::string what = std::to_string(image.size.x()) + "×" + std::to_string(image.size.y()) +
                            "×" + std::to_string(image.size.z()) + " " + scalarName(type) + " values";
   if (!binary) {

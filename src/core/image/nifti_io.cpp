@@ -164,6 +164,10 @@ LabelImage readNifti(const std::string& path) {
                      "; images with more than 3 dimensions (time, vectors) are not supported");
     }
   }
+  const std::int64_t num_voxels =
+      requireVoxelCount(image.size, path, "dim[1..3]",
+                        std::to_string(image.size.x()) + " " + std::to_string(image.size.y()) +
+                            " " + std::to_string(image.size.z()));
   ScalarType type = ScalarType::kUint8;
   const int datatype = h.i16(kDatatype);
   if (!niftiType(datatype, type)) {
@@ -176,9 +180,14 @@ LabelImage readNifti(const std::string& path) {
                    " (" + scalarName(type) + ") has " + std::to_string(8 * scalarSize(type)) +
                    " bits");
   }
+  // A float from the file: infinity or 1e30 must not reach the size_t conversion below (UB).
   const double vox_offset = h.f32(kVoxOffset);
-  if (!(vox_offset >= kHeaderSize) || vox_offset != std::floor(vox_offset)) {
-    fail(path, "vox_offset is " + formatNumber(vox_offset) + "; expected an integer ≥ 348");
+  if (!std::isfinite(vox_offset) || vox_offset < static_cast<double>(kHeaderSize) ||
+      vox_offset > static_cast<double>(file.size()) || vox_offset != std::floor(vox_offset)) {
+    fail(path, "vox_offset is " + formatNumber(vox_offset) +
+                   "; expected an integer from 348 to the file size (" +
+                   std::to_string(file.size()) + " bytes" +
+                   (endsWith(path, ".gz") ? " after decompression" : "") + ")");
   }
   double slope = h.f32(kSclSlope);
   double inter = h.f32(kSclInter);
@@ -275,7 +284,7 @@ LabelImage readNifti(const std::string& path) {
 
   // ---- voxel data ----
   const std::size_t offset = static_cast<std::size_t>(vox_offset);
-  const std::size_t expected = static_cast<std::size_t>(image.numVoxels()) * scalarSize(type);
+  const std::size_t expected = static_cast<std::size_t>(num_voxels) * scalarSize(type);
   const std::size_t available = file.size() > offset ? file.size() - offset : 0;
   if (available < expected) {
     fail(path, "voxel data is truncated: expected " + std::to_string(expected) + " bytes (" +
@@ -289,6 +298,17 @@ LabelImage readNifti(const std::string& path) {
 }
 
 void writeNifti(const std::string& path, const LabelImage& image) {
+  // dim[] is int16: a larger size would be silently truncated into another image.
+  constexpr int kMaxDim = 32767;
+  for (int a = 0; a < 3; ++a) {
+    if (image.size(a) > kMaxDim) {
+      fail(path, "size " + std::to_string(image.size.x()) + "×" + std::to_string(image.size.y()) +
+                     "×" + std::to_string(image.size.z()) + ": axis " + "ijk"[a] + " has " +
+                     std::to_string(image.size(a)) + " voxels, but NIfTI-1 stores sizes as 16-bit " +
+                     "integers (at most " + std::to_string(kMaxDim) +
+                     "); write .nrrd or .mha instead");
+    }
+  }
   const ScalarType type = narrowestLabelType(image);
   // NIfTI is RAS; our direction is LPS.
   const Eigen::Vector3d flip(-1, -1, 1);

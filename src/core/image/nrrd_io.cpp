@@ -1,5 +1,6 @@
 // NRRD reader and writer (http://teem.sourceforge.net/nrrd/format.html, NRRD0001–NRRD0005).
 
+#include <climits>
 #include <cmath>
 #include <map>
 #include <sstream>
@@ -175,12 +176,14 @@ LabelImage readNrrd(const std::string& path) {
   LabelImage image;
   for (int a = 0; a < 3; ++a) {
     long s = 0;
-    if (!parseLong(size_words[a], s) || s < 1 || s > (1L << 30)) {
+    if (!parseLong(size_words[a], s) || s < 1 || s > INT_MAX) {
       fail(path, "header field 'sizes' value " + quoted(size_words[a]) +
-                     " is not a positive integer");
+                     " is not an integer from 1 to " + std::to_string(INT_MAX));
     }
     image.size(a) = static_cast<int>(s);
   }
+  // Each size may fit while their product wraps (4194304·2097152·2097152 = 2^64 → 0 voxels).
+  const std::int64_t num_voxels = requireVoxelCount(image.size, path, "sizes", require("sizes"));
   const std::string encoding = toLower(require("encoding"));
   const bool ascii = encoding == "ascii" || encoding == "text" || encoding == "txt";
   const bool gzip = encoding == "gzip" || encoding == "gz";
@@ -349,7 +352,7 @@ LabelImage readNrrd(const std::string& path) {
       fail(path, "header field 'byte skip' is " + quoted(*bs) + "; expected -1 or an integer ≥ 0");
     }
   }
-  const std::size_t expected = static_cast<std::size_t>(image.numVoxels()) * scalarSize(type);
+  const std::size_t expected = static_cast<std::size_t>(num_voxels) * scalarSize(type);
   if (ascii) {
     if (byte_skip != 0) fail(path, "header field 'byte skip' is not valid with ascii encoding");
     decodeAsciiLabels(source->data() + begin, source->data() + source->size(), image.size, path,

@@ -108,9 +108,9 @@ class InpReader {
       }
       mode_ = Mode::kTet;
       const std::string* elset = param("ELSET");
-      current_label_ = elset && !elset->empty() ? labelFor(*elset) : 0;
-      current_labelled_ = elset && !elset->empty();
-      current_elset_ = current_labelled_ ? &elset_members_[*elset] : nullptr;
+      const bool labelled = elset && !elset->empty();
+      current_set_ = labelled ? setId(*elset) : -1;
+      current_elset_ = labelled ? &elset_members_[*elset] : nullptr;
     } else if (kw.name == "NSET") {
       const std::string* name = param("NSET");
       if (!name || name->empty()) f_.failAtLine(pos, "*NSET without NSET=");
@@ -120,7 +120,7 @@ class InpReader {
       const std::string* name = param("ELSET");
       if (!name || name->empty()) f_.failAtLine(pos, "*ELSET without ELSET=");
       mode_ = Mode::kElset;
-      elset_assignments_.push_back({labelFor(*name), {}});
+      elset_assignments_.push_back({setId(*name), {}});
       current_elset_ = &elset_members_[*name];
     } else if (kw.name == "INCLUDE") {
       f_.failAtLine(pos, "*INCLUDE is not supported; merge the included file into this one");
@@ -129,13 +129,34 @@ class InpReader {
     }
   }
 
-  int labelFor(const std::string& name) {
-    auto it = elset_label_.find(name);
-    if (it != elset_label_.end()) return it->second;
-    int label = static_cast<int>(elset_label_.size()) + 1;  // rank in order of appearance
-    integerSuffix(name, label);
-    elset_label_.emplace(name, label);
-    return label;
+  /// Index of a set name among the names that can label elements, in order of appearance. Labels
+  /// are given in build(), when every name is known (see setLabels()).
+  int setId(const std::string& name) {
+    const auto [it, inserted] = set_id_.emplace(name, static_cast<int>(set_names_.size()));
+    if (inserted) set_names_.push_back(name);
+    return it->second;
+  }
+
+  /// The label of each set name: the integer a name ends with, else its rank among the names
+  /// without one, counted on from the largest such integer (0 if none is positive). Ranking from 1
+  /// instead would let "FAT" (rank 1) and "REGION_1" share label 1 without a word.
+  std::vector<int> setLabels() const {
+    std::vector<int> labels(set_names_.size(), 0);
+    std::vector<bool> numbered(set_names_.size(), false);
+    long long largest = 0;
+    for (std::size_t i = 0; i < set_names_.size(); ++i) {
+      int value = 0;
+      if (integerSuffix(set_names_[i], value)) {
+        labels[i] = value;
+        numbered[i] = true;
+        largest = std::max<long long>(largest, value);
+      }
+    }
+    long long next = largest;  // below 10^9 (at most 9 digits), so the ranks fit in an int
+    for (std::size_t i = 0; i < set_names_.size(); ++i) {
+      if (!numbered[i]) labels[i] = static_cast<int>(++next);
+    }
+    return labels;
   }
 
   long long integer(std::string_view t, std::size_t pos, const char* what) const {
@@ -185,8 +206,7 @@ class InpReader {
     element_numbers_.push_back(pending_[0]);
     element_nodes_.insert(element_nodes_.end(), pending_.begin() + 1, pending_.end());
     element_pos_.push_back(pending_pos_);
-    element_labels_.push_back(current_label_);
-    element_labelled_.push_back(current_labelled_);
+    element_sets_.push_back(current_set_);
     if (current_elset_) current_elset_->push_back(pending_[0]);
     pending_.clear();
   }
@@ -275,18 +295,22 @@ class InpReader {
           f_.failAtLine(element_pos_[e], "element " + std::to_string(element_numbers_[e]) + " is defined twice");
         }
       }
-      for (const auto& [label, members] : elset_assignments_) {
+      for (const auto& [set, members] : elset_assignments_) {
         for (long long number : members) {
           const int e = element_index.find(number);
-          if (e >= 0 && !element_labelled_[e]) {  // other numbers belong to skipped element types
-            element_labels_[e] = label;
-            element_labelled_[e] = true;
+          if (e >= 0 && element_sets_[e] < 0) {  // other numbers belong to skipped element types
+            element_sets_[e] = set;
           }
         }
       }
     }
-    mesh_io_detail::sortByElementNumber(f_.path(), element_numbers_, tets, element_labels_);
-    TetMesh mesh = mesh_io_detail::makeMesh(f_.path(), std::move(nodes), std::move(tets), std::move(element_labels_));
+    const std::vector<int> set_labels = setLabels();
+    std::vector<int> labels(t, 0);
+    for (std::size_t e = 0; e < t; ++e) {
+      if (element_sets_[e] >= 0) labels[e] = set_labels[static_cast<std::size_t>(element_sets_[e])];
+    }
+    mesh_io_detail::sortByElementNumber(f_.path(), element_numbers_, tets, labels);
+    TetMesh mesh = mesh_io_detail::makeMesh(f_.path(), std::move(nodes), std::move(tets), std::move(labels));
     for (const auto& [name, entries] : nsets_) {
       std::vector<int> set;
       set.reserve(entries.size());
@@ -315,18 +339,17 @@ class InpReader {
   std::vector<long long> element_numbers_;
   std::vector<long long> element_nodes_;  // 4 node numbers per element, resolved at the end
   std::vector<std::size_t> element_pos_;
-  std::vector<int> element_labels_;
-  std::vector<bool> element_labelled_;
+  std::vector<int> element_sets_;  // index into set_names_, -1 for an element in no set
   std::vector<long long> pending_;  // element being read, possibly over several lines
   std::size_t pending_pos_ = 0;
-  int current_label_ = 0;
-  bool current_labelled_ = false;
+  int current_set_ = -1;
   std::vector<std::string> skipped_types_;
 
-  std::map<std::string, int> elset_label_;
+  std::vector<std::string> set_names_;  // names that can label elements, in order of appearance
+  std::map<std::string, int> set_id_;   // name → index into set_names_
   std::map<std::string, std::vector<long long>> elset_members_;
   std::vector<long long>* current_elset_ = nullptr;
-  std::vector<std::pair<int, std::vector<long long>>> elset_assignments_;
+  std::vector<std::pair<int, std::vector<long long>>> elset_assignments_;  // (set index, members)
 
   // name → (node number, position of the line that named it)
   std::map<std::string, std::vector<std::pair<long long, std::size_t>>> nsets_;

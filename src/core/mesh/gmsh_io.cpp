@@ -18,6 +18,7 @@ namespace {
 using mesh_io_detail::appendBinary;
 using mesh_io_detail::appendInteger;
 using mesh_io_detail::appendReal;
+using mesh_io_detail::checkCountFits;
 using mesh_io_detail::FileCursor;
 using mesh_io_detail::NumberMap;
 
@@ -163,6 +164,11 @@ class GmshReader {
     return n;
   }
 
+  std::size_t countPos() {
+    f_.skipWhitespace();
+    return f_.pos();
+  }
+
   std::size_t binaryCount(const char* what) {
     const std::size_t pos = f_.pos();
     const auto n = f_.binary<std::uint64_t>(what);
@@ -250,7 +256,9 @@ class GmshReader {
       for (long long e = 0; e < count[dim]; ++e) {
         const int tag = static_cast<int>(f_.integerToken("an entity tag"));
         for (int k = 0; k < (dim == 0 ? 3 : 6); ++k) f_.realToken("an entity coordinate");
+        const std::size_t nphys_pos = countPos();
         const long long nphys = countToken("a physical tag count");
+        checkCountFits(f_, nphys, nphys_pos, f_.pos(), 2, "physical tags", false);  // " 7"
         std::vector<int> phys(static_cast<std::size_t>(nphys));
         for (auto& p : phys) p = static_cast<int>(f_.integerToken("a physical tag"));
         entity_physicals_[{dim, tag}] = std::move(phys);
@@ -272,11 +280,13 @@ class GmshReader {
   }
 
   void readNodes2() {
+    const std::size_t count_pos = countPos();
     const long long n = countToken("the number of nodes");
-    xyz_.reserve(static_cast<std::size_t>(3 * n));
     if (binary_) {
       f_.line();
+      checkCountFits(f_, n, count_pos, f_.pos(), sizeof(int) + 3 * sizeof(double), "nodes", false);
       f_.requireBytes(static_cast<std::size_t>(n) * (sizeof(int) + 3 * sizeof(double)), "the binary node data");
+      xyz_.reserve(static_cast<std::size_t>(3 * n));
       for (long long i = 0; i < n; ++i) {
         const std::size_t pos = f_.pos();
         const int tag = f_.binary<int>("a node tag");
@@ -285,6 +295,8 @@ class GmshReader {
       }
       return;
     }
+    checkCountFits(f_, n, count_pos, f_.pos(), 8, "nodes", false);  // "1 0 0 0\n"
+    xyz_.reserve(static_cast<std::size_t>(3 * n));
     for (long long i = 0; i < n; ++i) {
       std::size_t pos = 0;
       mesh_io_detail::splitTokens(nextLine(pos, "$Nodes"), false, tokens_);
@@ -299,9 +311,12 @@ class GmshReader {
   void readNodes41() {
     if (binary_) {
       const std::size_t blocks = binaryCount("the number of node blocks");
+      const std::size_t total_pos = f_.pos();
       const std::size_t total = binaryCount("the number of nodes");
       f_.binary<std::uint64_t>("the smallest node tag");
       f_.binary<std::uint64_t>("the largest node tag");
+      // A uint64 tag and 3 double coordinates per node.
+      checkCountFits(f_, static_cast<long long>(total), total_pos, f_.pos(), 32, "nodes", true);
       xyz_.reserve(3 * total);
       std::vector<long long> tags;
       for (std::size_t b = 0; b < blocks; ++b) {
@@ -332,9 +347,11 @@ class GmshReader {
       return;
     }
     const long long blocks = countToken("the number of node blocks");
+    const std::size_t total_pos = countPos();
     const long long total = countToken("the number of nodes");
     f_.integerToken("the smallest node tag");
     f_.integerToken("the largest node tag");
+    checkCountFits(f_, total, total_pos, f_.pos(), 8, "nodes", false);  // "1\n" and "0 0 0\n"
     xyz_.reserve(static_cast<std::size_t>(3 * total));
     std::vector<long long> tags;
     for (long long b = 0; b < blocks; ++b) {
@@ -400,12 +417,16 @@ class GmshReader {
   }
 
   void readElements2() {
+    const std::size_t count_pos = countPos();
     const long long n = countToken("the number of elements");
+    if (binary_) f_.line();
+    // Text: 4 tokens and their separators at least ("1 15 0 1\n": number, type, tag count, one
+    // node); binary: an int number and one int node at least.
+    checkCountFits(f_, n, count_pos, f_.pos(), 8, "elements", false);
     labels_.reserve(static_cast<std::size_t>(n));
     std::vector<long long> values;
     std::vector<const std::string*> groups;
     if (binary_) {
-      f_.line();
       long long done = 0;
       while (done < n) {
         const std::size_t header_pos = f_.pos();
@@ -494,9 +515,12 @@ class GmshReader {
     std::vector<const std::string*> groups;
     if (binary_) {
       const std::size_t blocks = binaryCount("the number of element blocks");
+      const std::size_t total_pos = f_.pos();
       const std::size_t total = binaryCount("the number of elements");
       f_.binary<std::uint64_t>("the smallest element tag");
       f_.binary<std::uint64_t>("the largest element tag");
+      // A uint64 tag and at least one uint64 node per element.
+      checkCountFits(f_, static_cast<long long>(total), total_pos, f_.pos(), 16, "elements", true);
       labels_.reserve(total);
       std::size_t done = 0;
       for (std::size_t b = 0; b < blocks; ++b) {
@@ -535,9 +559,11 @@ class GmshReader {
       return;
     }
     const long long blocks = countToken("the number of element blocks");
+    const std::size_t total_pos = countPos();
     const long long total = countToken("the number of elements");
     f_.integerToken("the smallest element tag");
     f_.integerToken("the largest element tag");
+    checkCountFits(f_, total, total_pos, f_.pos(), 4, "elements", false);  // "1 1\n"
     labels_.reserve(static_cast<std::size_t>(total));
     long long done = 0;
     for (long long b = 0; b < blocks; ++b) {

@@ -74,6 +74,8 @@ TetMesh readTetGen(const std::string& path, double length_unit_m) {
   if (tokens.size() >= 2 && integerAt(nf, tokens[1], pos, "the dimension") != 3) {
     nf.failAtLine(pos, "only 3-dimensional .node files are supported, got dimension " + std::string(tokens[1]));
   }
+  // Checked before Points(n, 3) allocates: "1 0 0 0\n" is the shortest point line.
+  mesh_io_detail::checkCountFits(nf, n, pos, nf.pos(), 8, "points", false);
   Points nodes(n, 3);
   mesh_io_detail::NumberMap node_index;
   for (long long i = 0; i < n; ++i) {
@@ -99,6 +101,8 @@ TetMesh readTetGen(const std::string& path, double length_unit_m) {
   const long long per = tokens.size() >= 2 ? integerAt(ef, tokens[1], pos, "the nodes per tetrahedron") : 4;
   if (per != 4) ef.failAtLine(pos, std::to_string(per) + "-node tetrahedra are not supported, only 4-node");
   const long long nattr = tokens.size() >= 3 ? integerAt(ef, tokens[2], pos, "the number of attributes") : 0;
+  // Checked before the arrays below allocate: "1 1 2 3 4\n" is the shortest tetrahedron line.
+  mesh_io_detail::checkCountFits(ef, t, pos, ef.pos(), 10, "tetrahedra", false);
   Tets tets(t, 4);
   std::vector<int> labels(static_cast<std::size_t>(t), 0);
   std::vector<long long> numbers(static_cast<std::size_t>(t));

@@ -17,6 +17,21 @@ namespace breast_sim::core::image_io {
 /// Throws std::runtime_error("<path>: <what>").
 [[noreturn]] void fail(const std::string& path, const std::string& what);
 
+// ---- size -----------------------------------------------------------------------------------------
+/// Most voxels a LabelImage may have: 2^31 (4 GiB of uint16 labels). Every reader and
+/// LabelImage::validate() check it, so that no voxel count or byte count can overflow.
+constexpr std::int64_t kMaxVoxels = std::int64_t{1} << 31;
+/// size.x·size.y·size.z computed without overflow. false when an entry is negative or the product
+/// exceeds kMaxVoxels (`count` is then left as it was).
+bool checkedVoxelCount(const Eigen::Vector3i& size, std::int64_t& count);
+/// "7×5×3 = 105 voxels" for a message; exact up to 2^63, beyond it "… ≈ 1.84e+19 voxels".
+std::string voxelCountText(const Eigen::Vector3i& size);
+/// The readers' check, before anything is allocated: the voxel count of `size` (entries ≥ 1), or
+/// fail(path, "header field '<field>' is <value>: a×b×c = N voxels, more than the 2147483648 (2^31)
+/// a label image may hold; …").
+std::int64_t requireVoxelCount(const Eigen::Vector3i& size, const std::string& path,
+                               const std::string& field, const std::string& value);
+
 /// Voxel value types found in image files.
 enum class ScalarType { kUint8, kInt8, kUint16, kInt16, kUint32, kInt32, kUint64, kInt64, kFloat32,
                         kFloat64 };

@@ -21,6 +21,8 @@ namespace breast_sim::core {
 /// \note Voxel order: i fastest, then j, then k (index = i + size.x·(j + size.y·k)).
 /// \note `direction` may have determinant −1 (a left-handed voxel grid); its columns must be
 /// orthonormal. Readers reject sheared grids.
+/// \note At most 2^31 = 2147483648 voxels (4 GiB of labels). validate(), the constructor and the
+/// readers reject larger sizes, naming them; the count is computed without overflow.
 struct LabelImage {
   Eigen::Vector3i size{0, 0, 0};                        ///< voxels along i, j, k
   Eigen::Vector3d spacing_m{1e-3, 1e-3, 1e-3};          ///< voxel size along i, j, k [m]
@@ -33,10 +35,14 @@ struct LabelImage {
   /// @param size       voxels along i, j, k (≥ 0)
   /// @param spacing_m  voxel size along i, j, k [m]
   /// @param origin_m   centre of voxel (0,0,0) [m]
-  /// @throws std::invalid_argument when a size entry is negative.
+  /// @throws std::invalid_argument when a size entry is negative or the image would have more
+  ///         than 2^31 voxels.
   LabelImage(const Eigen::Vector3i& size, const Eigen::Vector3d& spacing_m,
              const Eigen::Vector3d& origin_m, std::uint16_t fill = 0);
 
+  /// size.x·size.y·size.z.
+  /// \pre The size has passed validate() (at most 2^31 voxels); for larger sizes the product can
+  /// overflow.
   long numVoxels() const { return static_cast<long>(size.x()) * size.y() * size.z(); }
   long index(int i, int j, int k) const {
     return i + static_cast<long>(size.x()) * (j + static_cast<long>(size.y()) * k);
@@ -55,9 +61,10 @@ struct LabelImage {
   /// (more than half a voxel past the outer voxel centres) or when p is not finite.
   std::uint16_t labelAt(const Eigen::Vector3d& p_m, std::uint16_t outside = 0) const;
 
-  /// Checks: every size entry ≥ 1, labels.size() == numVoxels(), spacing finite and > 0, origin
-  /// finite, direction columns orthonormal within 1e-6.
-  /// @throws std::invalid_argument when sizes, spacing or direction are inconsistent.
+  /// Checks: every size entry ≥ 1, at most 2^31 voxels in all (counted without overflow),
+  /// labels.size() equal to that count, spacing finite and > 0, origin finite, direction columns
+  /// orthonormal within 1e-6.
+  /// @throws std::invalid_argument when sizes, label count, spacing or direction are inconsistent.
   void validate() const;
 };
 
@@ -87,7 +94,7 @@ struct LabelImage {
 ///    applied when slope ≠ 0. dim[0] may be 1…7 if dimensions 4 and above have size 1. Not
 ///    supported: NIfTI-2, .hdr/.img pairs, ANALYZE 7.5.
 /// Voxel types: integers of 8 to 64 bits and floats; every value must be an integer in
-/// [0, 65535].
+/// [0, 65535]. Images of more than 2^31 voxels are rejected before their labels are allocated.
 /// @throws std::runtime_error whose message starts with the path and says what is wrong (unknown
 ///         extension, unreadable file, malformed header field and its value, truncated data with
 ///         the expected and found byte counts, a non-integral or out-of-range label with its value
@@ -101,10 +108,12 @@ LabelImage readLabelImage(const std::string& path);
 ///  - `.mha`: zlib-compressed local data, LPS TransformMatrix/Offset/ElementSpacing.
 ///    `.mhd`: the same header beside a compressed data file `<stem>.zraw`.
 ///  - `.nii` / `.nii.gz`: NIfTI-1 in RAS with qform_code = sform_code = 1 (scanner); qfac = −1
-///    when the grid is left-handed in RAS; intent NIFTI_INTENT_LABEL.
+///    when the grid is left-handed in RAS; intent NIFTI_INTENT_LABEL. NIfTI-1 stores sizes as
+///    16-bit integers: a size above 32767 is rejected (write NRRD or MetaImage instead).
 /// \note NIfTI stores geometry as float32: positions come back to about 1e-7 relative.
 /// @throws std::invalid_argument if the image fails validate();
-///         std::runtime_error naming the file if it cannot be written or the extension is unknown.
+///         std::runtime_error naming the file if it cannot be written, the extension is unknown,
+///         or a size does not fit the format (NIfTI: above 32767, checked before writing).
 void writeLabelImage(const std::string& path, const LabelImage& image);
 
 }  // namespace breast_sim::core

@@ -156,8 +156,11 @@ void writeTetGen(const std::string& path, const TetMesh& mesh, double length_uni
 /// keywords are skipped with their data lines; *INCLUDE is not supported.
 /// Region label from the element set: ELSET= of the C3D4 *ELEMENT block, else the first *ELSET that
 /// lists the element, else 0. A set's label is the integer its name ends with ("REGION_29" → 29,
-/// "EB-3" → 3, "R_-2" → −2), otherwise the 1-based rank of the name among the distinct set names of
-/// C3D4 *ELEMENT blocks and *ELSET keywords, in order of appearance.
+/// "EB-3" → 3, "R_-2" → −2; at most 9 digits). Names without one are numbered on from the largest
+/// such integer (from 0 when none is positive) by their order of appearance among the distinct set
+/// names of C3D4 *ELEMENT blocks and *ELSET keywords: with REGION_29, FAT and DEEP, FAT is 30 and
+/// DEEP 31; with FAT and DEEP alone, 1 and 2. So a named set never shares a label with a numbered
+/// one; numbered names ending in the same integer ("A_1", "B_1") do share it.
 /// Node sets: every *NSET, and NSET= of *NODE, under its name as written.
 TetMesh readAbaqusInp(const std::string& path, double length_unit_m = 1.0);
 

@@ -70,6 +70,28 @@ class FileCursor {
   std::size_t pos_ = 0;
 };
 
+/// Guards memory reserved from a count the file states: fails unless `count` records of at least
+/// `min_bytes` bytes each (a separator after each included; the last may lack it) fit in the bytes
+/// from `from` to the end of the file. Call it before reserving, so that "$Nodes 2000000000" in a
+/// small file is an error naming the file rather than a bare std::bad_alloc.
+/// @param count_pos  where the count stands: its line is named, or its byte offset when `binary`
+/// @param what       the records, plural ("nodes")
+/// Message: "<path>:<line>: header says 2000000000 nodes but the file can hold at most 5 (47 bytes
+/// follow, each needs at least 8); is the file truncated or the count wrong?"
+inline void checkCountFits(const FileCursor& f, long long count, std::size_t count_pos,
+                           std::size_t from, std::size_t min_bytes, const char* what, bool binary) {
+  const std::size_t size = f.data().size();
+  const std::size_t left = from < size ? size - from : 0;
+  const std::size_t most = (left + 1) / min_bytes;
+  if (count >= 0 && static_cast<unsigned long long>(count) <= most) return;
+  const std::string message = "header says " + std::to_string(count) + " " + what +
+                              " but the file can hold at most " + std::to_string(most) + " (" +
+                              std::to_string(left) + " bytes follow, each needs at least " +
+                              std::to_string(min_bytes) + "); is the file truncated or the count wrong?";
+  if (binary) f.failAtByte(count_pos, message);
+  f.failAtLine(count_pos, message);
+}
+
 /// Whole-string number parses of a token (no surrounding whitespace allowed).
 bool parseInteger(std::string_view s, long long& value);
 bool parseReal(std::string_view s, double& value);
