@@ -18,6 +18,7 @@ CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& mat
   grads_.resize(12 * static_cast<size_t>(nt));
   volumes_.resize(nt);
   rotations_.assign(9 * static_cast<size_t>(nt), 0.0);
+  rotated_grads_.assign(12 * static_cast<size_t>(nt), 0.0);
   elem_forces_.assign(12 * static_cast<size_t>(nt), 0.0);
   modulus_factor_ = Eigen::VectorXd::Ones(nt);
   von_mises_ = Eigen::VectorXd::Zero(nt);
@@ -34,6 +35,7 @@ CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& mat
       for (int c = 0; c < 3; ++c) g[3 * i + c] = Dinv(i - 1, c);
     for (int c = 0; c < 3; ++c) g[c] = -(g[3 + c] + g[6 + c] + g[9 + c]);
     Eigen::Map<Eigen::Matrix3d>(&rotations_[9 * static_cast<size_t>(e)]).setIdentity();
+    std::copy(g, g + 12, &rotated_grads_[12 * static_cast<size_t>(e)]);
   }
 }
 
@@ -70,11 +72,15 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
                               3.0 * (sigma(0, 1) * sigma(0, 1) + sigma(1, 2) * sigma(1, 2) + sigma(0, 2) * sigma(0, 2)));
     const Eigen::Matrix3d RS = -volumes_[e] * (R * sigma);
     double* fe = &elem_forces_[12 * static_cast<size_t>(e)];
+    double* rg = &rotated_grads_[12 * static_cast<size_t>(e)];
     for (int i = 0; i < 4; ++i) {
-      const Eigen::Vector3d fi = RS * Eigen::Vector3d(g[3 * i], g[3 * i + 1], g[3 * i + 2]);
+      const Eigen::Vector3d gi(g[3 * i], g[3 * i + 1], g[3 * i + 2]);
+      const Eigen::Vector3d fi = RS * gi;
       fe[3 * i] = fi.x();
       fe[3 * i + 1] = fi.y();
       fe[3 * i + 2] = fi.z();
+      // R ∇N_i, kept for the stiffness assembly (each element's blocks are gathered by 4 nodes).
+      Eigen::Map<Eigen::Vector3d>(rg + 3 * i) = R * gi;
     }
   }
   // Gather per node.
@@ -103,19 +109,21 @@ void CorotatedTetFem::addStiffness(double scale, SparseMatrix& A) const {
   for (int n = 0; n < nn; ++n) {
     for (int k = pattern_.incidentStart(n); k < pattern_.incidentStart(n + 1); ++k) {
       const int e = pattern_.incidentElement(k), i = pattern_.incidentLocal(k);
-      const double* g = &grads_[12 * static_cast<size_t>(e)];
-      const Eigen::Map<const Eigen::Matrix3d> R(&rotations_[9 * static_cast<size_t>(e)]);
+      const double* rg = &rotated_grads_[12 * static_cast<size_t>(e)];
       const double w = scale * modulus_factor_[e] * volumes_[e];
-      const Eigen::Vector3d gi = R * Eigen::Vector3d(g[3 * i], g[3 * i + 1], g[3 * i + 2]);
+      const Eigen::Map<const Eigen::Vector3d> gi(rg + 3 * i);
       const int* slot = pattern_.blockSlot(e) + 4 * i;
       for (int j = 0; j < 4; ++j) {
-        const Eigen::Vector3d gj = R * Eigen::Vector3d(g[3 * j], g[3 * j + 1], g[3 * j + 2]);
+        const Eigen::Map<const Eigen::Vector3d> gj(rg + 3 * j);
         // Block (i, j) of R K_e0 Rᵀ: V(λ gi gjᵀ + μ gj giᵀ + μ (gi·gj) I).
         const double dot = mu_ * gi.dot(gj);
         for (int r = 0; r < 3; ++r) {
           double* row = values + outer[3 * n + r] + 3 * slot[j];
-          for (int c = 0; c < 3; ++c)
-            row[c] += w * (lambda_ * gi[r] * gj[c] + mu_ * gj[r] * gi[c] + (r == c ? dot : 0.0));
+          const double a = w * lambda_ * gi[r], b = w * mu_ * gj[r];
+          row[0] += a * gj[0] + b * gi[0];
+          row[1] += a * gj[1] + b * gi[1];
+          row[2] += a * gj[2] + b * gi[2];
+          row[r] += w * dot;
         }
       }
     }

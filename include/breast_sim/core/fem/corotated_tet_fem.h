@@ -34,6 +34,7 @@ class CorotatedTetFem : public ElementFormulation {
   Eigen::Matrix3d rotation(int e) const { return Eigen::Map<const Eigen::Matrix3d>(&rotations_[9 * static_cast<size_t>(e)]); }
   /// When false, rotations stay identity: plain (not co-rotated) linear FEM, for comparisons.
   void setCorotated(bool corotated) { corotated_ = corotated; }
+  /// \note update() must run before addStiffness() and denseStiffness(): both use its rotations.
 
   /// Dense 3N×3N stiffness at the last update, element by element (the slow reference for tests).
   Eigen::MatrixXd denseStiffness() const;
@@ -47,6 +48,7 @@ class CorotatedTetFem : public ElementFormulation {
   std::vector<double> grads_;      // 12 per element: ∇N_0..∇N_3 [1/m]
   std::vector<double> volumes_;    // [m³]
   std::vector<double> rotations_;  // 9 per element, column-major
+  std::vector<double> rotated_grads_;  // 12 per element: R ∇N_i at the last update [1/m]
   std::vector<double> elem_forces_;  // 12 per element [N]
   Eigen::VectorXd modulus_factor_;
   Eigen::VectorXd von_mises_;
