@@ -46,6 +46,12 @@ build_catkin_ws() {
 # Builds the ROS-free core with plain CMake (catkin is never looked for).
 build_core() {
   log "building the ROS-free core with plain CMake in ${BREAST_SIM_CORE_BUILD}"
+  # A build folder made for another checkout cannot be reused by CMake: start it afresh.
+  local cache="${BREAST_SIM_CORE_BUILD}/CMakeCache.txt"
+  if [ -f "${cache}" ] && ! grep -qx "CMAKE_HOME_DIRECTORY:INTERNAL=${BREAST_SIM_SRC}" "${cache}"; then
+    log "the core build folder belongs to another checkout; rebuilding it"
+    rm -rf "${BREAST_SIM_CORE_BUILD}"
+  fi
   cmake -S "${BREAST_SIM_SRC}" -B "${BREAST_SIM_CORE_BUILD}" -DBREAST_SIM_CORE_ONLY=ON \
         -DCMAKE_BUILD_TYPE=Release >"${BREAST_SIM_WORK}/core_configure.log" 2>&1 \
     || { cat "${BREAST_SIM_WORK}/core_configure.log"; return 1; }
