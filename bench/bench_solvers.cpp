@@ -1,0 +1,344 @@
+// Linear-solver benchmark: analyzePattern, factorize and solve of CHOLMOD, Jacobi-PCG and
+// multigrid-PCG on the system of one implicit step of linear elasticity of the phantom
+// (A = M/dt² + K at rest, E = 2 kPa, ν = 0.48, ρ = 1000 kg/m³, dt = 0.033 s, chest wall fixed),
+// with ratios against Jacobi-PCG of the same run. Prints a table; --json FILE writes the same figures.
+//   bench_solvers [--case FILE] [--targets 47895,...] [--tol 1e-8] [--repeats 7] [--max-coarsest 300]
+//                 [--size-factor 2] [--variants cholmod,pcg-jacobi,mg:gs1,mg:jacobi1,mg:jacobi1/4,...]
+//                 [--damping 0.6] [--morton] [--json FILE]
+// Variants "mg:<gs|jacobi><sweeps>[/<interval>]": multigrid-PCG with that smoother and sweeps before
+// and after the coarse correction, coarse operators recomputed every <interval> factorizations.
+// "cold" solves start from x = 0; "warm" ones from the previous solution for a load changed by 1 %
+// (what a time step sees). Times are medians of the repeats (the machine is shared); "factorize" of an
+// interval variant is the mean (amortized). --morton renumbers the fine mesh along a Morton curve
+// first, to show what the mesher's node order costs.
+#include <algorithm>
+#include <cctype>
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <functional>
+#include <memory>
+#include <random>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include <omp.h>
+
+#include <Eigen/Dense>
+#include <nlohmann/json.hpp>
+
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/solver/cholmod_solver.h"
+#include "breast_sim/core/solver/multigrid.h"
+#include "breast_sim/core/solver/pcg_solver.h"
+
+using namespace breast_sim::core;
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v.empty() ? 0.0 : v[v.size() / 2];
+}
+
+// A = M/dt² + K of linear tetrahedra at rest (lumped mass), 3×3-block layout, Dirichlet rows and
+// columns of the fixed nodes zeroed with a unit diagonal. (The project's assembly is fem/.)
+SparseMatrix implicitStepMatrix(const TetMesh& mesh, const std::vector<int>& fixed_nodes, double E_pa, double nu,
+                                double density, double dt) {
+  const double lambda = E_pa * nu / ((1 + nu) * (1 - 2 * nu)), mu = E_pa / (2 * (1 + nu));
+  std::vector<Eigen::Triplet<double, int>> t;
+  t.reserve(static_cast<size_t>(mesh.numTets()) * 144 + 3 * mesh.numNodes());
+  for (int e = 0; e < mesh.numTets(); ++e) {
+    Eigen::Matrix3d Dm;
+    for (int k = 0; k < 3; ++k)
+      Dm.col(k) = (mesh.nodes().row(mesh.tets()(e, k + 1)) - mesh.nodes().row(mesh.tets()(e, 0))).transpose();
+    const double V = Dm.determinant() / 6.0;
+    const Eigen::Matrix3d Dinv = Dm.inverse();
+    Eigen::Matrix<double, 4, 3> G;
+    G.row(0) = -Dinv.colwise().sum();
+    G.bottomRows(3) = Dinv;
+    for (int a = 0; a < 4; ++a)
+      for (int b = 0; b < 4; ++b) {
+        const Eigen::Vector3d ga = G.row(a).transpose(), gb = G.row(b).transpose();
+        const Eigen::Matrix3d K = V * (lambda * ga * gb.transpose() + mu * gb * ga.transpose() +
+                                       mu * ga.dot(gb) * Eigen::Matrix3d::Identity());
+        for (int i = 0; i < 3; ++i)
+          for (int j = 0; j < 3; ++j) t.emplace_back(3 * mesh.tets()(e, a) + i, 3 * mesh.tets()(e, b) + j, K(i, j));
+      }
+    for (int a = 0; a < 4; ++a)
+      for (int i = 0; i < 3; ++i)
+        t.emplace_back(3 * mesh.tets()(e, a) + i, 3 * mesh.tets()(e, a) + i, density * V / 4 / (dt * dt));
+  }
+  SparseMatrix A(3 * mesh.numNodes(), 3 * mesh.numNodes());
+  A.setFromTriplets(t.begin(), t.end());
+  std::vector<bool> fixed(static_cast<size_t>(A.rows()), false);
+  for (int v : fixed_nodes)
+    for (int i = 0; i < 3; ++i) fixed[3 * v + i] = true;
+  for (int r = 0; r < A.outerSize(); ++r)
+    for (SparseMatrix::InnerIterator it(A, r); it; ++it)
+      if (fixed[it.row()] || fixed[it.col()]) it.valueRef() = it.row() == it.col() ? 1.0 : 0.0;
+  return A;
+}
+
+// Gravity on the lumped masses plus a random part; 0 on fixed DOFs [N].
+Eigen::VectorXd load(const TetMesh& mesh, const std::vector<int>& fixed_nodes, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  Eigen::VectorXd b = Eigen::VectorXd::Zero(3 * mesh.numNodes());
+  const Eigen::VectorXd V = mesh.tetVolumes();
+  for (int e = 0; e < mesh.numTets(); ++e)
+    for (int a = 0; a < 4; ++a) b[3 * mesh.tets()(e, a) + 2] -= 1000.0 * V[e] / 4 * 9.81;
+  const double scale = b.cwiseAbs().maxCoeff();
+  for (Eigen::Index i = 0; i < b.size(); ++i) b[i] += 0.2 * scale * u(rng);
+  for (int v : fixed_nodes) b.segment<3>(3 * v).setZero();
+  return b;
+}
+
+struct Variant {
+  std::string label;
+  std::function<std::unique_ptr<LinearSolver>()> make;
+  int interval = 1;  // coarse update interval (multigrid)
+};
+
+// "cholmod", "pcg-jacobi" or "mg:<gs|jacobi><sweeps>[/<interval>]".
+Variant parseVariant(const std::string& v, const MeshHierarchy& hierarchy, const PcgOptions& pcg, double damping) {
+  if (v == "cholmod") return {v, [] { return std::make_unique<CholmodSolver>(); }};
+  if (v == "pcg-jacobi") return {v, [pcg] { return std::make_unique<PcgSolver>(pcg); }};
+  if (v.rfind("mg:", 0) == 0) {
+    std::string rest = v.substr(3);
+    MultigridOptions o;
+    if (damping > 0) o.jacobi_damping = damping;
+    const size_t slash = rest.find('/');
+    if (slash != std::string::npos) {
+      o.coarse_update_interval = std::stoi(rest.substr(slash + 1));
+      rest = rest.substr(0, slash);
+    }
+    std::string smoother = rest;
+    while (!smoother.empty() && std::isdigit(static_cast<unsigned char>(smoother.back()))) smoother.pop_back();
+    const std::string sweeps = rest.substr(smoother.size());
+    if (smoother == "gs") o.smoother = MultigridOptions::Smoother::kGaussSeidel;
+    else if (smoother == "jacobi") o.smoother = MultigridOptions::Smoother::kJacobi;
+    else throw std::invalid_argument("unknown smoother in variant '" + v + "' (gs or jacobi)");
+    o.pre_smoothing_steps = o.post_smoothing_steps = sweeps.empty() ? 1 : std::stoi(sweeps);
+    const std::string label = "pcg-multigrid " + smoother + "(" + std::to_string(o.pre_smoothing_steps) + "," +
+                              std::to_string(o.post_smoothing_steps) + ")" +
+                              (o.coarse_update_interval > 1 ? " /" + std::to_string(o.coarse_update_interval) : "");
+    return {label,
+            [&hierarchy, pcg, o]() -> std::unique_ptr<LinearSolver> {
+              return std::make_unique<MultigridPcgSolver>(hierarchy, pcg, o);
+            },
+            o.coarse_update_interval};
+  }
+  throw std::invalid_argument("unknown variant '" + v + "' (cholmod, pcg-jacobi, mg:gs1, mg:jacobi2/4, ...)");
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string case_file = std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml";
+  std::string json_path;
+  std::vector<int> targets = {47895};
+  std::vector<std::string> variant_names = {"cholmod",   "pcg-jacobi", "mg:gs1",       "mg:gs2",
+                                            "mg:jacobi1", "mg:jacobi2", "mg:jacobi1/4"};
+  double tol = 1e-8;
+  int repeats = 7;
+  CoarseningOptions coarsening;
+  coarsening.max_coarsest_elements = 300;
+  bool morton = false;
+  double damping = 0.0;
+  auto list = [](const std::string& v) {
+    std::vector<std::string> out;
+    std::stringstream ss(v);
+    for (std::string t; std::getline(ss, t, ',');) out.push_back(t);
+    return out;
+  };
+  for (int i = 1; i < argc; ++i) {
+    const std::string k = argv[i];
+    auto value = [&]() -> std::string {
+      if (i + 1 >= argc) {
+        std::fprintf(stderr, "option %s needs a value\n", k.c_str());
+        std::exit(2);
+      }
+      return argv[++i];
+    };
+    if (k == "--case") case_file = value();
+    else if (k == "--json") json_path = value();
+    else if (k == "--tol") tol = std::stod(value());
+    else if (k == "--repeats") repeats = std::max(1, std::stoi(value()));
+    else if (k == "--max-coarsest") coarsening.max_coarsest_elements = std::stoi(value());
+    else if (k == "--size-factor") coarsening.size_factor = std::stod(value());
+    else if (k == "--variants") variant_names = list(value());
+    else if (k == "--morton") morton = true;
+    else if (k == "--damping") damping = std::stod(value());
+    else if (k == "--targets") {
+      targets.clear();
+      for (const std::string& t : list(value())) targets.push_back(std::stoi(t));
+    } else {
+      std::fprintf(stderr,
+                   "unknown option %s\nusage: bench_solvers [--case FILE] [--targets N,N,...] [--tol T] [--repeats R] "
+                   "[--max-coarsest N] [--size-factor F] [--variants V,V,...] [--damping W] [--morton] [--json FILE]\n",
+                   k.c_str());
+      return 2;
+    }
+  }
+
+  const ModelCase base = loadModelCase(case_file);
+  std::printf("case %s, %d OpenMP threads, relative tolerance %.0e, median of %d repeats%s\n", base.name.c_str(),
+              omp_get_max_threads(), tol, repeats, morton ? ", fine mesh in Morton order" : "");
+  nlohmann::json rows = nlohmann::json::array();
+  for (int target : targets) {
+    ModelCase c = base;
+    c.meshing.target_elements = target;
+    auto t0 = Clock::now();
+    SimulationModel model = buildSimulationModel(c);
+    if (morton) model.mesh = mortonOrdered(model.mesh);
+    const double t_fine = since(t0);
+    t0 = Clock::now();
+    const MeshHierarchy hierarchy = buildMeshHierarchy(c, model, coarsening);
+    const double t_hierarchy = since(t0);
+    const std::vector<int>& fixed = model.mesh.nodeSet(node_sets::kChestWall);
+    const SparseMatrix A = implicitStepMatrix(model.mesh, fixed, 2000.0, 0.48, 1000.0, 0.033);
+    const Eigen::VectorXd b = load(model.mesh, fixed, 1);
+    const Eigen::VectorXd b_next = b + 0.01 * load(model.mesh, fixed, 2);  // the next step's load
+
+    std::printf("\n%d tetrahedra, %d nodes, %ld DOFs, %ld nonzeros; meshed in %.2f s, coarse levels + "
+                "prolongations in %.2f s\n",
+                model.mesh.numTets(), model.mesh.numNodes(), static_cast<long>(A.rows()),
+                static_cast<long>(A.nonZeros()), t_fine, t_hierarchy);
+    nlohmann::json levels = nlohmann::json::array();
+    for (int l = 0; l < hierarchy.numLevels(); ++l)
+      levels.push_back({{"tets", hierarchy.mesh(l).numTets()}, {"nodes", hierarchy.mesh(l).numNodes()}});
+
+    PcgOptions pcg;
+    pcg.relative_tolerance = tol;
+    pcg.max_iterations = 20000;
+    struct Result {
+      std::string label;
+      double analyze_ms = 0, factorize_ms = 0, solve_ms = 0, warm_ms = 0;
+      int iterations = 0, warm_iterations = 0;
+      double residual = 0, error = 0;
+      MultigridPreconditioner::Timings mg;
+      std::vector<double> level_ms;  // per V-cycle
+    };
+    std::vector<Result> results;
+    Eigen::VectorXd x_ref;
+    bool levels_printed = false;
+    for (const std::string& name : variant_names) {
+      const Variant v = parseVariant(name, hierarchy, pcg, damping);
+      std::unique_ptr<LinearSolver> solver = v.make();
+      Result r;
+      r.label = v.label;
+      t0 = Clock::now();
+      solver->analyzePattern(A);
+      r.analyze_ms = 1e3 * since(t0);
+      std::vector<double> tf, ts, tw;
+      Eigen::VectorXd x;
+      const int reps = name == "cholmod" ? std::min(repeats, 3) : std::max(repeats, 2 * v.interval);
+      std::vector<double> level_sum;
+      for (int k = 0; k < reps; ++k) {
+        t0 = Clock::now();
+        solver->factorize(A);
+        tf.push_back(since(t0));
+        auto* m = dynamic_cast<MultigridPcgSolver*>(solver.get());
+        if (m && m->multigrid().lastFactorizeTimings().galerkin_s > 0) r.mg = m->multigrid().lastFactorizeTimings();
+        x.setZero(A.rows());
+        const SolveStats s = solver->solve(b, x);
+        ts.push_back(s.seconds);
+        r.iterations = s.iterations;
+        r.residual = s.relative_residual;
+        if (m) {
+          const auto& T = m->multigrid().lastFactorizeTimings();
+          level_sum.resize(T.level_s.size(), 0.0);
+          for (size_t l = 0; l < T.level_s.size(); ++l) level_sum[l] += T.level_s[l] / std::max(T.applications, 1);
+        }
+        Eigen::VectorXd xw = x;
+        const SolveStats w = solver->solve(b_next, xw);
+        tw.push_back(w.seconds);
+        r.warm_iterations = w.iterations;
+      }
+      double mean = 0;
+      for (double t : tf) mean += t / static_cast<double>(tf.size());
+      r.factorize_ms = 1e3 * (v.interval > 1 ? mean : median(tf));
+      r.solve_ms = 1e3 * median(ts);
+      r.warm_ms = 1e3 * median(tw);
+      for (double t : level_sum) r.level_ms.push_back(1e3 * t / reps);
+      if (x_ref.size() == 0) x_ref = x;
+      r.error = (x - x_ref).norm() / x_ref.norm();
+      if (auto* m = dynamic_cast<MultigridPcgSolver*>(solver.get()); m && !levels_printed) {
+        levels_printed = true;
+        for (int l = 0; l < m->multigrid().numLevels(); ++l) {
+          const SparseMatrix& M = m->multigrid().levelMatrix(l);
+          std::printf("  level %d: %7d tetrahedra %6d nodes; operator %6ld DOFs %8ld nonzeros (%4.1f blocks per row), "
+                      "%2d colours\n",
+                      l, hierarchy.mesh(l).numTets(), hierarchy.mesh(l).numNodes(), static_cast<long>(M.rows()),
+                      static_cast<long>(M.nonZeros()), static_cast<double>(M.nonZeros()) / 9.0 / (M.rows() / 3.0),
+                      m->multigrid().numColours(l));
+          levels[l]["dofs"] = M.rows();
+          levels[l]["nonzeros"] = M.nonZeros();
+          levels[l]["colours"] = m->multigrid().numColours(l);
+        }
+      }
+      results.push_back(r);
+    }
+
+    const Result* jac = nullptr;
+    for (const Result& r : results)
+      if (r.label == "pcg-jacobi") jac = &r;
+    std::printf("\n%-30s %8s %10s %8s %5s %8s %5s %9s %9s %7s %7s %8s\n", "solver", "analyze", "factorize", "solve",
+                "iter", "warm", "iter", "step", "warm", "vs jac", "vs jac", "rel.diff");
+    std::printf("%-30s %8s %10s %8s %5s %8s %5s %9s %9s %7s %7s %8s\n", "", "[ms]", "[ms]", "[ms]", "", "[ms]", "",
+                "cold [ms]", "step [ms]", "cold", "warm", "");
+    nlohmann::json solvers = nlohmann::json::array();
+    for (const Result& r : results) {
+      const double step = r.factorize_ms + r.solve_ms, warm_step = r.factorize_ms + r.warm_ms;
+      const double ratio = jac ? (jac->factorize_ms + jac->solve_ms) / step : 0.0;
+      const double warm_ratio = jac ? (jac->factorize_ms + jac->warm_ms) / warm_step : 0.0;
+      std::printf("%-30s %8.2f %10.2f %8.2f %5d %8.2f %5d %9.2f %9.2f %6.1fx %6.1fx %8.1e\n", r.label.c_str(),
+                  r.analyze_ms, r.factorize_ms, r.solve_ms, r.iterations, r.warm_ms, r.warm_iterations, step, warm_step,
+                  ratio, warm_ratio, r.error);
+      nlohmann::json j = {{"solver", r.label},
+                          {"analyze_ms", r.analyze_ms},
+                          {"factorize_ms", r.factorize_ms},
+                          {"solve_ms", r.solve_ms},
+                          {"iterations", r.iterations},
+                          {"warm_solve_ms", r.warm_ms},
+                          {"warm_iterations", r.warm_iterations},
+                          {"relative_residual", r.residual},
+                          {"relative_difference_to_first", r.error},
+                          {"speedup_vs_jacobi_cold", ratio},
+                          {"speedup_vs_jacobi_warm", warm_ratio}};
+      if (r.label.rfind("pcg-multigrid", 0) == 0) {
+        j["factorize_parts_ms"] = {{"scan", 1e3 * r.mg.scan_s},
+                                   {"damping_estimate", 1e3 * r.mg.damping_s},
+                                   {"galerkin", 1e3 * r.mg.galerkin_s},
+                                   {"coarse_cholmod", 1e3 * r.mg.coarse_factorize_s}};
+        j["v_cycle_level_ms"] = r.level_ms;
+      }
+      solvers.push_back(j);
+    }
+    std::printf("multigrid: factorize parts [ms] (scan + smoother set-up, damping estimate, Galerkin products, "
+                "coarsest CHOLMOD) and time per V-cycle on each level [ms]:\n");
+    for (const Result& r : results)
+      if (r.label.rfind("pcg-multigrid", 0) == 0) {
+        std::printf("  %-30s %6.2f %6.2f %6.2f %6.2f   |", r.label.c_str(), 1e3 * r.mg.scan_s, 1e3 * r.mg.damping_s,
+                    1e3 * r.mg.galerkin_s, 1e3 * r.mg.coarse_factorize_s);
+        for (double t : r.level_ms) std::printf(" %6.3f", t);
+        std::printf("\n");
+      }
+    rows.push_back({{"target", target}, {"tets", model.mesh.numTets()}, {"nodes", model.mesh.numNodes()},
+                    {"dofs", A.rows()}, {"nonzeros", A.nonZeros()}, {"levels", levels},
+                    {"hierarchy_seconds", t_hierarchy}, {"solvers", solvers}});
+  }
+  if (!json_path.empty()) {
+    nlohmann::json out = {{"benchmark", "solvers"}, {"case", base.name}, {"threads", omp_get_max_threads()},
+                          {"relative_tolerance", tol}, {"repeats", repeats}, {"morton", morton},
+                          {"max_coarsest_elements", coarsening.max_coarsest_elements},
+                          {"size_factor", coarsening.size_factor}, {"rows", rows}};
+    std::ofstream(json_path) << out.dump(2) << '\n';
+  }
+  return 0;
+}

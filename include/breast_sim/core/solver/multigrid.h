@@ -1,0 +1,262 @@
+#pragma once
+/// @file multigrid.h
+/// Geometric multigrid over a hierarchy of tetrahedral meshes of the same domain [GW08]: barycentric
+/// prolongation, Galerkin coarse operators by a sparse triple product with a precomputed structure
+/// [GW10], a symmetric V-cycle as preconditioner for CG, CHOLMOD on the coarsest level.
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <Eigen/SparseCore>
+
+#include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/solver/cholmod_solver.h"
+#include "breast_sim/core/solver/linear_solver.h"
+#include "breast_sim/core/solver/pcg_solver.h"
+
+namespace breast_sim::core {
+
+struct ModelCase;        // model/model_case.h
+struct SimulationModel;  // model/model_case.h
+
+/// Node prolongation from a coarse to a fine mesh, #N_fine × #N_coarse: row i holds the barycentric
+/// weights of fine node i in the coarse element containing it (at most 4 nonzeros, summing to 1; an
+/// empty row for a node in no element). The DOF prolongation is P ⊗ I₃ (the same weights for x, y, z).
+using NodeProlongation = Eigen::SparseMatrix<double, Eigen::RowMajor, int>;
+
+/// Barycentric interpolation of every fine node in the coarse mesh (model/point_embedding.h).
+/// A fine node outside the coarse mesh by at most `snap_tolerance_m` (the coarse surface approximates
+/// the image more coarsely) takes the clamped weights of the nearest coarse element; weights below
+/// 1e-12 are dropped and the rest renormalised.
+/// @param outside_distance_m  when not null, set to #N_fine distances outside the coarse mesh [m] (0 inside)
+/// @throws std::invalid_argument naming the fine node and its distance when it lies farther outside.
+NodeProlongation barycentricProlongation(const TetMesh& fine, const TetMesh& coarse, double snap_tolerance_m,
+                                         std::vector<double>* outside_distance_m = nullptr);
+
+/// The DOF prolongation P ⊗ I₃, 3#N_fine × 3#N_coarse (DOF order x0 y0 z0 x1 …). For tests and
+/// slow references; the solver never forms it.
+SparseMatrix expandToDofs(const NodeProlongation& P);
+
+/// The same mesh with nodes renumbered along a Morton (Z-order) curve of their positions and
+/// tetrahedra along that of their centroids; node sets and region labels follow. Neighbouring nodes
+/// get nearby numbers, so the rows a sparse kernel touches together share cache lines: the Galerkin
+/// product, smoothing and assembly on a mesher's near-random numbering are bound by memory latency.
+/// @param old_to_new  when not null, set to #N: the new index of each old node
+TetMesh mortonOrdered(const TetMesh& mesh, std::vector<int>* old_to_new = nullptr);
+
+/// Meshes of one domain from fine to coarse and the prolongations between consecutive levels.
+class MeshHierarchy {
+ public:
+  MeshHierarchy() = default;
+  /// @param meshes  fine first, each next one coarser (at least one mesh); the coarse meshes are
+  ///        renumbered by mortonOrdered() (the fine one is kept: it numbers the caller's DOFs)
+  /// @param snap_factor  snap tolerance of level l+1 = factor × its mean boundary edge length
+  /// @throws std::invalid_argument when `meshes` is empty or a fine node lies outside the next coarser
+  ///         mesh by more than the tolerance (names both levels).
+  explicit MeshHierarchy(std::vector<TetMesh> meshes, double snap_factor = 1.0);
+
+  int numLevels() const { return static_cast<int>(meshes_.size()); }
+  const TetMesh& mesh(int level) const { return meshes_.at(level); }
+  /// Prolongation from level+1 to level, #N_level × #N_level+1; level in [0, numLevels − 2].
+  const NodeProlongation& prolongation(int level) const { return prolongations_.at(level); }
+  const std::vector<NodeProlongation>& prolongations() const { return prolongations_; }
+  /// #N_level distances of the level's nodes outside the level+1 mesh [m] (0 inside).
+  const std::vector<double>& outsideDistance(int level) const { return outside_distance_m_.at(level); }
+
+ private:
+  std::vector<TetMesh> meshes_;
+  std::vector<NodeProlongation> prolongations_;
+  std::vector<std::vector<double>> outside_distance_m_;
+};
+
+/// How the coarse levels are meshed.
+struct CoarseningOptions {
+  double size_factor = 2.0;         ///< interior element size ratio between consecutive levels
+  /// Stop once a level has at most this many tetrahedra. The Galerkin operator of the coarsest
+  /// level is nearly dense (its Cholesky factor is), so its factorization grows with the cube of
+  /// its size: ~300 tetrahedra (~100 nodes) keep it near 1 ms.
+  int max_coarsest_elements = 300;
+  int max_coarse_levels = 5;        ///< never more coarse levels than this
+};
+
+/// Coarser meshes of a case's tissue for the multigrid hierarchy: meshLabelImage with the case's
+/// meshing options (skin factor, grading, lesion refinement) at interior sizes
+/// s × size_factor^k, k = 1, 2, …, s being the fine mesh's interior size, until a mesh has at most
+/// max_coarsest_elements tetrahedra (or stops shrinking by at least 20 %).
+/// @param fine  the fine model built from `model_case` (its mesh size and MeshingReport::interior_size_m)
+/// @return the coarse meshes, coarsest last (empty if the fine mesh is already small enough)
+/// @throws as meshLabelImage does; the message names the level and size.
+std::vector<TetMesh> buildCoarseMeshes(const ModelCase& model_case, const SimulationModel& fine,
+                                       const CoarseningOptions& options = {});
+
+/// The hierarchy of the fine model's mesh and buildCoarseMeshes(model_case, fine, options).
+MeshHierarchy buildMeshHierarchy(const ModelCase& model_case, const SimulationModel& fine,
+                                 const CoarseningOptions& options = {}, double snap_factor = 1.0);
+
+/// Galerkin coarse operator A_c = (D P)ᵀ A (D P) of a 3×3-block matrix [GW10]: D = diag(free) masks
+/// fixed fine DOFs out of P, so the coarse space never moves them. analyze() computes the pattern of
+/// A_c and, for every product term, where it comes from and where it goes; compute() then only
+/// streams values, in parallel over coarse rows, without allocating: row I of Pᵀ A is summed from the
+/// rows of I's fine children into a small dense buffer and multiplied by P into the upper blocks of
+/// A_c's row I; the lower blocks are mirrored. Each fine row of A is read once per coarse parent (4×).
+///
+/// A must have the layout of fem/block_pattern.h: rows 3I, 3I+1, 3I+2 hold the same columns, three
+/// per neighbour J (3J, 3J+1, 3J+2), ascending, the diagonal block included. A_c has that layout too.
+/// \note Fixed DOFs must be decoupled in A (zero rows and columns off the diagonal), as the
+/// LinearSolver contract says: only the rows are masked, the zero columns do the rest.
+class GalerkinProduct {
+ public:
+  /// Symbolic phase: the pattern of A_c (zero values) and the index lists of the product.
+  /// @param A  3#N_fine square, block layout (values unused)
+  /// @param P  #N_fine × #N_coarse node prolongation (pattern and values are kept)
+  /// @throws std::invalid_argument when the sizes or A's layout do not fit.
+  void analyze(const SparseMatrix& A, const NodeProlongation& P);
+  /// Numeric phase: A_c's values from A's.
+  /// @param A     same pattern as in analyze()
+  /// @param free  3#N_fine DOF multipliers: 1 free, 0 fixed (nullptr = all free)
+  void compute(const SparseMatrix& A, const double* free);
+  /// A_c, 3#N_coarse square, block layout.
+  const SparseMatrix& coarse() const { return coarse_; }
+  SparseMatrix& coarse() { return coarse_; }
+
+ private:
+  NodeProlongation P_;
+  std::vector<int> child_start_, child_;  // Pᵀ: fine children of each coarse node …
+  std::vector<double> child_weight_;      // … and their weights
+  std::vector<int> fine_start_, fine_;    // fine nodes F(I) coupled to the children of I
+  std::vector<int> c_start_, c_slot_;     // per (I, child, block of A): slot in F(I)
+  // Upper triangle only (parents J ≥ I); the lower one is mirrored.
+  std::vector<unsigned char> g_count_;    // per (I, f ∈ F(I)): parents J ≥ I of f
+  std::vector<int> g_start_, g_weight_, g_slot_;  // per such parent: index of its weight in P, block of A_c row I
+  std::vector<int> diag_k_;               // per coarse node: block index of its diagonal block
+  std::vector<int> mirror_start_, mirror_dst_, mirror_node_, mirror_k_;  // lower block ← transposed upper block
+  int max_fine_ = 0;
+  std::vector<std::vector<double>> buffers_;  // one 9·max_fine_ buffer per thread
+  SparseMatrix coarse_;
+  Eigen::Index fine_rows_ = 0, fine_nnz_ = 0;
+};
+
+/// Options of the V-cycle.
+struct MultigridOptions {
+  /// Measured on the phantom at 48k elements, 2 threads (bench_solvers): Gauss–Seidel V(1,1) needs
+  /// about 2/3 of the PCG iterations of Jacobi V(1,1) (28 against 44 to 1e-8) but costs 2–3× as
+  /// much per V-cycle (colour-ordered rows of a randomly numbered mesh, a barrier per colour), so
+  /// Jacobi is faster overall; more sweeps than one before and after do not pay either.
+  enum class Smoother {
+    kJacobi,      ///< damped 3×3-block Jacobi (parallel; 2 matrix passes per V(1,1) level visit)
+    kGaussSeidel  ///< multicoloured 3×3-block Gauss–Seidel: forward before, backward after the
+                  ///< coarse correction, so the V-cycle stays symmetric (3 matrix passes)
+  };
+  Smoother smoother = Smoother::kJacobi;
+  int pre_smoothing_steps = 1;   ///< sweeps before the coarse correction
+  int post_smoothing_steps = 1;  ///< sweeps after it (equal to pre for a symmetric preconditioner)
+  /// ω of the Jacobi smoother; ω λ_max(D⁻¹A) < 2 keeps the smoother, and so the V-cycle,
+  /// convergent. 0 = automatic: on the fine level 1.8 / fine_eigenvalue_bound; on Galerkin levels
+  /// (λ_max near 5 here) 4 / (3 λ), λ estimated by power iteration at every coarse update.
+  /// > 0 = this ω on every level (the caller's responsibility).
+  double jacobi_damping = 0.0;
+  /// An upper bound of λ_max(D⁻¹A) on the fine level, D its 3×3 block diagonal: 4 for any matrix
+  /// assembled from positive semi-definite element matrices of linear tetrahedra (4 nodes each) plus
+  /// a positive semi-definite block diagonal (lumped mass); 0 = estimate it like a coarse level.
+  double fine_eigenvalue_bound = 4.0;
+  /// Power iterations per level and coarse update for the estimate, warm-started from the last
+  /// estimate's vector (the first estimate takes four times as many).
+  int power_iterations = 3;
+  /// Relative diagonal shift δ of the coarsest operator before its Cholesky factorization,
+  /// A_c + δ diag(A_c). Needed because the meshes are not nested: a coarse mode that no fine node
+  /// sees (a coarse element bulging out of the fine domain with fewer than four fine nodes inside)
+  /// makes Pᵀ A P only semi-definite. The right-hand side of the coarse solve has no component in
+  /// that null space and P removes it again, so the shift only keeps the factorization defined.
+  double coarsest_diagonal_shift = 1e-9;
+  /// The Galerkin operators and the coarsest factorization are recomputed in every this-many-th
+  /// factorize() (1 = every one); in between only the fine level takes the new matrix. The V-cycle
+  /// stays symmetric positive definite with older coarse operators (Galerkin operators of an earlier
+  /// SPD matrix); it converges somewhat slower when the matrix has changed much since (large
+  /// rotations of the co-rotated elements).
+  int coarse_update_interval = 1;
+};
+
+/// One symmetric V-cycle [GW08] as preconditioner: smoothing on each level, Galerkin coarse
+/// operators (recomputed in every factorize(), or every coarse_update_interval-th), CHOLMOD on the
+/// coarsest level. factorize() and apply() do not allocate after the first call, apart from the
+/// temporary permuted copy CHOLMOD makes of the small coarsest matrix.
+///
+/// Fixed DOFs are found in every factorize() as the decoupled rows (no nonzero off the diagonal) of
+/// each level; their prolongation rows are zero, so a coarse correction never moves them, and a
+/// coarse DOF that only interpolates fixed fine DOFs gets a unit diagonal.
+/// \note factorize() keeps a pointer to the fine matrix (see Preconditioner). Not thread-safe.
+class MultigridPreconditioner : public Preconditioner {
+ public:
+  /// @param prolongations  node prolongations, fine first: level l+1 → l is prolongations[l]
+  ///        (#N_l × #N_l+1); empty = a single level solved by CHOLMOD
+  explicit MultigridPreconditioner(std::vector<NodeProlongation> prolongations, MultigridOptions options = {});
+  explicit MultigridPreconditioner(const MeshHierarchy& hierarchy, MultigridOptions options = {});
+  ~MultigridPreconditioner() override;
+
+  /// @throws std::invalid_argument when A is not 3#N_0 square in block layout (see GalerkinProduct).
+  void analyzePattern(const SparseMatrix& A) override;
+  /// @throws std::logic_error when A's pattern changed; std::runtime_error "multigrid: …" when a
+  ///         diagonal block of some level is not positive definite or CHOLMOD fails on the coarsest.
+  void factorize(const SparseMatrix& A) override;
+  void apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) override;
+  std::string name() const override { return "multigrid"; }
+
+  int numLevels() const { return static_cast<int>(levels_.size()); }
+  /// Operator of a level after factorize(): 0 = the caller's matrix, ≥ 1 Galerkin operators
+  /// (with unit diagonals on DOFs that only interpolate fixed DOFs; the coarsest with its shift).
+  const SparseMatrix& levelMatrix(int level) const;
+  /// Colours of the Gauss–Seidel ordering of a level.
+  int numColours(int level) const;
+  /// Jacobi damping ω in use on a level (after factorize(); 0 for the coarsest).
+  double jacobiDamping(int level) const;
+  const MultigridOptions& options() const { return options_; }
+
+  /// Where the time goes [s]: the parts of the last factorize() and of the apply() calls since.
+  struct Timings {
+    double scan_s = 0.0;              ///< fixed-DOF detection and smoother set-up, all levels
+    double damping_s = 0.0;           ///< power iterations for the Jacobi damping
+    double galerkin_s = 0.0;          ///< triple products, all levels
+    double coarse_factorize_s = 0.0;  ///< CHOLMOD on the coarsest level
+    int applications = 0;             ///< apply() calls since that factorize()
+    /// Per level, summed over those calls: its own smoothing, residual and transfers (the coarsest:
+    /// its CHOLMOD solve), without the levels below.
+    std::vector<double> level_s;
+  };
+  const Timings& lastFactorizeTimings() const { return timings_; }
+
+ private:
+  struct Level;
+  void scanLevel(int level);
+  void estimateDamping(int level);
+  void vcycle(int level, const double* b, double* x);
+  void smooth(int level, const double* b, double* x, bool forward, bool from_zero);
+  void residual(int level, const double* b, const double* x, double* t);
+
+  MultigridOptions options_;
+  std::vector<NodeProlongation> prolongations_;
+  std::vector<std::unique_ptr<Level>> levels_;
+  std::vector<GalerkinProduct> galerkin_;
+  CholmodSolver coarsest_{CholmodOptions{1}};
+  Eigen::Index fine_nnz_ = -1;
+  long factorizations_ = 0;
+  bool factorized_ = false;
+  Timings timings_;
+};
+
+/// PCG with the multigrid V-cycle as preconditioner: the LinearSolver "pcg-multigrid". The
+/// prolongations are copied: the hierarchy need not outlive the solver.
+class MultigridPcgSolver : public PcgSolver {
+ public:
+  MultigridPcgSolver(const MeshHierarchy& hierarchy, PcgOptions pcg_options = {},
+                     MultigridOptions multigrid_options = {});
+  MultigridPcgSolver(std::vector<NodeProlongation> prolongations, PcgOptions pcg_options = {},
+                     MultigridOptions multigrid_options = {});
+  MultigridPreconditioner& multigrid() { return static_cast<MultigridPreconditioner&>(preconditioner()); }
+  const MultigridPreconditioner& multigrid() const {
+    return static_cast<const MultigridPreconditioner&>(preconditioner());
+  }
+};
+
+}  // namespace breast_sim::core

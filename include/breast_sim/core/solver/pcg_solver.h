@@ -1,0 +1,111 @@
+#pragma once
+/// @file pcg_solver.h
+/// Preconditioned conjugate gradients (parallel, warm-started) and the preconditioner interface.
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "breast_sim/core/solver/linear_solver.h"
+
+namespace breast_sim::core {
+
+/// z = M⁻¹ r for a symmetric positive definite approximation M of A.
+/// \note M⁻¹ must be a fixed linear, symmetric, positive definite map between factorize() calls
+/// (CG's convergence theory needs it): no tolerance-driven inner iterations.
+class Preconditioner {
+ public:
+  virtual ~Preconditioner() = default;
+  /// Symbolic set-up for A's sparsity pattern.
+  virtual void analyzePattern(const SparseMatrix& A) = 0;
+  /// Numeric set-up for A's values. May keep a pointer to A: A must stay alive and unchanged until
+  /// the last apply() before the next factorize().
+  /// @throws std::runtime_error naming the preconditioner when A is evidently not positive definite.
+  virtual void factorize(const SparseMatrix& A) = 0;
+  /// z = M⁻¹ r. z has A's size on entry (no allocation); r and z do not alias.
+  virtual void apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) = 0;
+  /// Short name: "jacobi", "multigrid".
+  virtual std::string name() const = 0;
+};
+
+/// Point Jacobi: M = diag(A).
+class JacobiPreconditioner : public Preconditioner {
+ public:
+  void analyzePattern(const SparseMatrix& A) override;
+  /// @throws std::runtime_error "pcg-jacobi: … diagonal entry … ≤ 0" naming the DOF.
+  void factorize(const SparseMatrix& A) override;
+  void apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) override;
+  std::string name() const override { return "jacobi"; }
+
+ private:
+  std::vector<int> diagonal_position_;  // per row: index of (i, i) in A's value array
+  Eigen::VectorXd inverse_diagonal_;
+};
+
+/// Stopping rule and limits of PCG.
+struct PcgOptions {
+  /// Converged when ‖b − A x‖₂ ≤ relative_tolerance · ‖b‖₂ (the true residual is checked before
+  /// convergence is declared, so round-off in the recursive residual cannot fake it).
+  double relative_tolerance = 1e-8;
+  int max_iterations = 2000;  ///< returns with converged = false after this many iterations
+};
+
+/// Conjugate gradients with a preconditioner, for symmetric positive definite A [Saad, Iterative
+/// Methods for Sparse Linear Systems, alg. 9.1]. All vector work and the sparse matrix–vector
+/// product run in parallel over rows (OpenMP); solve() does not allocate once x has A's size.
+///
+/// Decoupled rows (no nonzero off the diagonal: the Dirichlet rows of the LinearSolver contract)
+/// are solved exactly before iterating (x_i = b_i / A_ii) and stay at that value: every
+/// preconditioner keeps them decoupled.
+/// \note factorize() keeps a pointer to A: A must stay alive and unchanged until the last solve()
+/// before the next factorize(). A must be compressed CSR with sorted columns (Eigen's default).
+/// \note Indefiniteness is only detected when met: factorize() throws on a diagonal entry ≤ 0,
+/// solve() throws std::runtime_error when pᵀAp ≤ 0 (both name the solver).
+class PcgSolver : public LinearSolver {
+ public:
+  /// @param preconditioner  owned; nullptr = JacobiPreconditioner
+  explicit PcgSolver(PcgOptions options = {}, std::unique_ptr<Preconditioner> preconditioner = nullptr);
+
+  void analyzePattern(const SparseMatrix& A) override;
+  /// @throws std::logic_error before analyzePattern or when A's size or nonzero count changed;
+  ///         std::runtime_error when a diagonal entry is ≤ 0 or the preconditioner throws.
+  void factorize(const SparseMatrix& A) override;
+  /// Iterates from the initial guess x (warm start; an x of the wrong size starts from zero).
+  /// Returns at once (0 iterations) when x already meets the tolerance; b = 0 gives x = 0.
+  /// @throws std::logic_error before factorize or for a b of the wrong size;
+  ///         std::runtime_error when pᵀAp ≤ 0 (A not positive definite) or rᵀM⁻¹r ≤ 0 (bad
+  ///         preconditioner).
+  SolveStats solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) override;
+  /// "pcg-" + the preconditioner's name.
+  std::string name() const override { return "pcg-" + preconditioner_->name(); }
+
+  const PcgOptions& options() const { return options_; }
+  void setOptions(const PcgOptions& options) { options_ = options; }
+  Preconditioner& preconditioner() { return *preconditioner_; }
+  const Preconditioner& preconditioner() const { return *preconditioner_; }
+  /// Rows found decoupled (fixed) by the last factorize(), ascending.
+  const std::vector<int>& decoupledRows() const { return decoupled_; }
+
+ private:
+  PcgOptions options_;
+  std::unique_ptr<Preconditioner> preconditioner_;
+  const SparseMatrix* A_ = nullptr;
+  Eigen::Index n_ = -1;
+  Eigen::Index nnz_ = -1;
+  std::vector<int> diagonal_position_;
+  std::vector<unsigned char> decoupled_flag_;
+  std::vector<int> decoupled_;
+  Eigen::VectorXd r_, z_, p_, q_;
+};
+
+/// y = A x, in parallel over rows (OpenMP). y is resized if needed; x and y must not alias.
+void parallelMultiply(const SparseMatrix& A, const Eigen::VectorXd& x, Eigen::VectorXd& y);
+
+/// Index of the diagonal entry of each row in A's value array.
+/// @throws std::invalid_argument naming the row when a row has no stored diagonal entry, or A is
+///         not square or not compressed.
+std::vector<int> diagonalPositions(const SparseMatrix& A, const std::string& who);
+
+}  // namespace breast_sim::core

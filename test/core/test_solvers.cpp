@@ -1,0 +1,508 @@
+// Linear solvers of the time step: CHOLMOD, Jacobi-PCG and multigrid-PCG on the system of an
+// implicit step of linear elasticity (A = M/dt² + K, Dirichlet on the chest wall) of the phantom.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <memory>
+#include <random>
+#include <string>
+#include <vector>
+
+#include <Eigen/Dense>
+#include <Eigen/SparseCholesky>
+
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/solver/cholmod_solver.h"
+#include "breast_sim/core/solver/multigrid.h"
+#include "breast_sim/core/solver/pcg_solver.h"
+
+using namespace breast_sim::core;
+
+namespace {
+
+// ---------------------------------------------------------------------------------------------------
+// Test-local assembly (the project's FEM lives in fem/; this one only has to be SPD and realistic).
+
+/// A = M/dt² + K of linear tetrahedra at rest [N/m], lumped mass, in the 3×3-block layout of
+/// fem/block_pattern.h; fixed nodes get zero rows and columns with a unit diagonal.
+SparseMatrix implicitStepMatrix(const TetMesh& mesh, const std::vector<int>& fixed_nodes, double E_pa = 2000.0,
+                                double nu = 0.48, double density = 1000.0, double dt = 0.033) {
+  const double lambda = E_pa * nu / ((1 + nu) * (1 - 2 * nu)), mu = E_pa / (2 * (1 + nu));
+  std::vector<Eigen::Triplet<double, int>> t;
+  t.reserve(static_cast<size_t>(mesh.numTets()) * 144 + 3 * mesh.numNodes());
+  for (int e = 0; e < mesh.numTets(); ++e) {
+    Eigen::Matrix3d Dm;
+    for (int k = 0; k < 3; ++k) Dm.col(k) = (mesh.nodes().row(mesh.tets()(e, k + 1)) - mesh.nodes().row(mesh.tets()(e, 0))).transpose();
+    const double V = Dm.determinant() / 6.0;
+    const Eigen::Matrix3d Dinv = Dm.inverse();
+    Eigen::Matrix<double, 4, 3> G;  // shape-function gradients [1/m]
+    G.row(0) = -Dinv.colwise().sum();
+    G.bottomRows(3) = Dinv;
+    for (int a = 0; a < 4; ++a)
+      for (int b = 0; b < 4; ++b) {
+        const Eigen::Vector3d ga = G.row(a).transpose(), gb = G.row(b).transpose();
+        const Eigen::Matrix3d K =
+            V * (lambda * ga * gb.transpose() + mu * gb * ga.transpose() + mu * ga.dot(gb) * Eigen::Matrix3d::Identity());
+        for (int i = 0; i < 3; ++i)
+          for (int j = 0; j < 3; ++j)
+            t.emplace_back(3 * mesh.tets()(e, a) + i, 3 * mesh.tets()(e, b) + j, K(i, j));
+      }
+    for (int a = 0; a < 4; ++a)
+      for (int i = 0; i < 3; ++i) t.emplace_back(3 * mesh.tets()(e, a) + i, 3 * mesh.tets()(e, a) + i, density * V / 4 / (dt * dt));
+  }
+  SparseMatrix A(3 * mesh.numNodes(), 3 * mesh.numNodes());
+  A.setFromTriplets(t.begin(), t.end());
+  std::vector<bool> fixed(static_cast<size_t>(A.rows()), false);
+  for (int v : fixed_nodes)
+    for (int i = 0; i < 3; ++i) fixed[3 * v + i] = true;
+  for (int r = 0; r < A.outerSize(); ++r)
+    for (SparseMatrix::InnerIterator it(A, r); it; ++it)
+      if (fixed[it.row()] || fixed[it.col()]) it.valueRef() = it.row() == it.col() ? 1.0 : 0.0;
+  return A;
+}
+
+/// Gravity on the lumped masses plus a random load [N]; fixed DOFs get `fixed_value` [m].
+Eigen::VectorXd load(const SparseMatrix& A, const TetMesh& mesh, const std::vector<int>& fixed_nodes,
+                     double fixed_value = 0.0, unsigned seed = 7) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  Eigen::VectorXd b(A.rows());
+  const Eigen::VectorXd V = mesh.tetVolumes();
+  b.setZero();
+  for (int e = 0; e < mesh.numTets(); ++e)
+    for (int a = 0; a < 4; ++a) b[3 * mesh.tets()(e, a) + 2] -= 1000.0 * V[e] / 4 * 9.81;
+  const double scale = b.cwiseAbs().maxCoeff();
+  for (Eigen::Index i = 0; i < b.size(); ++i) b[i] += 0.5 * scale * u(rng);
+  for (int v : fixed_nodes)
+    for (int i = 0; i < 3; ++i) b[3 * v + i] = fixed_value * (1 + i);
+  return b;
+}
+
+std::vector<double> freeMask(const SparseMatrix& A, const std::vector<int>& fixed_nodes) {
+  std::vector<double> free(static_cast<size_t>(A.rows()), 1.0);
+  for (int v : fixed_nodes)
+    for (int i = 0; i < 3; ++i) free[3 * v + i] = 0.0;
+  return free;
+}
+
+double relativeDifference(const Eigen::VectorXd& a, const Eigen::VectorXd& b) { return (a - b).norm() / b.norm(); }
+
+/// The phantom at ~8000 elements, its hierarchy (three levels) and the step system; built once.
+struct Fixture {
+  ModelCase model_case;
+  SimulationModel model;
+  MeshHierarchy hierarchy;
+  std::vector<int> fixed;
+  SparseMatrix A;
+  Eigen::VectorXd b;
+  Eigen::VectorXd reference;  // Eigen SimplicialLDLT
+};
+
+const Fixture& fixture() {
+  static const Fixture f = [] {
+    Fixture f;
+    f.model_case = loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
+    f.model_case.meshing.target_elements = 8000;
+    f.model = buildSimulationModel(f.model_case);
+    CoarseningOptions coarsening;
+    coarsening.max_coarsest_elements = 600;  // three levels, to test the recursion
+    f.hierarchy = buildMeshHierarchy(f.model_case, f.model, coarsening);
+    f.fixed = f.model.mesh.nodeSet(node_sets::kChestWall);
+    f.A = implicitStepMatrix(f.model.mesh, f.fixed);
+    f.b = load(f.A, f.model.mesh, f.fixed, 1e-3);
+    const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt{Eigen::SparseMatrix<double>(f.A)};
+    f.reference = ldlt.solve(f.b);
+    return f;
+  }();
+  return f;
+}
+
+struct NamedSolver {
+  std::string name;
+  std::unique_ptr<LinearSolver> solver;
+};
+
+std::vector<NamedSolver> allSolvers(double tolerance) {
+  PcgOptions pcg;
+  pcg.relative_tolerance = tolerance;
+  pcg.max_iterations = 20000;
+  std::vector<NamedSolver> s;
+  s.push_back({"cholmod", std::make_unique<CholmodSolver>()});
+  s.push_back({"pcg-jacobi", std::make_unique<PcgSolver>(pcg)});
+  s.push_back({"pcg-multigrid", std::make_unique<MultigridPcgSolver>(fixture().hierarchy, pcg)});
+  MultigridOptions gauss_seidel;
+  gauss_seidel.smoother = MultigridOptions::Smoother::kGaussSeidel;
+  s.push_back({"pcg-multigrid", std::make_unique<MultigridPcgSolver>(fixture().hierarchy, pcg, gauss_seidel)});
+  return s;
+}
+
+}  // namespace
+
+TEST(MeshHierarchy, CoarseMeshesOfThePhantomShrinkDownToTheRequestedSize) {
+  const Fixture& f = fixture();
+  ASSERT_GE(f.hierarchy.numLevels(), 3);
+  for (int l = 0; l + 1 < f.hierarchy.numLevels(); ++l) {
+    SCOPED_TRACE("level " + std::to_string(l));
+    EXPECT_LT(f.hierarchy.mesh(l + 1).numTets(), 0.8 * f.hierarchy.mesh(l).numTets());
+    EXPECT_NEAR(f.hierarchy.mesh(l + 1).volume() / f.hierarchy.mesh(l).volume(), 1.0, 0.05);
+    EXPECT_EQ(f.hierarchy.prolongation(l).rows(), f.hierarchy.mesh(l).numNodes());
+    EXPECT_EQ(f.hierarchy.prolongation(l).cols(), f.hierarchy.mesh(l + 1).numNodes());
+  }
+  EXPECT_LE(f.hierarchy.mesh(f.hierarchy.numLevels() - 1).numTets(), 600);
+}
+
+TEST(Prolongation, RowsArePartitionsOfUnityAndReproduceLinearFieldsInsideTheCoarseMesh) {
+  const Fixture& f = fixture();
+  Eigen::Matrix3d G;  // an affine displacement u(x) = G x + c [m]
+  G << 0.1, -0.2, 0.05, 0.3, 0.0, -0.1, 0.02, 0.04, -0.3;
+  const Eigen::RowVector3d c(0.001, -0.002, 0.003);
+  for (int l = 0; l + 1 < f.hierarchy.numLevels(); ++l) {
+    SCOPED_TRACE("level " + std::to_string(l));
+    const TetMesh& fine = f.hierarchy.mesh(l);
+    const TetMesh& coarse = f.hierarchy.mesh(l + 1);
+    const NodeProlongation& P = f.hierarchy.prolongation(l);
+    const double coarse_edge = std::cbrt(6 * std::sqrt(2.0) * coarse.volume() / coarse.numTets());  // [m]
+    Eigen::VectorXd uc(3 * coarse.numNodes());
+    for (int J = 0; J < coarse.numNodes(); ++J) uc.segment<3>(3 * J) = (coarse.nodes().row(J) * G.transpose() + c).transpose();
+    const Eigen::VectorXd uf = expandToDofs(P) * uc;
+    const Eigen::VectorXd row_sums = P * Eigen::VectorXd::Ones(P.cols());
+    int inside = 0;
+    for (int i = 0; i < fine.numNodes(); ++i) {
+      EXPECT_NEAR(row_sums[i], 1.0, 1e-12) << "fine node " << i;
+      // Nodes outside the coarse mesh (mostly on the skin) are snapped onto it: close, not exact.
+      EXPECT_LE(f.hierarchy.outsideDistance(l)[i], 2 * coarse_edge) << "fine node " << i;
+      if (f.hierarchy.outsideDistance(l)[i] > 0.0) continue;
+      ++inside;
+      const Eigen::RowVector3d expected = fine.nodes().row(i) * G.transpose() + c;
+      // Exact up to the round-off of the barycentric solve (the field is ~1e-2 m here).
+      EXPECT_LT((uf.segment<3>(3 * i).transpose() - expected).norm(), 1e-11) << "fine node " << i;
+    }
+    // Most nodes of a coarse level lie on its surface, so only the fine level has many inside.
+    EXPECT_GT(inside, l == 0 ? fine.numNodes() / 4 : 0);
+  }
+}
+
+TEST(GalerkinProduct, EqualsTheNaiveTripleProductWithFixedDofsMaskedOut) {
+  const Fixture& f = fixture();
+  const NodeProlongation& P = f.hierarchy.prolongation(0);
+  const std::vector<double> free = freeMask(f.A, f.fixed);
+  const SparseMatrix Pd = expandToDofs(P);
+  Eigen::VectorXd d(free.size());
+  for (size_t i = 0; i < free.size(); ++i) d[static_cast<Eigen::Index>(i)] = free[i];
+  for (const bool masked : {true, false}) {
+    SCOPED_TRACE(masked ? "fixed DOFs masked" : "no mask");
+    const SparseMatrix DP = masked ? SparseMatrix(d.asDiagonal() * Pd) : Pd;
+    // slow reference: the naive product in Eigen
+    const Eigen::MatrixXd reference = Eigen::MatrixXd(SparseMatrix(DP.transpose()) * f.A * DP);
+    GalerkinProduct g;
+    g.analyze(f.A, P);
+    g.compute(f.A, masked ? free.data() : nullptr);
+    const Eigen::MatrixXd fast = Eigen::MatrixXd(g.coarse());
+    const double scale = reference.cwiseAbs().maxCoeff();
+    EXPECT_LT((fast - reference).cwiseAbs().maxCoeff(), 1e-13 * scale);
+    EXPECT_LT((fast - fast.transpose()).cwiseAbs().maxCoeff(), 1e-13 * scale);
+    // Computing twice gives the same values (no accumulation across calls).
+    g.compute(f.A, masked ? free.data() : nullptr);
+    EXPECT_EQ((Eigen::MatrixXd(g.coarse()) - fast).cwiseAbs().maxCoeff(), 0.0);
+  }
+}
+
+TEST(Solvers, AllAgreeWithASparseLdltReferenceAtTightTolerance) {
+  const Fixture& f = fixture();
+  for (auto& [name, solver] : allSolvers(1e-12)) {
+    SCOPED_TRACE(name);
+    solver->analyzePattern(f.A);
+    solver->factorize(f.A);
+    Eigen::VectorXd x = Eigen::VectorXd::Zero(f.b.size());
+    const SolveStats s = solver->solve(f.b, x);
+    EXPECT_EQ(solver->name(), name);
+    EXPECT_TRUE(s.converged) << s.iterations << " iterations, residual " << s.relative_residual;
+    EXPECT_LE(relativeDifference(x, f.reference), 1e-6);
+    EXPECT_LE((f.b - f.A * x).norm() / f.b.norm(), name == "cholmod" ? 1e-12 : 1.01e-12);
+  }
+}
+
+TEST(MultigridPcg, NeedsFarFewerIterationsThanJacobiPcg) {
+  const Fixture& f = fixture();
+  PcgOptions pcg;
+  pcg.relative_tolerance = 1e-8;
+  pcg.max_iterations = 5000;
+  PcgSolver jacobi(pcg);
+  MultigridPcgSolver multigrid(f.hierarchy, pcg);
+  int iterations[2];
+  LinearSolver* solvers[2] = {&jacobi, &multigrid};
+  for (int k = 0; k < 2; ++k) {
+    solvers[k]->analyzePattern(f.A);
+    solvers[k]->factorize(f.A);
+    Eigen::VectorXd x = Eigen::VectorXd::Zero(f.b.size());
+    const SolveStats s = solvers[k]->solve(f.b, x);
+    ASSERT_TRUE(s.converged) << solvers[k]->name();
+    iterations[k] = s.iterations;
+  }
+  EXPECT_LE(4 * iterations[1], iterations[0]) << "jacobi " << iterations[0] << ", multigrid " << iterations[1];
+}
+
+TEST(Solvers, KeepFixedDofsExactlyAtTheirValue) {
+  const Fixture& f = fixture();
+  for (auto& [name, solver] : allSolvers(1e-6)) {
+    SCOPED_TRACE(name);
+    solver->analyzePattern(f.A);
+    solver->factorize(f.A);
+    Eigen::VectorXd x = Eigen::VectorXd::Constant(f.b.size(), 0.5);  // a poor guess, wrong on fixed DOFs too
+    solver->solve(f.b, x);
+    for (int v : f.fixed)
+      for (int i = 0; i < 3; ++i) ASSERT_EQ(x[3 * v + i], f.b[3 * v + i]) << "node " << v << " axis " << i;
+  }
+}
+
+TEST(MultigridPreconditioner, CoarseCorrectionNeverMovesFixedDofs) {
+  const Fixture& f = fixture();
+  MultigridPreconditioner mg(f.hierarchy);
+  mg.analyzePattern(f.A);
+  mg.factorize(f.A);
+  Eigen::VectorXd r = f.b, z = Eigen::VectorXd::Zero(f.b.size());
+  for (int v : f.fixed) r.segment<3>(3 * v).setZero();
+  mg.apply(r, z);
+  for (int v : f.fixed) EXPECT_EQ(z.segment<3>(3 * v).cwiseAbs().maxCoeff(), 0.0) << "node " << v;
+}
+
+TEST(MultigridPreconditioner, IsASymmetricPositiveDefiniteOperatorWithEitherSmoother) {
+  const Fixture& f = fixture();
+  std::mt19937 rng(3);
+  std::normal_distribution<double> g;
+  Eigen::VectorXd u(f.b.size()), v(f.b.size());
+  for (Eigen::Index i = 0; i < u.size(); ++i) u[i] = g(rng), v[i] = g(rng);
+  for (const auto smoother : {MultigridOptions::Smoother::kGaussSeidel, MultigridOptions::Smoother::kJacobi}) {
+    SCOPED_TRACE(smoother == MultigridOptions::Smoother::kJacobi ? "jacobi" : "gauss-seidel");
+    MultigridOptions o;
+    o.smoother = smoother;
+    o.pre_smoothing_steps = o.post_smoothing_steps = 2;
+    MultigridPreconditioner mg(f.hierarchy, o);
+    mg.analyzePattern(f.A);
+    mg.factorize(f.A);
+    Eigen::VectorXd Mu(u.size()), Mv(v.size());
+    mg.apply(u, Mu);
+    mg.apply(v, Mv);
+    EXPECT_NEAR(u.dot(Mv) / v.dot(Mu), 1.0, 1e-10);
+    EXPECT_GT(u.dot(Mu), 0.0);
+    EXPECT_GT(v.dot(Mv), 0.0);
+  }
+}
+
+TEST(PcgSolver, WarmStartFromTheSolutionReturnsAtOnce) {
+  const Fixture& f = fixture();
+  for (auto& [name, solver] : allSolvers(1e-8)) {
+    if (name == "cholmod") continue;
+    SCOPED_TRACE(name);
+    solver->analyzePattern(f.A);
+    solver->factorize(f.A);
+    Eigen::VectorXd x = Eigen::VectorXd::Zero(f.b.size());
+    ASSERT_TRUE(solver->solve(f.b, x).converged);
+    const SolveStats again = solver->solve(f.b, x);
+    EXPECT_LE(again.iterations, 1);
+    EXPECT_TRUE(again.converged);
+  }
+}
+
+TEST(PcgSolver, ZeroRightHandSideGivesZeroAtOnce) {
+  const Fixture& f = fixture();
+  PcgSolver pcg;
+  pcg.analyzePattern(f.A);
+  pcg.factorize(f.A);
+  Eigen::VectorXd x = Eigen::VectorXd::Ones(f.b.size());
+  const SolveStats s = pcg.solve(Eigen::VectorXd::Zero(f.b.size()), x);
+  EXPECT_EQ(s.iterations, 0);
+  EXPECT_TRUE(s.converged);
+  EXPECT_EQ(x.cwiseAbs().maxCoeff(), 0.0);
+}
+
+TEST(Solvers, NonPositiveDefiniteMatrixIsAClearError) {
+  const Fixture& f = fixture();
+  // A free DOF with a negative diagonal: indefinite, with the same pattern.
+  std::vector<bool> is_fixed(static_cast<size_t>(f.A.rows() / 3), false);
+  for (int v : f.fixed) is_fixed[v] = true;
+  int node = 0;
+  while (is_fixed[node]) ++node;
+  const int dof = 3 * node + 1;
+  SparseMatrix bad = f.A;
+  bad.coeffRef(dof, dof) = -bad.coeff(dof, dof);
+  for (auto& [name, solver] : allSolvers(1e-8)) {
+    SCOPED_TRACE(name);
+    solver->analyzePattern(bad);
+    try {
+      solver->factorize(bad);
+      FAIL() << "expected an error";
+    } catch (const std::runtime_error& e) {
+      const std::string what = e.what();
+      EXPECT_NE(what.find(name == "cholmod" ? "cholmod" : name == "pcg-jacobi" ? "pcg-jacobi" : "multigrid"),
+                std::string::npos)
+          << what;
+      EXPECT_NE(what.find("not positive definite"), std::string::npos) << what;
+      EXPECT_NE(what.find(std::to_string(name == "cholmod" || name == "pcg-jacobi" ? dof : node)), std::string::npos)
+          << what;
+    }
+  }
+}
+
+TEST(PcgSolver, IndefiniteMatrixWithPositiveDiagonalIsReportedDuringTheSolve) {
+  // [1 2; 2 1] has eigenvalues 3 and −1; b = (1, −1) points at the negative one.
+  SparseMatrix A(2, 2);
+  A.insert(0, 0) = 1, A.insert(0, 1) = 2, A.insert(1, 0) = 2, A.insert(1, 1) = 1;
+  A.makeCompressed();
+  PcgSolver pcg;
+  pcg.analyzePattern(A);
+  pcg.factorize(A);
+  Eigen::VectorXd x;
+  try {
+    pcg.solve(Eigen::Vector2d(1, -1), x);
+    FAIL() << "expected an error";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("pcg-jacobi: the matrix is not positive definite"), std::string::npos)
+        << e.what();
+  }
+}
+
+TEST(Solvers, ValuesChangeWithoutANewAnalysis) {
+  // A stiffer material on the same pattern: factorize again, solve again, still right.
+  const Fixture& f = fixture();
+  const SparseMatrix A2 = implicitStepMatrix(f.model.mesh, f.fixed, 6000.0, 0.45);
+  const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt{Eigen::SparseMatrix<double>(A2)};
+  const Eigen::VectorXd reference = ldlt.solve(f.b);
+  for (auto& [name, solver] : allSolvers(1e-10)) {
+    SCOPED_TRACE(name);
+    solver->analyzePattern(f.A);
+    solver->factorize(f.A);
+    solver->factorize(A2);
+    Eigen::VectorXd x;
+    solver->solve(f.b, x);
+    EXPECT_LE(relativeDifference(x, reference), 1e-6);
+  }
+}
+
+TEST(MultigridPreconditioner, RejectsAMatrixNotInBlockLayout) {
+  const Fixture& f = fixture();
+  SparseMatrix A(f.A.rows(), f.A.cols());
+  A.setIdentity();
+  MultigridPreconditioner mg(f.hierarchy);
+  try {
+    mg.analyzePattern(A);
+    FAIL() << "expected an error";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("3×3-block layout"), std::string::npos) << e.what();
+  }
+}
+
+TEST(MultigridPreconditioner, StaysSymmetricPositiveDefiniteWithStaleCoarseOperators) {
+  // Coarse operators from the softer matrix, fine level from a stiffer one: still a valid
+  // preconditioner, and PCG still converges to the right answer.
+  const Fixture& f = fixture();
+  const SparseMatrix A2 = implicitStepMatrix(f.model.mesh, f.fixed, 5000.0, 0.45);
+  PcgOptions pcg;
+  pcg.relative_tolerance = 1e-10;
+  MultigridOptions o;
+  o.coarse_update_interval = 2;
+  MultigridPcgSolver solver(f.hierarchy, pcg, o);
+  solver.analyzePattern(f.A);
+  solver.factorize(f.A);
+  const Eigen::MatrixXd coarse_before = Eigen::MatrixXd(solver.multigrid().levelMatrix(1));
+  solver.factorize(A2);  // the second of the interval: fine level only
+  EXPECT_EQ((Eigen::MatrixXd(solver.multigrid().levelMatrix(1)) - coarse_before).cwiseAbs().maxCoeff(), 0.0);
+  std::mt19937 rng(5);
+  std::normal_distribution<double> g;
+  Eigen::VectorXd u(f.b.size()), v(f.b.size()), Mu(f.b.size()), Mv(f.b.size());
+  for (Eigen::Index i = 0; i < u.size(); ++i) u[i] = g(rng), v[i] = g(rng);
+  solver.multigrid().apply(u, Mu);
+  solver.multigrid().apply(v, Mv);
+  EXPECT_NEAR(u.dot(Mv) / v.dot(Mu), 1.0, 1e-10);
+  EXPECT_GT(u.dot(Mu), 0.0);
+  Eigen::VectorXd x;
+  ASSERT_TRUE(solver.solve(f.b, x).converged);
+  const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt{Eigen::SparseMatrix<double>(A2)};
+  EXPECT_LE(relativeDifference(x, ldlt.solve(f.b)), 1e-6);
+  solver.factorize(A2);  // the next interval: coarse operators follow
+  EXPECT_GT((Eigen::MatrixXd(solver.multigrid().levelMatrix(1)) - coarse_before).cwiseAbs().maxCoeff(), 0.0);
+}
+
+TEST(MultigridPreconditioner, AutomaticJacobiDampingKeepsEverySmootherConvergent) {
+  // ω λ_max(D⁻¹A) < 2 on every smoothed level, λ_max from a long power iteration (slow reference).
+  const Fixture& f = fixture();
+  MultigridPreconditioner mg(f.hierarchy);
+  mg.analyzePattern(f.A);
+  mg.factorize(f.A);
+  for (int l = 0; l + 1 < mg.numLevels(); ++l) {
+    SCOPED_TRACE("level " + std::to_string(l));
+    const SparseMatrix& A = mg.levelMatrix(l);
+    const int n = static_cast<int>(A.rows() / 3);
+    std::vector<Eigen::Matrix3d> Dinv(static_cast<size_t>(n));
+    for (int i = 0; i < n; ++i) Dinv[i] = Eigen::Matrix3d(Eigen::MatrixXd(A.block(3 * i, 3 * i, 3, 3))).inverse();
+    Eigen::VectorXd x = Eigen::VectorXd::Ones(A.rows()), y;
+    for (Eigen::Index i = 0; i < x.size(); ++i) x[i] += 0.1 * std::sin(static_cast<double>(i));
+    double lambda = 0.0;
+    for (int it = 0; it < 300; ++it) {
+      y = A * x;
+      for (int i = 0; i < n; ++i) y.segment<3>(3 * i) = Dinv[i] * y.segment<3>(3 * i);
+      lambda = y.norm() / x.norm();
+      x = y / y.norm();
+    }
+    const double omega = mg.jacobiDamping(l);
+    EXPECT_GT(omega, 0.0);
+    EXPECT_LT(omega * lambda, 1.9) << "omega " << omega << ", lambda_max " << lambda;
+  }
+}
+
+TEST(MortonOrder, RenumbersNodesWithoutChangingTheMesh) {
+  const Fixture& f = fixture();
+  const TetMesh& mesh = f.hierarchy.mesh(1);
+  std::vector<int> new_index;
+  const TetMesh m = mortonOrdered(mesh, &new_index);
+  ASSERT_EQ(m.numNodes(), mesh.numNodes());
+  ASSERT_EQ(m.numTets(), mesh.numTets());
+  EXPECT_NEAR(m.volume(), mesh.volume(), 1e-12 * mesh.volume());
+  for (int v = 0; v < mesh.numNodes(); ++v) EXPECT_EQ(m.nodes().row(new_index[v]), mesh.nodes().row(v));
+  for (const auto& [name, set] : mesh.nodeSets()) {
+    SCOPED_TRACE(name);
+    ASSERT_EQ(m.nodeSet(name).size(), set.size());
+    for (int v : set) EXPECT_TRUE(std::binary_search(m.nodeSet(name).begin(), m.nodeSet(name).end(), new_index[v]));
+  }
+  // Neighbours get nearby numbers: the mean index distance along element edges drops.
+  auto spread = [](const TetMesh& t) {
+    double sum = 0.0;
+    for (int e = 0; e < t.numTets(); ++e)
+      for (int a = 0; a < 4; ++a)
+        for (int b = a + 1; b < 4; ++b) sum += std::abs(t.tets()(e, a) - t.tets()(e, b));
+    return sum / (6.0 * t.numTets());
+  };
+  const TetMesh& fine = f.model.mesh;
+  EXPECT_LT(spread(mortonOrdered(fine)), 0.5 * spread(fine));
+}
+
+TEST(MultigridPcg, WithoutCoarseLevelsIsCholeskyPreconditionedCg) {
+  const Fixture& f = fixture();
+  PcgOptions pcg;
+  pcg.relative_tolerance = 1e-10;
+  MultigridPcgSolver solver(std::vector<NodeProlongation>{}, pcg);
+  solver.analyzePattern(f.A);
+  solver.factorize(f.A);
+  Eigen::VectorXd x;
+  const SolveStats s = solver.solve(f.b, x);
+  EXPECT_TRUE(s.converged);
+  EXPECT_LE(s.iterations, 2);
+  EXPECT_LE(relativeDifference(x, f.reference), 1e-8);
+}
+
+TEST(PcgSolver, StopsAtTheIterationLimitAndSaysSo) {
+  const Fixture& f = fixture();
+  PcgOptions pcg;
+  pcg.relative_tolerance = 1e-12;
+  pcg.max_iterations = 3;
+  PcgSolver solver(pcg);
+  solver.analyzePattern(f.A);
+  solver.factorize(f.A);
+  Eigen::VectorXd x;
+  const SolveStats s = solver.solve(f.b, x);
+  EXPECT_FALSE(s.converged);
+  EXPECT_EQ(s.iterations, 3);
+  EXPECT_NEAR(s.relative_residual, (f.b - f.A * x).norm() / f.b.norm(), 1e-12);
+  EXPECT_GT(s.relative_residual, 1e-12);
+}
