@@ -21,11 +21,8 @@ namespace {
 using Clock = std::chrono::steady_clock;
 double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
-// Thresholds for going parallel: an OpenMP region costs ~4 µs, and a wait for a descheduled thread
-// when another process holds a core. Matrix passes pay from ~1e5 nonzeros, vector passes (transfers,
-// Jacobi updates) only on large levels.
-constexpr Eigen::Index kParallelNonzeros = 100'000;
-constexpr int kParallelNodes = 4000;
+// Levels below this many nodes run on one thread: waking the second costs more than it saves.
+constexpr int kParallelMinNodes = 400;
 
 double meanBoundaryEdge(const TetMesh& mesh) {
   const Triangles& f = mesh.boundary().triangles;
@@ -396,7 +393,7 @@ void GalerkinProduct::compute(const SparseMatrix& A, const double* free) {
   const int* cout = coarse_.outerIndexPtr();
   double* cval = coarse_.valuePtr();
   const int threads = static_cast<int>(buffers_.size());
-#pragma omp parallel num_threads(threads) if (A.nonZeros() > kParallelNonzeros)
+#pragma omp parallel num_threads(threads) if (P_.rows() > kParallelMinNodes)
   {
     double* C = buffers_[omp_get_thread_num()].data();
 #pragma omp for schedule(dynamic, 32)
@@ -611,7 +608,7 @@ void MultigridPreconditioner::scanLevel(int l) {
   // The coarsest level is solved directly: it only needs its empty rows fixed.
   const bool smoother = l + 1 < numLevels() || numLevels() == 1;
   int bad = -1;
-#pragma omp parallel for schedule(static) if (M.nonZeros() > kParallelNonzeros)
+#pragma omp parallel for schedule(static) if (lv.nodes > kParallelMinNodes)
   for (int i = 0; i < lv.nodes; ++i) {
     double d[9];
     for (int r = 0; r < 3; ++r) {
@@ -685,7 +682,7 @@ void MultigridPreconditioner::estimateDamping(int l) {
   double lambda = 0.0;
   for (int it = 0; it < iterations; ++it) {
     double vv = 0.0, yy = 0.0;
-#pragma omp parallel if (M.nonZeros() > kParallelNonzeros)
+#pragma omp parallel if (lv.nodes > kParallelMinNodes)
     {
 #pragma omp for schedule(static)
       for (int r = 0; r < n; ++r) {
@@ -773,7 +770,7 @@ void MultigridPreconditioner::residual(int l, const double* b, const double* x, 
   const int* inner = M.innerIndexPtr();
   const double* val = M.valuePtr();
   // By node: the three rows share their column indices, and x_J is three adjacent values.
-#pragma omp parallel for schedule(static) if (M.nonZeros() > kParallelNonzeros)
+#pragma omp parallel for schedule(static) if (lv.nodes > kParallelMinNodes)
   for (int i = 0; i < lv.nodes; ++i) {
     const int s0 = outer[3 * i], len = outer[3 * i + 1] - s0;
     const double* v0 = val + s0;
@@ -803,7 +800,7 @@ void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool for
       residual(l, b, x, lv.t.data());
       t = lv.t.data();
     }
-#pragma omp parallel for schedule(static) if (n > kParallelNodes)
+#pragma omp parallel for schedule(static) if (n > kParallelMinNodes)
     for (int i = 0; i < n; ++i) {
       const double* d = dinv + 9 * i;
       const double* s = t + 3 * i;
@@ -822,7 +819,7 @@ void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool for
   const int* inner = M.innerIndexPtr();
   const double* val = M.valuePtr();
   const int colours = static_cast<int>(lv.colour_start.size()) - 1;
-#pragma omp parallel if (M.nonZeros() > kParallelNonzeros)
+#pragma omp parallel if (n > kParallelMinNodes)
   for (int cc = 0; cc < colours; ++cc) {
     const int c = forward ? cc : colours - 1 - cc;
 #pragma omp for schedule(static)
@@ -863,7 +860,7 @@ void MultigridPreconditioner::vcycle(int l, const double* b, double* x) {
   const double* fr = lv.free.data();
   double* bc = next.b.data();
   const int nc = next.nodes;
-#pragma omp parallel for schedule(static) if (lv.nodes > kParallelNodes)
+#pragma omp parallel for schedule(static) if (nc > kParallelMinNodes / 4)
   for (int I = 0; I < nc; ++I) {
     double s0 = 0.0, s1 = 0.0, s2 = 0.0;
     for (int k = lv.child_start[I]; k < lv.child_start[I + 1]; ++k) {
@@ -892,7 +889,7 @@ void MultigridPreconditioner::vcycle(int l, const double* b, double* x) {
   const int* pin = P.innerIndexPtr();
   const double* pval = P.valuePtr();
   const double* xc = next.x.data();
-#pragma omp parallel for schedule(static) if (lv.nodes > kParallelNodes)
+#pragma omp parallel for schedule(static) if (lv.nodes > kParallelMinNodes)
   for (int i = 0; i < lv.nodes; ++i) {
     double s0 = 0.0, s1 = 0.0, s2 = 0.0;
     for (int k = pout[i]; k < pout[i + 1]; ++k) {

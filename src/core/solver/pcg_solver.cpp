@@ -9,11 +9,8 @@ namespace breast_sim::core {
 
 namespace {
 
-// Thresholds for going parallel. A vector operation streams 10–20 µs per 30k entries, an OpenMP
-// region costs ~4 µs and, when another process holds a core, a wait for the descheduled thread:
-// vector work stays serial up to far larger sizes than matrix products.
-constexpr Eigen::Index kParallelVector = 200'000;  // entries
-constexpr Eigen::Index kParallelMatrix = 200'000;  // nonzeros
+// Vectors of a few thousand entries are not worth waking a second thread for.
+constexpr Eigen::Index kParallelMin = 4096;
 
 std::string dofName(Eigen::Index k) {
   std::ostringstream s;
@@ -29,7 +26,7 @@ double residual(const SparseMatrix& A, const Eigen::VectorXd& b, const Eigen::Ve
   const Eigen::Index n = A.rows();
   const double* xp = x.data();
   double rr = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : rr) if (A.nonZeros() > kParallelMatrix)
+#pragma omp parallel for schedule(static) reduction(+ : rr) if (n > kParallelMin)
   for (Eigen::Index i = 0; i < n; ++i) {
     double s = b[i];
     for (int k = outer[i]; k < outer[i + 1]; ++k) s -= val[k] * xp[inner[k]];
@@ -47,7 +44,7 @@ double multiplyDot(const SparseMatrix& A, const Eigen::VectorXd& p, Eigen::Vecto
   const Eigen::Index n = A.rows();
   const double* pp = p.data();
   double pq = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : pq) if (A.nonZeros() > kParallelMatrix)
+#pragma omp parallel for schedule(static) reduction(+ : pq) if (n > kParallelMin)
   for (Eigen::Index i = 0; i < n; ++i) {
     double s = 0.0;
     for (int k = outer[i]; k < outer[i + 1]; ++k) s += val[k] * pp[inner[k]];
@@ -62,7 +59,7 @@ double update(double alpha, const Eigen::VectorXd& p, const Eigen::VectorXd& q, 
               Eigen::VectorXd& r) {
   const Eigen::Index n = x.size();
   double rr = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : rr) if (n > kParallelVector)
+#pragma omp parallel for schedule(static) reduction(+ : rr) if (n > kParallelMin)
   for (Eigen::Index i = 0; i < n; ++i) {
     x[i] += alpha * p[i];
     const double ri = r[i] - alpha * q[i];
@@ -75,7 +72,7 @@ double update(double alpha, const Eigen::VectorXd& p, const Eigen::VectorXd& q, 
 double dot(const Eigen::VectorXd& a, const Eigen::VectorXd& b) {
   const Eigen::Index n = a.size();
   double s = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : s) if (n > kParallelVector)
+#pragma omp parallel for schedule(static) reduction(+ : s) if (n > kParallelMin)
   for (Eigen::Index i = 0; i < n; ++i) s += a[i] * b[i];
   return s;
 }
@@ -83,13 +80,13 @@ double dot(const Eigen::VectorXd& a, const Eigen::VectorXd& b) {
 // p = z + β p
 void updateDirection(double beta, const Eigen::VectorXd& z, Eigen::VectorXd& p) {
   const Eigen::Index n = p.size();
-#pragma omp parallel for schedule(static) if (n > kParallelVector)
+#pragma omp parallel for schedule(static) if (n > kParallelMin)
   for (Eigen::Index i = 0; i < n; ++i) p[i] = z[i] + beta * p[i];
 }
 
 void copy(const Eigen::VectorXd& from, Eigen::VectorXd& to) {
   const Eigen::Index n = from.size();
-#pragma omp parallel for schedule(static) if (n > kParallelVector)
+#pragma omp parallel for schedule(static) if (n > kParallelMin)
   for (Eigen::Index i = 0; i < n; ++i) to[i] = from[i];
 }
 
@@ -123,7 +120,7 @@ void parallelMultiply(const SparseMatrix& A, const Eigen::VectorXd& x, Eigen::Ve
   const double* val = A.valuePtr();
   const Eigen::Index n = A.rows();
   const double* xp = x.data();
-#pragma omp parallel for schedule(static) if (A.nonZeros() > kParallelMatrix)
+#pragma omp parallel for schedule(static) if (n > kParallelMin)
   for (Eigen::Index i = 0; i < n; ++i) {
     double s = 0.0;
     const int end = A.isCompressed() ? outer[i + 1] : outer[i] + A.innerNonZeroPtr()[i];
@@ -157,7 +154,7 @@ void JacobiPreconditioner::factorize(const SparseMatrix& A) {
 
 void JacobiPreconditioner::apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) {
   const Eigen::Index n = r.size();
-#pragma omp parallel for schedule(static) if (n > kParallelVector)
+#pragma omp parallel for schedule(static) if (n > kParallelMin)
   for (Eigen::Index i = 0; i < n; ++i) z[i] = inverse_diagonal_[i] * r[i];
 }
 
@@ -195,7 +192,7 @@ void PcgSolver::factorize(const SparseMatrix& A) {
   const int* outer = A.outerIndexPtr();
   const double* val = A.valuePtr();
   Eigen::Index bad = -1;
-#pragma omp parallel for schedule(static) if (nnz_ > kParallelMatrix)
+#pragma omp parallel for schedule(static) if (n_ > kParallelMin)
   for (Eigen::Index i = 0; i < n_; ++i) {
     const int dk = diagonal_position_[i];
     if (!(val[dk] > 0.0)) {
