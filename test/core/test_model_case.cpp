@@ -48,7 +48,14 @@ TEST(ModelCase, DefaultPhantomModelIsClosedValidAndKeepsTheAnalyticVolume) {
   // Chest-wall nodes lie on the planar wall y = 0; the nipple node at the apex.
   const auto& chest = m.mesh.nodeSet(node_sets::kChestWall);
   ASSERT_FALSE(chest.empty());
-  for (int v : chest) EXPECT_NEAR(m.mesh.nodes()(v, 1), 0.0, 2e-3) << "chest-wall node " << v;
+  // Nodes on the rim where skin meets the wall belong to both sets and may sit a skin element off
+  // the wall; the rest lie on it.
+  int on_wall = 0;
+  for (int v : chest) {
+    EXPECT_NEAR(m.mesh.nodes()(v, 1), 0.0, 4e-3) << "chest-wall node " << v;
+    on_wall += std::abs(m.mesh.nodes()(v, 1)) < 1.5e-3;
+  }
+  EXPECT_GT(on_wall, 0.9 * chest.size());
   ASSERT_EQ(m.mesh.nodeSet(node_sets::kNipple).size(), c.nipples_m.size());
   const int nipple = m.mesh.nodeSet(node_sets::kNipple)[0];
   EXPECT_LT((m.mesh.nodes().row(nipple).transpose() - c.nipples_m[0]).norm(), 3e-3);
