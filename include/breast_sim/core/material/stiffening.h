@@ -1,0 +1,249 @@
+#pragma once
+/// @file stiffening.h
+/// Non-linear material by von Mises stiffening with time-step reversal (seed paper, sections 2.3,
+/// 2.6 and 3.1): per element the modulus factor E_r = 1 + α · s_VM is set between time steps; a step
+/// that inverts an element is reverted and repeated with a larger α; α is decreased again after good
+/// steps, with an oscillation detector that makes it settle; an undo history of n states.
+///
+/// Units: α in 1/Pa, stresses in Pa, E_r dimensionless (E = E_r · E0), speeds in m/s.
+///
+/// Which stress: s_VM is the von Mises norm of the co-rotated Cauchy stress of the BASE material
+/// (modulus E0) at the element's current strain, i.e. ElementFormulation::vonMisesStress() divided by
+/// the element's current factor E_r (the element's stress scales with E_r). So E_r is a function of
+/// the strain alone, E_r = 1 + α · s_VM(E0, ε), and does not feed back on itself from one step to the
+/// next (with the stiffened stress, E_r(t+1) = 1 + α E_r(t) s0 would grow without bound for α s0 ≥ 1).
+///
+/// Which state: the moduli of a step are set from the stress at the start of the step. When a step
+/// is reverted, the per-element stress used for the repeat is the larger of the stress at the start
+/// and at the rejected (inverted) end of the trial step. Without this, a step from an unstressed
+/// state (the first step from the rest shape, s_VM = 0 everywhere) could not be stiffened by any α.
+
+#include <deque>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "breast_sim/core/fem/dynamic_simulator.h"
+#include "breast_sim/core/mesh/tet_mesh.h"
+
+namespace breast_sim::core {
+
+/// How α moves (seed 2.3). The defaults are the "robust general preset": they are used unchanged
+/// for every material, time step and load of the stability map (docs/stability_map).
+struct AlphaControllerParams {
+  /// Starting α [1/Pa]. The seed starts "knowingly too high" and lets the controller decrease it:
+  /// 1e-2 /Pa gives E_r ≈ 8 at the ≈ 700 Pa (ρ g · 7 cm) that gravity puts on the default phantom.
+  double initial_alpha_per_pa = 1e-2;
+  double min_alpha_per_pa = 1e-7;   ///< floor [1/Pa]: below it stiffening is negligible (E_r − 1 < 1e-4 at 1 kPa)
+  double max_alpha_per_pa = 1e4;    ///< ceiling [1/Pa]: E_r up to 1e7 at 1 kPa
+  double decrease_factor = 0.8;     ///< search phase: α ← α · this after an accepted step, in (0, 1)
+  double increase_factor = 2.0;     ///< α ← α · this on a reversal (search phase, and every repeated
+                                    ///< reversal of the same step), > 1
+  /// Settling phase (entered at the first oscillation: a decrease, an increase, a decrease): α changes
+  /// by a rate ρ proportional to its magnitude, Δα = ρ α down after an accepted step and
+  /// k ρ α up on the first reversal of a step, k = (increase_factor − 1) / (1 − decrease_factor) (the
+  /// search phase's up/down ratio). ρ starts at (1 − decrease_factor) · rate_halving and is multiplied
+  /// by rate_halving at every further oscillation, so α converges to just above the smallest α that
+  /// does not invert. In (0, 1).
+  double rate_halving = 0.5;
+  double min_rate = 1e-3;           ///< ρ never falls below this, in [0, 1 − decrease_factor]
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
+  void validate() const;
+};
+
+/// The α controller alone (no simulation): tell it what each step did; it moves α.
+class AlphaController {
+ public:
+  enum class Phase { kSearch, kSettling };
+  /// Everything that defines the controller (for the undo history).
+  struct State {
+    double alpha_per_pa = 0.0;
+    Phase phase = Phase::kSearch;
+    double rate = 0.0;         ///< ρ of the settling phase
+    int oscillations = 0;      ///< decrease–increase–decrease patterns seen since the last restart
+    /// Directions of the last three runs of equal changes, newest first: −1 decrease, +1 increase,
+    /// 0 none yet (since the last restart). (−1, +1, −1) is an oscillation.
+    int runs[3] = {0, 0, 0};
+  };
+
+  /// @throws std::invalid_argument as AlphaControllerParams::validate.
+  explicit AlphaController(const AlphaControllerParams& params = {});
+  const AlphaControllerParams& params() const { return params_; }
+  double alpha() const { return s_.alpha_per_pa; }  ///< [1/Pa]
+  Phase phase() const { return s_.phase; }
+  double rate() const { return s_.rate; }
+  int oscillations() const { return s_.oscillations; }
+
+  /// A step was accepted (no inversion): decrease α (never below min_alpha_per_pa).
+  void onAccepted();
+  /// A step was reverted. @param attempt 1 for the first reversal of this step, 2 for the next, …:
+  /// repeated reversals of the same step always multiply α by increase_factor (never above max).
+  void onReversed(int attempt);
+  /// New search from the initial α (boundary conditions changed).
+  void restart();
+  /// Starts over from a given α [1/Pa] (clamped to [min, max]) in the search phase.
+  void restart(double alpha_per_pa);
+
+  const State& state() const { return s_; }
+  void setState(const State& s) { s_ = s; }
+
+ private:
+  void recordChange(int direction);
+  AlphaControllerParams params_;
+  State s_;
+};
+
+/// When a run counts as settled: max nodal speed and the relative static residual, per step.
+struct SettleCriterion {
+  double max_speed_mps = 1e-3;         ///< every free node slower than this [m/s]
+  /// ‖f_el + f_ext + M g‖ / ‖f_ext + M g‖ over the free DOFs below this (static equilibrium).
+  double max_relative_residual = 1e-2;
+  int consecutive_steps = 3;           ///< both hold for this many accepted steps in a row
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
+  void validate() const;
+};
+
+/// One evaluation of the settle criterion.
+struct SettleCheck {
+  double max_speed_mps = 0.0;       ///< over free nodes [m/s]
+  double relative_residual = 0.0;   ///< see SettleCriterion
+  bool below = false;               ///< both below their thresholds at this step
+};
+
+/// Evaluates the criterion at one state. Usable with any integrator.
+/// @param velocity_mps   3N [m/s]
+/// @param elastic_force_n 3N elastic forces at the same state [N] (ElementFormulation::update)
+/// @param external_force_n 3N other forces [N], or an empty vector for none
+/// @param mass_kg        N lumped masses [kg]
+/// @param fixed_node     N flags: 1 = the node is constrained (left out of both measures)
+SettleCheck evaluateSettle(const SettleCriterion& criterion, const Eigen::VectorXd& velocity_mps,
+                           const Eigen::VectorXd& elastic_force_n, const Eigen::VectorXd& external_force_n,
+                           const Eigen::VectorXd& mass_kg, const Eigen::Vector3d& gravity_mps2,
+                           const std::vector<char>& fixed_node);
+
+/// Parameters of the stiffening driver.
+struct StiffeningParams {
+  AlphaControllerParams alpha;
+  SettleCriterion settle;
+  bool update_moduli = true;        ///< false: E stays E0 (co-rotated with fixed E, or linear)
+  bool reversal = true;             ///< false: von Mises update with α fixed, no inversion check/undo
+  int max_reversals_per_step = 10;  ///< a step still inverting after this many reversals is not taken
+  int history_size = 8;             ///< undo history: this many accepted states, round-robin, ≥ 1
+  /// A gravity change by more than this angle [degrees] restarts the α search (seed 2.3).
+  double gravity_direction_tolerance_deg = 5.0;
+  /// Modulus factors are clamped to this [1]: keeps the system matrix well conditioned.
+  double max_modulus_factor = 1e6;
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
+  void validate() const;
+};
+
+/// What one call of StiffeningSimulation::step() did.
+struct StiffeningStepResult {
+  bool advanced = false;       ///< a step without inversion was taken (or reversal is off)
+  int reversals = 0;           ///< trial steps reverted in this call
+  bool reversal_limit_hit = false;  ///< max_reversals_per_step reached: state left at the start of the call
+  int inverted_elements = 0;   ///< at the end of the call (0 with reversal on, unless the start had some)
+  double alpha_per_pa = 0.0;   ///< after the call [1/Pa]
+  SettleCheck settle;          ///< at the end of the call
+};
+
+/// Statistics of a run (the same for every method, explicit Euler included).
+struct RunStats {
+  long steps = 0;                   ///< accepted steps
+  long reversed_steps = 0;          ///< trial steps reverted
+  double reversal_fraction = 0.0;   ///< reversed / (accepted + reversed)
+  long reversal_limit_hits = 0;     ///< calls that could not advance
+  double final_alpha_per_pa = 0.0;  ///< 0 when α is not used
+  int inverted_elements = 0;        ///< at the end
+  bool nan = false;                 ///< non-finite displacement at the end (or the run stopped on one)
+  bool exploded = false;            ///< explicit Euler: displacement or speed past the divergence limits
+  double max_displacement_m = 0.0;  ///< largest nodal displacement at the end [m]
+  double volume_change_percent = 0.0;  ///< (V − V0) / V0 · 100 at the end [%]
+  double max_modulus_factor = 1.0;  ///< largest E_r at the end [1]
+  bool settled = false;             ///< the settle criterion held (consecutive_steps in a row)
+  long steps_to_settle = -1;        ///< accepted steps until then, −1 if never
+  double simulated_time_s = 0.0;
+  double wall_seconds = 0.0;
+};
+
+/// Signed volume change [%] and largest displacement [m] of a displacement field (3N [m]).
+void deformationMeasures(const TetMesh& mesh, const Eigen::VectorXd& displacement_m, double& volume_change_percent,
+                         double& max_displacement_m);
+
+/// The seed's loop around a DynamicSimulator:
+///   save state → set moduli E_r = 1 + α s_VM → step → inverted elements (rest + u)?
+///     yes: restore, increase α, repeat (external forces are not touched: a caller adds its forces
+///          before step(), and the repeats inside step() reuse them, seed 2.6)
+///     no:  decrease α, push the state to the undo history.
+/// Constraints, gravity and external forces go through this class (it forwards them to the
+/// simulator and keeps what the settle criterion needs).
+class StiffeningSimulation {
+ public:
+  /// One undo-history entry: restores the simulation exactly.
+  struct HistoryEntry {
+    SimulationState state;
+    Eigen::VectorXd modulus_factors;
+    AlphaController::State controller;
+  };
+
+  /// @param sim   the simulator (not owned; must outlive this), built on `mesh`
+  /// @param mesh  rest mesh (kept by reference; must outlive this)
+  /// @throws std::invalid_argument for invalid parameters or a size mismatch.
+  StiffeningSimulation(DynamicSimulator& sim, const TetMesh& mesh, const StiffeningParams& params = {});
+
+  void fixNodes(const std::vector<int>& nodes);
+  /// Sets gravity [m/s²]; a direction change beyond the tolerance restarts the α search.
+  /// @return whether the search was restarted.
+  bool setGravity(const Eigen::Vector3d& g_mps2);
+  /// Restarts the α search from the initial α (any other boundary-condition change).
+  void restartAlphaSearch();
+  void addNodalForces(const std::vector<int>& nodes, const Points& forces_n);
+  void clearExternalForces();
+
+  /// One step with reversal (see the class comment). Never loops more than max_reversals_per_step
+  /// times. A solver failure (non-finite solution, matrix not positive definite) counts as an
+  /// inversion.
+  StiffeningStepResult step();
+
+  /// Undo history: number of stored states (≤ history_size); k = 0 is the newest.
+  int historySize() const { return static_cast<int>(history_.size()); }
+  const HistoryEntry& history(int k) const;
+  /// Restores history entry k exactly (state, modulus factors, α controller); the entries newer
+  /// than k are dropped. @throws std::out_of_range for k outside [0, historySize()).
+  void revertTo(int k);
+
+  const AlphaController& controller() const { return controller_; }
+  AlphaController& controller() { return controller_; }
+  DynamicSimulator& simulator() { return sim_; }
+  const StiffeningParams& params() const { return params_; }
+  /// Base-material von Mises stress at the current state [Pa], #T.
+  const Eigen::VectorXd& baseStress() const { return base_stress_; }
+  /// Statistics so far (wall_seconds: time spent inside step()).
+  RunStats stats() const;
+  /// Sum of all forces except elastic ones is kept here for the residual: 3N [N].
+  const Eigen::VectorXd& externalForces() const { return external_force_; }
+
+ private:
+  void refreshStress();  // elastic update at the current state: base stress, f_el
+  void setModuli(const Eigen::VectorXd& stress);
+  void pushHistory();
+  int countInverted();
+
+  DynamicSimulator& sim_;
+  const TetMesh& mesh_;
+  StiffeningParams params_;
+  AlphaController controller_;
+  std::deque<HistoryEntry> history_;  // front = newest
+  std::vector<char> fixed_node_;
+  Eigen::VectorXd external_force_;
+  Eigen::VectorXd base_stress_, trial_stress_, f_el_;
+  Points x_;
+  long accepted_ = 0, reversed_ = 0, limit_hits_ = 0, steps_to_settle_ = -1;
+  int settle_run_ = 0;
+  bool settled_ = false;
+  double wall_ = 0.0;
+  int last_inverted_ = 0;
+};
+
+}  // namespace breast_sim::core

@@ -1,0 +1,348 @@
+#include "breast_sim/core/material/stiffening.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <sstream>
+#include <limits>
+#include <stdexcept>
+
+#include "breast_sim/core/mesh/tet_quality.h"
+
+namespace breast_sim::core {
+
+namespace {
+
+[[noreturn]] void bad(const char* who, const char* name, double v, const char* range) {
+  std::ostringstream s;
+  s << who << " '" << name << "' = " << v << " is invalid: expected " << range;
+  throw std::invalid_argument(s.str());
+}
+
+double since(std::chrono::steady_clock::time_point t) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------------
+void AlphaControllerParams::validate() const {
+  const char* w = "alpha controller";
+  if (!(min_alpha_per_pa > 0) || !std::isfinite(min_alpha_per_pa))
+    bad(w, "min_alpha_per_pa", min_alpha_per_pa, "a positive finite α floor [1/Pa], e.g. 1e-7");
+  if (!(max_alpha_per_pa >= min_alpha_per_pa) || !std::isfinite(max_alpha_per_pa))
+    bad(w, "max_alpha_per_pa", max_alpha_per_pa, "finite and ≥ min_alpha_per_pa [1/Pa], e.g. 1e4");
+  if (!(initial_alpha_per_pa >= min_alpha_per_pa && initial_alpha_per_pa <= max_alpha_per_pa))
+    bad(w, "initial_alpha_per_pa", initial_alpha_per_pa, "within [min_alpha_per_pa, max_alpha_per_pa] [1/Pa], e.g. 1e-2");
+  if (!(decrease_factor > 0 && decrease_factor < 1))
+    bad(w, "decrease_factor", decrease_factor, "in (0, 1), e.g. 0.8");
+  if (!(increase_factor > 1) || !std::isfinite(increase_factor))
+    bad(w, "increase_factor", increase_factor, "> 1 and finite, e.g. 2");
+  if (!(rate_halving > 0 && rate_halving < 1)) bad(w, "rate_halving", rate_halving, "in (0, 1), e.g. 0.5");
+  if (!(min_rate >= 0 && min_rate <= 1 - decrease_factor))
+    bad(w, "min_rate", min_rate, "in [0, 1 − decrease_factor], e.g. 1e-3");
+}
+
+AlphaController::AlphaController(const AlphaControllerParams& params) : params_(params) {
+  params_.validate();
+  restart();
+}
+
+void AlphaController::restart() { restart(params_.initial_alpha_per_pa); }
+
+void AlphaController::restart(double alpha_per_pa) {
+  if (!std::isfinite(alpha_per_pa))
+    bad("alpha controller", "restart alpha_per_pa", alpha_per_pa, "a finite α [1/Pa]");
+  s_ = State{};
+  s_.alpha_per_pa = std::clamp(alpha_per_pa, params_.min_alpha_per_pa, params_.max_alpha_per_pa);
+}
+
+void AlphaController::recordChange(int direction) {
+  if (direction == s_.runs[0]) return;  // same run
+  s_.runs[2] = s_.runs[1];
+  s_.runs[1] = s_.runs[0];
+  s_.runs[0] = direction;
+  if (s_.runs[0] == -1 && s_.runs[1] == 1 && s_.runs[2] == -1) {  // decrease, increase, decrease
+    ++s_.oscillations;
+    if (s_.phase == Phase::kSearch) {
+      s_.phase = Phase::kSettling;
+      s_.rate = std::max((1.0 - params_.decrease_factor) * params_.rate_halving, params_.min_rate);
+    } else {
+      s_.rate = std::max(s_.rate * params_.rate_halving, params_.min_rate);
+    }
+  }
+}
+
+void AlphaController::onAccepted() {
+  const double f = s_.phase == Phase::kSearch ? params_.decrease_factor : 1.0 - s_.rate;
+  s_.alpha_per_pa = std::max(s_.alpha_per_pa * f, params_.min_alpha_per_pa);
+  recordChange(-1);
+}
+
+void AlphaController::onReversed(int attempt) {
+  double f = params_.increase_factor;
+  if (s_.phase == Phase::kSettling && attempt <= 1) {
+    const double k = (params_.increase_factor - 1.0) / (1.0 - params_.decrease_factor);
+    f = 1.0 + k * s_.rate;
+  }
+  s_.alpha_per_pa = std::min(s_.alpha_per_pa * f, params_.max_alpha_per_pa);
+  recordChange(+1);
+}
+
+// ---------------------------------------------------------------------------------------------------
+void SettleCriterion::validate() const {
+  const char* w = "settle criterion";
+  if (!(max_speed_mps > 0) || !std::isfinite(max_speed_mps))
+    bad(w, "max_speed_mps", max_speed_mps, "a positive speed [m/s], e.g. 1e-3");
+  if (!(max_relative_residual > 0) || !std::isfinite(max_relative_residual))
+    bad(w, "max_relative_residual", max_relative_residual, "a positive ratio, e.g. 1e-2");
+  if (consecutive_steps < 1) bad(w, "consecutive_steps", consecutive_steps, "≥ 1");
+}
+
+SettleCheck evaluateSettle(const SettleCriterion& criterion, const Eigen::VectorXd& velocity_mps,
+                           const Eigen::VectorXd& elastic_force_n, const Eigen::VectorXd& external_force_n,
+                           const Eigen::VectorXd& mass_kg, const Eigen::Vector3d& gravity_mps2,
+                           const std::vector<char>& fixed_node) {
+  const Eigen::Index n = mass_kg.size();
+  if (velocity_mps.size() != 3 * n || elastic_force_n.size() != 3 * n ||
+      (external_force_n.size() != 0 && external_force_n.size() != 3 * n) || static_cast<Eigen::Index>(fixed_node.size()) != n)
+    throw std::invalid_argument("evaluateSettle: sizes do not match " + std::to_string(n) + " nodes");
+  double vmax2 = 0.0, r2 = 0.0, l2 = 0.0;
+  bool finite = true;
+  for (Eigen::Index i = 0; i < n; ++i) {
+    if (fixed_node[i]) continue;
+    const Eigen::Vector3d v = velocity_mps.segment<3>(3 * i);
+    Eigen::Vector3d load = mass_kg[i] * gravity_mps2;
+    if (external_force_n.size()) load += external_force_n.segment<3>(3 * i);
+    const Eigen::Vector3d res = load + elastic_force_n.segment<3>(3 * i);
+    if (!v.allFinite() || !res.allFinite()) finite = false;
+    vmax2 = std::max(vmax2, v.squaredNorm());
+    r2 += res.squaredNorm();
+    l2 += load.squaredNorm();
+  }
+  SettleCheck c;
+  c.max_speed_mps = finite ? std::sqrt(vmax2) : std::numeric_limits<double>::quiet_NaN();
+  c.relative_residual = !finite ? std::numeric_limits<double>::quiet_NaN() : l2 > 0 ? std::sqrt(r2 / l2) : std::sqrt(r2);
+  c.below = finite && c.max_speed_mps < criterion.max_speed_mps && c.relative_residual < criterion.max_relative_residual;
+  return c;
+}
+
+// ---------------------------------------------------------------------------------------------------
+void StiffeningParams::validate() const {
+  alpha.validate();
+  settle.validate();
+  const char* w = "stiffening";
+  if (max_reversals_per_step < 1) bad(w, "max_reversals_per_step", max_reversals_per_step, "≥ 1, e.g. 10");
+  if (history_size < 1) bad(w, "history_size", history_size, "≥ 1 stored states, e.g. 8");
+  if (!(gravity_direction_tolerance_deg >= 0 && gravity_direction_tolerance_deg <= 180))
+    bad(w, "gravity_direction_tolerance_deg", gravity_direction_tolerance_deg, "in [0, 180] degrees, e.g. 5");
+  if (!(max_modulus_factor > 1) || !std::isfinite(max_modulus_factor))
+    bad(w, "max_modulus_factor", max_modulus_factor, "> 1 and finite, e.g. 1e6");
+}
+
+void deformationMeasures(const TetMesh& mesh, const Eigen::VectorXd& u, double& volume_change_percent,
+                         double& max_displacement_m) {
+  const int nn = mesh.numNodes();
+  if (u.size() != 3 * nn) throw std::invalid_argument("deformationMeasures: displacement size does not match the mesh");
+  double vmax2 = 0.0;
+  bool finite = true;
+  for (int i = 0; i < nn; ++i) {
+    const double d2 = u.segment<3>(3 * i).squaredNorm();
+    if (!std::isfinite(d2)) finite = false;
+    vmax2 = std::max(vmax2, d2);
+  }
+  max_displacement_m = finite ? std::sqrt(vmax2) : std::numeric_limits<double>::quiet_NaN();
+  const Tets& T = mesh.tets();
+  double v = 0.0;
+#pragma omp parallel for reduction(+ : v) schedule(static)
+  for (int e = 0; e < mesh.numTets(); ++e) {
+    Eigen::Vector3d p[4];
+    for (int k = 0; k < 4; ++k) p[k] = mesh.nodes().row(T(e, k)).transpose() + u.segment<3>(3 * T(e, k));
+    v += signedTetVolume(p[0], p[1], p[2], p[3]);
+  }
+  const double v0 = mesh.volume();
+  volume_change_percent = 100.0 * (v - v0) / v0;
+}
+
+// ---------------------------------------------------------------------------------------------------
+StiffeningSimulation::StiffeningSimulation(DynamicSimulator& sim, const TetMesh& mesh, const StiffeningParams& params)
+    : sim_(sim), mesh_(mesh), params_(params), controller_((params.validate(), params.alpha)) {
+  if (sim_.numNodes() != mesh_.numNodes())
+    throw std::invalid_argument("StiffeningSimulation: the simulator has " + std::to_string(sim_.numNodes()) +
+                                " nodes, the mesh " + std::to_string(mesh_.numNodes()));
+  if (sim_.elements().modulusFactors().size() != mesh_.numTets())
+    throw std::invalid_argument("StiffeningSimulation: the element formulation has " +
+                                std::to_string(sim_.elements().modulusFactors().size()) + " elements, the mesh " +
+                                std::to_string(mesh_.numTets()));
+  fixed_node_.assign(mesh_.numNodes(), 0);
+  external_force_ = Eigen::VectorXd::Zero(3 * mesh_.numNodes());
+  x_ = mesh_.nodes();
+  refreshStress();
+  last_inverted_ = countInverted();
+  pushHistory();
+}
+
+void StiffeningSimulation::fixNodes(const std::vector<int>& nodes) {
+  sim_.fixNodes(nodes);  // validates the indices
+  for (int n : nodes) fixed_node_[n] = 1;
+  settle_run_ = 0;
+}
+
+bool StiffeningSimulation::setGravity(const Eigen::Vector3d& g) {
+  if (!g.allFinite()) bad("stiffening", "gravity_mps2 norm", g.norm(), "finite components [m/s²]");
+  const Eigen::Vector3d old = sim_.params().gravity_mps2;
+  sim_.setGravity(g);
+  settle_run_ = 0;
+  bool changed;
+  if (old.norm() == 0.0 || g.norm() == 0.0) {
+    changed = (old.norm() == 0.0) != (g.norm() == 0.0);
+  } else {
+    const double c = std::clamp(old.normalized().dot(g.normalized()), -1.0, 1.0);
+    changed = std::acos(c) * 180.0 / 3.14159265358979323846 > params_.gravity_direction_tolerance_deg;
+  }
+  if (changed) restartAlphaSearch();
+  return changed;
+}
+
+void StiffeningSimulation::restartAlphaSearch() {
+  controller_.restart();
+  settle_run_ = 0;
+}
+
+void StiffeningSimulation::addNodalForces(const std::vector<int>& nodes, const Points& forces_n) {
+  sim_.addNodalForces(nodes, forces_n);  // validates
+  for (size_t i = 0; i < nodes.size(); ++i)
+    external_force_.segment<3>(3 * nodes[i]) += forces_n.row(static_cast<Eigen::Index>(i)).transpose();
+  settle_run_ = 0;
+}
+
+void StiffeningSimulation::clearExternalForces() {
+  sim_.clearExternalForces();
+  external_force_.setZero();
+  settle_run_ = 0;
+}
+
+void StiffeningSimulation::refreshStress() {
+  f_el_ = sim_.elasticForces();
+  const Eigen::VectorXd& vm = sim_.elements().vonMisesStress();
+  const Eigen::VectorXd& er = sim_.elements().modulusFactors();
+  base_stress_ = vm.cwiseQuotient(er);
+}
+
+void StiffeningSimulation::setModuli(const Eigen::VectorXd& stress) {
+  const double a = controller_.alpha();
+  Eigen::VectorXd er(stress.size());
+  for (Eigen::Index e = 0; e < stress.size(); ++e) {
+    const double s = std::isfinite(stress[e]) ? stress[e] : 0.0;
+    er[e] = std::min(1.0 + a * s, params_.max_modulus_factor);
+  }
+  sim_.elements().setModulusFactors(er);
+}
+
+int StiffeningSimulation::countInverted() {
+  const Eigen::VectorXd& u = sim_.state().displacement_m;
+  for (int n = 0; n < mesh_.numNodes(); ++n) x_.row(n) = mesh_.nodes().row(n) + u.segment<3>(3 * n).transpose();
+  return static_cast<int>(invertedTets(mesh_.tets(), x_).size());
+}
+
+void StiffeningSimulation::pushHistory() {
+  history_.push_front(HistoryEntry{sim_.state(), sim_.elements().modulusFactors(), controller_.state()});
+  while (static_cast<int>(history_.size()) > params_.history_size) history_.pop_back();
+}
+
+const StiffeningSimulation::HistoryEntry& StiffeningSimulation::history(int k) const {
+  if (k < 0 || k >= historySize())
+    throw std::out_of_range("history: entry " + std::to_string(k) + " is not in [0, " + std::to_string(historySize()) + ")");
+  return history_[static_cast<size_t>(k)];
+}
+
+void StiffeningSimulation::revertTo(int k) {
+  const HistoryEntry e = history(k);  // copy: the deque changes below
+  sim_.restore(e.state);
+  sim_.elements().setModulusFactors(e.modulus_factors);
+  controller_.setState(e.controller);
+  history_.erase(history_.begin(), history_.begin() + k);
+  refreshStress();
+  last_inverted_ = countInverted();
+  settle_run_ = 0;
+}
+
+StiffeningStepResult StiffeningSimulation::step() {
+  const auto t0 = std::chrono::steady_clock::now();
+  StiffeningStepResult r;
+  const bool reversal = params_.update_moduli && params_.reversal;
+  if (!reversal) {
+    if (params_.update_moduli) setModuli(base_stress_);  // α stays at the initial value
+    sim_.step();  // a solver failure propagates: nothing to fall back to without reversal
+    r.advanced = true;
+  } else {
+    const SimulationState saved = sim_.state();
+    Eigen::VectorXd stress = base_stress_;
+    for (int attempt = 1;; ++attempt) {
+      setModuli(stress);
+      bool solved = true;
+      try {
+        sim_.step();
+      } catch (const std::runtime_error&) {
+        solved = false;  // e.g. non-finite velocities: treated like an inversion
+      }
+      if (solved && countInverted() == 0) {
+        controller_.onAccepted();
+        r.advanced = true;
+        break;
+      }
+      if (solved) {
+        // Stress at the rejected end of the trial (see the file comment); NaN entries are ignored.
+        sim_.elasticForces();
+        const Eigen::VectorXd trial = sim_.elements().vonMisesStress().cwiseQuotient(sim_.elements().modulusFactors());
+        for (Eigen::Index e = 0; e < stress.size(); ++e)
+          if (std::isfinite(trial[e]) && trial[e] > stress[e]) stress[e] = trial[e];
+      }
+      sim_.restore(saved);
+      ++reversed_;
+      ++r.reversals;
+      controller_.onReversed(attempt);
+      if (attempt >= params_.max_reversals_per_step) {
+        r.reversal_limit_hit = true;
+        ++limit_hits_;
+        setModuli(stress);  // the stiffest moduli tried, with the increased α, for the next call
+        break;
+      }
+    }
+  }
+  refreshStress();
+  last_inverted_ = countInverted();
+  if (r.advanced) {
+    ++accepted_;
+    r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, external_force_, sim_.lumpedMass(),
+                              sim_.params().gravity_mps2, fixed_node_);
+    settle_run_ = r.settle.below ? settle_run_ + 1 : 0;
+    if (settle_run_ >= params_.settle.consecutive_steps && steps_to_settle_ < 0) steps_to_settle_ = accepted_;
+    settled_ = settle_run_ >= params_.settle.consecutive_steps;
+    pushHistory();
+  }
+  r.inverted_elements = last_inverted_;
+  r.alpha_per_pa = controller_.alpha();
+  wall_ += since(t0);
+  return r;
+}
+
+RunStats StiffeningSimulation::stats() const {
+  RunStats s;
+  s.steps = accepted_;
+  s.reversed_steps = reversed_;
+  s.reversal_fraction = accepted_ + reversed_ > 0 ? static_cast<double>(reversed_) / static_cast<double>(accepted_ + reversed_) : 0.0;
+  s.reversal_limit_hits = limit_hits_;
+  s.final_alpha_per_pa = params_.update_moduli ? controller_.alpha() : 0.0;
+  s.inverted_elements = last_inverted_;
+  s.nan = !sim_.state().displacement_m.allFinite();
+  deformationMeasures(mesh_, sim_.state().displacement_m, s.volume_change_percent, s.max_displacement_m);
+  s.max_modulus_factor = sim_.elements().modulusFactors().maxCoeff();
+  s.settled = settled_;
+  s.steps_to_settle = steps_to_settle_;
+  s.simulated_time_s = sim_.state().time_s;
+  s.wall_seconds = wall_;
+  return s;
+}
+
+}  // namespace breast_sim::core
