@@ -2,13 +2,13 @@
 # Quick-start command 1: the main job on the built-in phantom.
 # Installs what it needs (Debian 12, as root), builds the catkin workspace outside the source tree,
 # builds the simulation model of the phantom and writes the results to an output folder.
-# Usage: scripts/run_main.sh [OUTPUT_DIR] [extra breast_sim_model options]
+# Usage: scripts/run_main.sh [OUTPUT_DIR] [extra breast_sim_run options]
 set -euo pipefail
 source "$(dirname "$0")/common.sh"
 out="${1:-${BREAST_SIM_SRC}/output}"; shift || true
 mkdir -p "${BREAST_SIM_WORK}"
 install_deps
 build_catkin_ws
-tool="${BREAST_SIM_WS}/devel/lib/breast_sim/breast_sim_model"
-log "main job: prone phantom model → ${out}"
+tool="${BREAST_SIM_WS}/devel/lib/breast_sim/breast_sim_run"
+log "main job: phantom model and supine gravity → ${out}"
 "${tool}" --case "${BREAST_SIM_SRC}/config/phantom_default.yaml" --out "${out}" "$@"

@@ -1,16 +1,24 @@
-// breast_sim_model: builds the simulation model of a case (the software phantom or a label image) and
-// writes it for ParaView / 3D Slicer / CalculiX, with the lesions and a summary.
+// breast_sim_run: builds the simulation model of a case (the software phantom or a label image), writes
+// it for ParaView / 3D Slicer / CalculiX, then loads it with gravity of the supine position and runs
+// the co-rotated FEM until it settles; writes the deformed mesh, the lesion positions and a summary.
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
 #include <string>
 
+#include <unistd.h>
+
 #include <nlohmann/json.hpp>
 
+#include "breast_sim/core/fem/equilibrium.h"
+#include "breast_sim/core/fem/simulation_settings.h"
 #include "breast_sim/core/image/label_image.h"
 #include "breast_sim/core/mesh/mesh_io.h"
+#include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
 
@@ -19,24 +27,31 @@ using namespace breast_sim::core;
 
 namespace {
 
-const char* kUsage = R"(usage: breast_sim_model --case CASE.yaml --out DIR [--target-elements N] [--json FILE]
+const char* kUsage = R"(usage: breast_sim_run --case CASE.yaml --out DIR [--target-elements N] [--model-only]
+                      [--solver multigrid|cholmod|jacobi-pcg] [--json FILE] [--quiet]
 
-Builds the tetrahedral simulation model of a case and writes to DIR:
-  model.vtu           mesh with region labels, node sets and element quality (ParaView, 3D Slicer)
-  model.inp           the same mesh for CalculiX / Abaqus (C3D4, mm)
-  lesions.csv/.json   lesion positions in the prone image [mm]
-  model_summary.json  counts, timings, quality, volumes
+Builds the tetrahedral simulation model of a case, simulates gravity of the supine position on it
+until it settles (the case's `simulation:` map, see config/phantom_default.yaml) and writes to DIR:
+  model.vtu             prone mesh with region labels, node sets and element quality (ParaView, 3D Slicer)
+  model.inp             the same mesh for CalculiX / Abaqus (C3D4, mm)
+  supine_gravity.vtu    the settled deformed mesh: displacement_mm, von_mises_pa per element
+  lesions.csv/.json     lesion positions, prone and after gravity [mm]
+  model_summary.json    counts, timings, quality, volumes, and the simulation's statistics
   prone_labels.nrrd, prone_surface.obj, supine_target.obj   (phantom cases only)
 Options:
   --case FILE            YAML case file (see config/phantom_default.yaml)
   --out DIR              output folder (created)
   --target-elements N    overrides meshing.target_elements of the case
+  --model-only           build and write the model, do not simulate
+  --solver NAME          overrides simulation.solver
   --json FILE            also write the summary to FILE
+  --quiet                no progress bar
 )";
 
 struct Args {
-  std::string case_file, out_dir, json;
+  std::string case_file, out_dir, json, solver;
   int target_elements = 0;
+  bool model_only = false, quiet = false;
 };
 
 Args parse(int argc, char** argv) {
@@ -50,6 +65,9 @@ Args parse(int argc, char** argv) {
     if (k == "--case") a.case_file = value();
     else if (k == "--out") a.out_dir = value();
     else if (k == "--json") a.json = value();
+    else if (k == "--solver") a.solver = value();
+    else if (k == "--model-only") a.model_only = true;
+    else if (k == "--quiet") a.quiet = true;
     else if (k == "--target-elements") {
       const std::string v = value();
       try {
@@ -67,6 +85,36 @@ Args parse(int argc, char** argv) {
   return a;
 }
 
+/// Gravity load of the supine position on the prone model [m/s²]: the prone shape already hangs under
+/// prone gravity, so the load that takes it to supine is g_supine − g_prone (first-order unloading;
+/// a gravity-free reference state is future work, as in the seed paper's section 5). The phantom
+/// brings its own (tilted) supine gravity; an image case turns the prone direction around.
+Eigen::Vector3d supineGravityLoad(const ModelCase& c, double g) {
+  const Eigen::Vector3d prone = g * c.prone_gravity_direction.normalized();
+  const Eigen::Vector3d supine = c.phantom ? c.phantom->gravity_supine_mps2 : Eigen::Vector3d(-prone);
+  return supine - prone;
+}
+
+void progressBar(int step, int max_steps, double increment_m, double tolerance_m) {
+  // In a log (not a terminal) one line every 10 steps instead of a redrawn bar.
+  static const bool tty = isatty(fileno(stderr));
+  if (!tty) {
+    if (step % 10 == 0 || step == 1)
+      std::fprintf(stderr, "  settling: step %d/%d, largest change %.4f mm\n", step, max_steps, increment_m * 1e3);
+    return;
+  }
+  // Progress by the increment's approach to the tolerance on a log scale (steps alone say little).
+  static double first = 0.0;
+  if (step == 1) first = increment_m;
+  double f = 0.0;
+  if (first > tolerance_m && increment_m > 0)
+    f = std::clamp(std::log(first / increment_m) / std::log(first / tolerance_m), 0.0, 1.0);
+  const int width = 30, filled = static_cast<int>(f * width);
+  std::fprintf(stderr, "\r  settling [%s%s] step %d/%d, largest change %.4f mm   ", std::string(filled, '#').c_str(),
+               std::string(width - filled, ' ').c_str(), step, max_steps, increment_m * 1e3);
+  std::fflush(stderr);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -75,9 +123,11 @@ int main(int argc, char** argv) {
     const auto t0 = std::chrono::steady_clock::now();
     ModelCase c = loadModelCase(args.case_file);
     if (args.target_elements > 0) c.meshing.target_elements = args.target_elements;
+    SimulationSettings settings = loadSimulationSettings(args.case_file);
+    if (!args.solver.empty()) settings.solver.kind = SolverSettings::kindFromName(args.solver);
     const double t_case = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     const SimulationModel m = buildSimulationModel(c);
-    const double t_total = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    const double t_model = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 
     fs::create_directories(args.out_dir);
     const fs::path out(args.out_dir);
@@ -98,22 +148,6 @@ int main(int argc, char** argv) {
     writeTetMesh((out / "model.vtu").string(), m.mesh, fields);
     writeTetMesh((out / "model.inp").string(), m.mesh, {}, 1e-3);
 
-    nlohmann::json lesions = nlohmann::json::array();
-    std::ofstream csv(out / "lesions.csv");
-    csv << "name,x_mm,y_mm,z_mm,radius_mm,tet,outside_mm\n";
-    for (size_t i = 0; i < m.lesions.size(); ++i) {
-      const auto& l = m.lesions[i];
-      const auto& e = m.lesion_embedding.points()[i];
-      csv << l.name << ',' << l.position_m.x() * 1e3 << ',' << l.position_m.y() * 1e3 << ','
-          << l.position_m.z() * 1e3 << ',' << l.radius_m * 1e3 << ',' << e.tet << ','
-          << e.outside_distance_m * 1e3 << '\n';
-      lesions.push_back({{"name", l.name},
-                         {"prone_mm", {l.position_m.x() * 1e3, l.position_m.y() * 1e3, l.position_m.z() * 1e3}},
-                         {"radius_mm", l.radius_m * 1e3},
-                         {"tet", e.tet}});
-    }
-    std::ofstream(out / "lesions.json") << lesions.dump(2) << '\n';
-
     const double mesh_volume = m.mesh.volume();
     nlohmann::json s;
     s["case"] = c.name;
@@ -124,7 +158,7 @@ int main(int argc, char** argv) {
     s["boundary_faces"] = m.mesh.boundary().triangles.rows();
     s["prone_gravity_direction"] = {c.prone_gravity_direction.x(), c.prone_gravity_direction.y(), c.prone_gravity_direction.z()};
     s["boundary_closed"] = isClosedManifold(m.mesh.boundary().triangles);
-    s["seconds"] = {{"case_and_image", t_case}, {"meshing", m.meshing.seconds}, {"total", t_total}};
+    s["seconds"] = {{"case_and_image", t_case}, {"meshing", m.meshing.seconds}, {"model_total", t_model}};
     s["meshing"] = {{"passes", m.meshing.passes},
                     {"interior_size_mm", m.meshing.interior_size_m * 1e3},
                     {"skin_size_mm", m.meshing.skin_size_m * 1e3},
@@ -149,11 +183,83 @@ int main(int argc, char** argv) {
       writePhantomSurface((out / "prone_surface.obj").string(), c.phantom->prone_surface);
       writePhantomSurface((out / "supine_target.obj").string(), c.phantom->supine_surface);
     }
+
+    // Gravity of the supine position, settled.
+    Points lesions_after;
+    SettleResult settled;
+    if (!args.model_only) {
+      const Eigen::Vector3d g_load = supineGravityLoad(c, settings.gravity_mps2);
+      settings.dynamics.gravity_mps2 = g_load;
+      const auto ts = std::chrono::steady_clock::now();
+      SimulatorBuild b = buildSimulator(c, m, settings);
+      DynamicSimulator& sim = *b.simulator;
+      const int max_steps = settings.settle.max_steps;
+      const double tol = settings.settle.increment_tolerance_m;
+      settled = settle(sim, settings.settle, [&](int step, double inc) {
+        if (!args.quiet) progressBar(step, max_steps, inc, tol);
+      });
+      if (!args.quiet && isatty(fileno(stderr))) std::fprintf(stderr, "\n");
+      const double t_sim = std::chrono::duration<double>(std::chrono::steady_clock::now() - ts).count();
+      const Points u = sim.displacement();
+      const Points x = m.mesh.nodes() + u;
+      lesions_after = m.lesion_embedding.positions(x);
+      const QualityStats q = qualityStats(m.mesh.tets(), x);
+      MeshFields df;
+      df.point_data.push_back({"displacement_mm", u * 1e3});
+      sim.elasticForces();  // stresses at the settled state
+      df.cell_data.push_back({"von_mises_pa", sim.elements().vonMisesStress()});
+      df.cell_data.push_back({"modulus_factor", sim.elements().modulusFactors()});
+      MeshWriteOptions wo;
+      wo.vtk.positions_m = &x;
+      writeTetMesh((out / "supine_gravity.vtu").string(), m.mesh, df, 1.0, wo);
+      s["simulation"] = {
+          {"gravity_load_mps2", {g_load.x(), g_load.y(), g_load.z()}},
+          {"solver", SolverSettings::kindName(settings.solver.kind)},
+          {"multigrid_levels", b.multigrid_levels},
+          {"youngs_modulus_pa", settings.material.youngs_modulus_pa},
+          {"poisson_ratio", settings.material.poisson_ratio},
+          {"settle_time_step_s", settings.settle.time_step_s > 0 ? settings.settle.time_step_s : settings.dynamics.time_step_s},
+          {"settled", settled.settled},
+          {"steps", settled.steps},
+          {"solver_iterations", settled.solver_iterations},
+          {"unconverged_solves", settled.unconverged_solves},
+          {"last_increment_mm", settled.last_increment_m * 1e3},
+          {"max_displacement_mm", settled.max_displacement_m * 1e3},
+          {"inverted_elements", q.num_inverted},
+          {"volume_change_percent", 100.0 * (q.total_volume_m3 / mesh_volume - 1.0)},
+          {"seconds", {{"setup", t_sim - settled.seconds}, {"steps", settled.seconds},
+                       {"assembly", settled.assembly_seconds}, {"solver_setup", settled.setup_seconds},
+                       {"solve", settled.solve_seconds}}}};
+    }
+
+    nlohmann::json lesions = nlohmann::json::array();
+    std::ofstream csv(out / "lesions.csv");
+    csv << "name,prone_x_mm,prone_y_mm,prone_z_mm,radius_mm,tet,outside_mm";
+    if (lesions_after.rows()) csv << ",supine_gravity_x_mm,supine_gravity_y_mm,supine_gravity_z_mm,moved_mm";
+    csv << '\n';
+    for (size_t i = 0; i < m.lesions.size(); ++i) {
+      const auto& l = m.lesions[i];
+      const auto& e = m.lesion_embedding.points()[i];
+      const Eigen::Vector3d p = l.position_m * 1e3;
+      csv << l.name << ',' << p.x() << ',' << p.y() << ',' << p.z() << ',' << l.radius_m * 1e3 << ',' << e.tet << ','
+          << e.outside_distance_m * 1e3;
+      nlohmann::json j = {{"name", l.name}, {"prone_mm", {p.x(), p.y(), p.z()}}, {"radius_mm", l.radius_m * 1e3}, {"tet", e.tet}};
+      if (lesions_after.rows()) {
+        const Eigen::Vector3d q = lesions_after.row(static_cast<Eigen::Index>(i)).transpose() * 1e3;
+        csv << ',' << q.x() << ',' << q.y() << ',' << q.z() << ',' << (q - p).norm();
+        j["supine_gravity_mm"] = {q.x(), q.y(), q.z()};
+        j["moved_mm"] = (q - p).norm();
+      }
+      csv << '\n';
+      lesions.push_back(j);
+    }
+    std::ofstream(out / "lesions.json") << lesions.dump(2) << '\n';
     s["lesions"] = lesions;
+    s["seconds"]["total"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     std::ofstream(out / "model_summary.json") << s.dump(2) << '\n';
     if (!args.json.empty()) std::ofstream(args.json) << s.dump(2) << '\n';
 
-    std::printf("breast_sim model of case '%s'\n", c.name.c_str());
+    std::printf("breast_sim run of case '%s'\n", c.name.c_str());
     std::printf("  %-28s %d tetrahedra, %d nodes (%s boundary)\n", "mesh", m.mesh.numTets(), m.mesh.numNodes(),
                 s["boundary_closed"].get<bool>() ? "closed" : "OPEN");
     std::printf("  %-28s chest wall %zu, skin %zu nodes\n", "node sets",
@@ -164,14 +270,27 @@ int main(int argc, char** argv) {
     std::printf(")\n");
     std::printf("  %-28s %d inverted, min dihedral %.1f deg, max aspect ratio %.2f\n", "quality",
                 m.quality.num_inverted, m.quality.min_dihedral_deg, m.quality.max_aspect_ratio);
-    std::printf("  %-28s %.2f s (meshing %.2f s in %d pass(es))\n", "time", t_total, m.meshing.seconds, m.meshing.passes);
-    for (size_t i = 0; i < m.lesions.size(); ++i)
-      std::printf("  lesion %-21s (%.1f, %.1f, %.1f) mm\n", m.lesions[i].name.c_str(), m.lesions[i].position_m.x() * 1e3,
-                  m.lesions[i].position_m.y() * 1e3, m.lesions[i].position_m.z() * 1e3);
+    std::printf("  %-28s %.2f s (meshing %.2f s in %d pass(es))\n", "model time", t_model, m.meshing.seconds, m.meshing.passes);
+    if (s.contains("simulation")) {
+      const auto& j = s["simulation"];
+      std::printf("  %-28s %s in %d steps (%.2f s; %s, %ld PCG iterations), max displacement %.2f mm\n",
+                  "supine gravity", settled.settled ? "settled" : "NOT settled", settled.steps, settled.seconds,
+                  j["solver"].get<std::string>().c_str(), settled.solver_iterations, settled.max_displacement_m * 1e3);
+      std::printf("  %-28s %d inverted, volume change %+.2f%%\n", "deformed quality", j["inverted_elements"].get<int>(),
+                  j["volume_change_percent"].get<double>());
+    }
+    for (const auto& l : lesions) {
+      std::printf("  lesion %-21s prone (%.1f, %.1f, %.1f) mm", l["name"].get<std::string>().c_str(),
+                  l["prone_mm"][0].get<double>(), l["prone_mm"][1].get<double>(), l["prone_mm"][2].get<double>());
+      if (l.contains("supine_gravity_mm"))
+        std::printf(" -> (%.1f, %.1f, %.1f) mm, moved %.1f mm", l["supine_gravity_mm"][0].get<double>(),
+                    l["supine_gravity_mm"][1].get<double>(), l["supine_gravity_mm"][2].get<double>(), l["moved_mm"].get<double>());
+      std::printf("\n");
+    }
     std::printf("  %-28s %s\n", "written to", fs::absolute(out).string().c_str());
-    return 0;
+    return settled.settled || args.model_only ? 0 : 3;
   } catch (const std::exception& e) {
-    std::fprintf(stderr, "breast_sim_model: error: %s\n", e.what());
+    std::fprintf(stderr, "breast_sim_run: error: %s\n", e.what());
     return 2;
   }
 }

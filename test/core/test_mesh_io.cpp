@@ -14,6 +14,8 @@
 #include <string>
 #include <vector>
 
+#include <Eigen/Geometry>
+
 #include "breast_sim/core/mesh/mesh_io.h"
 #include "breast_sim/core/mesh/tet_mesh.h"
 
@@ -269,6 +271,32 @@ TEST(MeshIo, VtuKeepsPointAndCellFieldsForParaView) {
     EXPECT_EQ(back.cell_data[0].name, "von_mises");
     EXPECT_EQ(back.cell_data[0].values, fields.cell_data[0].values);
     EXPECT_EQ(back.cell_data[1].values, fields.cell_data[1].values);
+  }
+}
+
+TEST(MeshIo, VtuWritesADeformedConfigurationWhenGivenPositions) {
+  const TetMesh mesh = twoCubeMesh();
+  // A rotation plus stretch keeps every element positively oriented.
+  const Eigen::Matrix3d F = Eigen::AngleAxisd(0.4, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix() *
+                            Eigen::Vector3d(1.2, 0.9, 1.1).asDiagonal();
+  const Points x = (mesh.nodes() * F.transpose()).rowwise() + Eigen::RowVector3d(0.01, -0.02, 0.03);
+  TempDir dir;
+  MeshWriteOptions options;
+  options.vtk.positions_m = &x;
+  for (const std::string file : {"deformed.vtu", "deformed.vtk"}) {
+    SCOPED_TRACE(file);
+    writeTetMesh(dir.path(file), mesh, {}, 1.0, options);
+    const TetMesh back = readTetMesh(dir.path(file));
+    EXPECT_TRUE(back.nodes().isApprox(x, 1e-14));
+    EXPECT_EQ(back.tets(), mesh.tets());
+  }
+  const Points wrong = x.topRows(3);
+  options.vtk.positions_m = &wrong;
+  try {
+    writeTetMesh(dir.path("bad.vtu"), mesh, {}, 1.0, options);
+    FAIL() << "positions of the wrong size were written";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("3 node positions given for a mesh of 12 nodes"), std::string::npos) << e.what();
   }
 }
 

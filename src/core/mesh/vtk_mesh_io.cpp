@@ -194,14 +194,20 @@ vtkSmartPointer<vtkDoubleArray> fieldArray(const MeshField& field, double unit) 
   return array;
 }
 
-vtkSmartPointer<vtkUnstructuredGrid> meshToGrid(const TetMesh& mesh, const MeshFields& fields, double unit) {
+vtkSmartPointer<vtkUnstructuredGrid> meshToGrid(const TetMesh& mesh, const MeshFields& fields, double unit,
+                                                const Points* positions_m) {
   const int n = mesh.numNodes();
   const int t = mesh.numTets();
+  if (positions_m && (positions_m->rows() != n || !positions_m->allFinite()))
+    throw std::invalid_argument("VTK writer: " + std::to_string(positions_m->rows()) +
+                                " node positions given for a mesh of " + std::to_string(n) +
+                                " nodes (they must be #N finite rows)");
+  const Points& x = positions_m ? *positions_m : mesh.nodes();
   vtkNew<vtkPoints> points;
   points->SetDataTypeToDouble();
   points->SetNumberOfPoints(n);
   for (int i = 0; i < n; ++i) {
-    points->SetPoint(i, mesh.nodes()(i, 0) / unit, mesh.nodes()(i, 1) / unit, mesh.nodes()(i, 2) / unit);
+    points->SetPoint(i, x(i, 0) / unit, x(i, 1) / unit, x(i, 2) / unit);
   }
   vtkNew<vtkIdTypeArray> offsets;
   vtkNew<vtkIdTypeArray> connectivity;
@@ -288,7 +294,7 @@ void writeVtu(const std::string& path, const TetMesh& mesh, const MeshFields& fi
               const VtkOptions& options) {
   mesh_io_detail::checkLengthUnit(length_unit_m, "writeVtu");
   checkFields("writeVtu", mesh, fields);
-  auto grid = meshToGrid(mesh, fields, length_unit_m);
+  auto grid = meshToGrid(mesh, fields, length_unit_m, options.positions_m);
   vtkNew<vtkXMLUnstructuredGridWriter> writer;
   vtkNew<ErrorCollector> errors;
   writer->AddObserver(vtkCommand::ErrorEvent, errors);
@@ -313,7 +319,7 @@ void writeVtkLegacy(const std::string& path, const TetMesh& mesh, const MeshFiel
                     const VtkOptions& options) {
   mesh_io_detail::checkLengthUnit(length_unit_m, "writeVtkLegacy");
   checkFields("writeVtkLegacy", mesh, fields);
-  auto grid = meshToGrid(mesh, fields, length_unit_m);
+  auto grid = meshToGrid(mesh, fields, length_unit_m, options.positions_m);
   vtkNew<vtkUnstructuredGridWriter> writer;
   vtkNew<ErrorCollector> errors;
   writer->AddObserver(vtkCommand::ErrorEvent, errors);

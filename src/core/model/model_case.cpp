@@ -10,64 +10,20 @@
 #include <yaml-cpp/yaml.h>
 
 #include "breast_sim/core/model/phantom.h"
+#include "../util/yaml_fields.h"
 
 namespace breast_sim::core {
 namespace {
 
 namespace fs = std::filesystem;
 
-[[noreturn]] void fail(const std::string& file, const std::string& key, const std::string& what) {
-  throw std::runtime_error(file + ": '" + key + "': " + what);
-}
-
-double number(const YAML::Node& n, const std::string& file, const std::string& key) {
-  double v = 0.0;
-  try {
-    v = n.as<double>();
-  } catch (const YAML::Exception&) {
-    fail(file, key, "expected a number, got '" + YAML::Dump(n) + "'");
-  }
-  if (!std::isfinite(v)) fail(file, key, "expected a finite number, got '" + YAML::Dump(n) + "'");
-  return v;
-}
-
-std::string text(const YAML::Node& n, const std::string& file, const std::string& key) {
-  if (!n.IsScalar()) fail(file, key, "expected a text value, got '" + YAML::Dump(n) + "'");
-  return n.as<std::string>();
-}
-
-/// A whole number in [lo, hi].
-long integer(const YAML::Node& n, const std::string& file, const std::string& key, long lo, long hi) {
-  const double v = number(n, file, key);
-  if (v != std::floor(v) || v < lo || v > hi)
-    fail(file, key, "expected a whole number in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got '" +
-                        YAML::Dump(n) + "'");
-  return static_cast<long>(v);
-}
-
-Eigen::Vector3d vec3(const YAML::Node& n, const std::string& file, const std::string& key) {
-  if (!n.IsSequence() || n.size() != 3) fail(file, key, "expected [x, y, z] in mm, got '" + YAML::Dump(n) + "'");
-  return Eigen::Vector3d(number(n[0], file, key), number(n[1], file, key), number(n[2], file, key));
-}
+using namespace yaml_fields;
 
 std::set<std::uint16_t> labelSet(const YAML::Node& n, const std::string& file, const std::string& key) {
   if (!n.IsSequence()) fail(file, key, "expected a list of label values, e.g. [1, 29]");
   std::set<std::uint16_t> out;
   for (const auto& v : n) out.insert(static_cast<std::uint16_t>(integer(v, file, key, 0, 65535)));
   return out;
-}
-
-void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, const std::string& file,
-               const std::string& section) {
-  if (!map.IsMap()) fail(file, section, "expected a map of keys");
-  for (const auto& kv : map) {
-    const std::string k = kv.first.as<std::string>();
-    if (!allowed.count(k)) {
-      std::string list;
-      for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + a;
-      fail(file, section + "." + k, "unknown key; the keys of '" + section + "' are: " + list);
-    }
-  }
 }
 
 MeshingOptions parseMeshing(const YAML::Node& m, const std::string& file, double* snap_tolerance_m) {

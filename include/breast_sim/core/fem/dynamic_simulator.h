@@ -58,6 +58,12 @@ class DynamicSimulator {
   int numNodes() const { return num_nodes_; }
   const DynamicsParams& params() const { return params_; }
   void setGravity(const Eigen::Vector3d& g_mps2) { params_.gravity_mps2 = g_mps2; }
+  /// Replaces the time step, damping and gravity (e.g. a long quasi-static step for settling).
+  /// @throws std::invalid_argument as DynamicsParams::validate; the old parameters stay then.
+  void setParams(const DynamicsParams& p) {
+    p.validate();
+    params_ = p;
+  }
 
   /// Dirichlet: these nodes keep their current displacement. @throws on an index out of range.
   void fixNodes(const std::vector<int>& nodes);

@@ -70,6 +70,9 @@ struct VtkOptions {
   /// .vtu: appended raw data, zlib-compressed; .vtk: legacy binary. false writes ASCII (VTK then
   /// prints coordinates with fewer digits than a double holds).
   bool binary = true;
+  /// When set (#N×3 [m]), these node positions are written instead of the rest positions: a deformed
+  /// configuration (ParaView shows it as is; the rest positions are the mesh's). Must outlive the call.
+  const Points* positions_m = nullptr;
 };
 
 struct MeshWriteOptions {

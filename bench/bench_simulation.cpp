@@ -1,0 +1,267 @@
+// Whole-step benchmark, the seed paper's Table 1 on this machine: the phantom under supine gravity,
+// chest wall fixed, E = 2 kPa, ν = 0.48, dt = 0.033 s, 25 implicit co-rotated steps per size with the
+// multigrid-PCG solver (and CHOLMOD as the same-run baseline), then a settling study: time to a
+// settled gravity state at about 50k elements for several settling time steps, each against a tightly
+// settled CHOLMOD reference of the same run (accuracy in mm). Prints tables; --json FILE writes the
+// same figures.
+//   bench_simulation [--targets 47895,99390,158340,313335] [--steps 25] [--baseline-steps 3]
+//                    [--tol 1e-3] [--settle-target 47895] [--settle-dts 0.033,0.1,0.33,1]
+//                    [--no-baseline] [--no-settle] [--json FILE]
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include <omp.h>
+
+#include <nlohmann/json.hpp>
+
+#include "breast_sim/core/fem/equilibrium.h"
+#include "breast_sim/core/fem/simulation_settings.h"
+#include "breast_sim/core/mesh/tet_quality.h"
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/model/phantom.h"
+
+using namespace breast_sim::core;
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v.empty() ? 0.0 : v[v.size() / 2];
+}
+double mean(const std::vector<double>& v) {
+  double s = 0;
+  for (double x : v) s += x;
+  return v.empty() ? 0.0 : s / v.size();
+}
+
+// Peak resident memory of this process since the last resetPeakMemory() [MB] (Linux VmHWM).
+double peakMemoryMb() {
+  std::ifstream f("/proc/self/status");
+  for (std::string line; std::getline(f, line);)
+    if (line.rfind("VmHWM:", 0) == 0) return std::stod(line.substr(6)) / 1024.0;
+  return 0.0;
+}
+void resetPeakMemory() { std::ofstream("/proc/self/clear_refs") << "5"; }
+
+std::vector<double> parseList(const std::string& v) {
+  std::vector<double> out;
+  std::stringstream ss(v);
+  for (std::string t; std::getline(ss, t, ',');) out.push_back(std::stod(t));
+  return out;
+}
+
+struct StepRun {
+  std::vector<double> total, assembly, setup, solve, iterations;
+  int unconverged = 0;
+};
+
+StepRun runSteps(DynamicSimulator& sim, int steps) {
+  StepRun r;
+  for (int s = 0; s < steps; ++s) {
+    const StepStats st = sim.step();
+    r.total.push_back(st.total_seconds);
+    r.assembly.push_back(st.assembly_seconds);
+    r.setup.push_back(st.setup_seconds);
+    r.solve.push_back(st.solve.seconds);
+    r.iterations.push_back(st.solve.iterations);
+    if (!st.solve.converged) ++r.unconverged;
+  }
+  return r;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::vector<double> targets = {47895, 99390, 158340, 313335};
+  const std::vector<double> seed_ms = {189, 400, 644, 1432};  // seed Table 1, 2012 quad-core
+  int steps = 25, baseline_steps = 3;
+  double tol = 1e-3;
+  int settle_target = 47895;
+  std::vector<double> settle_dts = {0.033, 0.1, 0.33, 1.0};
+  bool baseline = true, settle_study = true;
+  std::string json_path;
+  for (int i = 1; i < argc; ++i) {
+    const std::string k = argv[i];
+    auto value = [&]() -> std::string {
+      if (i + 1 >= argc) throw std::invalid_argument(k + " needs a value");
+      return argv[++i];
+    };
+    if (k == "--targets") targets = parseList(value());
+    else if (k == "--steps") steps = std::stoi(value());
+    else if (k == "--baseline-steps") baseline_steps = std::stoi(value());
+    else if (k == "--tol") tol = std::stod(value());
+    else if (k == "--settle-target") settle_target = std::stoi(value());
+    else if (k == "--settle-dts") settle_dts = parseList(value());
+    else if (k == "--no-baseline") baseline = false;
+    else if (k == "--no-settle") settle_study = false;
+    else if (k == "--json") json_path = value();
+    else {
+      std::fprintf(stderr,
+                   "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-3]\n"
+                   "         [--settle-target 47895] [--settle-dts 0.033,...] [--no-baseline] [--no-settle] [--json FILE]\n");
+      return 2;
+    }
+  }
+  const ModelCase base = loadModelCase(std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml");
+  const Eigen::Vector3d g_supine = base.phantom->gravity_supine_mps2;
+  nlohmann::json out;
+  out["threads"] = omp_get_max_threads();
+  out["steps"] = steps;
+  out["relative_tolerance"] = tol;
+
+  std::printf("Table 1 on this machine: %d threads, %d steps of dt 0.033 s, supine gravity, multigrid-PCG to %.0e\n",
+              omp_get_max_threads(), steps, tol);
+  std::printf("(medians over the steps; 'first' = the first step, with the solver's first set-up; seed = 2012 quad-core)\n");
+  std::printf("%8s %7s %7s | %8s %8s %8s %8s %6s | %8s %8s | %9s %8s %7s | %6s %7s\n", "tets", "nodes", "levels",
+              "step[ms]", "assem", "galerk.", "solve", "iters", "first", "setup[s]", "ns/el/st", "peak[MB]", "cholmod",
+              "seed", "speedup");
+  nlohmann::json rows = nlohmann::json::array();
+  double ns_ref = 0.0;
+  for (size_t ti = 0; ti < targets.size(); ++ti) {
+    resetPeakMemory();
+    ModelCase c = base;
+    c.meshing.target_elements = static_cast<int>(targets[ti]);
+    const auto t0 = Clock::now();
+    const SimulationModel model = buildSimulationModel(c);
+    const double t_mesh = since(t0);
+    SimulationSettings settings;
+    settings.solver.relative_tolerance = tol;
+    settings.dynamics.gravity_mps2 = g_supine;
+    SimulatorBuild b = buildSimulator(c, model, settings);
+    DynamicSimulator& sim = *b.simulator;
+    const StepRun first = runSteps(sim, 1);
+    const StepRun run = runSteps(sim, steps - 1);
+    const double peak = peakMemoryMb();
+    const int inverted = static_cast<int>(invertedTets(model.mesh.tets(), model.mesh.nodes() + sim.displacement()).size());
+    const double step_ms = 1e3 * median(run.total);
+    const double ns = 1e9 * median(run.total) / model.mesh.numTets();
+    if (ti == 0) ns_ref = ns;
+
+    double cholmod_ms = 0.0;
+    if (baseline && baseline_steps > 0) {
+      SimulationSettings cs = settings;
+      cs.solver.kind = SolverSettings::Kind::kCholmod;
+      SimulatorBuild cb = buildSimulator(c, model, cs);
+      const StepRun cr = runSteps(*cb.simulator, baseline_steps);
+      cholmod_ms = 1e3 * median(cr.total);
+    }
+    const double seed = ti < seed_ms.size() ? seed_ms[ti] : 0.0;
+    std::printf("%8d %7d %7d | %8.1f %8.1f %8.1f %8.1f %6.1f | %8.1f %8.2f | %9.0f %8.0f %7.0f | %6.0f %6.1fx\n",
+                model.mesh.numTets(), model.mesh.numNodes(), b.multigrid_levels, step_ms, 1e3 * median(run.assembly),
+                1e3 * median(run.setup), 1e3 * median(run.solve), mean(run.iterations), 1e3 * first.total[0],
+                b.hierarchy_seconds + b.setup_seconds, ns, peak, cholmod_ms, seed, seed > 0 ? seed / step_ms : 0.0);
+    std::fflush(stdout);
+    rows.push_back({{"target_elements", static_cast<int>(targets[ti])},
+                    {"elements", model.mesh.numTets()},
+                    {"nodes", model.mesh.numNodes()},
+                    {"multigrid_levels", b.multigrid_levels},
+                    {"level_nodes", b.level_nodes},
+                    {"meshing_s", t_mesh},
+                    {"hierarchy_s", b.hierarchy_seconds},
+                    {"simulator_setup_s", b.setup_seconds},
+                    {"first_step_ms", 1e3 * first.total[0]},
+                    {"step_ms_median", step_ms},
+                    {"step_ms_mean", 1e3 * mean(run.total)},
+                    {"assembly_ms_median", 1e3 * median(run.assembly)},
+                    {"solver_setup_ms_median", 1e3 * median(run.setup)},
+                    {"solve_ms_median", 1e3 * median(run.solve)},
+                    {"iterations_mean", mean(run.iterations)},
+                    {"unconverged_solves", run.unconverged},
+                    {"ns_per_element_step", ns},
+                    {"ns_per_element_vs_first_size", ns / ns_ref},
+                    {"peak_memory_mb", peak},
+                    {"inverted_after", inverted},
+                    {"cholmod_step_ms_median", cholmod_ms},
+                    {"seed_ms", seed},
+                    {"speedup_vs_seed", seed > 0 ? seed / step_ms : 0.0}});
+  }
+  out["table1"] = rows;
+  {
+    double lo = 1e300, hi = 0;
+    for (const auto& r : rows) {
+      lo = std::min(lo, r["ns_per_element_vs_first_size"].get<double>());
+      hi = std::max(hi, r["ns_per_element_vs_first_size"].get<double>());
+    }
+    std::printf("time per element and step relative to the first size: %.2f .. %.2f (target within 0.70 .. 1.30)\n", lo, hi);
+    out["ns_per_element_ratio_range"] = {lo, hi};
+  }
+
+  if (settle_study) {
+    ModelCase c = base;
+    c.meshing.target_elements = settle_target;
+    const SimulationModel model = buildSimulationModel(c);
+    SimulationSettings settings;
+    settings.dynamics.gravity_mps2 = g_supine;
+    // Reference: CHOLMOD, long steps, settled to 1e-8 m.
+    SimulationSettings rs = settings;
+    rs.solver.kind = SolverSettings::Kind::kCholmod;
+    SimulatorBuild rb = buildSimulator(c, model, rs);
+    SettleOptions ro;
+    ro.time_step_s = 1.0;
+    ro.increment_tolerance_m = 1e-8;
+    ro.max_steps = 200;
+    const SettleResult ref = settle(*rb.simulator, ro);
+    const Eigen::VectorXd u_ref = rb.simulator->state().displacement_m;
+    std::printf("\nSettling under supine gravity, %d tets; reference: CHOLMOD, dt 1 s, increments < 1e-5 mm: %s in %d "
+                "steps, %.1f s, max displacement %.2f mm\n",
+                model.mesh.numTets(), ref.settled ? "settled" : "NOT settled", ref.steps, ref.seconds,
+                1e3 * ref.max_displacement_m);
+    std::printf("%9s %10s | %6s %8s %8s %8s %8s %7s | %10s %10s %9s\n", "dt[s]", "solver", "steps", "time[s]", "assem",
+                "setup", "solve", "iters", "err max", "err mean", "inverted");
+    nlohmann::json srows = nlohmann::json::array();
+    for (double dt : settle_dts) {
+      for (auto kind : {SolverSettings::Kind::kMultigrid, SolverSettings::Kind::kCholmod}) {
+        // CHOLMOD's 0.4 s factorization per step makes short settling steps take minutes: skipped.
+        if (kind == SolverSettings::Kind::kCholmod && dt < 0.3) continue;
+        SimulationSettings s = settings;
+        s.solver.kind = kind;
+        SimulatorBuild sb = buildSimulator(c, model, s);
+        SettleOptions so;
+        so.time_step_s = dt;
+        so.max_steps = 400;
+        const SettleResult r = settle(*sb.simulator, so);
+        const Eigen::VectorXd d = sb.simulator->state().displacement_m - u_ref;
+        double emax = 0, emean = 0;
+        for (int n = 0; n < sb.simulator->numNodes(); ++n) {
+          const double e = d.segment<3>(3 * n).norm();
+          emax = std::max(emax, e);
+          emean += e / sb.simulator->numNodes();
+        }
+        const int inv = static_cast<int>(invertedTets(model.mesh.tets(), model.mesh.nodes() + sb.simulator->displacement()).size());
+        const std::string name = SolverSettings::kindName(kind);
+        std::printf("%9.3f %10s | %6d %8.2f %8.2f %8.2f %8.2f %7.1f | %8.3fmm %8.3fmm %9d%s\n", dt, name.c_str(), r.steps,
+                    r.seconds, r.assembly_seconds, r.setup_seconds, r.solve_seconds,
+                    r.steps ? double(r.solver_iterations) / r.steps : 0.0, 1e3 * emax, 1e3 * emean, inv,
+                    r.settled ? "" : "  (not settled)");
+        std::fflush(stdout);
+        srows.push_back({{"time_step_s", dt},
+                         {"solver", name},
+                         {"settled", r.settled},
+                         {"steps", r.steps},
+                         {"seconds", r.seconds},
+                         {"assembly_s", r.assembly_seconds},
+                         {"solver_setup_s", r.setup_seconds},
+                         {"solve_s", r.solve_seconds},
+                         {"iterations_per_step", r.steps ? double(r.solver_iterations) / r.steps : 0.0},
+                         {"error_max_mm", 1e3 * emax},
+                         {"error_mean_mm", 1e3 * emean},
+                         {"inverted", inv}});
+      }
+    }
+    out["settle"] = {{"elements", model.mesh.numTets()},
+                     {"reference_steps", ref.steps},
+                     {"reference_seconds", ref.seconds},
+                     {"reference_max_displacement_mm", 1e3 * ref.max_displacement_m},
+                     {"runs", srows}};
+  }
+  if (!json_path.empty()) std::ofstream(json_path) << out.dump(2) << '\n';
+  return 0;
+}

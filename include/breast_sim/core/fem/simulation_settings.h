@@ -1,0 +1,93 @@
+#pragma once
+/// @file simulation_settings.h
+/// Everything that sets up a gravity simulation of a model: material, time integration, linear
+/// solver and which nodes are held; read from a case file's `simulation:` map and turned into a
+/// ready DynamicSimulator. The node, the command-line tools and the benchmarks share this.
+
+#include <functional>
+#include <memory>
+#include <string>
+
+#include "breast_sim/core/fem/dynamic_simulator.h"
+#include "breast_sim/core/fem/elastic_material.h"
+#include "breast_sim/core/solver/multigrid.h"
+
+namespace breast_sim::core {
+
+struct ModelCase;
+struct SimulationModel;
+
+/// Which linear solver takes the implicit step, and how far it iterates.
+struct SolverSettings {
+  enum class Kind {
+    kMultigrid,  ///< PCG with the geometric multigrid V-cycle (the default; solver/multigrid.h)
+    kCholmod,    ///< sparse direct Cholesky (exact; the reference)
+    kJacobiPcg   ///< PCG with block-free diagonal scaling (a slow baseline)
+  };
+  Kind kind = Kind::kMultigrid;
+  /// PCG stops when ‖b − A v‖ ≤ this · ‖b‖ (b = M v_t + dt f: it shrinks as the model settles, so a
+  /// loose per-step tolerance still converges to the exact equilibrium). Measured by bench_simulation.
+  double relative_tolerance = 1e-3;
+  int max_iterations = 200;  ///< per step; a step that hits it is used anyway and counted
+  MultigridOptions multigrid;
+  CoarseningOptions coarsening;
+
+  static std::string kindName(Kind k);
+  /// "multigrid", "cholmod" or "jacobi-pcg". @throws std::invalid_argument naming the choices.
+  static Kind kindFromName(const std::string& name);
+};
+
+/// When a quasi-static loading counts as settled (fem/equilibrium.h).
+struct SettleOptions {
+  /// Time step of the settling run [s]; 0 = the dynamics time step. Backward Euler is stable for any
+  /// step: with a step much longer than the Rayleigh α_K each step is nearly a Newton step of the
+  /// co-rotated static problem, so a large step settles in a few steps (see bench_simulation).
+  double time_step_s = 0.0;
+  /// Settled when the largest nodal displacement change of a step is at most this [m] …
+  double increment_tolerance_m = 1e-5;
+  /// … for this many consecutive steps.
+  int consecutive_steps = 2;
+  int max_steps = 400;  ///< gives up (settled = false) after this many steps
+  void validate() const;
+};
+
+/// The simulation part of a case file.
+struct SimulationSettings {
+  ElasticMaterial material;
+  DynamicsParams dynamics;  ///< gravity is set by the run (prone, supine, a patient pose)
+  SolverSettings solver;
+  SettleOptions settle;
+  /// Nodes held fixed (Dirichlet): a node set of the model, "chest_wall" by default; "" = none.
+  std::string fixed_node_set = "chest_wall";
+  /// Magnitude of gravity [m/s²] for loads the run derives from the case's directions.
+  double gravity_mps2 = 9.81;
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
+  void validate() const;
+};
+
+/// Reads the `simulation:` map of a case file (absent = defaults). Keys, with units:
+///   youngs_modulus_pa, poisson_ratio, density_kg_per_m3, time_step_s, mass_damping_per_s,
+///   stiffness_damping_s, solver (multigrid | cholmod | jacobi-pcg), solver_relative_tolerance,
+///   solver_max_iterations, multigrid_smoother (jacobi | gauss-seidel), multigrid_smoothing_steps,
+///   multigrid_coarse_update_interval, multigrid_max_coarsest_elements, fixed_node_set, gravity_mps2,
+///   settle_time_step_s, settle_increment_tolerance_mm, settle_max_steps.
+/// @throws std::runtime_error naming the file, the key and what is expected.
+SimulationSettings loadSimulationSettings(const std::string& yaml_path);
+
+/// A simulator ready to step, and what building it cost.
+struct SimulatorBuild {
+  std::unique_ptr<DynamicSimulator> simulator;
+  int multigrid_levels = 0;        ///< levels including the fine one (0 without multigrid)
+  std::vector<int> level_nodes;    ///< nodes per level, fine first
+  double hierarchy_seconds = 0.0;  ///< meshing the coarse levels and their prolongations [s]
+  double setup_seconds = 0.0;      ///< element set-up and the solver's pattern analysis [s]
+};
+
+/// Builds the element formulation (co-rotated linear tetrahedra), the solver (for multigrid: the
+/// coarse meshes of the case, CoarseningOptions) and the simulator, and fixes settings.fixed_node_set.
+/// @throws std::invalid_argument for invalid settings or a missing node set (names it and the sets
+///         the model has); std::runtime_error as meshing the coarse levels does.
+SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel& model,
+                              const SimulationSettings& settings);
+
+}  // namespace breast_sim::core

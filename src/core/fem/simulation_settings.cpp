@@ -1,0 +1,158 @@
+#include "breast_sim/core/fem/simulation_settings.h"
+
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <sstream>
+#include <stdexcept>
+
+#include "breast_sim/core/fem/corotated_tet_fem.h"
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/solver/cholmod_solver.h"
+#include "breast_sim/core/solver/pcg_solver.h"
+#include "../util/yaml_fields.h"
+
+namespace breast_sim::core {
+
+namespace {
+double since(std::chrono::steady_clock::time_point t) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+}
+template <class T>
+[[noreturn]] void invalid(const char* name, const T& v, const char* range) {
+  std::ostringstream s;
+  s << "simulation setting '" << name << "' = " << v << " is invalid: expected " << range;
+  throw std::invalid_argument(s.str());
+}
+}  // namespace
+
+std::string SolverSettings::kindName(Kind k) {
+  switch (k) {
+    case Kind::kMultigrid: return "multigrid";
+    case Kind::kCholmod: return "cholmod";
+    case Kind::kJacobiPcg: return "jacobi-pcg";
+  }
+  return "?";
+}
+
+SolverSettings::Kind SolverSettings::kindFromName(const std::string& name) {
+  if (name == "multigrid") return Kind::kMultigrid;
+  if (name == "cholmod") return Kind::kCholmod;
+  if (name == "jacobi-pcg") return Kind::kJacobiPcg;
+  throw std::invalid_argument("unknown solver '" + name + "': expected multigrid, cholmod or jacobi-pcg");
+}
+
+void SettleOptions::validate() const {
+  if (!(time_step_s >= 0) || !std::isfinite(time_step_s)) invalid("settle.time_step_s", time_step_s, "≥ 0 s (0 = the dynamics time step)");
+  if (!(increment_tolerance_m > 0)) invalid("settle.increment_tolerance_m", increment_tolerance_m, "> 0 m, e.g. 1e-5");
+  if (consecutive_steps < 1) invalid("settle.consecutive_steps", consecutive_steps, "≥ 1");
+  if (max_steps < 1) invalid("settle.max_steps", max_steps, "≥ 1");
+}
+
+void SimulationSettings::validate() const {
+  material.validate();
+  dynamics.validate();
+  settle.validate();
+  if (!(solver.relative_tolerance > 0 && solver.relative_tolerance < 1))
+    invalid("solver.relative_tolerance", solver.relative_tolerance, "a value in (0, 1), e.g. 1e-3");
+  if (solver.max_iterations < 1) invalid("solver.max_iterations", solver.max_iterations, "≥ 1");
+  if (solver.multigrid.pre_smoothing_steps < 1 || solver.multigrid.post_smoothing_steps < 1)
+    invalid("solver.multigrid smoothing steps", solver.multigrid.pre_smoothing_steps, "≥ 1");
+  if (solver.multigrid.coarse_update_interval < 1)
+    invalid("solver.multigrid.coarse_update_interval", solver.multigrid.coarse_update_interval, "≥ 1");
+  if (!(gravity_mps2 >= 0) || !std::isfinite(gravity_mps2)) invalid("gravity_mps2", gravity_mps2, "≥ 0 m/s², e.g. 9.81");
+  if (solver.coarsening.max_coarsest_elements < 10)
+    invalid("solver.coarsening.max_coarsest_elements", solver.coarsening.max_coarsest_elements, "≥ 10");
+}
+
+SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
+  using namespace yaml_fields;
+  const YAML::Node root = loadFile(yaml_path);
+  SimulationSettings s;
+  if (!root.IsMap() || !root["simulation"]) return s;
+  const YAML::Node m = root["simulation"];
+  if (m.IsNull()) return s;
+  const std::string f = yaml_path;
+  checkKeys(m,
+            {"youngs_modulus_pa", "poisson_ratio", "density_kg_per_m3", "time_step_s", "mass_damping_per_s",
+             "stiffness_damping_s", "solver", "solver_relative_tolerance", "solver_max_iterations",
+             "multigrid_smoother", "multigrid_smoothing_steps", "multigrid_coarse_update_interval",
+             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "settle_time_step_s",
+             "settle_increment_tolerance_mm", "settle_max_steps"},
+            f, "simulation");
+  const double inf = std::numeric_limits<double>::infinity();
+  auto key = [](const char* k) { return std::string("simulation.") + k; };
+  if (m["youngs_modulus_pa"]) s.material.youngs_modulus_pa = numberIn(m["youngs_modulus_pa"], f, key("youngs_modulus_pa"), 0, inf, true, false, "Pa");
+  if (m["poisson_ratio"]) s.material.poisson_ratio = numberIn(m["poisson_ratio"], f, key("poisson_ratio"), -1, 0.5, true, true);
+  if (m["density_kg_per_m3"]) s.material.density_kg_per_m3 = numberIn(m["density_kg_per_m3"], f, key("density_kg_per_m3"), 0, inf, true, false, "kg/m^3");
+  if (m["time_step_s"]) s.dynamics.time_step_s = numberIn(m["time_step_s"], f, key("time_step_s"), 0, 100, true, false, "s");
+  if (m["mass_damping_per_s"]) s.dynamics.mass_damping_per_s = numberIn(m["mass_damping_per_s"], f, key("mass_damping_per_s"), 0, inf, false, false, "1/s");
+  if (m["stiffness_damping_s"]) s.dynamics.stiffness_damping_s = numberIn(m["stiffness_damping_s"], f, key("stiffness_damping_s"), 0, inf, false, false, "s");
+  if (m["solver"]) s.solver.kind = SolverSettings::kindFromName(choice(m["solver"], f, key("solver"), {"multigrid", "cholmod", "jacobi-pcg"}));
+  if (m["solver_relative_tolerance"]) s.solver.relative_tolerance = numberIn(m["solver_relative_tolerance"], f, key("solver_relative_tolerance"), 0, 1, true, true);
+  if (m["solver_max_iterations"]) s.solver.max_iterations = static_cast<int>(integer(m["solver_max_iterations"], f, key("solver_max_iterations"), 1, 100000));
+  if (m["multigrid_smoother"])
+    s.solver.multigrid.smoother = choice(m["multigrid_smoother"], f, key("multigrid_smoother"), {"jacobi", "gauss-seidel"}) == "jacobi"
+                                      ? MultigridOptions::Smoother::kJacobi
+                                      : MultigridOptions::Smoother::kGaussSeidel;
+  if (m["multigrid_smoothing_steps"])
+    s.solver.multigrid.pre_smoothing_steps = s.solver.multigrid.post_smoothing_steps =
+        static_cast<int>(integer(m["multigrid_smoothing_steps"], f, key("multigrid_smoothing_steps"), 1, 10));
+  if (m["multigrid_coarse_update_interval"])
+    s.solver.multigrid.coarse_update_interval = static_cast<int>(integer(m["multigrid_coarse_update_interval"], f, key("multigrid_coarse_update_interval"), 1, 1000));
+  if (m["multigrid_max_coarsest_elements"])
+    s.solver.coarsening.max_coarsest_elements = static_cast<int>(integer(m["multigrid_max_coarsest_elements"], f, key("multigrid_max_coarsest_elements"), 10, 100000));
+  if (m["fixed_node_set"]) s.fixed_node_set = m["fixed_node_set"].IsNull() ? "" : text(m["fixed_node_set"], f, key("fixed_node_set"));
+  if (m["gravity_mps2"]) s.gravity_mps2 = numberIn(m["gravity_mps2"], f, key("gravity_mps2"), 0, 1000, false, false, "m/s^2");
+  if (m["settle_time_step_s"]) s.settle.time_step_s = numberIn(m["settle_time_step_s"], f, key("settle_time_step_s"), 0, 100, false, false, "s");
+  if (m["settle_increment_tolerance_mm"]) s.settle.increment_tolerance_m = 1e-3 * numberIn(m["settle_increment_tolerance_mm"], f, key("settle_increment_tolerance_mm"), 0, 10, true, false, "mm");
+  if (m["settle_max_steps"]) s.settle.max_steps = static_cast<int>(integer(m["settle_max_steps"], f, key("settle_max_steps"), 1, 1000000));
+  try {
+    s.validate();
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(yaml_path + ": 'simulation': " + e.what());
+  }
+  return s;
+}
+
+SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel& model,
+                              const SimulationSettings& settings) {
+  settings.validate();
+  SimulatorBuild b;
+  std::vector<int> fixed;
+  if (!settings.fixed_node_set.empty()) {
+    if (!model.mesh.hasNodeSet(settings.fixed_node_set)) {
+      std::string have;
+      for (const auto& kv : model.mesh.nodeSets()) have += (have.empty() ? "" : ", ") + kv.first;
+      throw std::invalid_argument("simulation: fixed_node_set '" + settings.fixed_node_set +
+                                  "' is not a node set of the model (it has: " + have + ")");
+    }
+    fixed = model.mesh.nodeSet(settings.fixed_node_set);
+  }
+  PcgOptions pcg;
+  pcg.relative_tolerance = settings.solver.relative_tolerance;
+  pcg.max_iterations = settings.solver.max_iterations;
+  std::unique_ptr<LinearSolver> solver;
+  const auto t0 = std::chrono::steady_clock::now();
+  switch (settings.solver.kind) {
+    case SolverSettings::Kind::kCholmod: solver = std::make_unique<CholmodSolver>(); break;
+    case SolverSettings::Kind::kJacobiPcg: solver = std::make_unique<PcgSolver>(pcg); break;
+    case SolverSettings::Kind::kMultigrid: {
+      const MeshHierarchy h = buildMeshHierarchy(model_case, model, settings.solver.coarsening);
+      b.multigrid_levels = h.numLevels();
+      for (int l = 0; l < h.numLevels(); ++l) b.level_nodes.push_back(h.mesh(l).numNodes());
+      solver = std::make_unique<MultigridPcgSolver>(h, pcg, settings.solver.multigrid);
+      break;
+    }
+  }
+  b.hierarchy_seconds = since(t0);
+  const auto t1 = std::chrono::steady_clock::now();
+  b.simulator = std::make_unique<DynamicSimulator>(
+      model.mesh, std::make_unique<CorotatedTetFem>(model.mesh, settings.material), settings.material,
+      settings.dynamics, std::move(solver));
+  if (!fixed.empty()) b.simulator->fixNodes(fixed);
+  b.setup_seconds = since(t1);
+  return b;
+}
+
+}  // namespace breast_sim::core

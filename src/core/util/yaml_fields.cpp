@@ -1,0 +1,97 @@
+#include "yaml_fields.h"
+
+#include <cmath>
+#include <filesystem>
+#include <sstream>
+#include <stdexcept>
+
+namespace breast_sim::core::yaml_fields {
+
+void fail(const std::string& file, const std::string& key, const std::string& what) {
+  throw std::runtime_error(file + ": '" + key + "': " + what);
+}
+
+double number(const YAML::Node& n, const std::string& file, const std::string& key) {
+  double v = 0.0;
+  try {
+    v = n.as<double>();
+  } catch (const YAML::Exception&) {
+    fail(file, key, "expected a number, got '" + YAML::Dump(n) + "'");
+  }
+  if (!std::isfinite(v)) fail(file, key, "expected a finite number, got '" + YAML::Dump(n) + "'");
+  return v;
+}
+
+double numberIn(const YAML::Node& n, const std::string& file, const std::string& key, double lo, double hi,
+                bool lo_open, bool hi_open, const std::string& unit) {
+  const double v = number(n, file, key);
+  if (v < lo || v > hi || (lo_open && v == lo) || (hi_open && v == hi)) {
+    std::ostringstream s;
+    s << "expected a value in " << (lo_open ? "(" : "[") << lo << ", " << hi << (hi_open ? ")" : "]")
+      << (unit.empty() ? "" : " " + unit) << ", got " << YAML::Dump(n);
+    fail(file, key, s.str());
+  }
+  return v;
+}
+
+std::string text(const YAML::Node& n, const std::string& file, const std::string& key) {
+  if (!n.IsScalar()) fail(file, key, "expected a text value, got '" + YAML::Dump(n) + "'");
+  return n.as<std::string>();
+}
+
+std::string choice(const YAML::Node& n, const std::string& file, const std::string& key,
+                   const std::set<std::string>& choices) {
+  const std::string v = text(n, file, key);
+  if (!choices.count(v)) {
+    std::string list;
+    for (const auto& c : choices) list += (list.empty() ? "" : ", ") + c;
+    fail(file, key, "expected one of " + list + ", got '" + v + "'");
+  }
+  return v;
+}
+
+long integer(const YAML::Node& n, const std::string& file, const std::string& key, long lo, long hi) {
+  const double v = number(n, file, key);
+  if (v != std::floor(v) || v < lo || v > hi)
+    fail(file, key, "expected a whole number in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got '" +
+                        YAML::Dump(n) + "'");
+  return static_cast<long>(v);
+}
+
+bool boolean(const YAML::Node& n, const std::string& file, const std::string& key) {
+  try {
+    return n.as<bool>();
+  } catch (const YAML::Exception&) {
+    fail(file, key, "expected true or false, got '" + YAML::Dump(n) + "'");
+  }
+}
+
+Eigen::Vector3d vec3(const YAML::Node& n, const std::string& file, const std::string& key, const std::string& unit) {
+  if (!n.IsSequence() || n.size() != 3)
+    fail(file, key, "expected [x, y, z]" + (unit.empty() ? "" : " in " + unit) + ", got '" + YAML::Dump(n) + "'");
+  return Eigen::Vector3d(number(n[0], file, key), number(n[1], file, key), number(n[2], file, key));
+}
+
+void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, const std::string& file,
+               const std::string& section) {
+  if (!map.IsMap()) fail(file, section, "expected a map of keys");
+  for (const auto& kv : map) {
+    const std::string k = kv.first.as<std::string>();
+    if (!allowed.count(k)) {
+      std::string list;
+      for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + a;
+      fail(file, section + "." + k, "unknown key; the keys of '" + section + "' are: " + list);
+    }
+  }
+}
+
+YAML::Node loadFile(const std::string& path) {
+  if (!std::filesystem::exists(path)) throw std::runtime_error(path + ": no such file");
+  try {
+    return YAML::LoadFile(path);
+  } catch (const YAML::Exception& e) {
+    throw std::runtime_error(path + ":" + std::to_string(e.mark.line + 1) + ": not valid YAML: " + e.msg);
+  }
+}
+
+}  // namespace breast_sim::core::yaml_fields

@@ -1,0 +1,36 @@
+#pragma once
+/// @file yaml_fields.h
+/// Checked reading of YAML case and settings files (private to the core): every error names the
+/// file, the key and what is expected.
+
+#include <set>
+#include <string>
+
+#include <Eigen/Core>
+#include <yaml-cpp/yaml.h>
+
+namespace breast_sim::core::yaml_fields {
+
+/// @throws std::runtime_error "FILE: 'KEY': WHAT".
+[[noreturn]] void fail(const std::string& file, const std::string& key, const std::string& what);
+/// A finite number.
+double number(const YAML::Node& n, const std::string& file, const std::string& key);
+/// A number in [lo, hi] (bounds included unless open).
+double numberIn(const YAML::Node& n, const std::string& file, const std::string& key, double lo, double hi,
+                bool lo_open = false, bool hi_open = false, const std::string& unit = "");
+std::string text(const YAML::Node& n, const std::string& file, const std::string& key);
+/// One of `choices`.
+std::string choice(const YAML::Node& n, const std::string& file, const std::string& key,
+                   const std::set<std::string>& choices);
+/// A whole number in [lo, hi].
+long integer(const YAML::Node& n, const std::string& file, const std::string& key, long lo, long hi);
+bool boolean(const YAML::Node& n, const std::string& file, const std::string& key);
+/// [x, y, z]; `unit` is named in the error.
+Eigen::Vector3d vec3(const YAML::Node& n, const std::string& file, const std::string& key, const std::string& unit = "mm");
+/// `map` is a map whose keys are all in `allowed`.
+void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, const std::string& file,
+               const std::string& section);
+/// Loads a YAML file. @throws std::runtime_error naming the file and line.
+YAML::Node loadFile(const std::string& path);
+
+}  // namespace breast_sim::core::yaml_fields

@@ -1,0 +1,195 @@
+// Simulation settings (the `simulation:` map), building a simulator from a model, and settling.
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include "breast_sim/core/fem/corotated_tet_fem.h"
+#include "breast_sim/core/fem/equilibrium.h"
+#include "breast_sim/core/fem/simulation_settings.h"
+#include "breast_sim/core/mesh/box_mesh.h"
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/solver/cholmod_solver.h"
+
+using namespace breast_sim::core;
+namespace fs = std::filesystem;
+
+namespace {
+
+std::string writeYaml(const std::string& name, const std::string& text) {
+  const fs::path p = fs::temp_directory_path() / ("breast_sim_test_simulation_" + name + ".yaml");
+  std::ofstream(p) << text;
+  return p.string();
+}
+
+std::string errorOf(const std::string& yaml) {
+  try {
+    loadSimulationSettings(writeYaml("bad", yaml));
+  } catch (const std::exception& e) {
+    return e.what();
+  }
+  return "(no error)";
+}
+
+const std::string kPhantomCase = std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml";
+
+}  // namespace
+
+TEST(SimulationSettings, DefaultsWithoutASimulationMap) {
+  const SimulationSettings s = loadSimulationSettings(writeYaml("none", "phantom: {}\n"));
+  EXPECT_EQ(s.solver.kind, SolverSettings::Kind::kMultigrid);
+  EXPECT_DOUBLE_EQ(s.dynamics.time_step_s, 0.033);
+  EXPECT_DOUBLE_EQ(s.material.youngs_modulus_pa, 2000.0);
+  EXPECT_EQ(s.fixed_node_set, "chest_wall");
+}
+
+TEST(SimulationSettings, ReadsEveryKeyWithItsUnit) {
+  const SimulationSettings s = loadSimulationSettings(writeYaml("all", R"(
+simulation:
+  youngs_modulus_pa: 3000
+  poisson_ratio: 0.45
+  density_kg_per_m3: 950
+  time_step_s: 0.01
+  mass_damping_per_s: 2
+  stiffness_damping_s: 0.05
+  solver: cholmod
+  solver_relative_tolerance: 1e-6
+  solver_max_iterations: 50
+  multigrid_smoother: gauss-seidel
+  multigrid_smoothing_steps: 2
+  multigrid_coarse_update_interval: 3
+  multigrid_max_coarsest_elements: 500
+  fixed_node_set: z_min
+  gravity_mps2: 9.80665
+  settle_time_step_s: 0.5
+  settle_increment_tolerance_mm: 0.002
+  settle_max_steps: 77
+)"));
+  EXPECT_DOUBLE_EQ(s.material.youngs_modulus_pa, 3000);
+  EXPECT_DOUBLE_EQ(s.material.poisson_ratio, 0.45);
+  EXPECT_DOUBLE_EQ(s.material.density_kg_per_m3, 950);
+  EXPECT_DOUBLE_EQ(s.dynamics.time_step_s, 0.01);
+  EXPECT_DOUBLE_EQ(s.dynamics.mass_damping_per_s, 2);
+  EXPECT_DOUBLE_EQ(s.dynamics.stiffness_damping_s, 0.05);
+  EXPECT_EQ(s.solver.kind, SolverSettings::Kind::kCholmod);
+  EXPECT_DOUBLE_EQ(s.solver.relative_tolerance, 1e-6);
+  EXPECT_EQ(s.solver.max_iterations, 50);
+  EXPECT_EQ(s.solver.multigrid.smoother, MultigridOptions::Smoother::kGaussSeidel);
+  EXPECT_EQ(s.solver.multigrid.pre_smoothing_steps, 2);
+  EXPECT_EQ(s.solver.multigrid.post_smoothing_steps, 2);
+  EXPECT_EQ(s.solver.multigrid.coarse_update_interval, 3);
+  EXPECT_EQ(s.solver.coarsening.max_coarsest_elements, 500);
+  EXPECT_EQ(s.fixed_node_set, "z_min");
+  EXPECT_DOUBLE_EQ(s.gravity_mps2, 9.80665);
+  EXPECT_DOUBLE_EQ(s.settle.time_step_s, 0.5);
+  EXPECT_DOUBLE_EQ(s.settle.increment_tolerance_m, 2e-6);
+  EXPECT_EQ(s.settle.max_steps, 77);
+}
+
+TEST(SimulationSettings, BadValuesNameTheKeyAndTheAcceptedRange) {
+  EXPECT_NE(errorOf("simulation: {poisson_ratio: 0.5}").find("'simulation.poisson_ratio': expected a value in (-1, 0.5)"),
+            std::string::npos)
+      << errorOf("simulation: {poisson_ratio: 0.5}");
+  EXPECT_NE(errorOf("simulation: {solver: lu}").find("expected one of cholmod, jacobi-pcg, multigrid, got 'lu'"),
+            std::string::npos);
+  EXPECT_NE(errorOf("simulation: {time_stepp_s: 0.1}").find("'simulation.time_stepp_s': unknown key"), std::string::npos);
+  EXPECT_NE(errorOf("simulation: {youngs_modulus_pa: -2}").find("Pa"), std::string::npos);
+  EXPECT_NE(errorOf("simulation: {settle_max_steps: 1.5}").find("whole number"), std::string::npos);
+}
+
+TEST(SimulationSettings, AMissingFixedNodeSetIsNamedWithTheSetsThereAre) {
+  const ModelCase c = [] {
+    ModelCase m = loadModelCase(kPhantomCase);
+    m.meshing.target_elements = 3000;
+    return m;
+  }();
+  const SimulationModel model = buildSimulationModel(c);
+  SimulationSettings s;
+  s.solver.kind = SolverSettings::Kind::kCholmod;
+  s.fixed_node_set = "ribs";
+  try {
+    buildSimulator(c, model, s);
+    FAIL() << "no error for a missing node set";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("'ribs' is not a node set of the model (it has: chest_wall"), std::string::npos)
+        << e.what();
+  }
+}
+
+// Settling a cantilever box: the result is the static equilibrium (elastic forces balance gravity
+// on every free node), the velocity is zero and the time step is restored.
+TEST(Settle, ReachesStaticEquilibriumWithLongStepsAndRestoresTheTimeStep) {
+  const TetMesh m = makeBoxMesh({6, 2, 2}, {0.06, 0.02, 0.02});
+  ElasticMaterial mat;
+  mat.youngs_modulus_pa = 20e3;
+  DynamicsParams p;
+  p.gravity_mps2 = {0, 0, -9.81};
+  DynamicSimulator sim(m, std::make_unique<CorotatedTetFem>(m, mat), mat, p, std::make_unique<CholmodSolver>());
+  sim.fixNodes(m.nodeSet("x_min"));
+  SettleOptions o;
+  o.time_step_s = 0.5;
+  o.increment_tolerance_m = 1e-9;
+  int calls = 0;
+  const SettleResult r = settle(sim, o, [&](int step, double) { EXPECT_EQ(step, ++calls); });
+  ASSERT_TRUE(r.settled);
+  EXPECT_EQ(calls, r.steps);
+  EXPECT_LT(r.steps, 40);  // long steps: nearly Newton steps of the static problem
+  EXPECT_DOUBLE_EQ(sim.params().time_step_s, 0.033);
+  EXPECT_EQ(sim.state().velocity_mps.cwiseAbs().maxCoeff(), 0.0);
+  EXPECT_GT(r.max_displacement_m, 1e-3);
+  const Eigen::VectorXd& f = sim.elasticForces();
+  std::vector<char> fixed(m.numNodes(), 0);
+  for (int n : m.nodeSet("x_min")) fixed[n] = 1;
+  double worst = 0, weight = 0;
+  for (int n = 0; n < m.numNodes(); ++n) {
+    const double g = sim.lumpedMass()[n] * 9.81;
+    weight = std::max(weight, g);
+    if (!fixed[n]) worst = std::max(worst, std::abs(f[3 * n + 2] - g) + std::abs(f[3 * n]) + std::abs(f[3 * n + 1]));
+  }
+  EXPECT_LT(worst, 1e-5 * weight);
+}
+
+TEST(Settle, GivesUpAfterMaxStepsAndSaysSo) {
+  const TetMesh m = makeBoxMesh({4, 2, 2}, {0.04, 0.02, 0.02});
+  ElasticMaterial mat;
+  DynamicsParams p;
+  p.gravity_mps2 = {0, 0, -9.81};
+  DynamicSimulator sim(m, std::make_unique<CorotatedTetFem>(m, mat), mat, p, std::make_unique<CholmodSolver>());
+  sim.fixNodes(m.nodeSet("x_min"));
+  SettleOptions o;
+  o.max_steps = 3;
+  const SettleResult r = settle(sim, o);
+  EXPECT_FALSE(r.settled);
+  EXPECT_EQ(r.steps, 3);
+  EXPECT_GT(r.last_increment_m, o.increment_tolerance_m);
+  EXPECT_NE(sim.state().velocity_mps.cwiseAbs().maxCoeff(), 0.0);  // not at rest: left as it is
+  o.increment_tolerance_m = 0;
+  EXPECT_THROW(settle(sim, o), std::invalid_argument);
+}
+
+// The phantom under supine gravity with the multigrid solver at its loose per-step tolerance
+// settles to the same state as CHOLMOD (exact solves): the inexact solves only change the path.
+TEST(Settle, MultigridWithLooseStepToleranceReachesTheCholmodEquilibrium) {
+  ModelCase c = loadModelCase(kPhantomCase);
+  c.meshing.target_elements = 4000;
+  const SimulationModel model = buildSimulationModel(c);
+  SimulationSettings s;
+  s.dynamics.gravity_mps2 = c.phantom->gravity_supine_mps2;
+  s.settle.time_step_s = 0.33;
+  s.settle.increment_tolerance_m = 1e-7;
+  Eigen::VectorXd u[2];
+  int k = 0;
+  for (auto kind : {SolverSettings::Kind::kCholmod, SolverSettings::Kind::kMultigrid}) {
+    s.solver.kind = kind;
+    SimulatorBuild b = buildSimulator(c, model, s);
+    if (kind == SolverSettings::Kind::kMultigrid) EXPECT_GE(b.multigrid_levels, 2);
+    const SettleResult r = settle(*b.simulator, s.settle);
+    EXPECT_TRUE(r.settled) << SolverSettings::kindName(kind);
+    u[k++] = b.simulator->state().displacement_m;
+  }
+  const double scale = maxNodalNorm(u[0]);
+  EXPECT_GT(scale, 3e-3);
+  EXPECT_LT(maxNodalNorm(u[1] - u[0]), 1e-3 * scale);
+}
