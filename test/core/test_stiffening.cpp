@@ -1,0 +1,317 @@
+// Von Mises stiffening with time-step reversal (issue 5): the α controller, the reversal loop on a
+// case that inverts, the undo history, the settle criterion, explicit Euler and the trimmed
+// stability grid.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstring>
+#include <iostream>
+#include <memory>
+#include <string>
+
+#include <omp.h>
+
+#include <Eigen/Geometry>
+
+#include "breast_sim/core/fem/corotated_tet_fem.h"
+#include "breast_sim/core/fem/dynamic_simulator.h"
+#include "breast_sim/core/material/explicit_euler.h"
+#include "breast_sim/core/material/stability_map.h"
+#include "breast_sim/core/material/stiffening.h"
+#include "breast_sim/core/mesh/box_mesh.h"
+#include "breast_sim/core/solver/cholmod_solver.h"
+
+using namespace breast_sim::core;
+
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+
+// The meshes here are tiny: one thread is faster than two (no spinning, no barriers), above all on
+// a shared machine.
+[[maybe_unused]] const int kOneThread = (omp_set_num_threads(1), 1);
+
+// The phantom's hard case at ~1000 elements: prone rest shape, chest wall fixed, supine gravity.
+const StabilityLoadCase& tinyPhantom() {
+  static const StabilityLoadCase load = makePhantomLoadCase(defaultPhantomCasePath(), 1000);
+  return load;
+}
+
+template <class F>
+void expectThrowsNaming(F f, const std::string& name) {
+  try {
+    f();
+    ADD_FAILURE() << "no exception for " << name;
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find(name), std::string::npos) << e.what();
+  }
+}
+
+struct PhantomSim {
+  std::unique_ptr<DynamicSimulator> sim;
+  std::unique_ptr<StiffeningSimulation> stiff;
+};
+
+// E = 600 Pa, ν = 0.48: co-rotated FEM with fixed E pushes elements through each other here.
+PhantomSim makePhantomSim(double dt, const StiffeningParams& p, double E = 600.0) {
+  const StabilityLoadCase& load = tinyPhantom();
+  ElasticMaterial mat;
+  mat.youngs_modulus_pa = E;
+  mat.poisson_ratio = 0.48;
+  DynamicsParams dyn;
+  dyn.time_step_s = dt;
+  PhantomSim s;
+  s.sim = std::make_unique<DynamicSimulator>(load.mesh, std::make_unique<CorotatedTetFem>(load.mesh, mat), mat, dyn,
+                                             std::make_unique<CholmodSolver>(CholmodOptions{1}));
+  s.stiff = std::make_unique<StiffeningSimulation>(*s.sim, load.mesh, p);
+  s.stiff->fixNodes(load.fixed_nodes);
+  s.stiff->setGravity(load.gravity_mps2);
+  return s;
+}
+
+}  // namespace
+
+TEST(AlphaController, InvalidParametersThrowNamingTheField) {
+  auto with = [](auto change) {
+    AlphaControllerParams p;
+    change(p);
+    return p;
+  };
+  expectThrowsNaming([&] { AlphaController(with([](auto& p) { p.decrease_factor = 1.0; })); }, "decrease_factor");
+  expectThrowsNaming([&] { AlphaController(with([](auto& p) { p.increase_factor = 1.0; })); }, "increase_factor");
+  expectThrowsNaming([&] { AlphaController(with([](auto& p) { p.min_alpha_per_pa = 0.0; })); }, "min_alpha_per_pa");
+  expectThrowsNaming([&] { AlphaController(with([](auto& p) { p.initial_alpha_per_pa = 1e9; })); }, "initial_alpha_per_pa");
+  expectThrowsNaming([&] { AlphaController(with([](auto& p) { p.rate_halving = 1.0; })); }, "rate_halving");
+  expectThrowsNaming([&] { AlphaController(with([](auto& p) { p.min_rate = 0.5; })); }, "min_rate");
+  StiffeningParams sp;
+  sp.max_reversals_per_step = 0;
+  expectThrowsNaming([&] { sp.validate(); }, "max_reversals_per_step");
+  sp = {};
+  sp.history_size = 0;
+  expectThrowsNaming([&] { sp.validate(); }, "history_size");
+  sp = {};
+  sp.gravity_direction_tolerance_deg = 200;
+  expectThrowsNaming([&] { sp.validate(); }, "gravity_direction_tolerance_deg");
+  sp = {};
+  sp.settle.max_speed_mps = -1;
+  expectThrowsNaming([&] { sp.validate(); }, "max_speed_mps");
+  StabilityRun run;
+  run.poisson_ratio = 0.5;
+  expectThrowsNaming([&] { run.validate(); }, "poisson_ratio");
+  DivergenceLimits lim;
+  lim.max_displacement_m = 0;
+  expectThrowsNaming([&] { lim.validate(); }, "max_displacement_m");
+  expectThrowsNaming([&] { makePhantomLoadCase(defaultPhantomCasePath(), 0); }, "target_elements");
+  expectThrowsNaming([&] { parseStabilityMethod("implicit"); }, "implicit");
+}
+
+TEST(AlphaController, DecreasesOnAcceptIncreasesOnReversalWithinBounds) {
+  AlphaControllerParams p;
+  p.initial_alpha_per_pa = 1e-2;
+  p.min_alpha_per_pa = 1e-3;
+  p.max_alpha_per_pa = 5e-2;
+  AlphaController c(p);
+  c.onAccepted();
+  EXPECT_DOUBLE_EQ(c.alpha(), 1e-2 * p.decrease_factor);
+  c.onReversed(1);
+  EXPECT_DOUBLE_EQ(c.alpha(), 1e-2 * p.decrease_factor * p.increase_factor);
+  for (int i = 0; i < 10; ++i) c.onReversed(i + 1);
+  EXPECT_DOUBLE_EQ(c.alpha(), p.max_alpha_per_pa);
+  for (int i = 0; i < 100; ++i) c.onAccepted();
+  EXPECT_DOUBLE_EQ(c.alpha(), p.min_alpha_per_pa);
+  c.restart();
+  EXPECT_DOUBLE_EQ(c.alpha(), p.initial_alpha_per_pa);
+  EXPECT_EQ(c.phase(), AlphaController::Phase::kSearch);
+}
+
+// A step inverts whenever α < α*: the controller must oscillate first, detect it, and settle just
+// above α* (the search phase alone would keep jumping by ×2 / ×0.8).
+TEST(AlphaController, OscillationDetectionSettlesAlpha) {
+  const double alpha_star = 1.234e-3;
+  AlphaController c;  // the default preset, from 1e-2
+  std::vector<double> trace;
+  for (int step = 0; step < 400; ++step) {
+    int attempt = 0;
+    while (c.alpha() < alpha_star) c.onReversed(++attempt);  // the step reverts until α is enough
+    ASSERT_LE(attempt, 10);
+    c.onAccepted();
+    trace.push_back(c.alpha());
+  }
+  EXPECT_EQ(c.phase(), AlphaController::Phase::kSettling);
+  EXPECT_GE(c.oscillations(), 3);
+  double lo = 1e9, hi = 0;
+  for (size_t i = trace.size() - 100; i < trace.size(); ++i) lo = std::min(lo, trace[i]), hi = std::max(hi, trace[i]);
+  // Settled: the last 100 steps stay within 2 % and within 5 % above the threshold.
+  EXPECT_LT((hi - lo) / lo, 0.02) << lo << " " << hi;
+  EXPECT_GE(lo, alpha_star * (1 - c.rate()));
+  EXPECT_LT(hi, 1.05 * alpha_star);
+}
+
+TEST(Settle, CriterionMeasuresSpeedAndResidualOverFreeNodes) {
+  const Eigen::VectorXd m = Eigen::VectorXd::Constant(2, 0.5);
+  const Eigen::Vector3d g(0, -10, 0);
+  Eigen::VectorXd f_el(6), v = Eigen::VectorXd::Zero(6);
+  f_el << 0, 5, 0, 0, 5, 0;  // balances m g on both nodes
+  std::vector<char> fixed = {0, 0};
+  SettleCriterion crit;
+  SettleCheck c = evaluateSettle(crit, v, f_el, Eigen::VectorXd(), m, g, fixed);
+  EXPECT_TRUE(c.below);
+  EXPECT_NEAR(c.relative_residual, 0.0, 1e-15);
+  v[4] = 0.01;  // 1 cm/s
+  c = evaluateSettle(crit, v, f_el, Eigen::VectorXd(), m, g, fixed);
+  EXPECT_FALSE(c.below);
+  EXPECT_DOUBLE_EQ(c.max_speed_mps, 0.01);
+  fixed[1] = 1;  // a fixed node is left out
+  f_el[4] = 100;
+  c = evaluateSettle(crit, v, f_el, Eigen::VectorXd(), m, g, fixed);
+  EXPECT_TRUE(c.below);
+  f_el[1] = 4.0;  // 20 % unbalanced
+  c = evaluateSettle(crit, v, f_el, Eigen::VectorXd(), m, g, fixed);
+  EXPECT_NEAR(c.relative_residual, 0.2, 1e-12);
+  EXPECT_FALSE(c.below);
+}
+
+// The phantom under supine gravity at E = 600 Pa: co-rotated FEM with fixed E inverts elements;
+// the full method reverts those steps, raises α and never keeps an inverted element.
+TEST(Stiffening, ReversesWhenElementsInvertAndMovesAlpha) {
+  StiffeningParams fixed_e;
+  fixed_e.update_moduli = false;
+  PhantomSim weak = makePhantomSim(0.1, fixed_e);
+  for (int i = 0; i < 20; ++i) weak.stiff->step();
+  EXPECT_GT(weak.stiff->stats().inverted_elements, 0) << "the weak method should fail in this case";
+
+  PhantomSim full = makePhantomSim(0.1, StiffeningParams{});
+  long reversed_calls = 0;
+  for (int i = 0; i < 40; ++i) {
+    const double before = full.stiff->controller().alpha();
+    const StiffeningStepResult r = full.stiff->step();
+    ASSERT_TRUE(r.advanced) << "step " << i;
+    EXPECT_EQ(r.inverted_elements, 0);
+    if (r.reversals > 0) {
+      ++reversed_calls;
+      EXPECT_GT(r.alpha_per_pa, before) << "α must grow over a reversed step";
+    } else {
+      EXPECT_LT(r.alpha_per_pa, before) << "α must shrink after a good step";
+    }
+  }
+  const RunStats s = full.stiff->stats();
+  EXPECT_GT(reversed_calls, 0);
+  EXPECT_EQ(s.reversed_steps > 0, true);
+  EXPECT_GT(s.reversal_fraction, 0.0);
+  EXPECT_LT(s.reversal_fraction, 0.5);
+  EXPECT_EQ(s.inverted_elements, 0);
+  EXPECT_FALSE(s.nan);
+  EXPECT_EQ(s.steps, 40);
+  EXPECT_GT(s.max_displacement_m, 5e-3);  // it did deform (mm scale)
+  EXPECT_GT(s.max_modulus_factor, 1.0);
+  std::cout << "phantom 1k, E 600 Pa, dt 0.1 s: " << s.steps << " steps, " << s.reversed_steps << " reversed ("
+            << 100 * s.reversal_fraction << " %), final alpha " << s.final_alpha_per_pa << " 1/Pa, max |u| "
+            << 1e3 * s.max_displacement_m << " mm, dV " << s.volume_change_percent << " %\n";
+}
+
+TEST(Stiffening, HistoryRestoresExactlyAndReplaysBitwise) {
+  StiffeningParams p;
+  p.history_size = 4;
+  PhantomSim a = makePhantomSim(0.1, p);
+  for (int i = 0; i < 7; ++i) a.stiff->step();
+  ASSERT_EQ(a.stiff->historySize(), 4);  // round-robin: only the newest 4 kept
+  const StiffeningSimulation::HistoryEntry older = a.stiff->history(2);
+  const StiffeningSimulation::HistoryEntry next = a.stiff->history(1);  // what the step after `older` gave
+  a.stiff->revertTo(2);
+  EXPECT_EQ(a.stiff->historySize(), 2);
+  const SimulationState& s = a.sim->state();
+  ASSERT_EQ(s.displacement_m.size(), older.state.displacement_m.size());
+  EXPECT_EQ(0, std::memcmp(s.displacement_m.data(), older.state.displacement_m.data(), sizeof(double) * s.displacement_m.size()));
+  EXPECT_EQ(0, std::memcmp(s.velocity_mps.data(), older.state.velocity_mps.data(), sizeof(double) * s.velocity_mps.size()));
+  EXPECT_EQ(s.time_s, older.state.time_s);
+  EXPECT_EQ(s.step, older.state.step);
+  const Eigen::VectorXd& er = a.sim->elements().modulusFactors();
+  EXPECT_EQ(0, std::memcmp(er.data(), older.modulus_factors.data(), sizeof(double) * er.size()));
+  EXPECT_EQ(a.stiff->controller().alpha(), older.controller.alpha_per_pa);
+  // Continuing from the restored state takes exactly the step it took the first time.
+  a.stiff->step();
+  const SimulationState& s2 = a.sim->state();
+  EXPECT_EQ(0, std::memcmp(s2.displacement_m.data(), next.state.displacement_m.data(), sizeof(double) * s2.displacement_m.size()));
+  EXPECT_EQ(a.stiff->controller().alpha(), next.controller.alpha_per_pa);
+  EXPECT_THROW(a.stiff->revertTo(5), std::out_of_range);
+}
+
+TEST(Stiffening, GravityDirectionChangeRestartsTheAlphaSearch) {
+  PhantomSim a = makePhantomSim(0.1, StiffeningParams{}, 2000.0);
+  for (int i = 0; i < 5; ++i) a.stiff->step();
+  const double alpha = a.stiff->controller().alpha();
+  ASSERT_LT(alpha, a.stiff->params().alpha.initial_alpha_per_pa);
+  const Eigen::Vector3d g = a.sim->params().gravity_mps2;
+  const Eigen::Vector3d g_small = Eigen::AngleAxisd(2.0 * kPi / 180.0, Eigen::Vector3d::UnitZ()) * g;  // 2° < 5°
+  EXPECT_FALSE(a.stiff->setGravity(g_small));
+  EXPECT_EQ(a.stiff->controller().alpha(), alpha);
+  const Eigen::Vector3d g_turned = Eigen::AngleAxisd(kPi / 2, Eigen::Vector3d::UnitZ()) * g;
+  EXPECT_TRUE(a.stiff->setGravity(g_turned));
+  EXPECT_EQ(a.stiff->controller().alpha(), a.stiff->params().alpha.initial_alpha_per_pa);
+  EXPECT_EQ(a.sim->params().gravity_mps2, g_turned);
+}
+
+// Explicit Euler: stable below its critical time step (there it reaches the implicit method's
+// static solution), blows up cleanly above it.
+TEST(ExplicitEuler, StableForTinyStepsAndStopsCleanlyWhenItBlowsUp) {
+  const TetMesh box = makeBoxMesh({4, 2, 2}, {0.04, 0.02, 0.02});
+  ElasticMaterial mat;
+  mat.poisson_ratio = 0.3;
+  DynamicsParams dyn;
+  dyn.gravity_mps2 = Eigen::Vector3d(0, 0, -9.81);
+  dyn.mass_damping_per_s = 5.0;      // settles within the 3 s simulated
+  dyn.stiffness_damping_s = 0.002;   // explicit stability needs α_K ω_max² dt < 2
+  const std::vector<int>& clamp = box.nodeSet("x_min");
+
+  dyn.time_step_s = 0.01;
+  DynamicSimulator imp(box, std::make_unique<CorotatedTetFem>(box, mat), mat, dyn, std::make_unique<CholmodSolver>());
+  imp.fixNodes(clamp);
+  for (int i = 0; i < 300; ++i) imp.step();
+
+  dyn.time_step_s = 5e-4;
+  ExplicitEulerSimulator exp(box, std::make_unique<CorotatedTetFem>(box, mat), mat, dyn);
+  exp.fixNodes(clamp);
+  for (int i = 0; i < 6000; ++i) ASSERT_TRUE(exp.step()) << "step " << i;
+  const double umax = imp.state().displacement_m.cwiseAbs().maxCoeff();
+  ASSERT_GT(umax, 1e-3);
+  EXPECT_LT((exp.state().displacement_m - imp.state().displacement_m).cwiseAbs().maxCoeff(), 0.02 * umax);
+
+  dyn.time_step_s = 0.033;
+  ExplicitEulerSimulator blow(box, std::make_unique<CorotatedTetFem>(box, mat), mat, dyn);
+  blow.fixNodes(clamp);
+  int steps = 0;
+  while (blow.step() && steps < 1000) ++steps;
+  EXPECT_TRUE(blow.diverged());
+  EXPECT_LT(steps, 1000);
+  EXPECT_FALSE(blow.step());  // stays stopped
+}
+
+// The trimmed grid on the tiny phantom: the full method never ends inverted or NaN; explicit Euler
+// blows up and co-rotated FEM with fixed E inverts at 600 Pa.
+TEST(StabilityMap, TrimmedGridFullMethodNeverInvertsWeakerMethodsFail) {
+  const StabilityLoadCase& load = tinyPhantom();
+  int full_runs = 0;
+  for (StabilityRun r : stabilityGrid(true)) {
+    if (r.method != StabilityMethod::kFullMethod && r.method != StabilityMethod::kExplicitEuler) continue;
+    if (r.method == StabilityMethod::kExplicitEuler && r.poisson_ratio != 0.48) continue;
+    r.youngs_modulus_pa = 600.0;  // harder than the grid's 1 kPa, so the tiny mesh inverts too
+    const StabilityResult res = runStability(load, r);
+    SCOPED_TRACE(std::string(methodName(r.method)) + " nu " + std::to_string(r.poisson_ratio) + " dt " +
+                 std::to_string(r.time_step_s) + ": " + res.outcome + " " + res.reason);
+    if (r.method == StabilityMethod::kFullMethod) {
+      ++full_runs;
+      EXPECT_EQ(res.stats.inverted_elements, 0);
+      EXPECT_FALSE(res.stats.nan);
+      EXPECT_TRUE(res.outcome == "settled" || res.outcome == "not_settled");
+    } else {
+      EXPECT_TRUE(res.outcome == "exploded" || res.outcome == "nan");
+    }
+  }
+  EXPECT_EQ(full_runs, 7);
+  StabilityRun weak;
+  weak.method = StabilityMethod::kCorotatedFixed;
+  weak.youngs_modulus_pa = 600.0;
+  weak.time_step_s = 0.33;
+  const StabilityResult res = runStability(load, weak);
+  EXPECT_EQ(res.outcome, "inverted") << res.reason;
+}
