@@ -1,5 +1,6 @@
 #include "breast_sim/core/fem/corotated_tet_fem.h"
 
+#include <algorithm>
 #include <cmath>
 #include <stdexcept>
 
@@ -18,7 +19,7 @@ CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& mat
   grads_.resize(12 * static_cast<size_t>(nt));
   volumes_.resize(nt);
   rotations_.assign(9 * static_cast<size_t>(nt), 0.0);
-  rotated_grads_.assign(12 * static_cast<size_t>(nt), 0.0);
+  records_raw_.assign(kRecord * static_cast<size_t>(nt) + 8, 0.0);
   elem_forces_.assign(12 * static_cast<size_t>(nt), 0.0);
   modulus_factor_ = Eigen::VectorXd::Ones(nt);
   von_mises_ = Eigen::VectorXd::Zero(nt);
@@ -35,8 +36,18 @@ CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& mat
       for (int c = 0; c < 3; ++c) g[3 * i + c] = Dinv(i - 1, c);
     for (int c = 0; c < 3; ++c) g[c] = -(g[3 + c] + g[6 + c] + g[9 + c]);
     Eigen::Map<Eigen::Matrix3d>(&rotations_[9 * static_cast<size_t>(e)]).setIdentity();
-    std::copy(g, g + 12, &rotated_grads_[12 * static_cast<size_t>(e)]);
+    double* rec = records() + kRecord * static_cast<size_t>(e);
+    std::copy(g, g + 12, rec);
+    rec[12] = volumes_[e];
   }
+  const int nn = pattern_.numNodes();
+  incident_slots_.resize(4 * static_cast<size_t>(pattern_.incidentStart(nn)));
+#pragma omp parallel for schedule(static)
+  for (int n = 0; n < nn; ++n)
+    for (int k = pattern_.incidentStart(n); k < pattern_.incidentStart(n + 1); ++k) {
+      const int* slot = pattern_.blockSlot(pattern_.incidentElement(k)) + 4 * pattern_.incidentLocal(k);
+      for (int j = 0; j < 4; ++j) incident_slots_[4 * static_cast<size_t>(k) + j] = 3 * slot[j];
+    }
 }
 
 void CorotatedTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
@@ -48,6 +59,8 @@ void CorotatedTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
       throw std::invalid_argument("setModulusFactors: factor of element " + std::to_string(e) + " is " +
                                   std::to_string(factors[e]) + "; factors must be positive and finite");
   modulus_factor_ = factors;
+  double* rec = records();
+  for (Eigen::Index e = 0; e < factors.size(); ++e) rec[kRecord * static_cast<size_t>(e) + 12] = factors[e] * volumes_[e];
 }
 
 void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
@@ -72,7 +85,7 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
                               3.0 * (sigma(0, 1) * sigma(0, 1) + sigma(1, 2) * sigma(1, 2) + sigma(0, 2) * sigma(0, 2)));
     const Eigen::Matrix3d RS = -volumes_[e] * (R * sigma);
     double* fe = &elem_forces_[12 * static_cast<size_t>(e)];
-    double* rg = &rotated_grads_[12 * static_cast<size_t>(e)];
+    double* rg = records() + kRecord * static_cast<size_t>(e);
     for (int i = 0; i < 4; ++i) {
       const Eigen::Vector3d gi(g[3 * i], g[3 * i + 1], g[3 * i + 2]);
       const Eigen::Vector3d fi = RS * gi;
@@ -103,28 +116,63 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
 
 void CorotatedTetFem::addStiffness(double scale, SparseMatrix& A) const {
   const int nn = pattern_.numNodes();
-  double* values = A.valuePtr();
-  const int* outer = A.outerIndexPtr();
+  double* const values = A.valuePtr();
+  const int* const outer = A.outerIndexPtr();
+  const double* const recs = records();
+  const int* const islots = incident_slots_.data();
+  const double sl = scale * lambda_, sm = scale * mu_;
+  // Everything is read into locals before the writes to A: `values` could alias the gradients for
+  // the compiler, which would otherwise reload them after every store. Node n's three rows are
+  // contiguous (3·deg entries each), so its writes stay in one ~1 kB stretch of A (L1-resident).
+  // The element records are prefetched a few incidences ahead.
+  constexpr int kAhead = 4;
+  const int num_incidences = pattern_.incidentStart(nn);
 #pragma omp parallel for schedule(dynamic, 64)
   for (int n = 0; n < nn; ++n) {
-    for (int k = pattern_.incidentStart(n); k < pattern_.incidentStart(n + 1); ++k) {
-      const int e = pattern_.incidentElement(k), i = pattern_.incidentLocal(k);
-      const double* rg = &rotated_grads_[12 * static_cast<size_t>(e)];
-      const double w = scale * modulus_factor_[e] * volumes_[e];
-      const Eigen::Map<const Eigen::Vector3d> gi(rg + 3 * i);
-      const int* slot = pattern_.blockSlot(e) + 4 * i;
+    double* const row0 = values + outer[3 * n];
+    const int len = outer[3 * n + 1] - outer[3 * n];
+    double* const row1 = row0 + len;
+    double* const row2 = row1 + len;
+    const int k_begin = pattern_.incidentStart(n), k_end = pattern_.incidentStart(n + 1);
+    for (int k = k_begin; k < std::min(k_begin + kAhead, num_incidences); ++k) {
+      const double* r = recs + kRecord * static_cast<size_t>(pattern_.incidentElement(k));
+      __builtin_prefetch(r);
+      __builtin_prefetch(r + 8);
+    }
+    for (int k = k_begin; k < k_end; ++k) {
+      if (k + kAhead < num_incidences) {
+        const double* r = recs + kRecord * static_cast<size_t>(pattern_.incidentElement(k + kAhead));
+        __builtin_prefetch(r);
+        __builtin_prefetch(r + 8);
+      }
+      const int i = pattern_.incidentLocal(k);
+      const double* const rg = recs + kRecord * static_cast<size_t>(pattern_.incidentElement(k));
+      // Block (i, j) of R K_e0 Rᵀ: V(λ gi gjᵀ + μ gj giᵀ + μ (gi·gj) I) = u gjᵀ + gj vᵀ + (v·gj) I
+      // with u = Vλ gi, v = Vμ gi (V including the modulus factor).
+      double g[12];
+      for (int q = 0; q < 12; ++q) g[q] = rg[q];
+      const double w = rg[12];
+      const double gi0 = g[3 * i], gi1 = g[3 * i + 1], gi2 = g[3 * i + 2];
+      const double wl = w * sl, wm = w * sm;
+      const double u0 = wl * gi0, u1 = wl * gi1, u2 = wl * gi2;
+      const double v0 = wm * gi0, v1 = wm * gi1, v2 = wm * gi2;
+      int slot[4];
+      for (int j = 0; j < 4; ++j) slot[j] = islots[4 * static_cast<size_t>(k) + j];
       for (int j = 0; j < 4; ++j) {
-        const Eigen::Map<const Eigen::Vector3d> gj(rg + 3 * j);
-        // Block (i, j) of R K_e0 Rᵀ: V(λ gi gjᵀ + μ gj giᵀ + μ (gi·gj) I).
-        const double dot = mu_ * gi.dot(gj);
-        for (int r = 0; r < 3; ++r) {
-          double* row = values + outer[3 * n + r] + 3 * slot[j];
-          const double a = w * lambda_ * gi[r], b = w * mu_ * gj[r];
-          row[0] += a * gj[0] + b * gi[0];
-          row[1] += a * gj[1] + b * gi[1];
-          row[2] += a * gj[2] + b * gi[2];
-          row[r] += w * dot;
-        }
+        const double gj0 = g[3 * j], gj1 = g[3 * j + 1], gj2 = g[3 * j + 2];
+        const double d = v0 * gj0 + v1 * gj1 + v2 * gj2;
+        double* const p0 = row0 + slot[j];
+        double* const p1 = row1 + slot[j];
+        double* const p2 = row2 + slot[j];
+        p0[0] += u0 * gj0 + gj0 * v0 + d;
+        p0[1] += u0 * gj1 + gj0 * v1;
+        p0[2] += u0 * gj2 + gj0 * v2;
+        p1[0] += u1 * gj0 + gj1 * v0;
+        p1[1] += u1 * gj1 + gj1 * v1 + d;
+        p1[2] += u1 * gj2 + gj1 * v2;
+        p2[0] += u2 * gj0 + gj2 * v0;
+        p2[1] += u2 * gj1 + gj2 * v1;
+        p2[2] += u2 * gj2 + gj2 * v2 + d;
       }
     }
   }
