@@ -168,7 +168,7 @@ StabilityResult runStability(const StabilityLoadCase& load, const StabilityRun& 
     if (res.reason.empty() || res.reason == "stalled") res.reason = fmt("NaN at t=%.2f s", s.simulated_time_s);
   } else if (s.exploded) {
     res.outcome = "exploded";
-    res.reason = fmt("|u|>1 m at t=%.2f s", s.simulated_time_s);
+    res.reason = fmt("|u|>1 m or |v|>100 m/s at t=%.3g s", s.simulated_time_s);
   } else if (s.inverted_elements > 0) {
     res.outcome = "inverted";
     res.reason = fmt("%.0f inverted", s.inverted_elements);
