@@ -40,3 +40,34 @@ TEST(DistanceTransform, EmptyMaskIsInfiniteEverywhere) {
   const auto d = euclideanDistanceTransform(std::vector<std::uint8_t>(27, 0), size, Eigen::Vector3d::Ones());
   for (float v : d) EXPECT_TRUE(std::isinf(v));
 }
+
+// The feature transform's site is a nearest one: its distance equals the brute-force distance (ties
+// may pick either site), and the distances it returns equal the distance transform's.
+TEST(FeatureTransform, NearestSiteMatchesBruteForceDistances) {
+  std::mt19937 rng(11);
+  for (int trial = 0; trial < 5; ++trial) {
+    SCOPED_TRACE("trial " + std::to_string(trial));
+    const Eigen::Vector3i size(6 + trial, 8 - trial / 2, 5 + trial);
+    const Eigen::Vector3d spacing(0.7 + 0.2 * trial, 1.0, 1.6 - 0.2 * trial);
+    std::vector<std::uint8_t> mask(size.prod());
+    std::bernoulli_distribution on(0.01 + 0.04 * trial);
+    for (auto& m : mask) m = on(rng);
+    mask[size.prod() / 2] = 1;
+    std::vector<float> distance;
+    const auto feature = euclideanFeatureTransform(mask, size, spacing, &distance);
+    const auto slow = bruteForceDistanceTransform(mask, size, spacing);
+    const auto fast = euclideanDistanceTransform(mask, size, spacing);
+    auto position = [&](long i) {
+      const long nx = size.x(), nxy = nx * size.y();
+      return Eigen::Vector3d(spacing.x() * (i % nx), spacing.y() * ((i / nx) % size.y()), spacing.z() * (i / nxy));
+    };
+    for (long i = 0; i < size.prod(); ++i) {
+      ASSERT_GE(feature[i], 0);
+      ASSERT_TRUE(mask[feature[i]]) << "voxel " << i << " points to a voxel outside the mask";
+      ASSERT_NEAR((position(i) - position(feature[i])).norm(), slow[i], 1e-4 * (1 + slow[i])) << "voxel " << i;
+      ASSERT_EQ(distance[i], fast[i]);
+    }
+  }
+  const auto none = euclideanFeatureTransform(std::vector<std::uint8_t>(8, 0), Eigen::Vector3i(2, 2, 2), Eigen::Vector3d::Ones());
+  for (auto f : none) EXPECT_EQ(f, -1);
+}

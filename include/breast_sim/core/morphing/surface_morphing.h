@@ -1,0 +1,62 @@
+#pragma once
+/// @file surface_morphing.h
+/// Surface morphing (seed section 2.5): at every step, each chosen surface vertex gets a force
+/// proportional to the vector from its current position to the nearest target point; the forces
+/// accumulate in the simulator and are never reset, so an overshoot corrects itself (an integral
+/// controller on the surface distance).
+
+#include <memory>
+#include <vector>
+
+#include "breast_sim/core/fem/dynamic_simulator.h"
+#include "breast_sim/core/morphing/surface_field.h"
+
+namespace breast_sim::core {
+
+struct MorphingOptions {
+  /// Force added per step and vertex = gain · A_i · v_i, with A_i the vertex's share of the skin
+  /// area [m²] and v_i the vector to the target [m]: a pressure per metre of distance and step
+  /// [Pa/m]. Scale-free in the mesh size. The default pulls the 2 kPa phantom onto its target in a
+  /// few tens of steps of 0.033 s.
+  double gain_pa_per_m = 2.0e4;
+  /// Vertices farther than this from the target get no force [m] (outliers, parts the scanner does
+  /// not see); 0 = no limit.
+  double max_distance_m = 0.05;
+  /// Which vertices: the skin node set without the nodes the simulator holds (fixed or moved by
+  /// sliding), so the morphing never fights a constraint.
+  bool skip_constrained = true;
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
+  void validate() const;
+};
+
+class SurfaceMorphing {
+ public:
+  /// @param skin_nodes  the surface vertices that may be pulled (e.g. the "skin" node set)
+  /// @param constrained_nodes  nodes to leave out when options.skip_constrained (e.g. the chest wall)
+  /// @throws std::invalid_argument for invalid options or node indices, or no vertex left.
+  SurfaceMorphing(const TetMesh& mesh, std::shared_ptr<const SurfaceVectorField> field,
+                  const std::vector<int>& skin_nodes, const std::vector<int>& constrained_nodes,
+                  const MorphingOptions& options = {});
+
+  /// Adds this step's forces at the simulator's current positions (call before its step()).
+  /// @return the mean distance of the pulled vertices to the target [m] before the step
+  double addForces(DynamicSimulator& sim);
+
+  const std::vector<int>& vertices() const { return vertices_; }
+  /// Area share of each pulled vertex [m²] (rest configuration).
+  const Eigen::VectorXd& vertexAreas() const { return area_; }
+  /// Forces added so far, summed per pulled vertex [N] (#vertices × 3).
+  const Points& accumulatedForces() const { return total_; }
+  const MorphingOptions& options() const { return options_; }
+
+ private:
+  const Points rest_;
+  std::shared_ptr<const SurfaceVectorField> field_;
+  MorphingOptions options_;
+  std::vector<int> vertices_;
+  Eigen::VectorXd area_;
+  Points total_;
+  Points step_forces_;
+};
+
+}  // namespace breast_sim::core

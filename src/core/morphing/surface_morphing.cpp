@@ -1,0 +1,72 @@
+#include "breast_sim/core/morphing/surface_morphing.h"
+
+#include <cmath>
+#include <sstream>
+#include <stdexcept>
+
+namespace breast_sim::core {
+
+void MorphingOptions::validate() const {
+  auto bad = [](const char* name, double v, const char* range) {
+    std::ostringstream s;
+    s << "morphing '" << name << "' = " << v << " is invalid: expected " << range;
+    throw std::invalid_argument(s.str());
+  };
+  if (!(gain_pa_per_m >= 0) || !std::isfinite(gain_pa_per_m)) bad("gain_pa_per_m", gain_pa_per_m, "≥ 0 Pa/m");
+  if (!(max_distance_m >= 0) || !std::isfinite(max_distance_m)) bad("max_distance_m", max_distance_m, "≥ 0 m (0 = no limit)");
+}
+
+SurfaceMorphing::SurfaceMorphing(const TetMesh& mesh, std::shared_ptr<const SurfaceVectorField> field,
+                                 const std::vector<int>& skin_nodes, const std::vector<int>& constrained_nodes,
+                                 const MorphingOptions& options)
+    : rest_(mesh.nodes()), field_(std::move(field)), options_(options) {
+  options_.validate();
+  if (!field_) throw std::invalid_argument("SurfaceMorphing: no target field");
+  const int nn = mesh.numNodes();
+  std::vector<char> excluded(static_cast<size_t>(nn), 0), is_skin(static_cast<size_t>(nn), 0);
+  for (int n : constrained_nodes) {
+    if (n < 0 || n >= nn) throw std::invalid_argument("SurfaceMorphing: constrained node " + std::to_string(n) + " out of range");
+    if (options_.skip_constrained) excluded[static_cast<size_t>(n)] = 1;
+  }
+  for (int n : skin_nodes) {
+    if (n < 0 || n >= nn) throw std::invalid_argument("SurfaceMorphing: skin node " + std::to_string(n) + " out of range");
+    is_skin[static_cast<size_t>(n)] = 1;
+  }
+  // Area share: a third of each boundary face with all three nodes on the skin, to each node.
+  Eigen::VectorXd node_area = Eigen::VectorXd::Zero(nn);
+  const Triangles& b = mesh.boundary().triangles;
+  for (Eigen::Index f = 0; f < b.rows(); ++f) {
+    if (!is_skin[b(f, 0)] || !is_skin[b(f, 1)] || !is_skin[b(f, 2)]) continue;
+    const Eigen::Vector3d p0 = rest_.row(b(f, 0)), p1 = rest_.row(b(f, 1)), p2 = rest_.row(b(f, 2));
+    const double a = 0.5 * (p1 - p0).cross(p2 - p0).norm() / 3.0;
+    for (int k = 0; k < 3; ++k) node_area[b(f, k)] += a;
+  }
+  for (int n = 0; n < nn; ++n)
+    if (is_skin[static_cast<size_t>(n)] && !excluded[static_cast<size_t>(n)] && node_area[n] > 0) vertices_.push_back(n);
+  if (vertices_.empty()) throw std::invalid_argument("SurfaceMorphing: no skin vertex is left to pull");
+  area_.resize(static_cast<Eigen::Index>(vertices_.size()));
+  for (size_t i = 0; i < vertices_.size(); ++i) area_[static_cast<Eigen::Index>(i)] = node_area[vertices_[i]];
+  total_ = Points::Zero(static_cast<Eigen::Index>(vertices_.size()), 3);
+  step_forces_ = total_;
+}
+
+double SurfaceMorphing::addForces(DynamicSimulator& sim) {
+  const Eigen::VectorXd& u = sim.state().displacement_m;
+  const int nv = static_cast<int>(vertices_.size());
+  double sum = 0.0;
+#pragma omp parallel for schedule(static) reduction(+ : sum) if (nv > 2000)
+  for (int i = 0; i < nv; ++i) {
+    const int n = vertices_[i];
+    const Eigen::Vector3d x = rest_.row(n).transpose() + u.segment<3>(3 * n);
+    const Eigen::Vector3d v = field_->vectorToSurface(x);
+    const double d = v.norm();
+    sum += d;
+    const bool pull = options_.max_distance_m == 0.0 || d <= options_.max_distance_m;
+    step_forces_.row(i) = pull ? Eigen::RowVector3d(options_.gain_pa_per_m * area_[i] * v.transpose()) : Eigen::RowVector3d::Zero();
+  }
+  total_ += step_forces_;
+  sim.addNodalForces(vertices_, step_forces_);
+  return sum / nv;
+}
+
+}  // namespace breast_sim::core

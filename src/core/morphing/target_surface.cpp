@@ -1,0 +1,233 @@
+#include "breast_sim/core/morphing/target_surface.h"
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <stdexcept>
+#include <unordered_set>
+
+#include <vtkCellArray.h>
+#include <vtkGenericCell.h>
+#include <vtkNew.h>
+#include <vtkOBJReader.h>
+#include <vtkPLYReader.h>
+#include <vtkPoints.h>
+#include <vtkPolyData.h>
+#include <vtkPolyDataReader.h>
+#include <vtkSTLReader.h>
+#include <vtkSmartPointer.h>
+#include <vtkStaticCellLocator.h>
+#include <vtkStaticPointLocator.h>
+#include <vtkTriangleFilter.h>
+#include <vtkXMLPolyDataReader.h>
+
+#include "breast_sim/core/model/phantom.h"
+
+namespace breast_sim::core {
+
+void TargetSurface::validate() const {
+  if (vertices_m.rows() == 0) throw std::invalid_argument("target surface: it has no vertices");
+  for (Eigen::Index v = 0; v < vertices_m.rows(); ++v)
+    if (!vertices_m.row(v).allFinite())
+      throw std::invalid_argument("target surface: vertex " + std::to_string(v) + " is not finite");
+  for (Eigen::Index f = 0; f < triangles.rows(); ++f)
+    for (int k = 0; k < 3; ++k)
+      if (triangles(f, k) < 0 || triangles(f, k) >= vertices_m.rows())
+        throw std::invalid_argument("target surface: triangle " + std::to_string(f) + " uses vertex " +
+                                    std::to_string(triangles(f, k)) + " of " + std::to_string(vertices_m.rows()));
+}
+
+TargetSurface skinTarget(const PhantomSurface& surface) {
+  TargetSurface t;
+  t.vertices_m = surface.vertices_m;
+  std::vector<int> keep;
+  for (Eigen::Index f = 0; f < surface.triangles.rows(); ++f)
+    if (surface.is_skin[static_cast<size_t>(f)]) keep.push_back(static_cast<int>(f));
+  t.triangles.resize(static_cast<Eigen::Index>(keep.size()), 3);
+  for (size_t i = 0; i < keep.size(); ++i) t.triangles.row(static_cast<Eigen::Index>(i)) = surface.triangles.row(keep[i]);
+  return t;
+}
+
+TargetSurface readTargetSurface(const std::string& path, double length_unit_m) {
+  if (!(length_unit_m > 0)) throw std::runtime_error(path + ": the length unit must be positive");
+  if (!std::filesystem::exists(path)) throw std::runtime_error(path + ": no such surface file");
+  std::string ext = std::filesystem::path(path).extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
+  vtkSmartPointer<vtkPolyData> poly;
+  auto run = [&](auto reader) {
+    reader->SetFileName(path.c_str());
+    reader->Update();
+    poly = reader->GetOutput();
+  };
+  if (ext == ".obj") run(vtkSmartPointer<vtkOBJReader>::New());
+  else if (ext == ".stl") run(vtkSmartPointer<vtkSTLReader>::New());
+  else if (ext == ".ply") run(vtkSmartPointer<vtkPLYReader>::New());
+  else if (ext == ".vtp") run(vtkSmartPointer<vtkXMLPolyDataReader>::New());
+  else if (ext == ".vtk") run(vtkSmartPointer<vtkPolyDataReader>::New());
+  else throw std::runtime_error(path + ": unknown surface extension '" + ext + "' (expected .obj, .stl, .ply, .vtp or .vtk)");
+  if (!poly || poly->GetNumberOfPoints() == 0) throw std::runtime_error(path + ": no points could be read");
+  TargetSurface t;
+  if (poly->GetNumberOfPolys() > 0) {
+    vtkNew<vtkTriangleFilter> tri;
+    tri->SetInputData(poly);
+    tri->PassVertsOff();
+    tri->PassLinesOff();
+    tri->Update();
+    vtkPolyData* out = tri->GetOutput();
+    t.vertices_m.resize(out->GetNumberOfPoints(), 3);
+    for (vtkIdType i = 0; i < out->GetNumberOfPoints(); ++i) {
+      double p[3];
+      out->GetPoint(i, p);
+      t.vertices_m.row(i) << p[0] * length_unit_m, p[1] * length_unit_m, p[2] * length_unit_m;
+    }
+    t.triangles.resize(out->GetNumberOfPolys(), 3);
+    vtkCellArray* polys = out->GetPolys();
+    polys->InitTraversal();
+    vtkIdType npts;
+    const vtkIdType* ids;
+    Eigen::Index f = 0;
+    while (polys->GetNextCell(npts, ids)) {
+      if (npts != 3) continue;
+      t.triangles.row(f++) << static_cast<int>(ids[0]), static_cast<int>(ids[1]), static_cast<int>(ids[2]);
+    }
+    t.triangles.conservativeResize(f, 3);
+  } else {
+    t.vertices_m.resize(poly->GetNumberOfPoints(), 3);
+    for (vtkIdType i = 0; i < poly->GetNumberOfPoints(); ++i) {
+      double p[3];
+      poly->GetPoint(i, p);
+      t.vertices_m.row(i) << p[0] * length_unit_m, p[1] * length_unit_m, p[2] * length_unit_m;
+    }
+  }
+  try {
+    t.validate();
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(path + ": " + e.what());
+  }
+  return t;
+}
+
+struct SurfaceDistance::Impl {
+  vtkSmartPointer<vtkPolyData> poly;
+  vtkSmartPointer<vtkStaticCellLocator> cells;
+  vtkSmartPointer<vtkStaticPointLocator> points;
+};
+
+SurfaceDistance::SurfaceDistance(const TargetSurface& surface) : impl_(std::make_unique<Impl>()) {
+  surface.validate();
+  impl_->poly = vtkSmartPointer<vtkPolyData>::New();
+  vtkNew<vtkPoints> pts;
+  pts->SetDataTypeToDouble();
+  pts->SetNumberOfPoints(surface.vertices_m.rows());
+  for (Eigen::Index v = 0; v < surface.vertices_m.rows(); ++v)
+    pts->SetPoint(v, surface.vertices_m(v, 0), surface.vertices_m(v, 1), surface.vertices_m(v, 2));
+  impl_->poly->SetPoints(pts);
+  if (surface.isPointCloud()) {
+    impl_->points = vtkSmartPointer<vtkStaticPointLocator>::New();
+    impl_->points->SetDataSet(impl_->poly);
+    impl_->points->BuildLocator();
+  } else {
+    vtkNew<vtkCellArray> polys;
+    for (Eigen::Index f = 0; f < surface.triangles.rows(); ++f) {
+      const vtkIdType ids[3] = {surface.triangles(f, 0), surface.triangles(f, 1), surface.triangles(f, 2)};
+      polys->InsertNextCell(3, ids);
+    }
+    impl_->poly->SetPolys(polys);
+    impl_->poly->BuildCells();
+    impl_->cells = vtkSmartPointer<vtkStaticCellLocator>::New();
+    impl_->cells->SetDataSet(impl_->poly);
+    impl_->cells->BuildLocator();
+  }
+}
+
+SurfaceDistance::~SurfaceDistance() = default;
+SurfaceDistance::SurfaceDistance(SurfaceDistance&&) noexcept = default;
+SurfaceDistance& SurfaceDistance::operator=(SurfaceDistance&&) noexcept = default;
+
+double SurfaceDistance::distance(const Eigen::Vector3d& p_m, Eigen::Vector3d* closest_m) const {
+  double x[3] = {p_m.x(), p_m.y(), p_m.z()}, c[3];
+  if (impl_->points) {
+    const vtkIdType id = impl_->points->FindClosestPoint(x);
+    impl_->poly->GetPoint(id, c);
+  } else {
+    vtkNew<vtkGenericCell> cell;
+    vtkIdType cell_id;
+    int sub_id;
+    double d2;
+    impl_->cells->FindClosestPoint(x, c, cell, cell_id, sub_id, d2);
+  }
+  const Eigen::Vector3d q(c[0], c[1], c[2]);
+  if (closest_m) *closest_m = q;
+  return (q - p_m).norm();
+}
+
+DistanceStats SurfaceDistance::stats(const Points& points_m) const {
+  DistanceStats s;
+  s.count = static_cast<int>(points_m.rows());
+  if (s.count == 0) return s;
+  std::vector<double> d(static_cast<size_t>(s.count));
+#pragma omp parallel for schedule(static)
+  for (int i = 0; i < s.count; ++i) d[i] = distance(points_m.row(i).transpose());
+  double sum = 0;
+  for (double v : d) {
+    sum += v;
+    s.max_m = std::max(s.max_m, v);
+  }
+  s.mean_m = sum / s.count;
+  const size_t k = static_cast<size_t>(std::ceil(0.95 * s.count)) - 1;
+  std::nth_element(d.begin(), d.begin() + static_cast<long>(k), d.end());
+  s.p95_m = d[k];
+  return s;
+}
+
+Points surfaceSamples(const TargetSurface& surface) {
+  if (surface.isPointCloud()) return surface.vertices_m;
+  Points p(surface.vertices_m.rows() + surface.triangles.rows(), 3);
+  p.topRows(surface.vertices_m.rows()) = surface.vertices_m;
+  for (Eigen::Index f = 0; f < surface.triangles.rows(); ++f)
+    p.row(surface.vertices_m.rows() + f) = (surface.vertices_m.row(surface.triangles(f, 0)) +
+                                             surface.vertices_m.row(surface.triangles(f, 1)) +
+                                             surface.vertices_m.row(surface.triangles(f, 2))) / 3.0;
+  return p;
+}
+
+Triangles skinTriangles(const TetMesh& mesh, const std::vector<int>& skin_nodes) {
+  std::vector<char> skin(static_cast<size_t>(mesh.numNodes()), 0);
+  for (int n : skin_nodes) skin[static_cast<size_t>(n)] = 1;
+  const Triangles& b = mesh.boundary().triangles;
+  std::vector<Eigen::Index> keep;
+  for (Eigen::Index f = 0; f < b.rows(); ++f)
+    if (skin[b(f, 0)] && skin[b(f, 1)] && skin[b(f, 2)]) keep.push_back(f);
+  Triangles t(static_cast<Eigen::Index>(keep.size()), 3);
+  for (size_t i = 0; i < keep.size(); ++i) t.row(static_cast<Eigen::Index>(i)) = b.row(keep[i]);
+  return t;
+}
+
+SurfaceMatch surfaceMatch(const TetMesh& mesh, const Points& x_m, const std::vector<int>& skin_nodes,
+                          const SurfaceDistance& target, const TargetSurface& target_surface) {
+  TargetSurface skin;
+  skin.vertices_m = x_m;
+  skin.triangles = skinTriangles(mesh, skin_nodes);
+  if (skin.triangles.rows() == 0) throw std::invalid_argument("surfaceMatch: the model has no skin triangles");
+  // Only the skin's own vertices count on the model side.
+  std::vector<int> used;
+  {
+    std::vector<char> u(static_cast<size_t>(x_m.rows()), 0);
+    for (Eigen::Index f = 0; f < skin.triangles.rows(); ++f)
+      for (int k = 0; k < 3; ++k) u[static_cast<size_t>(skin.triangles(f, k))] = 1;
+    for (size_t i = 0; i < u.size(); ++i)
+      if (u[i]) used.push_back(static_cast<int>(i));
+  }
+  Points model_samples(static_cast<Eigen::Index>(used.size()) + skin.triangles.rows(), 3);
+  for (size_t i = 0; i < used.size(); ++i) model_samples.row(static_cast<Eigen::Index>(i)) = x_m.row(used[i]);
+  for (Eigen::Index f = 0; f < skin.triangles.rows(); ++f)
+    model_samples.row(static_cast<Eigen::Index>(used.size()) + f) =
+        (x_m.row(skin.triangles(f, 0)) + x_m.row(skin.triangles(f, 1)) + x_m.row(skin.triangles(f, 2))) / 3.0;
+  SurfaceMatch m;
+  m.model_to_target = target.stats(model_samples);
+  const SurfaceDistance to_model(skin);
+  m.target_to_model = to_model.stats(surfaceSamples(target_surface));
+  return m;
+}
+
+}  // namespace breast_sim::core
