@@ -1,0 +1,210 @@
+#pragma once
+/// @file chest_wall_sliding.h
+/// Sliding of the breast on the chest wall (seed section 2.4, after [GLDW10]): the chest-wall nodes
+/// carry displacement constraints (DynamicSimulator::setNodeTargets) that are moved after every
+/// step along the wall, in proportion to the force the constraint has to supply, under friction.
+///
+/// Per step and sliding node i (positions x = X + u at the end of the step):
+///  1. Constraint (reaction) force, quasi-static approximation:
+///       r_i = −(f_el,i(x) + m_i g + f_ext,i)                                           [N]
+///     the force the wall must supply for node i to be in equilibrium (inertia m_i a_i and Rayleigh
+///     damping at the node are neglected: the constraint moves slowly, and the seed runs towards a
+///     settled state). The node pushes on the wall with −r_i, i.e. the applied load f_i = −r_i.
+///  2. Normal n (chest_wall_surface.h) at x_i; traction of the node's share A_i of the wall area
+///     (a third of each chest-wall boundary triangle it belongs to):
+///       τ_n = |f_i·n| / A_i (pressing or pulling: the constraint is bilateral, the tissue is attached
+///       by fascia),  τ_t = (f_i − (f_i·n) n) / A_i                                     [Pa]
+///  3. Friction: a node at rest stays while |τ_t| ≤ μ_s τ_n + τ_0 (static); otherwise (or while it
+///     is moving) the driving traction is |τ_t| − μ_k τ_n − τ_0 (kinetic), ≥ 0, along τ_t.
+///  4. Velocity v_i = w_i · mobility · (driving traction) · τ_t/|τ_t| [m/s] (w_i: limiting factors);
+///     with inertia β: v_i ← β P_t v_i,prev + (1 − β) v_i (P_t: onto the current tangent plane).
+///     The move dt · v_i is clamped to max_step_m and, once attach() has measured the node's
+///     stiffness along the move, k_i = tᵀ K_ii t (K_ii its 3×3 diagonal block of K at attach time,
+///     t the unit driving direction) [N/m], to
+///     (driving traction) · A_i / (κ k_i): 1/κ of the move that would by itself cancel the driving
+///     force. The update is explicit (a relaxation step), and without this cap it oscillates
+///     node against node once dt · mobility · k_i / A_i > 2 (fine meshes, long steps); κ = 1.
+///  5. New constraint point x_i + dt v_i, projected back onto the wall (the node keeps its rest
+///     signed distance h_i0 = clamp(h(X_i), 0, max_wall_distance_m): it slides parallel to the
+///     wall and never enters it); with a permissible shift (max_slide_m > 0) the total slide
+///     |x_i − X_i| is capped at w_i · max_slide_m first.
+///
+/// Limiting factors w_i ∈ [0, 1], each optional (all off: the seed's bypass, "free sliding governed
+/// by friction and shape alone"):
+///  - tissue thickness: the distance from the wall to the skin along the rest normal (ray marching
+///    in the label image), divided by its maximum over the sliding nodes;
+///  - the seed's bimodal Gaussian
+///       z(u, v) = A exp(−((u−u0)²/(2σu²) + (v−v0)²/(2σv²))) + A exp(−((u−u1)²/(2σu²) + (v−v1)²/(2σv²)))
+///    clamped to [0, 1], in chest-wall plane coordinates (u, v): the plane through the nipples'
+///    midpoint perpendicular to the anterior direction a (prone gravity, chest wall → nipple);
+///    u along the nipple-to-nipple direction projected into that plane (lateral, towards the first
+///    nipple), v = a × u (superior for LPS images with a = −y and u = +x). (u_k, v_k) are the nipple
+///    points' coordinates; σu, σv by default half of a breast's extent along u and v, measured
+///    from the sliding nodes closest to each nipple. The seed uses one v0 for both modes; here each
+///    nipple gives its own v_k (equal for a symmetric patient). With one nipple there is one mode.
+///
+/// \note Without a permissible shift the limiting factors scale only the rate (seed: d = d + z D_f):
+/// a settled state is then the same with or without them. max_slide_m > 0 makes them limit the
+/// final slide (the seed's "permissible shift") — the default.
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "breast_sim/core/fem/dynamic_simulator.h"
+#include "breast_sim/core/image/label_image.h"
+#include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/model/tissue_labels.h"
+#include "breast_sim/core/sliding/chest_wall_surface.h"
+
+namespace breast_sim::core {
+
+struct ModelCase;
+
+/// Parameters of sliding. SI units; defaults work on the phantoms (config/phantom_*.yaml).
+struct SlidingSettings {
+  ChestWallFieldOptions field;  ///< normal field: σ = 2 mm
+
+  /// Slide velocity per unit of net tangential traction [m/(Pa·s)] (a traction, not a nodal force,
+  /// so it does not depend on the mesh size). 5e-5: 370 Pa (the tangential traction of a 0.35 kg
+  /// breast on a 25° slope of its base under 2 g) slides ~2 cm/s.
+  double mobility_m_per_pa_s = 5e-5;
+  double static_friction = 0.2;      ///< μ_s [-], ≥ 0
+  double kinetic_friction = 0.15;    ///< μ_k [-], in [0, μ_s]
+  double static_threshold_pa = 0.0;  ///< τ_0: traction needed besides friction [Pa], ≥ 0
+  double inertia = 0.0;              ///< β in [0, 1): share of the last velocity kept (0 = none)
+  double max_step_m = 1e-3;          ///< largest move of a constraint per step [m], > 0
+  /// κ of the stability cap (see the file comment) [-], in [1, 100]: larger is slower but safer.
+  double stiffness_safety = 1.0;
+  /// Nodes of the set farther than this from the wall surface at rest are held (not slid) [m]
+  /// (rim nodes a skin element off the wall); in (0, 3σ].
+  double max_wall_distance_m = 3e-3;
+  int projection_iterations = 8;        ///< Newton steps onto the wall, [1, 50]
+  double projection_tolerance_m = 1e-7; ///< [m], > 0
+
+  bool thickness_limit = false;  ///< scale by local tissue thickness / its maximum
+  bool gaussian_limit = true;    ///< the seed's bimodal Gaussian z(u, v)
+  double gaussian_amplitude = 1.0;  ///< A [-], > 0 (z is clamped to 1)
+  /// σu = σv = this [m]; 0 = per axis gaussian_sigma_fraction × a breast's extent along it.
+  double gaussian_sigma_m = 0.0;
+  double gaussian_sigma_fraction = 0.5;  ///< seed: half a breast's diameter; in (0, 2]
+  /// Permissible total slide at weight 1 [m]; a node's slide is capped at w_i times this; 0 = no cap.
+  double max_slide_m = 0.03;
+
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
+  void validate() const;
+};
+
+/// What one sliding update did.
+struct SlidingStepStats {
+  int moving = 0;          ///< nodes whose constraint moved
+  int stuck = 0;           ///< nodes held by static friction
+  int capped = 0;          ///< nodes at their permissible shift
+  int stiffness_limited = 0;    ///< moves shortened by the stability cap
+  int projection_failures = 0;  ///< moves dropped because the projection did not converge
+  double max_move_m = 0.0;      ///< largest constraint move of this step [m]
+  double max_slide_m = 0.0;     ///< largest total slide [m]
+  double max_penetration_m = 0.0;  ///< largest max(0, −h) over the targets [m] (0 = none inside)
+  double seconds = 0.0;         ///< the update without the elastic forces [s]
+  double force_seconds = 0.0;   ///< DynamicSimulator::elasticForces() in update(sim) [s]
+};
+
+/// The sliding constraints of one node set on one chest wall.
+class ChestWallSliding {
+ public:
+  /// @param mesh     the rest mesh
+  /// @param nodes    the sliding nodes (usually the node set "chest_wall")
+  /// @param surface  the chest wall (shared: one per image)
+  /// @param labels   the segmentation the mesh was built from (thickness limit; may be null when
+  ///                 thickness_limit is off) and its tissue labels
+  /// @param nipples_m  nipple points [m] (Gaussian limit; 1 or 2 needed when it is on)
+  /// @param anterior  unit direction chest wall → nipple (ModelCase::prone_gravity_direction)
+  /// @throws std::invalid_argument for invalid settings, an empty or out-of-range node set, a
+  ///         Gaussian limit without nipples (or more than two), a thickness limit without image.
+  ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes, std::shared_ptr<const ChestWallSurface> surface,
+                   const SlidingSettings& settings, const LabelImage* labels, const TissueLabels& tissue,
+                   const std::vector<Eigen::Vector3d>& nipples_m, const Eigen::Vector3d& anterior);
+
+  /// Everything from a case: its image, chest-wall labels, nipples (the phantom's if the case has
+  /// none), anterior direction and the model's "chest_wall" node set.
+  static ChestWallSliding fromCase(const ModelCase& model_case, const TetMesh& mesh, const SlidingSettings& settings);
+
+  /// Replaces the Dirichlet fixation of the sliding nodes by targets at their current displacement,
+  /// and measures each sliding node's stiffness k_i for the stability cap (one stiffness assembly at
+  /// the current state).
+  void attach(DynamicSimulator& sim);
+  /// The 3×3 diagonal stiffness blocks K_ii of the sliding nodes [N/m], 9 per node (row-major),
+  /// for the stability cap (empty before attach(): no cap).
+  const Eigen::VectorXd& nodeStiffness() const { return stiffness_; }
+  /// After sim.step(): computes the elastic forces at the current state (sim.elasticForces()),
+  /// moves the constraints and hands them to sim.setNodeTargets.
+  /// @param external_forces  the 3N external forces [N] added to sim (addNodalForces), if any
+  SlidingStepStats update(DynamicSimulator& sim, const Eigen::VectorXd* external_forces = nullptr);
+  /// The update itself from the state: u (3N [m]), f_el (3N [N]), lumped masses (N [kg]),
+  /// gravity [m/s²], dt [s], f_ext (3N [N] or null). Returns the stats; targets() has the result.
+  SlidingStepStats update(const Eigen::VectorXd& displacement_m, const Eigen::VectorXd& elastic_forces_n,
+                          const Eigen::VectorXd& mass_kg, const Eigen::Vector3d& gravity_mps2, double dt_s,
+                          const Eigen::VectorXd* external_forces_n = nullptr);
+
+  const std::vector<int>& nodes() const { return nodes_; }
+  const SlidingSettings& settings() const { return settings_; }
+  const ChestWallSurface& surface() const { return *surface_; }
+  /// Target displacements of the sliding nodes [m], one row per node of nodes().
+  const Points& targets() const { return targets_; }
+  /// Sliding vector per mesh node [m]: the total constraint displacement along the wall (target −
+  /// rest) for sliding nodes, 0 elsewhere; #N×3 (for VTK point data and rviz arrows).
+  Points slidingVectors() const;
+  /// Limiting weight w_i ∈ [0, 1] per sliding node (1 with all limits off; 0 for held nodes).
+  const Eigen::VectorXd& weights() const { return weight_; }
+  const Eigen::VectorXd& thicknessFactors() const { return thickness_factor_; }  ///< 1 when off
+  const Eigen::VectorXd& gaussianFactors() const { return gaussian_factor_; }    ///< 1 when off
+  const Eigen::VectorXd& tissueThickness() const { return thickness_m_; }  ///< [m]; 0 when off
+  const Eigen::VectorXd& nodeAreas() const { return area_; }  ///< wall area per node [m²]
+  int heldNodes() const { return held_; }  ///< nodes too far from the wall to slide
+  /// Chest-wall plane frame of the Gaussian limit: origin [m], unit axes u and v.
+  Eigen::Vector3d planeOrigin() const { return plane_origin_; }
+  Eigen::Vector3d planeU() const { return plane_u_; }
+  Eigen::Vector3d planeV() const { return plane_v_; }
+  Eigen::Vector2d gaussianSigma() const { return gaussian_sigma_; }  ///< (σu, σv) [m]
+  /// The bimodal Gaussian weight z(u, v) at a point (clamped to [0, 1]).
+  double gaussianWeight(const Eigen::Vector3d& p_m) const;
+
+ private:
+  SlidingSettings settings_;
+  std::shared_ptr<const ChestWallSurface> surface_;
+  std::vector<int> nodes_;
+  int num_mesh_nodes_;
+  Points rest_;          // rest positions of the sliding nodes
+  Points targets_;       // target displacements
+  Points velocity_;      // constraint velocities [m/s]
+  Eigen::VectorXd stiffness_;
+  Eigen::VectorXd h0_, area_, weight_, thickness_factor_, gaussian_factor_, thickness_m_;
+  std::vector<char> held_flag_;
+  int held_ = 0;
+  Eigen::Vector3d plane_origin_ = Eigen::Vector3d::Zero(), plane_u_ = Eigen::Vector3d::UnitX(),
+                  plane_v_ = Eigen::Vector3d::UnitZ();
+  std::vector<Eigen::Vector2d> centres_;
+  Eigen::Vector2d gaussian_sigma_ = Eigen::Vector2d::Ones();
+};
+
+/// Runs steps with a sliding update after each until both the largest nodal displacement change
+/// and the largest constraint move of a step stay ≤ options.increment_tolerance_m for
+/// options.consecutive_steps steps, or options.max_steps; the dynamics time step is used
+/// (options.time_step_s is ignored: the explicit constraint update is tuned for it).
+/// @param progress  called after every step with (step, increment [m], sliding stats); may be empty
+struct SlidingSettleResult {
+  bool settled = false;
+  int steps = 0;
+  double seconds = 0.0;          ///< wall time of everything [s]
+  double sliding_seconds = 0.0;  ///< of which sliding updates without elastic forces [s]
+  double force_seconds = 0.0;    ///< of which elastic forces for the sliding updates [s]
+  double last_increment_m = 0.0;
+  double max_slide_m = 0.0;
+};
+SlidingSettleResult settleWithSliding(DynamicSimulator& sim, ChestWallSliding& sliding, int max_steps,
+                                      double increment_tolerance_m, int consecutive_steps = 2,
+                                      const std::function<void(int, double, const SlidingStepStats&)>& progress = {});
+
+}  // namespace breast_sim::core
