@@ -54,6 +54,12 @@ DynamicSimulator::DynamicSimulator(const TetMesh& mesh, std::unique_ptr<ElementF
   rhs_ = Eigen::VectorXd::Zero(n3);
   v_next_ = Eigen::VectorXd::Zero(n3);
   x_ = rest_;
+  // Diagonal positions: columns are sorted, found once by binary search (the pattern is fixed).
+  diag_pos_.resize(n3);
+  const int* outer = A_.outerIndexPtr();
+  const int* inner = A_.innerIndexPtr();
+  for (int r = 0; r < n3; ++r)
+    diag_pos_[r] = static_cast<int>(std::lower_bound(inner + outer[r], inner + outer[r + 1], r) - inner);
   solver_->analyzePattern(A_);
 }
 
@@ -118,42 +124,77 @@ StepStats DynamicSimulator::step() {
   elasticForces();  // rotations at x_t and f_el(x_t)
 
   // A = M(1 + dt α_M) + dt(dt + α_K) K.
-  std::fill(A_.valuePtr(), A_.valuePtr() + A_.nonZeros(), 0.0);
-  elements_->addStiffness(dt * (dt + params_.stiffness_damping_s), A_);
-  const double mass_scale = 1.0 + dt * params_.mass_damping_per_s;
   double* values = A_.valuePtr();
   const int* outer = A_.outerIndexPtr();
   const int* inner = A_.innerIndexPtr();
 #pragma omp parallel for schedule(static)
-  for (int r = 0; r < n3; ++r) {
-    // Diagonal entry of row r: columns are sorted, find it by binary search.
-    const int* b = inner + outer[r];
-    const int* e = inner + outer[r + 1];
-    const int* d = std::lower_bound(b, e, r);
-    values[outer[r] + (d - b)] += mass_scale * mass_[r / 3];
-    const double g = params_.gravity_mps2[r % 3];
-    rhs_[r] = mass_[r / 3] * state_.velocity_mps[r] + dt * (external_force_[r] + mass_[r / 3] * g + f_el_[r]);
-  }
-
-  // Constrained DOFs: prescribed velocity, eliminated symmetrically.
-  for (int r = 0; r < n3; ++r)
-    constraint_velocity_[r] = !constrained_[r] ? 0.0
-                              : is_target_[r]  ? (target_displacement_[r] - state_.displacement_m[r]) / dt
-                                               : 0.0;
+  for (int r = 0; r < n3; ++r) std::fill(values + outer[r], values + outer[r + 1], 0.0);
+  elements_->addStiffness(dt * (dt + params_.stiffness_damping_s), A_);
+  const double mass_scale = 1.0 + dt * params_.mass_damping_per_s;
+  const double* mass = mass_.data();
+  const double* vel = state_.velocity_mps.data();
+  const double* fext = external_force_.data();
+  const double* fel = f_el_.data();
+  const int* diag = diag_pos_.data();
+  double* rhs = rhs_.data();
+  const double g[3] = {params_.gravity_mps2[0], params_.gravity_mps2[1], params_.gravity_mps2[2]};
 #pragma omp parallel for schedule(static)
-  for (int r = 0; r < n3; ++r) {
-    if (constrained_[r]) {
-      for (int k = outer[r]; k < outer[r + 1]; ++k) values[k] = inner[k] == r ? 1.0 : 0.0;
-      rhs_[r] = constraint_velocity_[r];
-    } else {
-      // Move the known constrained velocities to the right-hand side and drop their columns.
-      for (int k = outer[r]; k < outer[r + 1]; ++k) {
-        const int c = inner[k];
-        if (constrained_[c]) {
-          rhs_[r] -= values[k] * constraint_velocity_[c];
-          values[k] = 0.0;
-        }
+  for (int n = 0; n < num_nodes_; ++n)
+    for (int c = 0; c < 3; ++c) {
+      const int r = 3 * n + c;
+      values[diag[r]] += mass_scale * mass[n];
+      rhs[r] = mass[n] * vel[r] + dt * (fext[r] + mass[n] * g[c] + fel[r]);
+    }
+
+  // Constrained DOFs: prescribed velocity, eliminated symmetrically. The lists of what to visit
+  // depend only on the constraint set; they are rebuilt when it changed since the last step.
+  if (elim_for_ != constrained_) {
+    elim_for_ = constrained_;
+    constrained_rows_.clear();
+    elim_row_.clear();
+    elim_pos_.clear();
+    elim_start_.assign(1, 0);
+    for (int r = 0; r < n3; ++r) {
+      if (constrained_[r]) {
+        constrained_rows_.push_back(r);
+        continue;
       }
+      const size_t before = elim_pos_.size();
+      for (int k = outer[r]; k < outer[r + 1]; ++k)
+        if (constrained_[inner[k]]) elim_pos_.push_back(k);
+      if (elim_pos_.size() > before) {
+        elim_row_.push_back(r);
+        elim_start_.push_back(static_cast<int>(elim_pos_.size()));
+      }
+    }
+  }
+  const int num_constrained = static_cast<int>(constrained_rows_.size());
+  for (int q = 0; q < num_constrained; ++q) {
+    const int r = constrained_rows_[q];
+    constraint_velocity_[r] = is_target_[r] ? (target_displacement_[r] - state_.displacement_m[r]) / dt : 0.0;
+  }
+  const double* cv = constraint_velocity_.data();
+#pragma omp parallel
+  {
+#pragma omp for schedule(static) nowait
+    for (int q = 0; q < num_constrained; ++q) {
+      const int r = constrained_rows_[q];
+      std::fill(values + outer[r], values + outer[r + 1], 0.0);
+      values[diag[r]] = 1.0;
+      rhs[r] = cv[r];
+    }
+    // Move the known constrained velocities to the right-hand side and drop their columns (in
+    // ascending column order, as a pass over the whole row would).
+#pragma omp for schedule(static)
+    for (int q = 0; q < static_cast<int>(elim_row_.size()); ++q) {
+      const int r = elim_row_[q];
+      double b = rhs[r];
+      for (int p = elim_start_[q]; p < elim_start_[q + 1]; ++p) {
+        const int k = elim_pos_[p];
+        b -= values[k] * cv[inner[k]];
+        values[k] = 0.0;
+      }
+      rhs[r] = b;
     }
   }
   st.assembly_seconds = since(t0);

@@ -111,6 +111,14 @@ class DynamicSimulator {
   SparseMatrix A_;
   Eigen::VectorXd f_el_, rhs_, v_next_;
   Points x_;
+  // Per-step assembly helpers (the pattern of A_ is fixed): position of each row's diagonal in
+  // A_'s value array, and the elimination lists for the constraint set `elim_for_` they were built
+  // for (rebuilt in step() when constrained_ differs): constrained rows, and per free row that has
+  // constrained columns the value positions of those columns (CSR: elim_row_, elim_start_, elim_pos_).
+  std::vector<int> diag_pos_;
+  std::vector<char> elim_for_;
+  std::vector<int> constrained_rows_;
+  std::vector<int> elim_row_, elim_start_, elim_pos_;
 };
 
 }  // namespace breast_sim::core
