@@ -113,6 +113,36 @@ TEST(PolarDecomposition, InvertedAndDegenerateMatricesGiveProperRotations) {
   }
 }
 
+TEST(PolarDecomposition, EarlyStopStillMatchesSvdToRoundOffOverWideStretches) {
+  // rotationOf stops one Newton step after the step change drops below ~3e-7: the result must be
+  // the SVD rotation to 1e-10 and orthonormal to 1e-12, from small strains to near-degenerate F.
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  auto randomRotation = [&]() {
+    return Eigen::AngleAxisd(3.0 * u(rng), Eigen::Vector3d(u(rng), u(rng), u(rng)).normalized()).toRotationMatrix();
+  };
+  const std::vector<Eigen::Vector3d> stretches = {{1.0, 1.0, 1.0},    {1.01, 0.995, 1.0}, {1.3, 0.8, 1.1},
+                                                  {3.0, 0.2, 1.0},    {1.0, 1.0, 1e-3},   {1e-2, 1.0, 5.0},
+                                                  {1.0, 1.0, 1e-8},   {2.0, 2.0, 2.0}};
+  for (int trial = 0; trial < 200; ++trial) {
+    const Eigen::Vector3d sigma = stretches[trial % stretches.size()].cwiseProduct(
+        Eigen::Vector3d::Constant(1.0) + 0.05 * Eigen::Vector3d(u(rng), u(rng), u(rng)));
+    const Eigen::Matrix3d F = randomRotation() * sigma.asDiagonal() * randomRotation();
+    SCOPED_TRACE("trial " + std::to_string(trial));
+    const Eigen::Matrix3d R = rotationOf(F);
+    EXPECT_LT((R - rotationOfBySvd(F)).norm(), 1e-10);
+    EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).norm(), 1e-12);
+    EXPECT_NEAR(R.determinant(), 1.0, 1e-12);
+  }
+  // Inverted: the reflection-fixed rotation of the SVD path.
+  for (int trial = 0; trial < 20; ++trial) {
+    Eigen::Matrix3d F = randomRotation() * Eigen::Vector3d(1.2, 0.9, -0.3).asDiagonal() * randomRotation();
+    const Eigen::Matrix3d R = rotationOf(F);
+    EXPECT_LT((R - rotationOfBySvd(F)).norm(), 1e-12);
+    EXPECT_NEAR(R.determinant(), 1.0, 1e-12);
+  }
+}
+
 TEST(CorotatedTetFem, RigidRotationAndTranslationGiveZeroElasticForce) {
   const TetMesh& m = smallBlock();
   CorotatedTetFem fem(m, ElasticMaterial{});
@@ -205,7 +235,9 @@ TEST(CorotatedTetFem, PatchTestReproducesALinearField) {
     const SparseMatrix K = stiffnessAt(fem, positions(m, u_exact));
     const Eigen::VectorXd f = forcesAt(fem, positions(m, u_exact));
     for (int i = 0; i < f.size(); ++i)
-      if (!fixed[i]) EXPECT_NEAR(f[i], 0.0, 1e-12) << "interior force at the exact field, DOF " << i;
+      if (!fixed[i]) {
+        EXPECT_NEAR(f[i], 0.0, 1e-12) << "interior force at the exact field, DOF " << i;
+      }
     Eigen::VectorXd u_fixed = Eigen::VectorXd::Zero(u_exact.size());
     for (int i = 0; i < u_exact.size(); ++i)
       if (fixed[i]) u_fixed[i] = u_exact[i];
@@ -347,4 +379,38 @@ TEST(DynamicSimulator, TargetNodesReachTheirDisplacementAndFixedNodesStay) {
   for (int n : m.nodeSet("x_min")) EXPECT_EQ(u.row(n).norm(), 0.0);
   EXPECT_THROW(sim.setNodeTargets({0}, Points::Zero(2, 3)), std::invalid_argument);
   EXPECT_THROW(sim.fixNodes({m.numNodes()}), std::invalid_argument);
+}
+
+TEST(DynamicSimulator, ChangingTheConstraintSetBetweenStepsTakesEffect) {
+  // step() keeps elimination lists for the constraint set; they must follow every change.
+  const TetMesh m = makeBoxMesh({4, 2, 2}, {0.04, 0.02, 0.02});
+  DynamicsParams p;
+  p.gravity_mps2 = {0, 0, -9.81};
+  DynamicSimulator sim(m, std::make_unique<CorotatedTetFem>(m, ElasticMaterial{}), ElasticMaterial{}, p,
+                       std::make_unique<EigenLdltSolver>());
+  sim.fixNodes(m.nodeSet("x_min"));
+  for (int s = 0; s < 3; ++s) sim.step();
+  for (int n : m.nodeSet("x_min")) EXPECT_EQ(sim.displacement().row(n).norm(), 0.0);
+  // Swap the clamped end.
+  sim.clearConstraints();
+  sim.fixNodes(m.nodeSet("x_max"));
+  const Points before = sim.displacement();
+  sim.step();
+  const Points after = sim.displacement();
+  for (int n : m.nodeSet("x_max")) EXPECT_EQ((after.row(n) - before.row(n)).norm(), 0.0);
+  for (int n : m.nodeSet("x_min")) EXPECT_GT((after.row(n) - before.row(n)).norm(), 0.0);
+  // Targets on the free end, same set as fixed nodes elsewhere: reached exactly.
+  Points targets(m.nodeSet("x_min").size(), 3);
+  targets.rowwise() = Eigen::RowVector3d(0.0, 0.001, 0.0);
+  sim.setNodeTargets(m.nodeSet("x_min"), targets);
+  sim.step();
+  for (int n : m.nodeSet("x_min")) EXPECT_LT((sim.displacement().row(n) - targets.row(0)).norm(), 1e-14);
+  for (int n : m.nodeSet("x_max")) EXPECT_EQ((sim.displacement().row(n) - before.row(n)).norm(), 0.0);
+  // All free again: the previously fixed end moves.
+  sim.clearConstraints();
+  const Points held = sim.displacement();
+  sim.step();
+  double moved = 0;
+  for (int n : m.nodeSet("x_max")) moved = std::max(moved, (sim.displacement().row(n) - held.row(n)).norm());
+  EXPECT_GT(moved, 0.0);
 }
