@@ -125,6 +125,10 @@ void CorotatedTetFem::addStiffness(double scale, SparseMatrix& A) const {
   // the compiler, which would otherwise reload them after every store. Node n's three rows are
   // contiguous (3·deg entries each), so its writes stay in one ~1 kB stretch of A (L1-resident).
   // The element records are prefetched a few incidences ahead.
+  // Measured (bench_fem_assembly, 2 threads, minima over 40 or 20 runs, old and new binaries
+  // interleaved, quiet machine): assemble (serial zeroing of A + this) 47.5k tets 8.4–9.9 → 3.9–4.0
+  // ms, 308k tets 114.6 → 31.0 ms. Prefetching the element forces in update()'s node gather the
+  // same way did not pay (measured, dropped).
   constexpr int kAhead = 4;
   const int num_incidences = pattern_.incidentStart(nn);
 #pragma omp parallel for schedule(dynamic, 64)

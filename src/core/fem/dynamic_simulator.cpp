@@ -148,6 +148,9 @@ StepStats DynamicSimulator::step() {
 
   // Constrained DOFs: prescribed velocity, eliminated symmetrically. The lists of what to visit
   // depend only on the constraint set; they are rebuilt when it changed since the last step.
+  // Measured (bench_fem_assembly "overhead" = step assembly − update − stiffness, chest wall fixed,
+  // 2 threads, minima, quiet machine): 47.5k tets 2.6–2.8 → 0.4–0.5 ms, 308k tets 8.6 → 6.2 ms;
+  // whole step assembly 47.5k tets 21.0–22.3 → 13.4 ms, 308k tets 167 → 75 ms.
   if (elim_for_ != constrained_) {
     elim_for_ = constrained_;
     constrained_rows_.clear();

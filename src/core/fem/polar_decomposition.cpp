@@ -29,6 +29,8 @@ Eigen::Matrix3d rotationOf(const Eigen::Matrix3d& F) {
   // scaling) is at most about the largest |1 − σ|. So once a step changes X by c (Frobenius), the new
   // iterate is within ≈ 2c² of the polar factor: c² < 1e-13 gives ≤ 2e-13, far below the 1e-12 the
   // forces need, one Newton step earlier than testing c itself against 1e-12.
+  // Measured (bench_fem_assembly, 2 threads, minima, quiet machine): update (rotations + forces)
+  // 47.5k tets 9.8 → 9.0 ms, 308k tets 43.8 → 37.9 ms.
   //
   // Warm-starting from the element's previous rotation (iterating on R_prevᵀ F) does not help this
   // iteration: R_prevᵀ F has the same singular values as F, and Newton's convergence depends on
