@@ -193,3 +193,31 @@ TEST(Settle, MultigridWithLooseStepToleranceReachesTheCholmodEquilibrium) {
   EXPECT_GT(scale, 3e-3);
   EXPECT_LT(maxNodalNorm(u[1] - u[0]), 1e-3 * scale);
 }
+
+// The constraint reactions balance the loads: at rest, their sum is minus the total weight, and
+// they are zero at free DOFs.
+TEST(DynamicSimulator, ConstraintForcesBalanceTheWeightAtRest) {
+  const TetMesh m = makeBoxMesh({6, 2, 2}, {0.06, 0.02, 0.02});
+  ElasticMaterial mat;
+  mat.youngs_modulus_pa = 20e3;
+  DynamicsParams p;
+  p.gravity_mps2 = {0.5, -1.0, -9.81};
+  DynamicSimulator sim(m, std::make_unique<CorotatedTetFem>(m, mat), mat, p, std::make_unique<CholmodSolver>());
+  sim.fixNodes(m.nodeSet("x_min"));
+  SettleOptions o;
+  o.time_step_s = 0.5;
+  o.increment_tolerance_m = 1e-10;
+  ASSERT_TRUE(settle(sim, o).settled);
+  sim.step();  // a step from rest: reactions of the equilibrium
+  const Eigen::VectorXd& r = sim.constraintForces();
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  for (int n = 0; n < m.numNodes(); ++n) sum += r.segment<3>(3 * n);
+  const double weight = sim.lumpedMass().sum();
+  EXPECT_LT((sum + weight * p.gravity_mps2).norm(), 1e-6 * weight * 9.81) << sum.transpose();
+  for (int d = 0; d < 3 * m.numNodes(); ++d)
+    if (!sim.constrainedDofs()[d]) EXPECT_EQ(r[d], 0.0);
+  // The external forces are what addNodalForces accumulated.
+  sim.addNodalForces({5}, Points::Constant(1, 3, 0.25));
+  sim.addNodalForces({5}, Points::Constant(1, 3, 0.25));
+  EXPECT_DOUBLE_EQ(sim.externalForces()[15], 0.5);
+}

@@ -53,6 +53,8 @@ DynamicSimulator::DynamicSimulator(const TetMesh& mesh, std::unique_ptr<ElementF
   f_el_ = Eigen::VectorXd::Zero(n3);
   rhs_ = Eigen::VectorXd::Zero(n3);
   v_next_ = Eigen::VectorXd::Zero(n3);
+  constraint_force_ = Eigen::VectorXd::Zero(n3);
+  saved_start_.assign(1, 0);
   x_ = rest_;
   // Diagonal positions: columns are sorted, found once by binary search (the pattern is fixed).
   diag_pos_.resize(n3);
@@ -157,9 +159,11 @@ StepStats DynamicSimulator::step() {
     elim_row_.clear();
     elim_pos_.clear();
     elim_start_.assign(1, 0);
+    saved_start_.assign(1, 0);
     for (int r = 0; r < n3; ++r) {
       if (constrained_[r]) {
         constrained_rows_.push_back(r);
+        saved_start_.push_back(saved_start_.back() + (outer[r + 1] - outer[r]));
         continue;
       }
       const size_t before = elim_pos_.size();
@@ -177,11 +181,16 @@ StepStats DynamicSimulator::step() {
     constraint_velocity_[r] = is_target_[r] ? (target_displacement_[r] - state_.displacement_m[r]) / dt : 0.0;
   }
   const double* cv = constraint_velocity_.data();
+  saved_values_.resize(static_cast<size_t>(saved_start_.back()));
+  saved_rhs_.resize(static_cast<size_t>(num_constrained));
 #pragma omp parallel
   {
 #pragma omp for schedule(static) nowait
     for (int q = 0; q < num_constrained; ++q) {
       const int r = constrained_rows_[q];
+      // The full row and right-hand side, kept for the reaction force after the solve.
+      std::copy(values + outer[r], values + outer[r + 1], saved_values_.data() + saved_start_[q]);
+      saved_rhs_[q] = rhs[r];
       std::fill(values + outer[r], values + outer[r + 1], 0.0);
       values[diag[r]] = 1.0;
       rhs[r] = cv[r];
@@ -208,6 +217,15 @@ StepStats DynamicSimulator::step() {
   v_next_ = state_.velocity_mps;  // warm start
   st.solve = solver_->solve(rhs_, v_next_);
   if (!v_next_.allFinite()) throw std::runtime_error("DynamicSimulator: the " + solver_->name() + " solve returned non-finite velocities");
+  // Reaction at each constrained DOF: the full row's residual, (A_r v − b_r) / dt [N].
+  constraint_force_.setZero(n3);
+  for (int q = 0; q < num_constrained; ++q) {
+    const int r = constrained_rows_[q];
+    double a = -saved_rhs_[q];
+    const double* row = saved_values_.data() + saved_start_[q];
+    for (int k = outer[r]; k < outer[r + 1]; ++k) a += row[k - outer[r]] * v_next_[inner[k]];
+    constraint_force_[r] = a / dt;
+  }
   state_.velocity_mps = v_next_;
   state_.displacement_m += dt * v_next_;
   state_.time_s += dt;

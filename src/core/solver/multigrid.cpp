@@ -669,7 +669,9 @@ void MultigridPreconditioner::estimateDamping(int l) {
       state = state * 6364136223846793005ULL + 1442695040888963407ULL;
       lv.eigenvector[i] = static_cast<double>(state >> 11) / 9007199254740992.0 - 0.5;
     }
-    iterations *= 4;
+    // A cold start needs many more iterations: 3 × 4 = 12 once underestimated λ_max by a third on a
+    // Galerkin level (ω λ_max = 2.05, a divergent smoother); 3 × 12 = 36 do not, measured over repeated runs.
+    iterations *= 12;
   }
   double* v = lv.eigenvector.data();
   double* Av = lv.t.data();
@@ -708,8 +710,9 @@ void MultigridPreconditioner::estimateDamping(int l) {
     lambda = std::sqrt(yy / vv);
     lv.eigenvector *= 1.0 / std::sqrt(yy);
   }
-  // Power iteration approaches λ_max from below; 4/3 leaves room for that.
-  lv.omega = lambda > 0.0 ? std::min(1.0, 4.0 / (3.0 * lambda)) : 0.5;
+  // Power iteration approaches λ_max from below; ω = 1.2 / λ keeps ω λ_max < 1.9 as long as the
+  // estimate is within 37 % of λ_max.
+  lv.omega = lambda > 0.0 ? std::min(1.0, 1.2 / lambda) : 0.5;
 }
 
 void MultigridPreconditioner::factorize(const SparseMatrix& A) {

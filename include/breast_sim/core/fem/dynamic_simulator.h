@@ -94,6 +94,18 @@ class DynamicSimulator {
   LinearSolver& solver() { return *solver_; }
   /// Elastic forces at the current state [N], 3N (updates the element linearisation).
   const Eigen::VectorXd& elasticForces();
+  /// The elastic forces last computed [N], 3N, no recomputation: after step() those at the state
+  /// the step started from, f_el(x_t) (elasticForces() overwrites them with the current state's).
+  const Eigen::VectorXd& lastElasticForces() const { return f_el_; }
+  /// Reaction of the constraints in the last step() [N], 3N: at each constrained DOF the force the
+  /// constraint applied to the node, (A_r v_{t+1} − b_r) / dt of the full (uneliminated) row r —
+  /// inertia, damping, elastic, external and gravity forces included; 0 at free DOFs. Sliding
+  /// moves its constraints along the tangential part of −reaction (the load on the wall).
+  const Eigen::VectorXd& constraintForces() const { return constraint_force_; }
+  /// Per-node external forces accumulated by addNodalForces() [N], 3N.
+  const Eigen::VectorXd& externalForces() const { return external_force_; }
+  /// Per DOF: 1 if fixed or a target (constrained), else 0.
+  const std::vector<char>& constrainedDofs() const { return constrained_; }
 
  private:
   const Points rest_;
@@ -110,6 +122,9 @@ class DynamicSimulator {
   SimulationState state_;
   SparseMatrix A_;
   Eigen::VectorXd f_el_, rhs_, v_next_;
+  Eigen::VectorXd constraint_force_;       // 3N, reactions of the last step [N]
+  std::vector<int> saved_start_;           // per constrained row: offset into saved_values_ (+1)
+  std::vector<double> saved_values_, saved_rhs_;  // constrained rows before elimination
   Points x_;
   // Per-step assembly helpers (the pattern of A_ is fixed): position of each row's diagonal in
   // A_'s value array, and the elimination lists for the constraint set `elim_for_` they were built

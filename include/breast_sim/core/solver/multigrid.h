@@ -154,7 +154,7 @@ struct MultigridOptions {
   int post_smoothing_steps = 1;  ///< sweeps after it (equal to pre for a symmetric preconditioner)
   /// ω of the Jacobi smoother; ω λ_max(D⁻¹A) < 2 keeps the smoother, and so the V-cycle,
   /// convergent. 0 = automatic: on the fine level 1.8 / fine_eigenvalue_bound; on Galerkin levels
-  /// (λ_max near 5 here) 4 / (3 λ), λ estimated by power iteration at every coarse update.
+  /// (λ_max near 5 here) 1.2 / λ, λ estimated by power iteration at every coarse update.
   /// > 0 = this ω on every level (the caller's responsibility).
   double jacobi_damping = 0.0;
   /// An upper bound of λ_max(D⁻¹A) on the fine level, D its 3×3 block diagonal: 4 for any matrix
@@ -162,7 +162,7 @@ struct MultigridOptions {
   /// a positive semi-definite block diagonal (lumped mass); 0 = estimate it like a coarse level.
   double fine_eigenvalue_bound = 4.0;
   /// Power iterations per level and coarse update for the estimate, warm-started from the last
-  /// estimate's vector (the first estimate takes four times as many).
+  /// estimate's vector (the first estimate takes twelve times as many).
   int power_iterations = 3;
   /// Relative diagonal shift δ of the coarsest operator before its Cholesky factorization,
   /// A_c + δ diag(A_c). Needed because the meshes are not nested: a coarse mode that no fine node
