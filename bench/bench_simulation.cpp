@@ -5,8 +5,10 @@
 // settled CHOLMOD reference of the same run (accuracy in mm). Prints tables; --json FILE writes the
 // same figures.
 //   bench_simulation [--targets 47895,99390,158340,313335] [--steps 25] [--baseline-steps 3]
-//                    [--tol 1e-3] [--settle-target 47895] [--settle-dts 0.033,0.1,0.33,1]
-//                    [--no-baseline] [--no-settle] [--json FILE]
+//                    [--tol 1e-2] [--settle-target 47895] [--settle-dts 0.033,0.1,0.33,1]
+//                    [--tols 1e-1,1e-2,1e-3,1e-6] [--no-baseline] [--no-settle] [--json FILE]
+// The tolerance study (--tols, at the first size): per-step PCG tolerance against step time and the
+// error of the dynamic path after 3 and after all steps, against CHOLMOD's exact solves.
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -83,9 +85,10 @@ int main(int argc, char** argv) {
   std::vector<double> targets = {47895, 99390, 158340, 313335};
   const std::vector<double> seed_ms = {189, 400, 644, 1432};  // seed Table 1, 2012 quad-core
   int steps = 25, baseline_steps = 3;
-  double tol = 1e-3;
+  double tol = 1e-2;
   int settle_target = 47895;
   std::vector<double> settle_dts = {0.033, 0.1, 0.33, 1.0};
+  std::vector<double> tol_study = {1e-1, 1e-2, 1e-3, 1e-6};
   bool baseline = true, settle_study = true;
   std::string json_path;
   for (int i = 1; i < argc; ++i) {
@@ -100,12 +103,13 @@ int main(int argc, char** argv) {
     else if (k == "--tol") tol = std::stod(value());
     else if (k == "--settle-target") settle_target = std::stoi(value());
     else if (k == "--settle-dts") settle_dts = parseList(value());
+    else if (k == "--tols") tol_study = parseList(value());
     else if (k == "--no-baseline") baseline = false;
     else if (k == "--no-settle") settle_study = false;
     else if (k == "--json") json_path = value();
     else {
       std::fprintf(stderr,
-                   "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-3]\n"
+                   "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-2]\n"
                    "         [--settle-target 47895] [--settle-dts 0.033,...] [--no-baseline] [--no-settle] [--json FILE]\n");
       return 2;
     }
@@ -145,19 +149,29 @@ int main(int argc, char** argv) {
     const double ns = 1e9 * median(run.total) / model.mesh.numTets();
     if (ti == 0) ns_ref = ns;
 
-    double cholmod_ms = 0.0;
+    double cholmod_ms = 0.0, trajectory_error_mm = -1.0, trajectory_scale_mm = 0.0;
     if (baseline && baseline_steps > 0) {
       SimulationSettings cs = settings;
       cs.solver.kind = SolverSettings::Kind::kCholmod;
       SimulatorBuild cb = buildSimulator(c, model, cs);
-      const StepRun cr = runSteps(*cb.simulator, baseline_steps);
+      // At the first size CHOLMOD runs the same steps: the loose per-step tolerance's error on the
+      // dynamic path (exact solves as reference).
+      const int n = ti == 0 ? steps : baseline_steps;
+      const StepRun cr = runSteps(*cb.simulator, n);
       cholmod_ms = 1e3 * median(cr.total);
+      if (ti == 0) {
+        trajectory_error_mm = 1e3 * maxNodalNorm(cb.simulator->state().displacement_m - sim.state().displacement_m);
+        trajectory_scale_mm = 1e3 * maxNodalNorm(cb.simulator->state().displacement_m);
+      }
     }
     const double seed = ti < seed_ms.size() ? seed_ms[ti] : 0.0;
     std::printf("%8d %7d %7d | %8.1f %8.1f %8.1f %8.1f %6.1f | %8.1f %8.2f | %9.0f %8.0f %7.0f | %6.0f %6.1fx\n",
                 model.mesh.numTets(), model.mesh.numNodes(), b.multigrid_levels, step_ms, 1e3 * median(run.assembly),
                 1e3 * median(run.setup), 1e3 * median(run.solve), mean(run.iterations), 1e3 * first.total[0],
                 b.hierarchy_seconds + b.setup_seconds, ns, peak, cholmod_ms, seed, seed > 0 ? seed / step_ms : 0.0);
+    if (trajectory_error_mm >= 0)
+      std::printf("         after %d steps the multigrid path differs from CHOLMOD's (exact solves) by at most %.2e mm "
+                  "(largest displacement %.2f mm)\n", steps, trajectory_error_mm, trajectory_scale_mm);
     std::fflush(stdout);
     rows.push_back({{"target_elements", static_cast<int>(targets[ti])},
                     {"elements", model.mesh.numTets()},
@@ -180,6 +194,8 @@ int main(int argc, char** argv) {
                     {"peak_memory_mb", peak},
                     {"inverted_after", inverted},
                     {"cholmod_step_ms_median", cholmod_ms},
+                    {"trajectory_error_vs_cholmod_mm", trajectory_error_mm},
+                    {"trajectory_max_displacement_mm", trajectory_scale_mm},
                     {"seed_ms", seed},
                     {"speedup_vs_seed", seed > 0 ? seed / step_ms : 0.0}});
   }
@@ -192,6 +208,43 @@ int main(int argc, char** argv) {
     }
     std::printf("time per element and step relative to the first size: %.2f .. %.2f (target within 0.70 .. 1.30)\n", lo, hi);
     out["ns_per_element_ratio_range"] = {lo, hi};
+  }
+
+  if (!tol_study.empty() && !targets.empty()) {
+    ModelCase c = base;
+    c.meshing.target_elements = static_cast<int>(targets[0]);
+    const SimulationModel model = buildSimulationModel(c);
+    SimulationSettings settings;
+    settings.dynamics.gravity_mps2 = g_supine;
+    SimulationSettings cs = settings;
+    cs.solver.kind = SolverSettings::Kind::kCholmod;
+    SimulatorBuild cb = buildSimulator(c, model, cs);
+    const int early = std::min(3, steps);
+    runSteps(*cb.simulator, early);
+    const Eigen::VectorXd u_early = cb.simulator->state().displacement_m;
+    runSteps(*cb.simulator, steps - early);
+    const Eigen::VectorXd u_end = cb.simulator->state().displacement_m;
+    std::printf("\nPer-step PCG tolerance, %d tets: step time against the error of the dynamic path (CHOLMOD = exact)\n",
+                model.mesh.numTets());
+    std::printf("%9s | %8s %6s | %14s %14s\n", "tolerance", "step[ms]", "iters", "err@3 steps", "err@end");
+    nlohmann::json trows = nlohmann::json::array();
+    for (double t : tol_study) {
+      SimulationSettings ts = settings;
+      ts.solver.relative_tolerance = t;
+      SimulatorBuild tb = buildSimulator(c, model, ts);
+      const StepRun a = runSteps(*tb.simulator, early);
+      const double e_early = maxNodalNorm(tb.simulator->state().displacement_m - u_early);
+      const StepRun b2 = runSteps(*tb.simulator, steps - early);
+      const double e_end = maxNodalNorm(tb.simulator->state().displacement_m - u_end);
+      std::vector<double> total = a.total, its = a.iterations;
+      total.insert(total.end(), b2.total.begin(), b2.total.end());
+      its.insert(its.end(), b2.iterations.begin(), b2.iterations.end());
+      std::printf("%9.0e | %8.1f %6.1f | %11.2e mm %11.2e mm\n", t, 1e3 * median(total), mean(its), 1e3 * e_early, 1e3 * e_end);
+      std::fflush(stdout);
+      trows.push_back({{"relative_tolerance", t}, {"step_ms_median", 1e3 * median(total)}, {"iterations_mean", mean(its)},
+                       {"path_error_after_3_steps_mm", 1e3 * e_early}, {"path_error_at_end_mm", 1e3 * e_end}});
+    }
+    out["tolerance_study"] = {{"elements", model.mesh.numTets()}, {"rows", trows}};
   }
 
   if (settle_study) {

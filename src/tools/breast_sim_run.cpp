@@ -17,6 +17,7 @@
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/fem/simulation_settings.h"
 #include "breast_sim/core/image/label_image.h"
+#include "breast_sim/core/material/stiffening.h"
 #include "breast_sim/core/mesh/mesh_io.h"
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
@@ -191,13 +192,43 @@ int main(int argc, char** argv) {
       const Eigen::Vector3d g_load = supineGravityLoad(c, settings.gravity_mps2);
       settings.dynamics.gravity_mps2 = g_load;
       const auto ts = std::chrono::steady_clock::now();
-      SimulatorBuild b = buildSimulator(c, m, settings);
+      SimulationSettings build_settings = settings;
+      if (settings.stiffening) build_settings.fixed_node_set.clear();  // the stiffening driver holds them
+      SimulatorBuild b = buildSimulator(c, m, build_settings);
       DynamicSimulator& sim = *b.simulator;
       const int max_steps = settings.settle.max_steps;
       const double tol = settings.settle.increment_tolerance_m;
-      settled = settle(sim, settings.settle, [&](int step, double inc) {
-        if (!args.quiet) progressBar(step, max_steps, inc, tol);
-      });
+      RunStats stiff_stats;
+      if (!settings.stiffening) {
+        settled = settle(sim, settings.settle, [&](int step, double inc) {
+          if (!args.quiet) progressBar(step, max_steps, inc, tol);
+        });
+      } else {
+        // The seed's loop: moduli E_r = 1 + α s_VM, a step that inverts an element is repeated with
+        // a larger α; settled by the static residual and speed (material/stiffening.h).
+        DynamicsParams p = sim.params();
+        if (settings.settle.time_step_s > 0) p.time_step_s = settings.settle.time_step_s;
+        sim.setParams(p);
+        StiffeningSimulation stiff(sim, m.mesh);
+        if (!settings.fixed_node_set.empty()) stiff.fixNodes(m.mesh.nodeSet(settings.fixed_node_set));
+        stiff.setGravity(g_load);
+        const auto tst = std::chrono::steady_clock::now();
+        Eigen::VectorXd previous = sim.state().displacement_m;
+        long calls = 0;
+        while (stiff.stats().steps < max_steps && calls < 2L * max_steps) {
+          ++calls;
+          const StiffeningStepResult r = stiff.step();
+          settled.last_increment_m = maxNodalNorm(sim.state().displacement_m - previous);
+          previous = sim.state().displacement_m;
+          if (!args.quiet) progressBar(static_cast<int>(stiff.stats().steps), max_steps, settled.last_increment_m, tol);
+          if (r.advanced && stiff.stats().settled) break;
+        }
+        stiff_stats = stiff.stats();
+        settled.settled = stiff_stats.settled;
+        settled.steps = static_cast<int>(stiff_stats.steps);
+        settled.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - tst).count();
+        settled.max_displacement_m = stiff_stats.max_displacement_m;
+      }
       if (!args.quiet && isatty(fileno(stderr))) std::fprintf(stderr, "\n");
       const double t_sim = std::chrono::duration<double>(std::chrono::steady_clock::now() - ts).count();
       const Points u = sim.displacement();
@@ -219,6 +250,11 @@ int main(int argc, char** argv) {
           {"youngs_modulus_pa", settings.material.youngs_modulus_pa},
           {"poisson_ratio", settings.material.poisson_ratio},
           {"settle_time_step_s", settings.settle.time_step_s > 0 ? settings.settle.time_step_s : settings.dynamics.time_step_s},
+          {"stiffening", settings.stiffening},
+          {"reversed_steps", stiff_stats.reversed_steps},
+          {"reversal_fraction", stiff_stats.reversal_fraction},
+          {"final_alpha_per_pa", stiff_stats.final_alpha_per_pa},
+          {"max_modulus_factor", stiff_stats.max_modulus_factor},
           {"settled", settled.settled},
           {"steps", settled.steps},
           {"solver_iterations", settled.solver_iterations},
@@ -273,11 +309,15 @@ int main(int argc, char** argv) {
     std::printf("  %-28s %.2f s (meshing %.2f s in %d pass(es))\n", "model time", t_model, m.meshing.seconds, m.meshing.passes);
     if (s.contains("simulation")) {
       const auto& j = s["simulation"];
-      std::printf("  %-28s %s in %d steps (%.2f s; %s, %ld PCG iterations), max displacement %.2f mm\n",
-                  "supine gravity", settled.settled ? "settled" : "NOT settled", settled.steps, settled.seconds,
-                  j["solver"].get<std::string>().c_str(), settled.solver_iterations, settled.max_displacement_m * 1e3);
+      std::printf("  %-28s %s in %d steps (%.2f s, %s), max displacement %.2f mm\n", "supine gravity",
+                  settled.settled ? "settled" : "NOT settled", settled.steps, settled.seconds,
+                  j["solver"].get<std::string>().c_str(), settled.max_displacement_m * 1e3);
       std::printf("  %-28s %d inverted, volume change %+.2f%%\n", "deformed quality", j["inverted_elements"].get<int>(),
                   j["volume_change_percent"].get<double>());
+      if (settings.stiffening)
+        std::printf("  %-28s final alpha %.3g 1/Pa, largest E_r %.2f, %ld reversed steps (%.0f%%)\n", "von Mises stiffening",
+                    j["final_alpha_per_pa"].get<double>(), j["max_modulus_factor"].get<double>(),
+                    j["reversed_steps"].get<long>(), 100.0 * j["reversal_fraction"].get<double>());
     }
     for (const auto& l : lesions) {
       std::printf("  lesion %-21s prone (%.1f, %.1f, %.1f) mm", l["name"].get<std::string>().c_str(),
