@@ -5,7 +5,7 @@
 #include <cmath>
 #include <random>
 
-#include "../../src/core/morphing/closest_point.h"
+#include "../../src/core/util/closest_point.h"
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/fem/simulation_settings.h"
 #include "breast_sim/core/mesh/tet_quality.h"

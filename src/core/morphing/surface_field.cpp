@@ -8,7 +8,7 @@
 #include <stdexcept>
 
 #include "breast_sim/core/image/distance_transform.h"
-#include "closest_point.h"
+#include "../util/closest_point.h"
 
 namespace breast_sim::core {
 
