@@ -18,6 +18,7 @@
 #include "breast_sim/core/fem/simulation_settings.h"
 #include "breast_sim/core/image/label_image.h"
 #include "breast_sim/core/material/stiffening.h"
+#include "breast_sim/core/sliding/chest_wall_sliding.h"
 #include "breast_sim/core/mesh/mesh_io.h"
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
@@ -199,6 +200,11 @@ int main(int argc, char** argv) {
       const int max_steps = settings.settle.max_steps;
       const double tol = settings.settle.increment_tolerance_m;
       RunStats stiff_stats;
+      SlidingStepStats sliding_stats;
+      Points sliding_vectors;
+      int sliding_steps = 0;
+      bool sliding_settled = false, sliding_stalled = false;
+      double sliding_seconds = 0.0;
       if (!settings.stiffening) {
         settled = settle(sim, settings.settle, [&](int step, double inc) {
           if (!args.quiet) progressBar(step, max_steps, inc, tol);
@@ -223,8 +229,50 @@ int main(int argc, char** argv) {
           if (!args.quiet) progressBar(static_cast<int>(stiff.stats().steps), max_steps, settled.last_increment_m, tol);
           if (r.advanced && stiff.stats().settled) break;
         }
+        // Sliding on the chest wall (seed 2.4), after the fixed-wall settling: the wall nodes become
+        // moving constraints, updated after every accepted step at the dynamics time step (the
+        // explicit constraint update is tuned for it), until the wall stops moving and the tissue
+        // has settled again.
+        if (settings.sliding && !settings.fixed_node_set.empty()) {
+          const auto tsl = std::chrono::steady_clock::now();
+          ChestWallSliding sliding = ChestWallSliding::fromCase(c, m.mesh, SlidingSettings{});
+          sliding.attach(sim);
+          DynamicsParams pd = sim.params();
+          pd.time_step_s = settings.dynamics.time_step_s;
+          sim.setParams(pd);
+          const long first = stiff.stats().steps;
+          int quiet_steps = 0, sliding_stalls = 0;
+          long sl_calls = 0;
+          while (stiff.stats().steps - first < max_steps && sl_calls < 2L * max_steps) {
+            ++sl_calls;
+            const StiffeningStepResult r = stiff.step();
+            if (!r.advanced) {
+              // The last constraint move inverts elements that no α saves: take it back (hold the
+              // wall nodes where they are) and stop sliding after three such steps in a row.
+              Points hold(static_cast<Eigen::Index>(sliding.nodes().size()), 3);
+              for (size_t i = 0; i < sliding.nodes().size(); ++i)
+                hold.row(static_cast<Eigen::Index>(i)) = sim.state().displacement_m.segment<3>(3 * sliding.nodes()[i]).transpose();
+              sim.setNodeTargets(sliding.nodes(), hold);
+              if (++sliding_stalls >= 3) break;
+              continue;
+            }
+            sliding_stalls = 0;
+            const SlidingStepStats ss = sliding.update(sim, &sim.externalForces());
+            sliding_stats = ss;
+            settled.last_increment_m = maxNodalNorm(sim.state().displacement_m - previous);
+            previous = sim.state().displacement_m;
+            if (!args.quiet) progressBar(static_cast<int>(stiff.stats().steps - first), max_steps, settled.last_increment_m, tol);
+            quiet_steps = ss.max_move_m <= tol && settled.last_increment_m <= tol ? quiet_steps + 1 : 0;
+            if (quiet_steps >= 3) break;
+          }
+          sliding_steps = static_cast<int>(stiff.stats().steps - first);
+          sliding_stalled = sliding_stalls >= 3;
+          sliding_settled = quiet_steps >= 3;
+          sliding_vectors = sliding.slidingVectors();
+          sliding_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - tsl).count();
+        }
         stiff_stats = stiff.stats();
-        settled.settled = stiff_stats.settled;
+        settled.settled = stiff_stats.settled && (!settings.sliding || sliding_settled);
         settled.steps = static_cast<int>(stiff_stats.steps);
         settled.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - tst).count();
         settled.max_displacement_m = stiff_stats.max_displacement_m;
@@ -237,6 +285,7 @@ int main(int argc, char** argv) {
       const QualityStats q = qualityStats(m.mesh.tets(), x);
       MeshFields df;
       df.point_data.push_back({"displacement_mm", u * 1e3});
+      if (sliding_vectors.rows()) df.point_data.push_back({"sliding_mm", sliding_vectors * 1e3});
       sim.elasticForces();  // stresses at the settled state
       df.cell_data.push_back({"von_mises_pa", sim.elements().vonMisesStress()});
       df.cell_data.push_back({"modulus_factor", sim.elements().modulusFactors()});
@@ -255,6 +304,14 @@ int main(int argc, char** argv) {
           {"reversal_fraction", stiff_stats.reversal_fraction},
           {"final_alpha_per_pa", stiff_stats.final_alpha_per_pa},
           {"max_modulus_factor", stiff_stats.max_modulus_factor},
+          {"sliding", {{"on", settings.sliding && settings.stiffening},
+                       {"steps", sliding_steps},
+                       {"settled", sliding_settled},
+                       {"stalled", sliding_stalled},
+                       {"max_slide_mm", sliding_stats.max_slide_m * 1e3},
+                       {"last_max_move_mm", sliding_stats.max_move_m * 1e3},
+                       {"max_penetration_mm", sliding_stats.max_penetration_m * 1e3},
+                       {"seconds", sliding_seconds}}},
           {"settled", settled.settled},
           {"steps", settled.steps},
           {"solver_iterations", settled.solver_iterations},
@@ -314,6 +371,14 @@ int main(int argc, char** argv) {
                   j["solver"].get<std::string>().c_str(), settled.max_displacement_m * 1e3);
       std::printf("  %-28s %d inverted, volume change %+.2f%%\n", "deformed quality", j["inverted_elements"].get<int>(),
                   j["volume_change_percent"].get<double>());
+      if (j["sliding"]["on"].get<bool>())
+        std::printf("  %-28s %s after %d steps at dt %.3g s, largest slide %.2f mm, %.2f s\n", "chest-wall sliding",
+                    j["sliding"]["settled"].get<bool>()   ? "stopped"
+                    : j["sliding"]["stalled"].get<bool>() ? "STALLED (its moves invert elements)"
+                                                          : "STILL MOVING",
+                    j["sliding"]["steps"].get<int>(),
+                    settings.dynamics.time_step_s, j["sliding"]["max_slide_mm"].get<double>(),
+                    j["sliding"]["seconds"].get<double>());
       if (settings.stiffening)
         std::printf("  %-28s final alpha %.3g 1/Pa, largest E_r %.2f, %ld reversed steps (%.0f%%)\n", "von Mises stiffening",
                     j["final_alpha_per_pa"].get<double>(), j["max_modulus_factor"].get<double>(),

@@ -43,6 +43,8 @@ TEST(SimulationSettings, DefaultsWithoutASimulationMap) {
   EXPECT_DOUBLE_EQ(s.dynamics.time_step_s, 0.033);
   EXPECT_DOUBLE_EQ(s.material.youngs_modulus_pa, 2000.0);
   EXPECT_EQ(s.fixed_node_set, "chest_wall");
+  EXPECT_TRUE(s.stiffening);
+  EXPECT_FALSE(s.sliding);
 }
 
 TEST(SimulationSettings, ReadsEveryKeyWithItsUnit) {
@@ -66,6 +68,8 @@ simulation:
   settle_time_step_s: 0.5
   settle_increment_tolerance_mm: 0.002
   settle_max_steps: 77
+  stiffening: false
+  sliding: true
 )"));
   EXPECT_DOUBLE_EQ(s.material.youngs_modulus_pa, 3000);
   EXPECT_DOUBLE_EQ(s.material.poisson_ratio, 0.45);
@@ -86,6 +90,8 @@ simulation:
   EXPECT_DOUBLE_EQ(s.settle.time_step_s, 0.5);
   EXPECT_DOUBLE_EQ(s.settle.increment_tolerance_m, 2e-6);
   EXPECT_EQ(s.settle.max_steps, 77);
+  EXPECT_FALSE(s.stiffening);
+  EXPECT_TRUE(s.sliding);
 }
 
 TEST(SimulationSettings, BadValuesNameTheKeyAndTheAcceptedRange) {
