@@ -6,7 +6,9 @@
 // same figures.
 //   bench_simulation [--targets 47895,99390,158340,313335] [--steps 25] [--baseline-steps 3]
 //                    [--tol 1e-2] [--settle-target 47895] [--settle-dts 0.033,0.1,0.33,1]
-//                    [--tols 1e-1,1e-2,1e-3,1e-6] [--no-baseline] [--no-settle] [--json FILE]
+//                    [--tols 1e-1,1e-2,1e-3,1e-6] [--coarse-interval 4] [--no-baseline] [--no-settle]
+//                    [--json FILE]
+// --coarse-interval N recomputes the multigrid's Galerkin operators every N-th step in the Table-1 runs.
 // The tolerance study (--tols, at the first size): per-step PCG tolerance against step time and the
 // error of the dynamic path after 3 and after all steps, against CHOLMOD's exact solves.
 #include <algorithm>
@@ -86,6 +88,7 @@ int main(int argc, char** argv) {
   const std::vector<double> seed_ms = {189, 400, 644, 1432};  // seed Table 1, 2012 quad-core
   int steps = 25, baseline_steps = 3;
   double tol = 1e-2;
+  int coarse_interval = SolverSettings{}.multigrid.coarse_update_interval;
   int settle_target = 47895;
   std::vector<double> settle_dts = {0.033, 0.1, 0.33, 1.0};
   std::vector<double> tol_study = {1e-1, 1e-2, 1e-3, 1e-6};
@@ -101,6 +104,7 @@ int main(int argc, char** argv) {
     else if (k == "--steps") steps = std::stoi(value());
     else if (k == "--baseline-steps") baseline_steps = std::stoi(value());
     else if (k == "--tol") tol = std::stod(value());
+    else if (k == "--coarse-interval") coarse_interval = std::stoi(value());
     else if (k == "--settle-target") settle_target = std::stoi(value());
     else if (k == "--settle-dts") settle_dts = parseList(value());
     else if (k == "--tols") tol_study = parseList(value());
@@ -109,7 +113,7 @@ int main(int argc, char** argv) {
     else if (k == "--json") json_path = value();
     else {
       std::fprintf(stderr,
-                   "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-2]\n"
+                   "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-2] [--coarse-interval 4]\n"
                    "         [--settle-target 47895] [--settle-dts 0.033,...] [--no-baseline] [--no-settle] [--json FILE]\n");
       return 2;
     }
@@ -120,6 +124,7 @@ int main(int argc, char** argv) {
   out["threads"] = omp_get_max_threads();
   out["steps"] = steps;
   out["relative_tolerance"] = tol;
+  out["coarse_update_interval"] = coarse_interval;
 
   std::printf("Table 1 on this machine: %d threads, %d steps of dt 0.033 s, supine gravity, multigrid-PCG to %.0e\n",
               omp_get_max_threads(), steps, tol);
@@ -138,6 +143,7 @@ int main(int argc, char** argv) {
     const double t_mesh = since(t0);
     SimulationSettings settings;
     settings.solver.relative_tolerance = tol;
+    settings.solver.multigrid.coarse_update_interval = coarse_interval;
     settings.dynamics.gravity_mps2 = g_supine;
     SimulatorBuild b = buildSimulator(c, model, settings);
     DynamicSimulator& sim = *b.simulator;

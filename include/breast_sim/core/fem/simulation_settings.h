@@ -31,7 +31,13 @@ struct SolverSettings {
   /// solves after 3 steps (1e-3: 19 iterations, 0.00007 mm; 1e-1: 8 iterations, 0.005 mm).
   double relative_tolerance = 1e-2;
   int max_iterations = 200;  ///< per step; a step that hits it is used anyway and counted
-  MultigridOptions multigrid;
+  /// Coarse operators every 4th step: bench_simulation at 48k elements, 25 steps — Galerkin
+  /// products 9.5 → 0.4 ms per step (median), PCG iterations 14 → 13, path error unchanged.
+  MultigridOptions multigrid = [] {
+    MultigridOptions o;
+    o.coarse_update_interval = 4;
+    return o;
+  }();
   CoarseningOptions coarsening;
 
   static std::string kindName(Kind k);
