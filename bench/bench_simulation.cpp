@@ -23,6 +23,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "bench_util.h"
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/fem/simulation_settings.h"
 #include "breast_sim/core/mesh/tet_quality.h"
@@ -30,21 +31,10 @@
 #include "breast_sim/core/model/phantom.h"
 
 using namespace breast_sim::core;
+using namespace breast_sim::bench;
 
 namespace {
 
-using Clock = std::chrono::steady_clock;
-double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
-
-double median(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  return v.empty() ? 0.0 : v[v.size() / 2];
-}
-double mean(const std::vector<double>& v) {
-  double s = 0;
-  for (double x : v) s += x;
-  return v.empty() ? 0.0 : s / v.size();
-}
 
 // Peak resident memory of this process since the last resetPeakMemory() [MB] (Linux VmHWM).
 double peakMemoryMb() {
@@ -55,12 +45,6 @@ double peakMemoryMb() {
 }
 void resetPeakMemory() { std::ofstream("/proc/self/clear_refs") << "5"; }
 
-std::vector<double> parseList(const std::string& v) {
-  std::vector<double> out;
-  std::stringstream ss(v);
-  for (std::string t; std::getline(ss, t, ',');) out.push_back(std::stod(t));
-  return out;
-}
 
 struct StepRun {
   std::vector<double> total, assembly, setup, solve, iterations;

@@ -18,26 +18,16 @@
 
 #include <nlohmann/json.hpp>
 
+#include "bench_util.h"
 #include "breast_sim/core/fem/simulation_settings.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
 #include "breast_sim/core/sliding/chest_wall_sliding.h"
 
 using namespace breast_sim::core;
+using namespace breast_sim::bench;
 
 namespace {
-using Clock = std::chrono::steady_clock;
-double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
-double median(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  return v.empty() ? 0.0 : v[v.size() / 2];
-}
-std::vector<double> parseList(const std::string& v) {
-  std::vector<double> out;
-  std::stringstream ss(v);
-  for (std::string t; std::getline(ss, t, ',');) out.push_back(std::stod(t));
-  return out;
-}
 }  // namespace
 
 int main(int argc, char** argv) {

@@ -28,22 +28,17 @@
 #include <Eigen/Dense>
 #include <nlohmann/json.hpp>
 
+#include "bench_util.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/solver/cholmod_solver.h"
 #include "breast_sim/core/solver/multigrid.h"
 #include "breast_sim/core/solver/pcg_solver.h"
 
 using namespace breast_sim::core;
+using namespace breast_sim::bench;
 
 namespace {
 
-using Clock = std::chrono::steady_clock;
-double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
-
-double median(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  return v.empty() ? 0.0 : v[v.size() / 2];
-}
 
 // A = M/dt² + K of linear tetrahedra at rest (lumped mass), 3×3-block layout, Dirichlet rows and
 // columns of the fixed nodes zeroed with a unit diagonal. (The project's assembly is fem/.)

@@ -1,0 +1,40 @@
+#pragma once
+// Small helpers shared by the benchmarks: wall time, medians and means of repeated runs, and
+// comma-separated number lists from the command line.
+#include <algorithm>
+#include <chrono>
+#include <sstream>
+#include <string>
+#include <vector>
+
+namespace breast_sim::bench {
+
+using Clock = std::chrono::steady_clock;
+
+/// Seconds since t0.
+inline double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+/// Median (upper median for an even count); 0 for none.
+inline double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v.empty() ? 0.0 : v[v.size() / 2];
+}
+
+/// Mean; 0 for none.
+inline double mean(const std::vector<double>& v) {
+  double s = 0;
+  for (double x : v) s += x;
+  return v.empty() ? 0.0 : s / static_cast<double>(v.size());
+}
+
+/// "1e-1,2,3.5" → {0.1, 2, 3.5}; an empty text gives an empty list.
+/// @throws std::invalid_argument (from std::stod) for an entry that is not a number.
+inline std::vector<double> parseList(const std::string& text) {
+  std::vector<double> out;
+  std::stringstream ss(text);
+  for (std::string t; std::getline(ss, t, ',');)
+    if (!t.empty()) out.push_back(std::stod(t));
+  return out;
+}
+
+}  // namespace breast_sim::bench
