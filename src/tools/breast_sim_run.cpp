@@ -193,9 +193,7 @@ int main(int argc, char** argv) {
       const Eigen::Vector3d g_load = supineGravityLoad(c, settings.gravity_mps2);
       settings.dynamics.gravity_mps2 = g_load;
       const auto ts = std::chrono::steady_clock::now();
-      SimulationSettings build_settings = settings;
-      if (settings.stiffening) build_settings.fixed_node_set.clear();  // the stiffening driver holds them
-      SimulatorBuild b = buildSimulator(c, m, build_settings);
+      SimulatorBuild b = buildSimulator(c, m, settings);  // fixes settings.fixed_node_set
       DynamicSimulator& sim = *b.simulator;
       const int max_steps = settings.settle.max_steps;
       const double tol = settings.settle.increment_tolerance_m;
@@ -216,7 +214,6 @@ int main(int argc, char** argv) {
         if (settings.settle.time_step_s > 0) p.time_step_s = settings.settle.time_step_s;
         sim.setParams(p);
         StiffeningSimulation stiff(sim, m.mesh);
-        if (!settings.fixed_node_set.empty()) stiff.fixNodes(m.mesh.nodeSet(settings.fixed_node_set));
         stiff.setGravity(g_load);
         const auto tst = std::chrono::steady_clock::now();
         Eigen::VectorXd previous = sim.state().displacement_m;

@@ -175,7 +175,6 @@ StiffeningSimulation::StiffeningSimulation(DynamicSimulator& sim, const TetMesh&
                                 std::to_string(sim_.elements().modulusFactors().size()) + " elements, the mesh " +
                                 std::to_string(mesh_.numTets()));
   fixed_node_.assign(mesh_.numNodes(), 0);
-  external_force_ = Eigen::VectorXd::Zero(3 * mesh_.numNodes());
   x_ = mesh_.nodes();
   refreshStress();
   last_inverted_ = countInverted();
@@ -184,7 +183,6 @@ StiffeningSimulation::StiffeningSimulation(DynamicSimulator& sim, const TetMesh&
 
 void StiffeningSimulation::fixNodes(const std::vector<int>& nodes) {
   sim_.fixNodes(nodes);  // validates the indices
-  for (int n : nodes) fixed_node_[n] = 1;
   settle_run_ = 0;
 }
 
@@ -211,14 +209,11 @@ void StiffeningSimulation::restartAlphaSearch() {
 
 void StiffeningSimulation::addNodalForces(const std::vector<int>& nodes, const Points& forces_n) {
   sim_.addNodalForces(nodes, forces_n);  // validates
-  for (size_t i = 0; i < nodes.size(); ++i)
-    external_force_.segment<3>(3 * nodes[i]) += forces_n.row(static_cast<Eigen::Index>(i)).transpose();
   settle_run_ = 0;
 }
 
 void StiffeningSimulation::clearExternalForces() {
   sim_.clearExternalForces();
-  external_force_.setZero();
   settle_run_ = 0;
 }
 
@@ -314,7 +309,11 @@ StiffeningStepResult StiffeningSimulation::step() {
   last_inverted_ = countInverted();
   if (r.advanced) {
     ++accepted_;
-    r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, external_force_, sim_.lumpedMass(),
+    // Constrained nodes and external forces as the simulator has them, however they were set
+    // (through this class or on the simulator directly, e.g. sliding's moving targets).
+    const std::vector<char>& dofs = sim_.constrainedDofs();
+    for (int n = 0; n < mesh_.numNodes(); ++n) fixed_node_[n] = dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2];
+    r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, sim_.externalForces(), sim_.lumpedMass(),
                               sim_.params().gravity_mps2, fixed_node_);
     settle_run_ = r.settle.below ? settle_run_ + 1 : 0;
     if (settle_run_ >= params_.settle.consecutive_steps && steps_to_settle_ < 0) steps_to_settle_ = accepted_;

@@ -176,8 +176,9 @@ void deformationMeasures(const TetMesh& mesh, const Eigen::VectorXd& displacemen
 ///     yes: restore, increase α, repeat (external forces are not touched: a caller adds its forces
 ///          before step(), and the repeats inside step() reuse them, seed 2.6)
 ///     no:  decrease α, push the state to the undo history.
-/// Constraints, gravity and external forces go through this class (it forwards them to the
-/// simulator and keeps what the settle criterion needs).
+/// Constraints, gravity and external forces may go through this class (it forwards them and restarts
+/// the settle count) or to the simulator directly: the settle criterion reads the simulator's own
+/// constrained DOFs and external forces.
 class StiffeningSimulation {
  public:
   /// One undo-history entry: restores the simulation exactly.
@@ -221,8 +222,8 @@ class StiffeningSimulation {
   const Eigen::VectorXd& baseStress() const { return base_stress_; }
   /// Statistics so far (wall_seconds: time spent inside step()).
   RunStats stats() const;
-  /// Sum of all forces except elastic ones is kept here for the residual: 3N [N].
-  const Eigen::VectorXd& externalForces() const { return external_force_; }
+  /// The per-node external forces of the simulator (3N [N]), used in the settle residual.
+  const Eigen::VectorXd& externalForces() const { return sim_.externalForces(); }
 
  private:
   void refreshStress();  // elastic update at the current state: base stress, f_el
@@ -235,8 +236,7 @@ class StiffeningSimulation {
   StiffeningParams params_;
   AlphaController controller_;
   std::deque<HistoryEntry> history_;  // front = newest
-  std::vector<char> fixed_node_;
-  Eigen::VectorXd external_force_;
+  std::vector<char> fixed_node_;  // per node: constrained in the simulator (refreshed per accepted step)
   Eigen::VectorXd base_stress_, trial_stress_, f_el_;
   Points x_;
   long accepted_ = 0, reversed_ = 0, limit_hits_ = 0, steps_to_settle_ = -1;
