@@ -306,7 +306,8 @@ StiffeningStepResult StiffeningSimulation::step() {
     }
   }
   refreshStress();
-  last_inverted_ = countInverted();
+  // An accepted step with reversal was just checked: no element is inverted at this state.
+  last_inverted_ = reversal && r.advanced ? 0 : countInverted();
   if (r.advanced) {
     ++accepted_;
     // Constrained nodes and external forces as the simulator has them, however they were set
