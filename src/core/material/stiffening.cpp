@@ -282,7 +282,7 @@ StiffeningStepResult StiffeningSimulation::step() {
         solved = false;  // e.g. non-finite velocities: treated like an inversion
       }
       if (solved && countInverted() == 0) {
-        controller_.onAccepted();
+        if (!hold_alpha_) controller_.onAccepted();
         r.advanced = true;
         break;
       }

@@ -1,6 +1,8 @@
 #include "breast_sim/core/morphing/surface_morphing.h"
 
+#include <algorithm>
 #include <cmath>
+#include <string>
 #include <sstream>
 #include <stdexcept>
 
@@ -48,6 +50,37 @@ SurfaceMorphing::SurfaceMorphing(const TetMesh& mesh, std::shared_ptr<const Surf
   for (size_t i = 0; i < vertices_.size(); ++i) area_[static_cast<Eigen::Index>(i)] = node_area[vertices_[i]];
   total_ = Points::Zero(static_cast<Eigen::Index>(vertices_.size()), 3);
   step_forces_ = total_;
+  distance_ = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(vertices_.size()));
+}
+
+void SurfaceMorphing::setField(std::shared_ptr<const SurfaceVectorField> field) {
+  if (!field) throw std::invalid_argument("SurfaceMorphing::setField: no target field");
+  field_ = std::move(field);
+}
+
+void SurfaceMorphing::restoreForces(DynamicSimulator& sim, const Points& accumulated_n) {
+  if (accumulated_n.rows() != total_.rows() || accumulated_n.cols() != 3)
+    throw std::invalid_argument("SurfaceMorphing::restoreForces: expected " + std::to_string(total_.rows()) +
+                                " x 3 forces, got " + std::to_string(accumulated_n.rows()) + " x " +
+                                std::to_string(accumulated_n.cols()));
+  total_ = accumulated_n;
+  sim.clearExternalForces();
+  sim.addNodalForces(vertices_, total_);
+}
+
+DistanceStats SurfaceMorphing::measure(const DynamicSimulator& sim) {
+  const Eigen::VectorXd& u = sim.state().displacement_m;
+  const int nv = static_cast<int>(vertices_.size());
+#pragma omp parallel for schedule(static) if (nv > 2000)
+  for (int i = 0; i < nv; ++i) {
+    const int n = vertices_[i];
+    distance_[i] = field_->vectorToSurface(rest_.row(n).transpose() + u.segment<3>(3 * n)).norm();
+  }
+  return lastStats();
+}
+
+DistanceStats SurfaceMorphing::lastStats() const {
+  return distanceStats(std::vector<double>(distance_.data(), distance_.data() + distance_.size()));
 }
 
 double SurfaceMorphing::addForces(DynamicSimulator& sim) {
@@ -60,6 +93,7 @@ double SurfaceMorphing::addForces(DynamicSimulator& sim) {
     const Eigen::Vector3d x = rest_.row(n).transpose() + u.segment<3>(3 * n);
     const Eigen::Vector3d v = field_->vectorToSurface(x);
     const double d = v.norm();
+    distance_[i] = d;
     sum += d;
     const bool pull = options_.max_distance_m == 0.0 || d <= options_.max_distance_m;
     step_forces_.row(i) = pull ? Eigen::RowVector3d(options_.gain_pa_per_m * area_[i] * v.transpose()) : Eigen::RowVector3d::Zero();

@@ -162,12 +162,16 @@ double SurfaceDistance::distance(const Eigen::Vector3d& p_m, Eigen::Vector3d* cl
 }
 
 DistanceStats SurfaceDistance::stats(const Points& points_m) const {
-  DistanceStats s;
-  s.count = static_cast<int>(points_m.rows());
-  if (s.count == 0) return s;
-  std::vector<double> d(static_cast<size_t>(s.count));
+  std::vector<double> d(static_cast<size_t>(points_m.rows()));
 #pragma omp parallel for schedule(static)
-  for (int i = 0; i < s.count; ++i) d[i] = distance(points_m.row(i).transpose());
+  for (int i = 0; i < static_cast<int>(d.size()); ++i) d[i] = distance(points_m.row(i).transpose());
+  return distanceStats(std::move(d));
+}
+
+DistanceStats distanceStats(std::vector<double> d) {
+  DistanceStats s;
+  s.count = static_cast<int>(d.size());
+  if (s.count == 0) return s;
   double sum = 0;
   for (double v : d) {
     sum += v;

@@ -199,6 +199,10 @@ class StiffeningSimulation {
   bool setGravity(const Eigen::Vector3d& g_mps2);
   /// Restarts the α search from the initial α (any other boundary-condition change).
   void restartAlphaSearch();
+  /// While held, accepted steps leave α as it is (reversals still increase it): the morphing stage
+  /// holds α once the surface distance meets its tolerance (seed 2.6).
+  void holdAlpha(bool hold) { hold_alpha_ = hold; }
+  bool alphaHeld() const { return hold_alpha_; }
   void addNodalForces(const std::vector<int>& nodes, const Points& forces_n);
   void clearExternalForces();
 
@@ -236,6 +240,7 @@ class StiffeningSimulation {
   StiffeningParams params_;
   AlphaController controller_;
   std::deque<HistoryEntry> history_;  // front = newest
+  bool hold_alpha_ = false;
   std::vector<char> fixed_node_;  // per node: constrained in the simulator (refreshed per accepted step)
   Eigen::VectorXd base_stress_, trial_stress_, f_el_;
   Points x_;

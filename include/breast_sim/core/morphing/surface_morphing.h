@@ -41,6 +41,20 @@ class SurfaceMorphing {
   /// Adds this step's forces at the simulator's current positions (call before its step()).
   /// @return the mean distance of the pulled vertices to the target [m] before the step
   double addForces(DynamicSimulator& sim);
+  /// The distances of the pulled vertices to the target at the simulator's current positions,
+  /// without adding forces (also stored in lastDistances()). count is the number of vertices.
+  DistanceStats measure(const DynamicSimulator& sim);
+  /// Distance of each pulled vertex to the target [m] at the last addForces() or measure().
+  const Eigen::VectorXd& lastDistances() const { return distance_; }
+  /// Statistics of lastDistances() (mean, 95th percentile, max).
+  DistanceStats lastStats() const;
+  /// A new target field (e.g. a new tracker frame); the accumulated forces stay.
+  /// @throws std::invalid_argument for a null field.
+  void setField(std::shared_ptr<const SurfaceVectorField> field);
+  /// Replaces the accumulated forces (a restored snapshot): the simulator's external forces become
+  /// exactly these on the pulled vertices (any other external force is cleared).
+  /// @throws std::invalid_argument when the size is not #vertices × 3.
+  void restoreForces(DynamicSimulator& sim, const Points& accumulated_n);
 
   const std::vector<int>& vertices() const { return vertices_; }
   /// Area share of each pulled vertex [m²] (rest configuration).
@@ -57,6 +71,7 @@ class SurfaceMorphing {
   Eigen::VectorXd area_;
   Points total_;
   Points step_forces_;
+  Eigen::VectorXd distance_;
 };
 
 }  // namespace breast_sim::core

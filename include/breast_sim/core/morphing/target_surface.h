@@ -38,6 +38,9 @@ struct DistanceStats {
   int count = 0;
 };
 
+/// Mean, 95th percentile (the ⌈0.95 n⌉-th smallest) and max of a list of distances [m].
+DistanceStats distanceStats(std::vector<double> distances_m);
+
 /// Exact closest-point distances to a triangle surface (VTK's static cell locator; a point cloud
 /// target measures to its nearest point). Build once, query many times; thread-safe queries.
 class SurfaceDistance {

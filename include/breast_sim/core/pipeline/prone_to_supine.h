@@ -1,0 +1,231 @@
+#pragma once
+/// @file prone_to_supine.h
+/// The combined prone-to-supine pipeline (seed paper, section 2.6 and Figure 2).
+///
+/// Two stages on one simulator:
+///  1. Gravity precomputation: the model is loaded with g_supine − g_prone (the prone shape already
+///     hangs under prone gravity) and settled with von Mises stiffening and time-step reversal, the
+///     chest wall fixed; with sliding on, the wall nodes are then released to slide on the wall
+///     and the run goes on until the wall stops moving and the tissue has settled again. The seed
+///     advises exactly this order: morphing only after sliding and stiffening are macroscopically
+///     stable.
+///  2. Surface morphing to a target surface (the phantom's supine shape, a surface file, or a
+///     tracker's point cloud), one Figure-2 iteration per step:
+///       add morphing forces (accumulated, never reset)
+///       → set element moduli E_r = 1 + α s_VM → simulate a step → inverted elements?
+///           yes: restore the positions, increase α and repeat the step WITHOUT re-adding forces;
+///           no:  decrease α — unless the surface distance already meets the tolerance, then α is
+///                held (the material is "soft enough", seed 2.6) — and move the sliding constraints.
+///     The stage ends when the mean and 95th-percentile distances of the pulled skin vertices to the
+///     target are within tolerance and no node moves more than the increment tolerance in a step.
+///
+/// Every part can be switched on or off and parameterised (PipelineSettings, from one YAML file).
+/// Units: SI inside (m, Pa, s); YAML keys say theirs.
+
+#include <atomic>
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "breast_sim/core/fem/simulation_settings.h"
+#include "breast_sim/core/material/stiffening.h"
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/morphing/surface_field.h"
+#include "breast_sim/core/morphing/surface_morphing.h"
+#include "breast_sim/core/morphing/target_surface.h"
+#include "breast_sim/core/sliding/chest_wall_sliding.h"
+
+namespace breast_sim::core {
+
+/// The morphing stage (YAML map `morphing:`).
+struct MorphingStageSettings {
+  bool enabled = true;
+  /// "phantom": the phantom's supine skin surface; otherwise a surface file (.obj, .stl, .ply, .vtp,
+  /// .vtk; relative paths from the case file); "" = no target (the stage is skipped).
+  std::string target = "phantom";
+  double target_length_unit_m = 1e-3;  ///< metres per unit of a target file (1e-3: the file is in mm)
+  MorphingOptions forces;              ///< gain, outlier distance, which vertices
+  SurfaceFieldOptions field;           ///< the distance-field grid
+  double time_step_s = 0.1;            ///< dynamics time step while morphing [s]
+  double tolerance_mean_m = 0.5e-3;    ///< mean distance of the pulled vertices to reach [m]
+  double tolerance_p95_m = 1.5e-3;     ///< 95th percentile to reach [m]
+  /// Ends once the tolerances hold and no node moves more than this in a step [m].
+  double increment_tolerance_m = 2e-5;
+  int max_steps = 300;                 ///< accepted steps at most
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
+  void validate() const;
+};
+
+/// Everything the pipeline needs besides the case and the model.
+struct PipelineSettings {
+  SimulationSettings simulation;   ///< `simulation:`: material, solver, gravity stage, stiffening, sliding on/off
+  StiffeningParams stiffening;     ///< α control (defaults: the robust preset of the stability map)
+  SlidingSettings sliding;         ///< `sliding:`
+  MorphingStageSettings morphing;  ///< `morphing:`
+  void validate() const;
+};
+
+/// Reads `simulation:`, `sliding:` and `morphing:` of a case file (absent maps = defaults). The
+/// keys, their units and defaults are documented in config/phantom_default.yaml.
+/// @throws std::runtime_error naming the file, the key and what is expected.
+PipelineSettings loadPipelineSettings(const std::string& yaml_path);
+
+enum class PipelineStage { kIdle, kGravity, kSliding, kMorphing, kDone };
+const char* stageName(PipelineStage stage);
+
+/// Reported after every step.
+struct PipelineProgress {
+  PipelineStage stage = PipelineStage::kIdle;
+  int step = 0;                ///< accepted steps of this stage so far
+  int max_steps = 0;
+  double increment_m = 0.0;    ///< largest nodal displacement change of the last step [m]
+  double surface_mean_m = -1;  ///< mean distance of the pulled vertices to the target [m]; −1 before morphing
+  double surface_p95_m = -1;
+  double alpha_per_pa = 0.0;
+  /// Rough completion of the stage in [0, 1] (log-scale approach of the increment to its tolerance).
+  double fraction = 0.0;
+};
+using PipelineProgressFn = std::function<void(const PipelineProgress&)>;
+
+/// What one stage did.
+struct StageReport {
+  bool ran = false;
+  bool converged = false;     ///< settled (gravity, sliding) or within tolerance (morphing)
+  bool cancelled = false;
+  int steps = 0;              ///< accepted steps
+  long reversed_steps = 0;    ///< trial steps reverted (time-step reversal)
+  long reversal_limit_hits = 0;
+  double seconds = 0.0;       ///< wall time [s]
+  double last_increment_m = 0.0;
+  double final_alpha_per_pa = 0.0;
+  double surface_mean_m = -1; ///< morphing: pulled vertices → target at the end [m]
+  double surface_p95_m = -1;
+  double max_slide_m = 0.0;   ///< sliding: largest total slide of a wall node [m]
+};
+
+/// One Figure-2 iteration (PipelineStage::kMorphing), for callers that drive it themselves.
+struct IterationReport {
+  bool advanced = false;      ///< a step without inversion was taken
+  bool forces_added = false;  ///< false after a call that could not advance (seed: skip the forces)
+  int reversals = 0;
+  double increment_m = 0.0;
+  double surface_mean_m = -1, surface_p95_m = -1;  ///< before the step, of the pulled vertices [m]
+  double alpha_per_pa = 0.0;
+  bool alpha_held = false;    ///< the tolerance held, so α was not decreased
+  double seconds = 0.0;
+};
+
+/// Deformation measures at the current state.
+struct PipelineMetrics {
+  int inverted_elements = 0;
+  double volume_change_percent = 0.0;
+  double max_displacement_m = 0.0;
+  double max_modulus_factor = 1.0;
+  double final_alpha_per_pa = 0.0;
+  bool has_target = false;
+  SurfaceMatch surface;       ///< exact, both ways (skin ↔ target); valid when has_target
+};
+
+/// A restorable snapshot (the node's "save / load a precomputed state").
+struct PipelineState {
+  SimulationState simulation;
+  Eigen::VectorXd modulus_factors;
+  AlphaController::State alpha;
+  Points sliding_targets_m;     ///< #sliding nodes × 3 (empty when sliding is not attached)
+  Points morphing_forces_n;     ///< accumulated per pulled vertex (empty without morphing)
+  PipelineStage stage = PipelineStage::kIdle;
+};
+
+class ProneToSupinePipeline {
+ public:
+  /// Builds the simulator (solver, multigrid levels), the stiffening driver and, with sliding on, the
+  /// chest-wall surface. `model_case` and `model` are kept by reference and must outlive this.
+  /// The target of settings.morphing.target is read here ("phantom" needs a phantom case).
+  /// @throws std::invalid_argument / std::runtime_error for bad settings or a missing target.
+  ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model, const PipelineSettings& settings);
+  ~ProneToSupinePipeline();
+
+  /// Both stages in order (the morphing stage only with a target and morphing enabled).
+  /// @param cancel  polled between steps; set it to stop early (the state stays consistent)
+  void run(const PipelineProgressFn& progress = {}, const std::atomic<bool>* cancel = nullptr);
+  /// Stage 1 (and the sliding continuation when sliding is on).
+  StageReport runGravity(const PipelineProgressFn& progress = {}, const std::atomic<bool>* cancel = nullptr);
+  /// Stage 2. @throws std::logic_error without a target.
+  StageReport runMorphing(const PipelineProgressFn& progress = {}, const std::atomic<bool>* cancel = nullptr);
+  /// One Figure-2 iteration against the current target (the node calls it per tracker frame).
+  /// @throws std::logic_error without a target.
+  IterationReport iterate();
+
+  /// Replaces the target (e.g. a new tracker cloud): rebuilds the distance field over the model's
+  /// reach; the accumulated morphing forces are kept (they are what holds the current shape).
+  void setTarget(const TargetSurface& target);
+  bool hasTarget() const { return static_cast<bool>(field_); }
+  const TargetSurface& target() const { return target_; }
+  const SurfaceVectorField* field() const { return field_.get(); }
+
+  /// Sets the gravity load [m/s²] (e.g. a table tilt: g_now − g_prone); a direction change beyond
+  /// StiffeningParams::gravity_direction_tolerance_deg restarts the α search.
+  void setGravityLoad(const Eigen::Vector3d& g_mps2);
+  /// The load of the supine position for this case: g_supine − g_prone [m/s²] (the phantom's own
+  /// tilted supine gravity; an image case turns its prone direction around).
+  Eigen::Vector3d supineGravityLoad() const;
+
+  PipelineStage stage() const { return stage_; }
+  const StageReport& gravityReport() const { return gravity_; }
+  const StageReport& slidingReport() const { return sliding_report_; }
+  const StageReport& morphingReport() const { return morphing_; }
+  PipelineMetrics metrics() const;
+
+  Points displacement() const;   ///< #N×3 [m]
+  Points positions() const;      ///< rest + displacement, #N×3 [m]
+  Points lesionPositions() const;  ///< #lesions×3 [m]
+  /// Sliding vector per node [m] (zero without sliding).
+  Points slidingVectors() const;
+  /// Per element, at the current state: von Mises stress [Pa] and modulus factor E_r.
+  Eigen::VectorXd vonMisesStress();
+  Eigen::VectorXd modulusFactors() const;
+
+  PipelineState state() const;
+  /// @throws std::invalid_argument when the snapshot does not fit this model (sizes).
+  void restore(const PipelineState& s);
+  /// Binary snapshot file (magic, version, sizes, then the vectors).
+  /// @throws std::runtime_error naming the file on an I/O error or a snapshot of another model.
+  void saveState(const std::string& path) const;
+  void loadState(const std::string& path);
+
+  const SimulatorBuild& build() const { return build_; }
+  DynamicSimulator& simulator() { return *build_.simulator; }
+  const DynamicSimulator& simulator() const { return *build_.simulator; }
+  StiffeningSimulation& stiffening() { return *stiff_; }
+  const ChestWallSliding* sliding() const { return sliding_.get(); }
+  const SurfaceMorphing* morphing() const { return morphing_forces_.get(); }
+  const PipelineSettings& settings() const { return settings_; }
+  const SimulationModel& model() const { return model_; }
+
+ private:
+  void attachSliding();
+  SurfaceMorphing& ensureMorphing();  // the force generator, on first use
+  bool slideAfter(const StiffeningStepResult& r, int* stalls);
+  void setTimeStep(double dt_s);
+  double increment(Eigen::VectorXd& previous) const;
+
+  const ModelCase& case_;
+  const SimulationModel& model_;
+  PipelineSettings settings_;
+  SimulatorBuild build_;
+  std::unique_ptr<StiffeningSimulation> stiff_;
+  std::unique_ptr<ChestWallSliding> sliding_;
+  TargetSurface target_;
+  std::shared_ptr<const SurfaceVectorField> field_;
+  std::unique_ptr<SurfaceMorphing> morphing_forces_;
+  std::unique_ptr<SurfaceDistance> distance_;
+  PipelineStage stage_ = PipelineStage::kIdle;
+  StageReport gravity_, sliding_report_, morphing_;
+  bool last_advanced_ = true;
+  double mesh_volume_m3_ = 0.0;
+};
+
+}  // namespace breast_sim::core

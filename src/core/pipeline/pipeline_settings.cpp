@@ -1,0 +1,105 @@
+// Settings of the combined pipeline: validation and the `sliding:` and `morphing:` maps of a case file.
+#include <cmath>
+#include <filesystem>
+#include <limits>
+#include <sstream>
+#include <stdexcept>
+
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "../util/yaml_fields.h"
+
+namespace breast_sim::core {
+
+void MorphingStageSettings::validate() const {
+  auto bad = [](const char* name, double v, const char* range) {
+    std::ostringstream s;
+    s << "morphing '" << name << "' = " << v << " is invalid: expected " << range;
+    throw std::invalid_argument(s.str());
+  };
+  forces.validate();
+  field.validate();
+  if (!(target_length_unit_m > 0) || !std::isfinite(target_length_unit_m)) bad("target_length_unit_m", target_length_unit_m, "> 0 m per file unit");
+  if (!(time_step_s > 0) || time_step_s > 10) bad("time_step_s", time_step_s, "in (0, 10] s");
+  if (!(tolerance_mean_m > 0) || !std::isfinite(tolerance_mean_m)) bad("tolerance_mean_m", tolerance_mean_m, "> 0 m");
+  if (!(tolerance_p95_m > 0) || !std::isfinite(tolerance_p95_m)) bad("tolerance_p95_m", tolerance_p95_m, "> 0 m");
+  if (!(increment_tolerance_m > 0) || !std::isfinite(increment_tolerance_m)) bad("increment_tolerance_m", increment_tolerance_m, "> 0 m");
+  if (max_steps < 1) bad("max_steps", max_steps, "≥ 1");
+}
+
+void PipelineSettings::validate() const {
+  simulation.validate();
+  stiffening.validate();
+  sliding.validate();
+  morphing.validate();
+  if (simulation.sliding && (!simulation.stiffening || simulation.fixed_node_set.empty()))
+    throw std::invalid_argument(
+        "simulation 'sliding' needs 'stiffening: true' and a 'fixed_node_set' (the nodes that slide): turn "
+        "sliding off or set both");
+}
+
+PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
+  using namespace yaml_fields;
+  PipelineSettings s;
+  s.simulation = loadSimulationSettings(yaml_path);
+  const YAML::Node root = loadFile(yaml_path);
+  const std::string f = yaml_path;
+  const double inf = std::numeric_limits<double>::infinity();
+  if (root.IsMap() && root["sliding"] && !root["sliding"].IsNull()) {
+    const YAML::Node m = root["sliding"];
+    checkKeys(m,
+              {"normal_sigma_mm", "mobility_mm_per_pa_s", "static_friction", "kinetic_friction", "static_threshold_pa",
+               "inertia", "max_step_mm", "max_slide_mm", "thickness_limit", "gaussian_limit", "gaussian_amplitude",
+               "gaussian_sigma_mm", "gaussian_sigma_fraction"},
+              f, "sliding");
+    auto key = [](const char* k) { return std::string("sliding.") + k; };
+    SlidingSettings& d = s.sliding;
+    if (m["normal_sigma_mm"]) d.field.sigma_m = 1e-3 * numberIn(m["normal_sigma_mm"], f, key("normal_sigma_mm"), 0, 50, true, false, "mm");
+    if (m["mobility_mm_per_pa_s"]) d.mobility_m_per_pa_s = 1e-3 * numberIn(m["mobility_mm_per_pa_s"], f, key("mobility_mm_per_pa_s"), 0, inf, false, false, "mm/(Pa s)");
+    if (m["static_friction"]) d.static_friction = numberIn(m["static_friction"], f, key("static_friction"), 0, 10);
+    if (m["kinetic_friction"]) d.kinetic_friction = numberIn(m["kinetic_friction"], f, key("kinetic_friction"), 0, 10);
+    if (m["static_threshold_pa"]) d.static_threshold_pa = numberIn(m["static_threshold_pa"], f, key("static_threshold_pa"), 0, inf, false, false, "Pa");
+    if (m["inertia"]) d.inertia = numberIn(m["inertia"], f, key("inertia"), 0, 1, false, true);
+    if (m["max_step_mm"]) d.max_step_m = 1e-3 * numberIn(m["max_step_mm"], f, key("max_step_mm"), 0, 100, true, false, "mm");
+    if (m["max_slide_mm"]) d.max_slide_m = 1e-3 * numberIn(m["max_slide_mm"], f, key("max_slide_mm"), 0, 1000, false, false, "mm");
+    if (m["thickness_limit"]) d.thickness_limit = boolean(m["thickness_limit"], f, key("thickness_limit"));
+    if (m["gaussian_limit"]) d.gaussian_limit = boolean(m["gaussian_limit"], f, key("gaussian_limit"));
+    if (m["gaussian_amplitude"]) d.gaussian_amplitude = numberIn(m["gaussian_amplitude"], f, key("gaussian_amplitude"), 0, 100, true, false);
+    if (m["gaussian_sigma_mm"]) d.gaussian_sigma_m = 1e-3 * numberIn(m["gaussian_sigma_mm"], f, key("gaussian_sigma_mm"), 0, 1000, false, false, "mm");
+    if (m["gaussian_sigma_fraction"]) d.gaussian_sigma_fraction = numberIn(m["gaussian_sigma_fraction"], f, key("gaussian_sigma_fraction"), 0, 2, true, false);
+  }
+  if (root.IsMap() && root["morphing"] && !root["morphing"].IsNull()) {
+    const YAML::Node m = root["morphing"];
+    checkKeys(m,
+              {"enabled", "target", "target_unit_mm", "gain_pa_per_mm", "max_distance_mm", "skip_constrained",
+               "voxel_size_mm", "max_voxels_per_axis", "time_step_s", "tolerance_mean_mm", "tolerance_p95_mm",
+               "increment_tolerance_mm", "max_steps"},
+              f, "morphing");
+    auto key = [](const char* k) { return std::string("morphing.") + k; };
+    MorphingStageSettings& d = s.morphing;
+    if (m["enabled"]) d.enabled = boolean(m["enabled"], f, key("enabled"));
+    if (m["target"]) {
+      d.target = m["target"].IsNull() ? "" : text(m["target"], f, key("target"));
+      if (!d.target.empty() && d.target != "phantom" && std::filesystem::path(d.target).is_relative())
+        d.target = (std::filesystem::path(yaml_path).parent_path() / d.target).string();
+    }
+    if (m["target_unit_mm"]) d.target_length_unit_m = 1e-3 * numberIn(m["target_unit_mm"], f, key("target_unit_mm"), 0, 1e6, true, false, "mm per file unit");
+    if (m["gain_pa_per_mm"]) d.forces.gain_pa_per_m = 1e3 * numberIn(m["gain_pa_per_mm"], f, key("gain_pa_per_mm"), 0, inf, false, false, "Pa/mm");
+    if (m["max_distance_mm"]) d.forces.max_distance_m = 1e-3 * numberIn(m["max_distance_mm"], f, key("max_distance_mm"), 0, inf, false, false, "mm");
+    if (m["skip_constrained"]) d.forces.skip_constrained = boolean(m["skip_constrained"], f, key("skip_constrained"));
+    if (m["voxel_size_mm"]) d.field.voxel_size_m = 1e-3 * numberIn(m["voxel_size_mm"], f, key("voxel_size_mm"), 0, 100, true, false, "mm");
+    if (m["max_voxels_per_axis"]) d.field.max_voxels_per_axis = static_cast<int>(integer(m["max_voxels_per_axis"], f, key("max_voxels_per_axis"), 8, 2048));
+    if (m["time_step_s"]) d.time_step_s = numberIn(m["time_step_s"], f, key("time_step_s"), 0, 10, true, false, "s");
+    if (m["tolerance_mean_mm"]) d.tolerance_mean_m = 1e-3 * numberIn(m["tolerance_mean_mm"], f, key("tolerance_mean_mm"), 0, 1000, true, false, "mm");
+    if (m["tolerance_p95_mm"]) d.tolerance_p95_m = 1e-3 * numberIn(m["tolerance_p95_mm"], f, key("tolerance_p95_mm"), 0, 1000, true, false, "mm");
+    if (m["increment_tolerance_mm"]) d.increment_tolerance_m = 1e-3 * numberIn(m["increment_tolerance_mm"], f, key("increment_tolerance_mm"), 0, 10, true, false, "mm");
+    if (m["max_steps"]) d.max_steps = static_cast<int>(integer(m["max_steps"], f, key("max_steps"), 1, 1000000));
+  }
+  try {
+    s.validate();
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(yaml_path + ": " + e.what());
+  }
+  return s;
+}
+
+}  // namespace breast_sim::core

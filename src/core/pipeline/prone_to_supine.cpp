@@ -1,0 +1,487 @@
+// The combined prone-to-supine pipeline (seed Figure 2); see prone_to_supine.h.
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <fstream>
+#include <stdexcept>
+
+#include "breast_sim/core/fem/equilibrium.h"
+#include "breast_sim/core/mesh/tet_quality.h"
+#include "breast_sim/core/model/phantom.h"
+
+namespace breast_sim::core {
+
+namespace {
+
+double since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+/// Completion estimate: how far the increment came down from the first one towards the tolerance,
+/// on a log scale.
+double logFraction(double first, double now, double tolerance) {
+  if (!(first > tolerance) || !(now > 0)) return now <= tolerance ? 1.0 : 0.0;
+  return std::clamp(std::log(first / now) / std::log(first / tolerance), 0.0, 1.0);
+}
+
+}  // namespace
+
+const char* stageName(PipelineStage stage) {
+  switch (stage) {
+    case PipelineStage::kIdle: return "idle";
+    case PipelineStage::kGravity: return "gravity";
+    case PipelineStage::kSliding: return "sliding";
+    case PipelineStage::kMorphing: return "morphing";
+    case PipelineStage::kDone: return "done";
+  }
+  return "unknown";
+}
+
+ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model,
+                                             const PipelineSettings& settings)
+    : case_(model_case), model_(model), settings_(settings) {
+  settings_.validate();
+  mesh_volume_m3_ = model_.mesh.volume();
+  settings_.simulation.dynamics.gravity_mps2 = supineGravityLoad();
+  build_ = buildSimulator(case_, model_, settings_.simulation);  // fixes the fixed node set
+  StiffeningParams sp = settings_.stiffening;
+  if (!settings_.simulation.stiffening) sp.update_moduli = false;  // co-rotated with E0 throughout
+  stiff_ = std::make_unique<StiffeningSimulation>(*build_.simulator, model_.mesh, sp);
+  stiff_->setGravity(settings_.simulation.dynamics.gravity_mps2);
+  if (settings_.simulation.sliding)
+    sliding_ = std::make_unique<ChestWallSliding>(ChestWallSliding::fromCase(case_, model_.mesh, settings_.sliding));
+  const MorphingStageSettings& ms = settings_.morphing;
+  if (ms.enabled && !ms.target.empty()) {
+    if (ms.target == "phantom") {
+      if (!case_.phantom)
+        throw std::invalid_argument("morphing target 'phantom' needs the software phantom; case '" + case_.name +
+                                    "' is an image: give a surface file as morphing.target, or set morphing.enabled: false");
+      setTarget(skinTarget(case_.phantom->supine_surface));
+    } else {
+      setTarget(readTargetSurface(ms.target, ms.target_length_unit_m));
+    }
+  }
+}
+
+ProneToSupinePipeline::~ProneToSupinePipeline() = default;
+
+Eigen::Vector3d ProneToSupinePipeline::supineGravityLoad() const {
+  const Eigen::Vector3d prone = settings_.simulation.gravity_mps2 * case_.prone_gravity_direction.normalized();
+  const Eigen::Vector3d supine = case_.phantom ? case_.phantom->gravity_supine_mps2 : Eigen::Vector3d(-prone);
+  return supine - prone;
+}
+
+void ProneToSupinePipeline::setGravityLoad(const Eigen::Vector3d& g_mps2) { stiff_->setGravity(g_mps2); }
+
+void ProneToSupinePipeline::setTimeStep(double dt_s) {
+  DynamicsParams p = simulator().params();
+  if (p.time_step_s == dt_s) return;
+  p.time_step_s = dt_s;
+  simulator().setParams(p);
+}
+
+double ProneToSupinePipeline::increment(Eigen::VectorXd& previous) const {
+  const Eigen::VectorXd& u = simulator().state().displacement_m;
+  const double inc = maxNodalNorm(u - previous);
+  previous = u;
+  return inc;
+}
+
+void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
+  target.validate();
+  // The grid covers where the model can go: its rest box, grown by the largest distance a vertex may
+  // be pulled from (and the field's own margin around the target).
+  Eigen::AlignedBox3d region;
+  const Points x = positions();
+  for (Eigen::Index i = 0; i < x.rows(); ++i) region.extend(x.row(i).transpose());
+  auto field = std::make_shared<const SurfaceVectorField>(target, region, settings_.morphing.field);
+  auto distance = std::make_unique<SurfaceDistance>(target);
+  // Everything built: swap in.
+  target_ = target;
+  field_ = std::move(field);
+  distance_ = std::move(distance);
+  if (morphing_forces_) morphing_forces_->setField(field_);
+}
+
+void ProneToSupinePipeline::attachSliding() {
+  if (!sliding_) return;
+  sliding_->attach(simulator());
+  stiff_->restartAlphaSearch();
+}
+
+bool ProneToSupinePipeline::slideAfter(const StiffeningStepResult& r, int* stalls) {
+  if (!sliding_ || stage_ == PipelineStage::kGravity) return false;
+  if (!r.advanced) {
+    // The last constraint move inverts elements that no α saves: take it back (hold the wall nodes
+    // where they are).
+    const std::vector<int>& nodes = sliding_->nodes();
+    Points hold(static_cast<Eigen::Index>(nodes.size()), 3);
+    const Eigen::VectorXd& u = simulator().state().displacement_m;
+    for (size_t i = 0; i < nodes.size(); ++i) hold.row(static_cast<Eigen::Index>(i)) = u.segment<3>(3 * nodes[i]).transpose();
+    simulator().setNodeTargets(nodes, hold);
+    if (stalls) ++*stalls;
+    return false;
+  }
+  if (stalls) *stalls = 0;
+  const SlidingStepStats ss = sliding_->update(simulator(), &simulator().externalForces());
+  sliding_report_.max_slide_m = ss.max_slide_m;
+  return ss.max_move_m > settings_.simulation.settle.increment_tolerance_m;
+}
+
+StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const SettleOptions& so = settings_.simulation.settle;
+  const double tol = so.increment_tolerance_m;
+  StageReport rep;
+  rep.ran = true;
+  stage_ = PipelineStage::kGravity;
+  setTimeStep(so.time_step_s > 0 ? so.time_step_s : settings_.simulation.dynamics.time_step_s);
+  Eigen::VectorXd previous = simulator().state().displacement_m;
+  const RunStats before = stiff_->stats();
+  double first = -1;
+  long calls = 0;
+  int quiet = 0;
+  // Stage 1: the wall fixed. Without stiffening the step is the plain co-rotated one, settled by the
+  // increment; with it, by the stiffening driver's residual-and-speed criterion.
+  while (rep.steps < so.max_steps && calls < 2L * so.max_steps) {
+    if (cancel && cancel->load()) {
+      rep.cancelled = true;
+      break;
+    }
+    ++calls;
+    const StiffeningStepResult r = stiff_->step();
+    if (r.advanced) ++rep.steps;
+    rep.last_increment_m = increment(previous);
+    if (first < 0) first = rep.last_increment_m;
+    quiet = rep.last_increment_m <= tol ? quiet + 1 : 0;
+    if (progress)
+      progress({stage_, rep.steps, so.max_steps, rep.last_increment_m, -1, -1, r.alpha_per_pa,
+                logFraction(first, rep.last_increment_m, tol)});
+    const bool settled = settings_.simulation.stiffening ? stiff_->stats().settled : quiet >= so.consecutive_steps;
+    if (r.advanced && settled) {
+      rep.converged = true;
+      break;
+    }
+  }
+  const RunStats after = stiff_->stats();
+  rep.reversed_steps = after.reversed_steps - before.reversed_steps;
+  rep.reversal_limit_hits = after.reversal_limit_hits - before.reversal_limit_hits;
+  rep.final_alpha_per_pa = stiff_->controller().alpha();
+  rep.seconds = since(t0);
+  gravity_ = rep;
+
+  // Sliding on the chest wall after the fixed-wall settling: the wall nodes become moving
+  // constraints, updated after every accepted step at the dynamics time step (the explicit
+  // constraint update is tuned for it), until the wall stops moving and the tissue has settled.
+  if (sliding_ && rep.converged) {
+    const auto ts = std::chrono::steady_clock::now();
+    StageReport sr;
+    sr.ran = true;
+    stage_ = PipelineStage::kSliding;
+    setTimeStep(settings_.simulation.dynamics.time_step_s);
+    attachSliding();
+    const RunStats b2 = stiff_->stats();
+    int stalls = 0, quiet_steps = 0;
+    long sl_calls = 0;
+    first = -1;
+    while (sr.steps < so.max_steps && sl_calls < 2L * so.max_steps) {
+      if (cancel && cancel->load()) {
+        sr.cancelled = true;
+        break;
+      }
+      ++sl_calls;
+      const StiffeningStepResult r = stiff_->step();
+      const bool moving = slideAfter(r, &stalls);
+      if (!r.advanced) {
+        if (stalls >= 3) break;  // the wall cannot move further without inverting elements
+        continue;
+      }
+      ++sr.steps;
+      sr.last_increment_m = increment(previous);
+      if (first < 0) first = sr.last_increment_m;
+      quiet_steps = !moving && sr.last_increment_m <= tol ? quiet_steps + 1 : 0;
+      if (progress)
+        progress({stage_, sr.steps, so.max_steps, sr.last_increment_m, -1, -1, r.alpha_per_pa,
+                  logFraction(first, sr.last_increment_m, tol)});
+      if (quiet_steps >= 3) {
+        sr.converged = true;
+        break;
+      }
+    }
+    const RunStats a2 = stiff_->stats();
+    sr.reversed_steps = a2.reversed_steps - b2.reversed_steps;
+    sr.reversal_limit_hits = a2.reversal_limit_hits - b2.reversal_limit_hits;
+    sr.final_alpha_per_pa = stiff_->controller().alpha();
+    sr.max_slide_m = sliding_report_.max_slide_m;
+    sr.seconds = since(ts);
+    sliding_report_ = sr;
+  }
+  stage_ = PipelineStage::kIdle;
+  return gravity_;
+}
+
+SurfaceMorphing& ProneToSupinePipeline::ensureMorphing() {
+  if (!morphing_forces_) {
+    std::vector<int> constrained;
+    const std::vector<char>& dofs = simulator().constrainedDofs();
+    for (int n = 0; n < model_.mesh.numNodes(); ++n)
+      if (dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2]) constrained.push_back(n);
+    morphing_forces_ = std::make_unique<SurfaceMorphing>(model_.mesh, field_, model_.mesh.nodeSet(node_sets::kSkin),
+                                                         constrained, settings_.morphing.forces);
+  }
+  return *morphing_forces_;
+}
+
+IterationReport ProneToSupinePipeline::iterate() {
+  if (!field_) throw std::logic_error("ProneToSupinePipeline::iterate: no target surface (setTarget first)");
+  const auto t0 = std::chrono::steady_clock::now();
+  ensureMorphing();
+  IterationReport it;
+  const Eigen::VectorXd before = simulator().state().displacement_m;
+  // Seed 2.6: after a step that could not advance, no new forces (the positions are back where
+  // they received the last ones).
+  DistanceStats d;
+  if (last_advanced_) {
+    morphing_forces_->addForces(simulator());
+    d = morphing_forces_->lastStats();
+    it.forces_added = true;
+  } else {
+    d = morphing_forces_->lastStats();
+  }
+  it.surface_mean_m = d.mean_m;
+  it.surface_p95_m = d.p95_m;
+  // With the surface within tolerance the material is soft enough: hold α (seed 2.6).
+  const bool met = d.mean_m <= settings_.morphing.tolerance_mean_m && d.p95_m <= settings_.morphing.tolerance_p95_m;
+  stiff_->holdAlpha(met);
+  it.alpha_held = met;
+  const StiffeningStepResult r = stiff_->step();
+  int stalls = 0;
+  slideAfter(r, &stalls);
+  last_advanced_ = r.advanced;
+  it.advanced = r.advanced;
+  it.reversals = r.reversals;
+  it.alpha_per_pa = r.alpha_per_pa;
+  it.increment_m = maxNodalNorm(simulator().state().displacement_m - before);
+  it.seconds = since(t0);
+  return it;
+}
+
+StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
+  if (!field_) throw std::logic_error("ProneToSupinePipeline::runMorphing: no target surface (setTarget first)");
+  const auto t0 = std::chrono::steady_clock::now();
+  const MorphingStageSettings& ms = settings_.morphing;
+  StageReport rep;
+  rep.ran = true;
+  stage_ = PipelineStage::kMorphing;
+  setTimeStep(ms.time_step_s);
+  const RunStats before = stiff_->stats();
+  long calls = 0;
+  int quiet = 0;
+  double first = -1;
+  while (rep.steps < ms.max_steps && calls < 2L * ms.max_steps) {
+    if (cancel && cancel->load()) {
+      rep.cancelled = true;
+      break;
+    }
+    ++calls;
+    const IterationReport it = iterate();
+    if (!it.advanced) continue;
+    ++rep.steps;
+    rep.last_increment_m = it.increment_m;
+    rep.surface_mean_m = it.surface_mean_m;
+    rep.surface_p95_m = it.surface_p95_m;
+    if (first < 0) first = it.surface_mean_m;
+    quiet = it.alpha_held && it.increment_m <= ms.increment_tolerance_m ? quiet + 1 : 0;
+    if (progress)
+      progress({stage_, rep.steps, ms.max_steps, it.increment_m, it.surface_mean_m, it.surface_p95_m, it.alpha_per_pa,
+                logFraction(first, it.surface_mean_m, ms.tolerance_mean_m)});
+    if (quiet >= 2) {
+      rep.converged = true;
+      break;
+    }
+  }
+  // The distances at the final state.
+  const DistanceStats d = morphing_forces_->measure(simulator());
+  rep.surface_mean_m = d.mean_m;
+  rep.surface_p95_m = d.p95_m;
+  rep.converged = rep.converged && d.mean_m <= ms.tolerance_mean_m && d.p95_m <= ms.tolerance_p95_m;
+  stiff_->holdAlpha(false);
+  const RunStats after = stiff_->stats();
+  rep.reversed_steps = after.reversed_steps - before.reversed_steps;
+  rep.reversal_limit_hits = after.reversal_limit_hits - before.reversal_limit_hits;
+  rep.final_alpha_per_pa = stiff_->controller().alpha();
+  rep.max_slide_m = sliding_report_.max_slide_m;
+  rep.seconds = since(t0);
+  morphing_ = rep;
+  stage_ = PipelineStage::kIdle;
+  return rep;
+}
+
+void ProneToSupinePipeline::run(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
+  runGravity(progress, cancel);
+  if (cancel && cancel->load()) return;
+  if (settings_.morphing.enabled && field_) runMorphing(progress, cancel);
+  if (!(cancel && cancel->load())) stage_ = PipelineStage::kDone;
+}
+
+Points ProneToSupinePipeline::displacement() const { return simulator().displacement(); }
+Points ProneToSupinePipeline::positions() const { return model_.mesh.nodes() + simulator().displacement(); }
+Points ProneToSupinePipeline::lesionPositions() const { return model_.lesion_embedding.positions(positions()); }
+
+Points ProneToSupinePipeline::slidingVectors() const {
+  return sliding_ ? sliding_->slidingVectors() : Points(Points::Zero(model_.mesh.numNodes(), 3));
+}
+
+Eigen::VectorXd ProneToSupinePipeline::vonMisesStress() {
+  simulator().elasticForces();  // stresses at the current state
+  return simulator().elements().vonMisesStress();
+}
+
+Eigen::VectorXd ProneToSupinePipeline::modulusFactors() const { return simulator().elements().modulusFactors(); }
+
+PipelineMetrics ProneToSupinePipeline::metrics() const {
+  PipelineMetrics m;
+  const Points x = positions();
+  const QualityStats q = qualityStats(model_.mesh.tets(), x);
+  m.inverted_elements = q.num_inverted;
+  m.volume_change_percent = 100.0 * (q.total_volume_m3 / mesh_volume_m3_ - 1.0);
+  m.max_displacement_m = maxNodalNorm(simulator().state().displacement_m);
+  m.max_modulus_factor = modulusFactors().maxCoeff();
+  m.final_alpha_per_pa = stiff_->controller().alpha();
+  if (distance_) {
+    m.has_target = true;
+    m.surface = surfaceMatch(model_.mesh, x, model_.mesh.nodeSet(node_sets::kSkin), *distance_, target_);
+  }
+  return m;
+}
+
+PipelineState ProneToSupinePipeline::state() const {
+  PipelineState s;
+  s.simulation = simulator().state();
+  s.modulus_factors = modulusFactors();
+  s.alpha = stiff_->controller().state();
+  if (sliding_) s.sliding_targets_m = sliding_->targets();
+  if (morphing_forces_) s.morphing_forces_n = morphing_forces_->accumulatedForces();
+  s.stage = stage_;
+  return s;
+}
+
+void ProneToSupinePipeline::restore(const PipelineState& s) {
+  const Eigen::Index n3 = 3 * static_cast<Eigen::Index>(model_.mesh.numNodes());
+  if (s.simulation.displacement_m.size() != n3 || s.simulation.velocity_mps.size() != n3 ||
+      s.modulus_factors.size() != model_.mesh.numTets())
+    throw std::invalid_argument("pipeline state of another model: " + std::to_string(s.simulation.displacement_m.size() / 3) +
+                                " nodes and " + std::to_string(s.modulus_factors.size()) + " elements, this model has " +
+                                std::to_string(model_.mesh.numNodes()) + " and " + std::to_string(model_.mesh.numTets()));
+  if (s.sliding_targets_m.rows() > 0 &&
+      (!sliding_ || s.sliding_targets_m.rows() != static_cast<Eigen::Index>(sliding_->nodes().size())))
+    throw std::invalid_argument("pipeline state has sliding targets for " + std::to_string(s.sliding_targets_m.rows()) +
+                                " nodes, but sliding is " + (sliding_ ? "on for " + std::to_string(sliding_->nodes().size()) + " nodes" : "off"));
+  if (s.morphing_forces_n.rows() > 0 && !field_)
+    throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
+  simulator().restore(s.simulation);
+  simulator().elements().setModulusFactors(s.modulus_factors);
+  stiff_->controller().setState(s.alpha);
+  if (sliding_ && s.sliding_targets_m.rows() > 0) {
+    sliding_->attach(simulator());
+    simulator().setNodeTargets(sliding_->nodes(), s.sliding_targets_m);
+  }
+  simulator().clearExternalForces();
+  if (s.morphing_forces_n.rows() > 0) ensureMorphing().restoreForces(simulator(), s.morphing_forces_n);
+  last_advanced_ = true;
+  stage_ = s.stage;
+}
+
+namespace {
+constexpr char kMagic[8] = {'B', 'S', 'S', 'T', 'A', 'T', 'E', '1'};
+
+void writeVector(std::ofstream& out, const double* data, std::int64_t n) {
+  out.write(reinterpret_cast<const char*>(&n), sizeof n);
+  out.write(reinterpret_cast<const char*>(data), static_cast<std::streamsize>(n * sizeof(double)));
+}
+
+Eigen::VectorXd readVector(std::ifstream& in, const std::string& path) {
+  std::int64_t n = 0;
+  in.read(reinterpret_cast<char*>(&n), sizeof n);
+  if (!in || n < 0 || n > (std::int64_t{1} << 34)) throw std::runtime_error(path + ": truncated or corrupt state file");
+  Eigen::VectorXd v(n);
+  in.read(reinterpret_cast<char*>(v.data()), static_cast<std::streamsize>(n * sizeof(double)));
+  if (!in) throw std::runtime_error(path + ": truncated state file");
+  return v;
+}
+
+Points toPoints(const Eigen::VectorXd& v) {
+  Points p(v.size() / 3, 3);
+  for (Eigen::Index i = 0; i < p.rows(); ++i) p.row(i) = v.segment<3>(3 * i).transpose();
+  return p;
+}
+
+Eigen::VectorXd flatten(const Points& p) {
+  Eigen::VectorXd v(3 * p.rows());
+  for (Eigen::Index i = 0; i < p.rows(); ++i) v.segment<3>(3 * i) = p.row(i).transpose();
+  return v;
+}
+}  // namespace
+
+void ProneToSupinePipeline::saveState(const std::string& path) const {
+  const PipelineState s = state();
+  std::ofstream out(path, std::ios::binary);
+  if (!out) throw std::runtime_error(path + ": cannot write the state file (check the folder exists and is writable)");
+  out.write(kMagic, sizeof kMagic);
+  const double header[10] = {static_cast<double>(model_.mesh.numNodes()), static_cast<double>(model_.mesh.numTets()),
+                             s.simulation.time_s, static_cast<double>(s.simulation.step), s.alpha.alpha_per_pa,
+                             static_cast<double>(s.alpha.phase == AlphaController::Phase::kSettling), s.alpha.rate,
+                             static_cast<double>(s.alpha.oscillations), static_cast<double>(s.stage), 0.0};
+  writeVector(out, header, 10);
+  const double runs[3] = {static_cast<double>(s.alpha.runs[0]), static_cast<double>(s.alpha.runs[1]), static_cast<double>(s.alpha.runs[2])};
+  writeVector(out, runs, 3);
+  writeVector(out, s.simulation.displacement_m.data(), s.simulation.displacement_m.size());
+  writeVector(out, s.simulation.velocity_mps.data(), s.simulation.velocity_mps.size());
+  writeVector(out, s.modulus_factors.data(), s.modulus_factors.size());
+  const Eigen::VectorXd st = flatten(s.sliding_targets_m), mf = flatten(s.morphing_forces_n);
+  writeVector(out, st.data(), st.size());
+  writeVector(out, mf.data(), mf.size());
+  if (!out) throw std::runtime_error(path + ": writing the state file failed (disk full?)");
+}
+
+void ProneToSupinePipeline::loadState(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw std::runtime_error(path + ": cannot open the state file");
+  char magic[8];
+  in.read(magic, sizeof magic);
+  if (!in || std::memcmp(magic, kMagic, sizeof kMagic) != 0)
+    throw std::runtime_error(path + ": not a breast_sim state file (written by saveState / the node's save_state)");
+  const Eigen::VectorXd h = readVector(in, path);
+  const Eigen::VectorXd runs = readVector(in, path);
+  if (h.size() != 10 || runs.size() != 3) throw std::runtime_error(path + ": corrupt state file header");
+  if (static_cast<int>(h[0]) != model_.mesh.numNodes() || static_cast<int>(h[1]) != model_.mesh.numTets())
+    throw std::runtime_error(path + ": the state is of a model with " + std::to_string(static_cast<long>(h[0])) + " nodes and " +
+                             std::to_string(static_cast<long>(h[1])) + " elements; this model has " +
+                             std::to_string(model_.mesh.numNodes()) + " and " + std::to_string(model_.mesh.numTets()) +
+                             " (load the same case with the same meshing first)");
+  PipelineState s;
+  s.simulation.time_s = h[2];
+  s.simulation.step = static_cast<long>(h[3]);
+  s.alpha.alpha_per_pa = h[4];
+  s.alpha.phase = h[5] != 0.0 ? AlphaController::Phase::kSettling : AlphaController::Phase::kSearch;
+  s.alpha.rate = h[6];
+  s.alpha.oscillations = static_cast<int>(h[7]);
+  s.stage = static_cast<PipelineStage>(std::clamp(static_cast<int>(h[8]), 0, static_cast<int>(PipelineStage::kDone)));
+  for (int k = 0; k < 3; ++k) s.alpha.runs[k] = static_cast<int>(runs[k]);
+  s.simulation.displacement_m = readVector(in, path);
+  s.simulation.velocity_mps = readVector(in, path);
+  s.modulus_factors = readVector(in, path);
+  s.sliding_targets_m = toPoints(readVector(in, path));
+  s.morphing_forces_n = toPoints(readVector(in, path));
+  try {
+    restore(s);
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(path + ": " + e.what());
+  }
+}
+
+}  // namespace breast_sim::core
