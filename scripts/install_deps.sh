@@ -11,6 +11,8 @@ PACKAGES=(
   libcgal-dev libgmp-dev libmpfr-dev libboost-dev libboost-program-options-dev
   libvtk9-dev libpcl-dev libopencv-dev libyaml-cpp-dev zlib1g-dev nlohmann-json3-dev
   libgtest-dev googletest
+  # reference solver (speed-accuracy study, test_reference): CalculiX
+  calculix-ccx
   # ROS 1 (Debian ships it into /usr)
   ros-core-dev catkin python3-catkin-pkg python3-rostest librostest-dev
   ros-message-generation ros-message-runtime libroscpp-dev
