@@ -1,6 +1,8 @@
-// breast_sim_run: builds the simulation model of a case (the software phantom or a label image), writes
-// it for ParaView / 3D Slicer / CalculiX, then loads it with gravity of the supine position and runs
-// the co-rotated FEM until it settles; writes the deformed mesh, the lesion positions and a summary.
+// breast_sim_run: the whole prone-to-supine run of a case (the software phantom or a label image):
+// builds the simulation model and writes it for ParaView / 3D Slicer / CalculiX, loads it with the
+// gravity of the supine position (stiffening, sliding), morphs it to the target surface (seed
+// Figure 2), and writes the deformed meshes, a ParaView series, the lesion positions, metrics and
+// cross-section images.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -14,15 +16,13 @@
 
 #include <nlohmann/json.hpp>
 
-#include "breast_sim/core/fem/equilibrium.h"
-#include "breast_sim/core/fem/simulation_settings.h"
 #include "breast_sim/core/image/label_image.h"
-#include "breast_sim/core/material/stiffening.h"
-#include "breast_sim/core/sliding/chest_wall_sliding.h"
 #include "breast_sim/core/mesh/mesh_io.h"
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "breast_sim/core/render/cross_section.h"
 
 namespace fs = std::filesystem;
 using namespace breast_sim::core;
@@ -30,15 +30,22 @@ using namespace breast_sim::core;
 namespace {
 
 const char* kUsage = R"(usage: breast_sim_run --case CASE.yaml --out DIR [--target-elements N] [--model-only]
-                      [--solver multigrid|cholmod|jacobi-pcg] [--json FILE] [--quiet]
+                      [--solver multigrid|cholmod|jacobi-pcg] [--no-sliding] [--no-morphing]
+                      [--frames N] [--json FILE] [--quiet]
 
-Builds the tetrahedral simulation model of a case, simulates gravity of the supine position on it
-until it settles (the case's `simulation:` map, see config/phantom_default.yaml) and writes to DIR:
+Builds the tetrahedral simulation model of a case and runs the prone-to-supine pipeline on it: gravity
+of the supine position with von Mises stiffening and sliding on the chest wall until it settles, then
+morphing to the target surface (the case's `simulation:`, `sliding:` and `morphing:` maps, see
+config/phantom_default.yaml). Writes to DIR:
   model.vtu             prone mesh with region labels, node sets and element quality (ParaView, 3D Slicer)
   model.inp             the same mesh for CalculiX / Abaqus (C3D4, mm)
-  supine_gravity.vtu    the settled deformed mesh: displacement_mm, von_mises_pa per element
-  lesions.csv/.json     lesion positions, prone and after gravity [mm]
-  model_summary.json    counts, timings, quality, volumes, and the simulation's statistics
+  supine_gravity.vtu    after gravity (and sliding): displacement_mm, sliding_mm; von_mises_pa, modulus_factor
+  supine.vtu            the final supine shape (after morphing), same fields
+  series.pvd, series/   the run as a ParaView time series (a frame every N steps)
+  lesions.csv/.json     lesion positions, prone, after gravity and supine [mm]
+  metrics.json          steps, reversals, alpha, timings, surface distances, volume change, inverted elements
+  cross_sections.png    axial / coronal / sagittal cuts: prone, after gravity, after morphing (target in red)
+  model_summary.json    counts, timings, quality and volumes of the model
   prone_labels.nrrd, prone_surface.obj, supine_target.obj   (phantom cases only)
 Options:
   --case FILE            YAML case file (see config/phantom_default.yaml)
@@ -46,14 +53,20 @@ Options:
   --target-elements N    overrides meshing.target_elements of the case
   --model-only           build and write the model, do not simulate
   --solver NAME          overrides simulation.solver
-  --json FILE            also write the summary to FILE
+  --no-sliding           overrides simulation.sliding (chest wall fixed)
+  --no-morphing          overrides morphing.enabled (gravity only)
+  --frames N             a series frame every N accepted steps (default 5; 0 = no series)
+  --json FILE            also write the metrics to FILE
   --quiet                no progress bar
+Exit status: 0 done, 2 bad input (the message names the file, key or value), 3 a stage did not
+converge or an element ended inverted (the outputs are still written).
 )";
 
 struct Args {
   std::string case_file, out_dir, json, solver;
   int target_elements = 0;
-  bool model_only = false, quiet = false;
+  int frame_interval = 5;
+  bool model_only = false, quiet = false, no_sliding = false, no_morphing = false;
 };
 
 Args parse(int argc, char** argv) {
@@ -70,6 +83,17 @@ Args parse(int argc, char** argv) {
     else if (k == "--solver") a.solver = value();
     else if (k == "--model-only") a.model_only = true;
     else if (k == "--quiet") a.quiet = true;
+    else if (k == "--no-sliding") a.no_sliding = true;
+    else if (k == "--no-morphing") a.no_morphing = true;
+    else if (k == "--frames") {
+      const std::string v = value();
+      try {
+        a.frame_interval = std::stoi(v);
+      } catch (...) {
+        throw std::invalid_argument("--frames '" + v + "' is not a whole number");
+      }
+      if (a.frame_interval < 0) throw std::invalid_argument("--frames must be 0 or positive, got " + v);
+    }
     else if (k == "--target-elements") {
       const std::string v = value();
       try {
@@ -87,34 +111,38 @@ Args parse(int argc, char** argv) {
   return a;
 }
 
-/// Gravity load of the supine position on the prone model [m/s²]: the prone shape already hangs under
-/// prone gravity, so the load that takes it to supine is g_supine − g_prone (first-order unloading;
-/// a gravity-free reference state is future work, as in the seed paper's section 5). The phantom
-/// brings its own (tilted) supine gravity; an image case turns the prone direction around.
-Eigen::Vector3d supineGravityLoad(const ModelCase& c, double g) {
-  const Eigen::Vector3d prone = g * c.prone_gravity_direction.normalized();
-  const Eigen::Vector3d supine = c.phantom ? c.phantom->gravity_supine_mps2 : Eigen::Vector3d(-prone);
-  return supine - prone;
-}
-
-void progressBar(int step, int max_steps, double increment_m, double tolerance_m) {
+void progressBar(const PipelineProgress& p) {
   // In a log (not a terminal) one line every 10 steps instead of a redrawn bar.
   static const bool tty = isatty(fileno(stderr));
+  char detail[96];
+  if (p.surface_mean_m >= 0)
+    std::snprintf(detail, sizeof detail, "surface mean %.2f mm, p95 %.2f mm", p.surface_mean_m * 1e3, p.surface_p95_m * 1e3);
+  else
+    std::snprintf(detail, sizeof detail, "largest change %.4f mm", p.increment_m * 1e3);
   if (!tty) {
-    if (step % 10 == 0 || step == 1)
-      std::fprintf(stderr, "  settling: step %d/%d, largest change %.4f mm\n", step, max_steps, increment_m * 1e3);
+    if (p.step % 10 == 0 || p.step == 1)
+      std::fprintf(stderr, "  %-9s step %d/%d, %s\n", stageName(p.stage), p.step, p.max_steps, detail);
     return;
   }
-  // Progress by the increment's approach to the tolerance on a log scale (steps alone say little).
-  static double first = 0.0;
-  if (step == 1) first = increment_m;
-  double f = 0.0;
-  if (first > tolerance_m && increment_m > 0)
-    f = std::clamp(std::log(first / increment_m) / std::log(first / tolerance_m), 0.0, 1.0);
-  const int width = 30, filled = static_cast<int>(f * width);
-  std::fprintf(stderr, "\r  settling [%s%s] step %d/%d, largest change %.4f mm   ", std::string(filled, '#').c_str(),
-               std::string(width - filled, ' ').c_str(), step, max_steps, increment_m * 1e3);
+  const int width = 30, filled = static_cast<int>(p.fraction * width);
+  std::fprintf(stderr, "\r  %-9s [%s%s] step %d/%d, %s   ", stageName(p.stage), std::string(filled, '#').c_str(),
+               std::string(width - filled, ' ').c_str(), p.step, p.max_steps, detail);
   std::fflush(stderr);
+}
+
+/// The current deformed state as a .vtu: positions, displacement and sliding per node; von Mises
+/// stress and modulus factor per element.
+void writeDeformed(ProneToSupinePipeline& pipe, const SimulationModel& m, const std::string& path) {
+  const Points u = pipe.displacement();
+  const Points x = m.mesh.nodes() + u;
+  MeshFields df;
+  df.point_data.push_back({"displacement_mm", u * 1e3});
+  if (pipe.sliding()) df.point_data.push_back({"sliding_mm", pipe.slidingVectors() * 1e3});
+  df.cell_data.push_back({"von_mises_pa", pipe.vonMisesStress()});
+  df.cell_data.push_back({"modulus_factor", pipe.modulusFactors()});
+  MeshWriteOptions wo;
+  wo.vtk.positions_m = &x;
+  writeTetMesh(path, m.mesh, df, 1.0, wo);
 }
 
 }  // namespace
@@ -125,8 +153,10 @@ int main(int argc, char** argv) {
     const auto t0 = std::chrono::steady_clock::now();
     ModelCase c = loadModelCase(args.case_file);
     if (args.target_elements > 0) c.meshing.target_elements = args.target_elements;
-    SimulationSettings settings = loadSimulationSettings(args.case_file);
-    if (!args.solver.empty()) settings.solver.kind = SolverSettings::kindFromName(args.solver);
+    PipelineSettings settings = loadPipelineSettings(args.case_file);
+    if (!args.solver.empty()) settings.simulation.solver.kind = SolverSettings::kindFromName(args.solver);
+    if (args.no_sliding) settings.simulation.sliding = false;
+    if (args.no_morphing) settings.morphing.enabled = false;
     const double t_case = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     const SimulationModel m = buildSimulationModel(c);
     const double t_model = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -151,6 +181,7 @@ int main(int argc, char** argv) {
     writeTetMesh((out / "model.inp").string(), m.mesh, {}, 1e-3);
 
     const double mesh_volume = m.mesh.volume();
+    nlohmann::json metrics;  // of the simulation, when it runs
     nlohmann::json s;
     s["case"] = c.name;
     s["elements"] = m.mesh.numTets();
@@ -186,152 +217,149 @@ int main(int argc, char** argv) {
       writePhantomSurface((out / "supine_target.obj").string(), c.phantom->supine_surface);
     }
 
-    // Gravity of the supine position, settled.
-    Points lesions_after;
-    SettleResult settled;
+    // The prone-to-supine pipeline: gravity with stiffening (and sliding), then morphing.
+    std::vector<Points> lesion_rows;  // after gravity, final
+    std::unique_ptr<ProneToSupinePipeline> pipe;
+    bool ok = true;
     if (!args.model_only) {
-      const Eigen::Vector3d g_load = supineGravityLoad(c, settings.gravity_mps2);
-      settings.dynamics.gravity_mps2 = g_load;
       const auto ts = std::chrono::steady_clock::now();
-      SimulatorBuild b = buildSimulator(c, m, settings);  // fixes settings.fixed_node_set
-      DynamicSimulator& sim = *b.simulator;
-      const int max_steps = settings.settle.max_steps;
-      const double tol = settings.settle.increment_tolerance_m;
-      RunStats stiff_stats;
-      SlidingStepStats sliding_stats;
-      Points sliding_vectors;
-      int sliding_steps = 0;
-      bool sliding_settled = false, sliding_stalled = false;
-      double sliding_seconds = 0.0;
-      if (!settings.stiffening) {
-        settled = settle(sim, settings.settle, [&](int step, double inc) {
-          if (!args.quiet) progressBar(step, max_steps, inc, tol);
-        });
-      } else {
-        // The seed's loop: moduli E_r = 1 + α s_VM, a step that inverts an element is repeated with
-        // a larger α; settled by the static residual and speed (material/stiffening.h).
-        DynamicsParams p = sim.params();
-        if (settings.settle.time_step_s > 0) p.time_step_s = settings.settle.time_step_s;
-        sim.setParams(p);
-        StiffeningSimulation stiff(sim, m.mesh);
-        stiff.setGravity(g_load);
-        const auto tst = std::chrono::steady_clock::now();
-        Eigen::VectorXd previous = sim.state().displacement_m;
-        long calls = 0;
-        while (stiff.stats().steps < max_steps && calls < 2L * max_steps) {
-          ++calls;
-          const StiffeningStepResult r = stiff.step();
-          settled.last_increment_m = maxNodalNorm(sim.state().displacement_m - previous);
-          previous = sim.state().displacement_m;
-          if (!args.quiet) progressBar(static_cast<int>(stiff.stats().steps), max_steps, settled.last_increment_m, tol);
-          if (r.advanced && stiff.stats().settled) break;
+      pipe = std::make_unique<ProneToSupinePipeline>(c, m, settings);
+      const double t_setup = std::chrono::duration<double>(std::chrono::steady_clock::now() - ts).count();
+      // ParaView series: a frame every `frame_interval` accepted steps of each stage, and each stage's end.
+      const fs::path series_dir = out / "series";
+      fs::remove_all(series_dir);
+      fs::create_directories(series_dir);
+      std::vector<std::pair<double, std::string>> frames;
+      double sim_time = 0.0;
+      auto writeFrame = [&](const std::string& tag) {
+        const Points u = pipe->displacement();
+        const Points x = m.mesh.nodes() + u;
+        MeshFields ff;
+        ff.point_data.push_back({"displacement_mm", u * 1e3});
+        MeshWriteOptions wo;
+        wo.vtk.positions_m = &x;
+        char name[64];
+        std::snprintf(name, sizeof name, "frame_%04zu.vtu", frames.size());
+        writeTetMesh((series_dir / name).string(), m.mesh, ff, 1.0, wo);
+        frames.push_back({sim_time, std::string("series/") + name});
+        (void)tag;
+      };
+      if (args.frame_interval > 0) writeFrame("prone");
+      PipelineStage last_stage = PipelineStage::kIdle;
+      int last_step = -1;
+      auto progress = [&](const PipelineProgress& p) {
+        if (p.stage != last_stage) {
+          if (!args.quiet && isatty(fileno(stderr)) && last_stage != PipelineStage::kIdle) std::fprintf(stderr, "\n");
+          last_stage = p.stage;
+          last_step = -1;
         }
-        // Sliding on the chest wall (seed 2.4), after the fixed-wall settling: the wall nodes become
-        // moving constraints, updated after every accepted step at the dynamics time step (the
-        // explicit constraint update is tuned for it), until the wall stops moving and the tissue
-        // has settled again.
-        if (settings.sliding && !settings.fixed_node_set.empty()) {
-          const auto tsl = std::chrono::steady_clock::now();
-          ChestWallSliding sliding = ChestWallSliding::fromCase(c, m.mesh, SlidingSettings{});
-          sliding.attach(sim);
-          DynamicsParams pd = sim.params();
-          pd.time_step_s = settings.dynamics.time_step_s;
-          sim.setParams(pd);
-          const long first = stiff.stats().steps;
-          int quiet_steps = 0, sliding_stalls = 0;
-          long sl_calls = 0;
-          while (stiff.stats().steps - first < max_steps && sl_calls < 2L * max_steps) {
-            ++sl_calls;
-            const StiffeningStepResult r = stiff.step();
-            if (!r.advanced) {
-              // The last constraint move inverts elements that no α saves: take it back (hold the
-              // wall nodes where they are) and stop sliding after three such steps in a row.
-              Points hold(static_cast<Eigen::Index>(sliding.nodes().size()), 3);
-              for (size_t i = 0; i < sliding.nodes().size(); ++i)
-                hold.row(static_cast<Eigen::Index>(i)) = sim.state().displacement_m.segment<3>(3 * sliding.nodes()[i]).transpose();
-              sim.setNodeTargets(sliding.nodes(), hold);
-              if (++sliding_stalls >= 3) break;
-              continue;
-            }
-            sliding_stalls = 0;
-            const SlidingStepStats ss = sliding.update(sim, &sim.externalForces());
-            sliding_stats = ss;
-            settled.last_increment_m = maxNodalNorm(sim.state().displacement_m - previous);
-            previous = sim.state().displacement_m;
-            if (!args.quiet) progressBar(static_cast<int>(stiff.stats().steps - first), max_steps, settled.last_increment_m, tol);
-            quiet_steps = ss.max_move_m <= tol && settled.last_increment_m <= tol ? quiet_steps + 1 : 0;
-            if (quiet_steps >= 3) break;
-          }
-          sliding_steps = static_cast<int>(stiff.stats().steps - first);
-          sliding_stalled = sliding_stalls >= 3;
-          sliding_settled = quiet_steps >= 3;
-          sliding_vectors = sliding.slidingVectors();
-          sliding_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - tsl).count();
+        if (p.step != last_step) {
+          sim_time += pipe->simulator().params().time_step_s;
+          if (args.frame_interval > 0 && p.step % args.frame_interval == 0) writeFrame(stageName(p.stage));
+          last_step = p.step;
         }
-        stiff_stats = stiff.stats();
-        settled.settled = stiff_stats.settled && (!settings.sliding || sliding_settled);
-        settled.steps = static_cast<int>(stiff_stats.steps);
-        settled.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - tst).count();
-        settled.max_displacement_m = stiff_stats.max_displacement_m;
-      }
+        if (!args.quiet) progressBar(p);
+      };
+      pipe->runGravity(progress);
       if (!args.quiet && isatty(fileno(stderr))) std::fprintf(stderr, "\n");
-      const double t_sim = std::chrono::duration<double>(std::chrono::steady_clock::now() - ts).count();
-      const Points u = sim.displacement();
-      const Points x = m.mesh.nodes() + u;
-      lesions_after = m.lesion_embedding.positions(x);
-      const QualityStats q = qualityStats(m.mesh.tets(), x);
-      MeshFields df;
-      df.point_data.push_back({"displacement_mm", u * 1e3});
-      if (sliding_vectors.rows()) df.point_data.push_back({"sliding_mm", sliding_vectors * 1e3});
-      sim.elasticForces();  // stresses at the settled state
-      df.cell_data.push_back({"von_mises_pa", sim.elements().vonMisesStress()});
-      df.cell_data.push_back({"modulus_factor", sim.elements().modulusFactors()});
-      MeshWriteOptions wo;
-      wo.vtk.positions_m = &x;
-      writeTetMesh((out / "supine_gravity.vtu").string(), m.mesh, df, 1.0, wo);
-      s["simulation"] = nlohmann::json::object();
-      if (!settings.stiffening) {  // the stiffening driver keeps no solver statistics
-        s["simulation"]["solver_iterations"] = settled.solver_iterations;
-        s["simulation"]["unconverged_solves"] = settled.unconverged_solves;
+      writeDeformed(*pipe, m, (out / "supine_gravity.vtu").string());
+      lesion_rows.push_back(pipe->lesionPositions());
+      const PipelineMetrics gravity_metrics = pipe->metrics();
+      const Points x_gravity = pipe->positions();
+      const bool morph = settings.morphing.enabled && pipe->hasTarget();
+      if (morph) {
+        last_stage = PipelineStage::kIdle;
+        pipe->runMorphing(progress);
+        if (!args.quiet && isatty(fileno(stderr))) std::fprintf(stderr, "\n");
+        lesion_rows.push_back(pipe->lesionPositions());
       }
-      s["simulation"].update({
-          {"gravity_load_mps2", {g_load.x(), g_load.y(), g_load.z()}},
-          {"solver", SolverSettings::kindName(settings.solver.kind)},
-          {"multigrid_levels", b.multigrid_levels},
-          {"youngs_modulus_pa", settings.material.youngs_modulus_pa},
-          {"poisson_ratio", settings.material.poisson_ratio},
-          {"settle_time_step_s", settings.settle.time_step_s > 0 ? settings.settle.time_step_s : settings.dynamics.time_step_s},
-          {"stiffening", settings.stiffening},
-          {"reversed_steps", stiff_stats.reversed_steps},
-          {"reversal_fraction", stiff_stats.reversal_fraction},
-          {"final_alpha_per_pa", stiff_stats.final_alpha_per_pa},
-          {"max_modulus_factor", stiff_stats.max_modulus_factor},
-          {"sliding", {{"on", settings.sliding && settings.stiffening},
-                       {"steps", sliding_steps},
-                       {"settled", sliding_settled},
-                       {"stalled", sliding_stalled},
-                       {"max_slide_mm", sliding_stats.max_slide_m * 1e3},
-                       {"last_max_move_mm", sliding_stats.max_move_m * 1e3},
-                       {"max_penetration_mm", sliding_stats.max_penetration_m * 1e3},
-                       {"seconds", sliding_seconds}}},
-          {"settled", settled.settled},
-          {"steps", settled.steps},
-
-          {"last_increment_mm", settled.last_increment_m * 1e3},
-          {"max_displacement_mm", settled.max_displacement_m * 1e3},
-          {"inverted_elements", q.num_inverted},
-          {"volume_change_percent", 100.0 * (q.total_volume_m3 / mesh_volume - 1.0)},
-          {"seconds", {{"setup", t_sim - settled.seconds}, {"steps", settled.seconds}}}});
-      if (!settings.stiffening)
-        s["simulation"]["seconds"].update({{"assembly", settled.assembly_seconds},
-                                           {"solver_setup", settled.setup_seconds},
-                                           {"solve", settled.solve_seconds}});
+      if (args.frame_interval > 0) writeFrame("final");
+      writeDeformed(*pipe, m, (out / "supine.vtu").string());
+      {
+        std::ofstream pvd(out / "series.pvd");
+        pvd << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  <Collection>\n";
+        for (const auto& f : frames)
+          pvd << "    <DataSet timestep=\"" << f.first << "\" part=\"0\" file=\"" << f.second << "\"/>\n";
+        pvd << "  </Collection>\n</VTKFile>\n";
+      }
+      const PipelineMetrics fm = pipe->metrics();
+      // Cross-sections: prone, after gravity, final (with the target's outline).
+      {
+        std::vector<CrossSectionConfiguration> rows(morph ? 3 : 2);
+        const Points x_final = pipe->positions();
+        rows[0].title = "prone (model of the MRI)";
+        rows[0].lesions_m = m.lesion_embedding.positions(m.mesh.nodes());
+        rows[1].title = "supine, gravity" + std::string(settings.simulation.sliding ? " + sliding" : "") +
+                        (settings.simulation.stiffening ? " + stiffening" : "");
+        rows[1].positions_m = &x_gravity;
+        rows[1].lesions_m = lesion_rows[0];
+        if (pipe->hasTarget()) {
+          rows[1].outline_vertices_m = pipe->target().vertices_m;
+          rows[1].outline_triangles = pipe->target().triangles;
+        }
+        if (morph) {
+          rows[2] = rows[1];
+          rows[2].title = "supine, after morphing to the target (red)";
+          rows[2].positions_m = &x_final;
+          rows[2].lesions_m = lesion_rows.back();
+        }
+        CrossSectionOptions co;
+        co.centre_m = m.lesion_embedding.positions(m.mesh.nodes()).colwise().mean().transpose();
+        if (m.lesions.empty()) co.centre_m.setConstant(std::numeric_limits<double>::quiet_NaN());
+        writeCrossSections((out / "cross_sections.png").string(), m.mesh, rows, co);
+      }
+      const StageReport& g = pipe->gravityReport();
+      const StageReport& sl = pipe->slidingReport();
+      const StageReport& mo = pipe->morphingReport();
+      auto stage = [](const StageReport& r) {
+        nlohmann::json j = {{"ran", r.ran}, {"converged", r.converged}, {"steps", r.steps}, {"reversed_steps", r.reversed_steps},
+                            {"reversal_limit_hits", r.reversal_limit_hits}, {"seconds", r.seconds},
+                            {"last_increment_mm", r.last_increment_m * 1e3}, {"final_alpha_per_pa", r.final_alpha_per_pa}};
+        if (r.surface_mean_m >= 0) j["pulled_vertices_to_target_mm"] = {{"mean", r.surface_mean_m * 1e3}, {"p95", r.surface_p95_m * 1e3}};
+        if (r.max_slide_m > 0) j["max_slide_mm"] = r.max_slide_m * 1e3;
+        return j;
+      };
+      auto deformation = [](const PipelineMetrics& pm) {
+        nlohmann::json j = {{"inverted_elements", pm.inverted_elements}, {"volume_change_percent", pm.volume_change_percent},
+                            {"max_displacement_mm", pm.max_displacement_m * 1e3}, {"max_modulus_factor", pm.max_modulus_factor},
+                            {"alpha_per_pa", pm.final_alpha_per_pa}};
+        if (pm.has_target) {
+          auto d = [](const DistanceStats& st) { return nlohmann::json{{"mean", st.mean_m * 1e3}, {"p95", st.p95_m * 1e3}, {"max", st.max_m * 1e3}}; };
+          j["surface_distance_mm"] = {{"skin_to_target", d(pm.surface.model_to_target)}, {"target_to_skin", d(pm.surface.target_to_model)}};
+        }
+        return j;
+      };
+      const Eigen::Vector3d g_load = pipe->supineGravityLoad();
+      const double t_sim = std::chrono::duration<double>(std::chrono::steady_clock::now() - ts).count();
+      metrics = {{"case", c.name},
+                 {"elements", m.mesh.numTets()},
+                 {"nodes", m.mesh.numNodes()},
+                 {"gravity_load_mps2", {g_load.x(), g_load.y(), g_load.z()}},
+                 {"solver", SolverSettings::kindName(settings.simulation.solver.kind)},
+                 {"multigrid_levels", pipe->build().multigrid_levels},
+                 {"youngs_modulus_pa", settings.simulation.material.youngs_modulus_pa},
+                 {"poisson_ratio", settings.simulation.material.poisson_ratio},
+                 {"stiffening", settings.simulation.stiffening},
+                 {"sliding", settings.simulation.sliding},
+                 {"morphing", morph},
+                 {"stages", {{"gravity", stage(g)}, {"sliding", stage(sl)}, {"morphing", stage(mo)}}},
+                 {"after_gravity", deformation(gravity_metrics)},
+                 {"final", deformation(fm)},
+                 {"steps", g.steps + sl.steps + mo.steps},
+                 {"reversed_steps", g.reversed_steps + sl.reversed_steps + mo.reversed_steps},
+                 {"seconds", {{"setup", t_setup}, {"gravity", g.seconds}, {"sliding", sl.seconds}, {"morphing", mo.seconds},
+                              {"compute", g.seconds + sl.seconds + mo.seconds}, {"total_with_output", t_sim}}},
+                 {"vtu_frames", frames.size()}};
+      ok = g.converged && (!sl.ran || sl.converged) && (!morph || mo.converged) && fm.inverted_elements == 0;
+      metrics["completed"] = ok;
     }
 
     nlohmann::json lesions = nlohmann::json::array();
     std::ofstream csv(out / "lesions.csv");
+    const char* stage_names[2] = {"gravity", "supine"};
     csv << "name,prone_x_mm,prone_y_mm,prone_z_mm,radius_mm,tet,outside_mm";
-    if (lesions_after.rows()) csv << ",supine_gravity_x_mm,supine_gravity_y_mm,supine_gravity_z_mm,moved_mm";
+    for (size_t k = 0; k < lesion_rows.size(); ++k)
+      csv << ',' << stage_names[k] << "_x_mm," << stage_names[k] << "_y_mm," << stage_names[k] << "_z_mm," << stage_names[k] << "_moved_mm";
     csv << '\n';
     for (size_t i = 0; i < m.lesions.size(); ++i) {
       const auto& l = m.lesions[i];
@@ -340,11 +368,11 @@ int main(int argc, char** argv) {
       csv << l.name << ',' << p.x() << ',' << p.y() << ',' << p.z() << ',' << l.radius_m * 1e3 << ',' << e.tet << ','
           << e.outside_distance_m * 1e3;
       nlohmann::json j = {{"name", l.name}, {"prone_mm", {p.x(), p.y(), p.z()}}, {"radius_mm", l.radius_m * 1e3}, {"tet", e.tet}};
-      if (lesions_after.rows()) {
-        const Eigen::Vector3d q = lesions_after.row(static_cast<Eigen::Index>(i)).transpose() * 1e3;
+      for (size_t k = 0; k < lesion_rows.size(); ++k) {
+        const Eigen::Vector3d q = lesion_rows[k].row(static_cast<Eigen::Index>(i)).transpose() * 1e3;
         csv << ',' << q.x() << ',' << q.y() << ',' << q.z() << ',' << (q - p).norm();
-        j["supine_gravity_mm"] = {q.x(), q.y(), q.z()};
-        j["moved_mm"] = (q - p).norm();
+        j[std::string(stage_names[k]) + "_mm"] = {q.x(), q.y(), q.z()};
+        j[std::string(stage_names[k]) + "_moved_mm"] = (q - p).norm();
       }
       csv << '\n';
       lesions.push_back(j);
@@ -353,50 +381,59 @@ int main(int argc, char** argv) {
     s["lesions"] = lesions;
     s["seconds"]["total"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     std::ofstream(out / "model_summary.json") << s.dump(2) << '\n';
-    if (!args.json.empty()) std::ofstream(args.json) << s.dump(2) << '\n';
+    if (!metrics.is_null()) {
+      metrics["lesions"] = lesions;
+      std::ofstream(out / "metrics.json") << metrics.dump(2) << '\n';
+    }
+    if (!args.json.empty()) std::ofstream(args.json) << (metrics.is_null() ? s : metrics).dump(2) << '\n';
 
     std::printf("breast_sim run of case '%s'\n", c.name.c_str());
-    std::printf("  %-28s %d tetrahedra, %d nodes (%s boundary)\n", "mesh", m.mesh.numTets(), m.mesh.numNodes(),
-                s["boundary_closed"].get<bool>() ? "closed" : "OPEN");
-    std::printf("  %-28s chest wall %zu, skin %zu nodes\n", "node sets",
-                m.mesh.nodeSet(node_sets::kChestWall).size(), m.mesh.nodeSet(node_sets::kSkin).size());
-    std::printf("  %-28s %.1f cm3 (voxels %.1f", "volume", mesh_volume * 1e6, m.meshing.voxel_volume_m3 * 1e6);
-    if (c.phantom) std::printf(", analytic %.1f, error %+.2f%%", c.phantom->prone_volume_m3 * 1e6,
+    std::printf("  %-26s %d tetrahedra, %d nodes (%s boundary), %.2f s (meshing %.2f s)\n", "model", m.mesh.numTets(),
+                m.mesh.numNodes(), s["boundary_closed"].get<bool>() ? "closed" : "OPEN", t_model, m.meshing.seconds);
+    std::printf("  %-26s %.1f cm3", "volume", mesh_volume * 1e6);
+    if (c.phantom) std::printf(" (analytic %.1f, error %+.2f%%)", c.phantom->prone_volume_m3 * 1e6,
                                100.0 * (mesh_volume / c.phantom->prone_volume_m3 - 1.0));
-    std::printf(")\n");
-    std::printf("  %-28s %d inverted, min dihedral %.1f deg, max aspect ratio %.2f\n", "quality",
-                m.quality.num_inverted, m.quality.min_dihedral_deg, m.quality.max_aspect_ratio);
-    std::printf("  %-28s %.2f s (meshing %.2f s in %d pass(es))\n", "model time", t_model, m.meshing.seconds, m.meshing.passes);
-    if (s.contains("simulation")) {
-      const auto& j = s["simulation"];
-      std::printf("  %-28s %s in %d steps (%.2f s, %s), max displacement %.2f mm\n", "supine gravity",
-                  settled.settled ? "settled" : "NOT settled", settled.steps, settled.seconds,
-                  j["solver"].get<std::string>().c_str(), settled.max_displacement_m * 1e3);
-      std::printf("  %-28s %d inverted, volume change %+.2f%%\n", "deformed quality", j["inverted_elements"].get<int>(),
-                  j["volume_change_percent"].get<double>());
-      if (j["sliding"]["on"].get<bool>())
-        std::printf("  %-28s %s after %d steps at dt %.3g s, largest slide %.2f mm, %.2f s\n", "chest-wall sliding",
-                    j["sliding"]["settled"].get<bool>()   ? "stopped"
-                    : j["sliding"]["stalled"].get<bool>() ? "STALLED (its moves invert elements)"
-                                                          : "STILL MOVING",
-                    j["sliding"]["steps"].get<int>(),
-                    settings.dynamics.time_step_s, j["sliding"]["max_slide_mm"].get<double>(),
-                    j["sliding"]["seconds"].get<double>());
-      if (settings.stiffening)
-        std::printf("  %-28s final alpha %.3g 1/Pa, largest E_r %.2f, %ld reversed steps (%.0f%%)\n", "von Mises stiffening",
-                    j["final_alpha_per_pa"].get<double>(), j["max_modulus_factor"].get<double>(),
-                    j["reversed_steps"].get<long>(), 100.0 * j["reversal_fraction"].get<double>());
+    std::printf(", quality: %d inverted, min dihedral %.1f deg\n", m.quality.num_inverted, m.quality.min_dihedral_deg);
+    if (!metrics.is_null()) {
+      const auto& st = metrics["stages"];
+      auto line = [&](const char* name, const nlohmann::json& r, const char* extra) {
+        if (!r["ran"].get<bool>()) return;
+        std::printf("  %-26s %s in %d steps, %.2f s, %ld reversed, alpha %.3g 1/Pa%s\n", name,
+                    r["converged"].get<bool>() ? "converged" : "NOT converged", r["steps"].get<int>(),
+                    r["seconds"].get<double>(), r["reversed_steps"].get<long>(), r["final_alpha_per_pa"].get<double>(), extra);
+      };
+      char slide[64] = "";
+      if (st["sliding"].contains("max_slide_mm")) std::snprintf(slide, sizeof slide, ", largest slide %.1f mm", st["sliding"]["max_slide_mm"].get<double>());
+      line("gravity (wall fixed)", st["gravity"], "");
+      line("gravity with sliding", st["sliding"], slide);
+      line("surface morphing", st["morphing"], "");
+      auto deformed = [&](const char* name, const nlohmann::json& d) {
+        std::printf("  %-26s %d inverted, volume %+.2f%%, max displacement %.1f mm", name, d["inverted_elements"].get<int>(),
+                    d["volume_change_percent"].get<double>(), d["max_displacement_mm"].get<double>());
+        if (d.contains("surface_distance_mm"))
+          std::printf(", surface distance mean/p95 %.2f/%.2f mm (skin->target), %.2f/%.2f mm (target->skin)",
+                      d["surface_distance_mm"]["skin_to_target"]["mean"].get<double>(), d["surface_distance_mm"]["skin_to_target"]["p95"].get<double>(),
+                      d["surface_distance_mm"]["target_to_skin"]["mean"].get<double>(), d["surface_distance_mm"]["target_to_skin"]["p95"].get<double>());
+        std::printf("\n");
+      };
+      deformed("after gravity", metrics["after_gravity"]);
+      if (metrics["morphing"].get<bool>()) deformed("after morphing", metrics["final"]);
+      std::printf("  %-26s %.2f s (setup %.2f s)\n", "compute", metrics["seconds"]["compute"].get<double>(),
+                  metrics["seconds"]["setup"].get<double>());
     }
     for (const auto& l : lesions) {
-      std::printf("  lesion %-21s prone (%.1f, %.1f, %.1f) mm", l["name"].get<std::string>().c_str(),
+      std::printf("  lesion %-19s prone (%.1f, %.1f, %.1f) mm", l["name"].get<std::string>().c_str(),
                   l["prone_mm"][0].get<double>(), l["prone_mm"][1].get<double>(), l["prone_mm"][2].get<double>());
-      if (l.contains("supine_gravity_mm"))
-        std::printf(" -> (%.1f, %.1f, %.1f) mm, moved %.1f mm", l["supine_gravity_mm"][0].get<double>(),
-                    l["supine_gravity_mm"][1].get<double>(), l["supine_gravity_mm"][2].get<double>(), l["moved_mm"].get<double>());
+      if (l.contains("supine_mm"))
+        std::printf(" -> supine (%.1f, %.1f, %.1f) mm, moved %.1f mm", l["supine_mm"][0].get<double>(),
+                    l["supine_mm"][1].get<double>(), l["supine_mm"][2].get<double>(), l["supine_moved_mm"].get<double>());
+      else if (l.contains("gravity_mm"))
+        std::printf(" -> (%.1f, %.1f, %.1f) mm after gravity, moved %.1f mm", l["gravity_mm"][0].get<double>(),
+                    l["gravity_mm"][1].get<double>(), l["gravity_mm"][2].get<double>(), l["gravity_moved_mm"].get<double>());
       std::printf("\n");
     }
-    std::printf("  %-28s %s\n", "written to", fs::absolute(out).string().c_str());
-    return settled.settled || args.model_only ? 0 : 3;
+    std::printf("  %-26s %s\n", "written to", fs::absolute(out).string().c_str());
+    return ok || args.model_only ? 0 : 3;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "breast_sim_run: error: %s\n", e.what());
     return 2;

@@ -16,6 +16,7 @@ void MorphingOptions::validate() const {
   };
   if (!(gain_pa_per_m >= 0) || !std::isfinite(gain_pa_per_m)) bad("gain_pa_per_m", gain_pa_per_m, "≥ 0 Pa/m");
   if (!(max_distance_m >= 0) || !std::isfinite(max_distance_m)) bad("max_distance_m", max_distance_m, "≥ 0 m (0 = no limit)");
+  if (!(max_traction_pa >= 0) || !std::isfinite(max_traction_pa)) bad("max_traction_pa", max_traction_pa, "≥ 0 Pa (0 = no cap)");
 }
 
 SurfaceMorphing::SurfaceMorphing(const TetMesh& mesh, std::shared_ptr<const SurfaceVectorField> field,
@@ -96,7 +97,15 @@ double SurfaceMorphing::addForces(DynamicSimulator& sim) {
     distance_[i] = d;
     sum += d;
     const bool pull = options_.max_distance_m == 0.0 || d <= options_.max_distance_m;
-    step_forces_.row(i) = pull ? Eigen::RowVector3d(options_.gain_pa_per_m * area_[i] * v.transpose()) : Eigen::RowVector3d::Zero();
+    Eigen::RowVector3d f = pull ? Eigen::RowVector3d(options_.gain_pa_per_m * area_[i] * v.transpose()) : Eigen::RowVector3d::Zero();
+    if (options_.max_traction_pa > 0) {
+      // Cap the accumulated force (anti-windup): only the part of this step's force that keeps it
+      // within the cap is added.
+      const double cap = options_.max_traction_pa * area_[i];
+      const Eigen::RowVector3d total = total_.row(i) + f;
+      if (total.norm() > cap) f = total * (cap / total.norm()) - total_.row(i);
+    }
+    step_forces_.row(i) = f;
   }
   total_ += step_forces_;
   sim.addNodalForces(vertices_, step_forces_);

@@ -71,7 +71,10 @@ ProneToSupinePipeline::~ProneToSupinePipeline() = default;
 
 Eigen::Vector3d ProneToSupinePipeline::supineGravityLoad() const {
   const Eigen::Vector3d prone = settings_.simulation.gravity_mps2 * case_.prone_gravity_direction.normalized();
-  const Eigen::Vector3d supine = case_.phantom ? case_.phantom->gravity_supine_mps2 : Eigen::Vector3d(-prone);
+  // The phantom brings its supine direction (tilted, seed 3.3); the magnitude is the settings' for both.
+  const Eigen::Vector3d supine = case_.phantom && case_.phantom->gravity_supine_mps2.norm() > 0
+                                     ? Eigen::Vector3d(settings_.simulation.gravity_mps2 * case_.phantom->gravity_supine_mps2.normalized())
+                                     : Eigen::Vector3d(-prone);
   return supine - prone;
 }
 
@@ -299,7 +302,7 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
     if (progress)
       progress({stage_, rep.steps, ms.max_steps, it.increment_m, it.surface_mean_m, it.surface_p95_m, it.alpha_per_pa,
                 logFraction(first, it.surface_mean_m, ms.tolerance_mean_m)});
-    if (quiet >= 2) {
+    if (quiet >= 3) {
       rep.converged = true;
       break;
     }

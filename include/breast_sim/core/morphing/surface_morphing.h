@@ -22,6 +22,11 @@ struct MorphingOptions {
   /// Vertices farther than this from the target get no force [m] (outliers, parts the scanner does
   /// not see); 0 = no limit.
   double max_distance_m = 0.05;
+  /// Anti-windup: a vertex's accumulated force is capped at this traction times its area [Pa]
+  /// (0 = no cap). A target part the model cannot reach (behind a fixed wall, a scanner outlier)
+  /// would otherwise pull ever harder and distort the rest; 5 kPa is several times what the 2 kPa
+  /// phantom needs to take its supine shape.
+  double max_traction_pa = 5.0e3;
   /// Which vertices: the skin node set without the nodes the simulator holds (fixed or moved by
   /// sliding), so the morphing never fights a constraint.
   bool skip_constrained = true;

@@ -53,7 +53,7 @@ struct MorphingStageSettings {
   double tolerance_mean_m = 0.5e-3;    ///< mean distance of the pulled vertices to reach [m]
   double tolerance_p95_m = 1.5e-3;     ///< 95th percentile to reach [m]
   /// Ends once the tolerances hold and no node moves more than this in a step [m].
-  double increment_tolerance_m = 2e-5;
+  double increment_tolerance_m = 1e-4;
   int max_steps = 300;                 ///< accepted steps at most
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;

@@ -1,0 +1,179 @@
+// The combined prone-to-supine pipeline: settings, the zero-distance target, snapshots, the Figure-2
+// loop's bookkeeping (no forces after a step that could not advance, α held within tolerance).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+
+#include "breast_sim/core/fem/equilibrium.h"
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+
+using namespace breast_sim::core;
+namespace fs = std::filesystem;
+
+namespace {
+
+const std::string kPhantomCase = std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml";
+
+struct SmallPhantom {
+  ModelCase c;
+  SimulationModel m;
+  explicit SmallPhantom(int elements = 2000) {
+    c = loadModelCase(kPhantomCase);
+    c.meshing.target_elements = elements;
+    m = buildSimulationModel(c);
+  }
+};
+
+const SmallPhantom& phantom() {
+  static const SmallPhantom p;
+  return p;
+}
+
+std::string writeTemp(const std::string& name, const std::string& text) {
+  const fs::path p = fs::temp_directory_path() / name;
+  std::ofstream(p) << text;
+  return p.string();
+}
+
+}  // namespace
+
+TEST(PipelineSettings, ReadsSlidingAndMorphingMapsWithTheirUnits) {
+  const std::string f = writeTemp("breast_sim_pipeline_settings.yaml",
+                                  "simulation: {sliding: true}\n"
+                                  "sliding: {max_slide_mm: 12, gaussian_limit: false, static_friction: 0.1, kinetic_friction: 0.05}\n"
+                                  "morphing: {target: surfaces/t.stl, target_unit_mm: 1, gain_pa_per_mm: 30, tolerance_mean_mm: 0.4,\n"
+                                  "           tolerance_p95_mm: 1.2, time_step_s: 0.05, max_steps: 77, voxel_size_mm: 0.8}\n");
+  const PipelineSettings s = loadPipelineSettings(f);
+  EXPECT_TRUE(s.simulation.sliding);
+  EXPECT_DOUBLE_EQ(s.sliding.max_slide_m, 0.012);
+  EXPECT_FALSE(s.sliding.gaussian_limit);
+  EXPECT_DOUBLE_EQ(s.sliding.static_friction, 0.1);
+  EXPECT_EQ(s.morphing.target, (fs::path(f).parent_path() / "surfaces/t.stl").string());  // relative to the case file
+  EXPECT_DOUBLE_EQ(s.morphing.target_length_unit_m, 1e-3);
+  EXPECT_DOUBLE_EQ(s.morphing.forces.gain_pa_per_m, 3e4);
+  EXPECT_DOUBLE_EQ(s.morphing.tolerance_mean_m, 4e-4);
+  EXPECT_DOUBLE_EQ(s.morphing.tolerance_p95_m, 1.2e-3);
+  EXPECT_DOUBLE_EQ(s.morphing.time_step_s, 0.05);
+  EXPECT_EQ(s.morphing.max_steps, 77);
+  EXPECT_DOUBLE_EQ(s.morphing.field.voxel_size_m, 8e-4);
+}
+
+TEST(PipelineSettings, BadKeysAndValuesAreNamed) {
+  auto message = [](const std::string& text) {
+    try {
+      loadPipelineSettings(writeTemp("breast_sim_pipeline_bad.yaml", text));
+    } catch (const std::runtime_error& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(message("morphing: {gain: 3}\n").find("gain"), std::string::npos);
+  EXPECT_NE(message("morphing: {tolerance_p95_mm: -1}\n").find("morphing.tolerance_p95_mm"), std::string::npos);
+  EXPECT_NE(message("sliding: {max_slide_mm: [1, 2]}\n").find("sliding.max_slide_mm"), std::string::npos);
+  EXPECT_NE(message("simulation: {sliding: true, stiffening: false}\n").find("needs 'stiffening: true'"), std::string::npos);
+}
+
+TEST(Pipeline, AnImageCaseCannotMorphToThePhantomTarget) {
+  SmallPhantom p(1500);
+  p.c.phantom.reset();  // the same model, as if it came from an image
+  PipelineSettings s;
+  try {
+    ProneToSupinePipeline pipe(p.c, p.m, s);
+    FAIL() << "an image case was given the phantom's target";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("morphing target 'phantom' needs the software phantom"), std::string::npos) << e.what();
+  }
+}
+
+TEST(Pipeline, AZeroDistanceTargetLeavesTheModelUnchanged) {
+  // No gravity and the model's own skin as the target: every pulled vertex is on the target, no
+  // force is ever added, and the model does not move.
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.simulation.gravity_mps2 = 0.0;
+  s.morphing.target = "";
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  EXPECT_NEAR(pipe.supineGravityLoad().norm(), 0.0, 1e-12);
+  TargetSurface own;
+  own.vertices_m = p.m.mesh.nodes();
+  own.triangles = skinTriangles(p.m.mesh, p.m.mesh.nodeSet(node_sets::kSkin));
+  pipe.setTarget(own);
+  for (int k = 0; k < 10; ++k) {
+    const IterationReport it = pipe.iterate();
+    EXPECT_TRUE(it.advanced);
+    EXPECT_LT(it.surface_mean_m, 1e-6);
+    EXPECT_TRUE(it.alpha_held);  // within tolerance from the start
+  }
+  EXPECT_LT(maxNodalNorm(pipe.simulator().state().displacement_m), 1e-7);
+  const PipelineMetrics m = pipe.metrics();
+  EXPECT_LT(m.surface.model_to_target.max_m, 1e-6);
+  EXPECT_EQ(m.inverted_elements, 0);
+  EXPECT_NEAR(m.volume_change_percent, 0.0, 1e-6);
+}
+
+TEST(Pipeline, MorphingPullsTheSkinOntoAReachableTarget) {
+  // The model's own skin stretched 8 % anteriorly away from the fixed wall (y = 0 stays, so the
+  // base needs no sliding): the pulled vertices reach the tolerance, no element inverts.
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.simulation.gravity_mps2 = 0.0;
+  s.morphing.target = "";
+  s.morphing.max_steps = 80;
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  TargetSurface stretched;
+  stretched.vertices_m = p.m.mesh.nodes();
+  stretched.vertices_m.col(1) *= 1.08;
+  stretched.triangles = skinTriangles(p.m.mesh, p.m.mesh.nodeSet(node_sets::kSkin));
+  pipe.setTarget(stretched);
+  const StageReport r = pipe.runMorphing();
+  const PipelineMetrics m = pipe.metrics();
+  EXPECT_TRUE(r.converged) << "after " << r.steps << " steps: mean " << r.surface_mean_m * 1e3 << " mm, p95 "
+                           << r.surface_p95_m * 1e3 << " mm";
+  EXPECT_LT(m.surface.model_to_target.mean_m, s.morphing.tolerance_mean_m);
+  EXPECT_EQ(m.inverted_elements, 0);
+  EXPECT_GT(m.max_displacement_m, 3e-3);  // the nipple moved ~5.6 mm
+}
+
+TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.morphing.enabled = false;
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  const StageReport g = pipe.runGravity();
+  EXPECT_TRUE(g.converged);
+  EXPECT_EQ(pipe.metrics().inverted_elements, 0);
+  // The lesions moved with the tissue, posteriorly (supine gravity pushes towards the wall, +y).
+  const Points l0 = p.m.lesion_embedding.positions(p.m.mesh.nodes()), l1 = pipe.lesionPositions();
+  for (Eigen::Index i = 0; i < l0.rows(); ++i) EXPECT_GT(l1(i, 1) - l0(i, 1), 1e-3) << "lesion " << i;
+
+  const fs::path file = fs::temp_directory_path() / "breast_sim_pipeline_state.bin";
+  pipe.saveState(file.string());
+  const PipelineState saved = pipe.state();
+  pipe.setGravityLoad(Eigen::Vector3d(5, 0, 0));
+  pipe.stiffening().step();
+  ASSERT_GT((pipe.simulator().state().displacement_m - saved.simulation.displacement_m).norm(), 0.0);
+  pipe.loadState(file.string());
+  EXPECT_EQ(pipe.simulator().state().displacement_m, saved.simulation.displacement_m);
+  EXPECT_EQ(pipe.simulator().state().velocity_mps, saved.simulation.velocity_mps);
+  EXPECT_EQ(pipe.modulusFactors(), saved.modulus_factors);
+  EXPECT_EQ(pipe.stiffening().controller().alpha(), saved.alpha.alpha_per_pa);
+
+  // A snapshot of another model is refused by name and leaves the state alone.
+  SmallPhantom other(1000);
+  PipelineSettings so;
+  so.morphing.enabled = false;
+  ProneToSupinePipeline pipe2(other.c, other.m, so);
+  try {
+    pipe2.loadState(file.string());
+    FAIL();
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("load the same case with the same meshing"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(pipe2.simulator().state().displacement_m.norm(), 0.0);
+  std::ofstream(file) << "not a state";
+  EXPECT_THROW(pipe.loadState(file.string()), std::runtime_error);
+}
