@@ -177,3 +177,38 @@ TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
   std::ofstream(file) << "not a state";
   EXPECT_THROW(pipe.loadState(file.string()), std::runtime_error);
 }
+
+TEST(PipelineSettings, TheDocumentedDefaultsOfTheCaseFileAreTheCodeDefaults) {
+  // config/phantom_default.yaml lists every sliding and morphing key with its default: reading it
+  // must give exactly the defaults of the structs (so the file cannot drift from the code).
+  const PipelineSettings file = loadPipelineSettings(kPhantomCase), code;
+  const SlidingSettings &a = file.sliding, &b = code.sliding;
+  EXPECT_DOUBLE_EQ(a.field.sigma_m, b.field.sigma_m);
+  EXPECT_DOUBLE_EQ(a.mobility_m_per_pa_s, b.mobility_m_per_pa_s);
+  EXPECT_DOUBLE_EQ(a.static_friction, b.static_friction);
+  EXPECT_DOUBLE_EQ(a.kinetic_friction, b.kinetic_friction);
+  EXPECT_DOUBLE_EQ(a.static_threshold_pa, b.static_threshold_pa);
+  EXPECT_DOUBLE_EQ(a.inertia, b.inertia);
+  EXPECT_DOUBLE_EQ(a.max_step_m, b.max_step_m);
+  EXPECT_DOUBLE_EQ(a.max_slide_m, b.max_slide_m);
+  EXPECT_EQ(a.thickness_limit, b.thickness_limit);
+  EXPECT_EQ(a.gaussian_limit, b.gaussian_limit);
+  EXPECT_DOUBLE_EQ(a.gaussian_amplitude, b.gaussian_amplitude);
+  EXPECT_DOUBLE_EQ(a.gaussian_sigma_m, b.gaussian_sigma_m);
+  EXPECT_DOUBLE_EQ(a.gaussian_sigma_fraction, b.gaussian_sigma_fraction);
+  const MorphingStageSettings &m = file.morphing, &n = code.morphing;
+  EXPECT_EQ(m.enabled, n.enabled);
+  EXPECT_EQ(m.target, n.target);
+  EXPECT_DOUBLE_EQ(m.target_length_unit_m, n.target_length_unit_m);
+  EXPECT_DOUBLE_EQ(m.forces.gain_pa_per_m, n.forces.gain_pa_per_m);
+  EXPECT_DOUBLE_EQ(m.forces.max_traction_pa, n.forces.max_traction_pa);
+  EXPECT_DOUBLE_EQ(m.forces.max_distance_m, n.forces.max_distance_m);
+  EXPECT_EQ(m.forces.skip_constrained, n.forces.skip_constrained);
+  EXPECT_DOUBLE_EQ(m.field.voxel_size_m, n.field.voxel_size_m);
+  EXPECT_EQ(m.field.max_voxels_per_axis, n.field.max_voxels_per_axis);
+  EXPECT_DOUBLE_EQ(m.time_step_s, n.time_step_s);
+  EXPECT_DOUBLE_EQ(m.tolerance_mean_m, n.tolerance_mean_m);
+  EXPECT_DOUBLE_EQ(m.tolerance_p95_m, n.tolerance_p95_m);
+  EXPECT_DOUBLE_EQ(m.increment_tolerance_m, n.increment_tolerance_m);
+  EXPECT_EQ(m.max_steps, n.max_steps);
+}

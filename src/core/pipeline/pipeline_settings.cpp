@@ -70,7 +70,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
   if (root.IsMap() && root["morphing"] && !root["morphing"].IsNull()) {
     const YAML::Node m = root["morphing"];
     checkKeys(m,
-              {"enabled", "target", "target_unit_mm", "gain_pa_per_mm", "max_distance_mm", "skip_constrained",
+              {"enabled", "target", "target_unit_mm", "gain_pa_per_mm", "max_traction_pa", "max_distance_mm", "skip_constrained",
                "voxel_size_mm", "max_voxels_per_axis", "time_step_s", "tolerance_mean_mm", "tolerance_p95_mm",
                "increment_tolerance_mm", "max_steps"},
               f, "morphing");
@@ -84,6 +84,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     }
     if (m["target_unit_mm"]) d.target_length_unit_m = 1e-3 * numberIn(m["target_unit_mm"], f, key("target_unit_mm"), 0, 1e6, true, false, "mm per file unit");
     if (m["gain_pa_per_mm"]) d.forces.gain_pa_per_m = 1e3 * numberIn(m["gain_pa_per_mm"], f, key("gain_pa_per_mm"), 0, inf, false, false, "Pa/mm");
+    if (m["max_traction_pa"]) d.forces.max_traction_pa = numberIn(m["max_traction_pa"], f, key("max_traction_pa"), 0, inf, false, false, "Pa");
     if (m["max_distance_mm"]) d.forces.max_distance_m = 1e-3 * numberIn(m["max_distance_mm"], f, key("max_distance_mm"), 0, inf, false, false, "mm");
     if (m["skip_constrained"]) d.forces.skip_constrained = boolean(m["skip_constrained"], f, key("skip_constrained"));
     if (m["voxel_size_mm"]) d.field.voxel_size_m = 1e-3 * numberIn(m["voxel_size_mm"], f, key("voxel_size_mm"), 0, 100, true, false, "mm");
