@@ -81,6 +81,11 @@ TEST(Pipeline, AnImageCaseCannotMorphToThePhantomTarget) {
   SmallPhantom p(1500);
   p.c.phantom.reset();  // the same model, as if it came from an image
   PipelineSettings s;
+  {
+    ProneToSupinePipeline automatic(p.c, p.m, s);  // the default "auto": no target for an image
+    EXPECT_FALSE(automatic.hasTarget());
+  }
+  s.morphing.target = "phantom";
   try {
     ProneToSupinePipeline pipe(p.c, p.m, s);
     FAIL() << "an image case was given the phantom's target";

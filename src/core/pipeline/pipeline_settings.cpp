@@ -79,7 +79,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     if (m["enabled"]) d.enabled = boolean(m["enabled"], f, key("enabled"));
     if (m["target"]) {
       d.target = m["target"].IsNull() ? "" : text(m["target"], f, key("target"));
-      if (!d.target.empty() && d.target != "phantom" && std::filesystem::path(d.target).is_relative())
+      if (!d.target.empty() && d.target != "phantom" && d.target != "auto" && std::filesystem::path(d.target).is_relative())
         d.target = (std::filesystem::path(yaml_path).parent_path() / d.target).string();
     }
     if (m["target_unit_mm"]) d.target_length_unit_m = 1e-3 * numberIn(m["target_unit_mm"], f, key("target_unit_mm"), 0, 1e6, true, false, "mm per file unit");

@@ -55,8 +55,8 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
   if (settings_.simulation.sliding)
     sliding_ = std::make_unique<ChestWallSliding>(ChestWallSliding::fromCase(case_, model_.mesh, settings_.sliding));
   const MorphingStageSettings& ms = settings_.morphing;
-  if (ms.enabled && !ms.target.empty()) {
-    if (ms.target == "phantom") {
+  if (ms.enabled && !ms.target.empty() && !(ms.target == "auto" && !case_.phantom)) {
+    if (ms.target == "phantom" || ms.target == "auto") {
       if (!case_.phantom)
         throw std::invalid_argument("morphing target 'phantom' needs the software phantom; case '" + case_.name +
                                     "' is an image: give a surface file as morphing.target, or set morphing.enabled: false");

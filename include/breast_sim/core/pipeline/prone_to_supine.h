@@ -43,9 +43,10 @@ namespace breast_sim::core {
 /// The morphing stage (YAML map `morphing:`).
 struct MorphingStageSettings {
   bool enabled = true;
-  /// "phantom": the phantom's supine skin surface; otherwise a surface file (.obj, .stl, .ply, .vtp,
-  /// .vtk; relative paths from the case file); "" = no target (the stage is skipped).
-  std::string target = "phantom";
+  /// "auto": the phantom's supine skin surface for a phantom case, none for an image case;
+  /// "phantom": the phantom's (an error for an image case); otherwise a surface file (.obj, .stl,
+  /// .ply, .vtp, .vtk; relative paths from the case file); "" = no target (the stage is skipped).
+  std::string target = "auto";
   double target_length_unit_m = 1e-3;  ///< metres per unit of a target file (1e-3: the file is in mm)
   MorphingOptions forces;              ///< gain, outlier distance, which vertices
   SurfaceFieldOptions field;           ///< the distance-field grid
