@@ -26,6 +26,33 @@ double since(std::chrono::steady_clock::time_point t) {
   throw std::invalid_argument(s.str());
 }
 
+double tetVolume(const Eigen::Vector3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& c,
+                 const Eigen::Vector3d& d) {
+  return (b - a).dot((c - a).cross(d - a)) / 6.0;
+}
+
+// Closest point of triangle (a, b, c) to p (Voronoi regions of the vertices, edges and face).
+Eigen::Vector3d closestOnTriangle(const Eigen::Vector3d& p, const Eigen::Vector3d& a, const Eigen::Vector3d& b,
+                                  const Eigen::Vector3d& c) {
+  const Eigen::Vector3d ab = b - a, ac = c - a, ap = p - a;
+  const double d1 = ab.dot(ap), d2 = ac.dot(ap);
+  if (d1 <= 0 && d2 <= 0) return a;
+  const Eigen::Vector3d bp = p - b;
+  const double d3 = ab.dot(bp), d4 = ac.dot(bp);
+  if (d3 >= 0 && d4 <= d3) return b;
+  const double vc = d1 * d4 - d3 * d2;
+  if (vc <= 0 && d1 >= 0 && d3 <= 0) return a + d1 / (d1 - d3) * ab;
+  const Eigen::Vector3d cp = p - c;
+  const double d5 = ab.dot(cp), d6 = ac.dot(cp);
+  if (d6 >= 0 && d5 <= d6) return c;
+  const double vb = d5 * d2 - d1 * d6;
+  if (vb <= 0 && d2 >= 0 && d6 <= 0) return a + d2 / (d2 - d6) * ac;
+  const double va = d3 * d6 - d5 * d4;
+  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) return b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b);
+  const double denom = 1.0 / (va + vb + vc);
+  return a + ab * (vb * denom) + ac * (vc * denom);
+}
+
 }  // namespace
 
 void SlidingSettings::validate() const {
@@ -55,6 +82,13 @@ void SlidingSettings::validate() const {
   if (!(gaussian_sigma_fraction > 0 && gaussian_sigma_fraction <= 2))
     bad("gaussian_sigma_fraction", gaussian_sigma_fraction, "(0, 2] of a breast's extent");
   if (!(max_slide_m >= 0) || !finite(max_slide_m)) bad("max_slide_m", max_slide_m, "0 (no cap) or a length > 0 [m]");
+  if (!(traction_smoothing_rings >= 0 && traction_smoothing_rings <= 20))
+    bad("traction_smoothing_rings", traction_smoothing_rings, "[0, 20]");
+  if (!(move_smoothing_iterations >= 0 && move_smoothing_iterations <= 50))
+    bad("move_smoothing_iterations", move_smoothing_iterations, "[0, 50]");
+  if (!(min_volume_fraction >= 0 && min_volume_fraction < 1))
+    bad("min_volume_fraction", min_volume_fraction, "[0, 1) of the rest volume");
+  if (!(min_move_scale > 0 && min_move_scale <= 1)) bad("min_move_scale", min_move_scale, "(0, 1]");
 }
 
 ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
@@ -65,7 +99,7 @@ ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
   settings_.validate();
   if (!surface_) throw std::invalid_argument("ChestWallSliding: no chest-wall surface given");
   if (nodes_.empty()) throw std::invalid_argument("ChestWallSliding: the sliding node set is empty");
-  const int n = static_cast<int>(nodes_.size());
+  int n = static_cast<int>(nodes_.size());
   std::vector<int> slot(mesh.numNodes(), -1);
   for (int i = 0; i < n; ++i) {
     const int v = nodes_[i];
@@ -75,6 +109,45 @@ ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
     if (slot[v] >= 0) throw std::invalid_argument("ChestWallSliding: node " + std::to_string(v) + " is given twice");
     slot[v] = i;
   }
+  // Rim band: skin nodes within max_wall_distance_m of the wall, joined to the rim through skin
+  // nodes (shared tetrahedra), join the set, level by level (see rim_band in the header).
+  std::vector<int> level(nodes_.size(), 0);
+  std::vector<char> skin(mesh.numNodes(), 0);
+  if (mesh.nodeSets().count(node_sets::kSkin))
+    for (int v : mesh.nodeSet(node_sets::kSkin))
+      if (v >= 0 && v < mesh.numNodes()) skin[v] = 1;
+  for (int i = 0; i < n; ++i)
+    if (skin[nodes_[i]]) level[i] = 1;
+  if (settings_.rim_band) {
+    const Tets& tt = mesh.tets();
+    for (int pass = 2; pass < 22; ++pass) {
+      std::vector<int> add;
+      for (Eigen::Index t = 0; t < tt.rows(); ++t) {
+        bool touches = false;
+        for (int c = 0; c < 4; ++c) {
+          const int sv = slot[tt(t, c)];
+          touches = touches || (sv >= 0 && level[sv] > 0);
+        }
+        if (!touches) continue;
+        for (int c = 0; c < 4; ++c) {
+          const int v = tt(t, c);
+          if (!skin[v] || slot[v] != -1) continue;
+          slot[v] = -2;  // looked at
+          if (surface_->signedDistance(mesh.nodes().row(v).transpose()) <= settings_.max_wall_distance_m) add.push_back(v);
+        }
+      }
+      for (int& sv : slot)
+        if (sv == -2) sv = -1;
+      if (add.empty()) break;
+      for (int v : add) {
+        slot[v] = static_cast<int>(nodes_.size());
+        nodes_.push_back(v);
+        level.push_back(pass);
+      }
+    }
+  }
+  n = static_cast<int>(nodes_.size());
+  rim_level_ = level;
   if (settings_.thickness_limit && !labels)
     throw std::invalid_argument("ChestWallSliding: the thickness limit needs the label image");
   if (settings_.gaussian_limit && (nipples_m.empty() || nipples_m.size() > 2))
@@ -85,6 +158,7 @@ ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
 
   rest_.resize(n, 3);
   for (int i = 0; i < n; ++i) rest_.row(i) = mesh.nodes().row(nodes_[i]);
+  mesh_rest_ = mesh.nodes();
   targets_ = Points::Zero(n, 3);
   velocity_ = Points::Zero(n, 3);
 
@@ -168,8 +242,35 @@ ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
   }
   plane_v_ = a.cross(plane_u_).normalized();
   if (settings_.gaussian_limit) {
-    for (const Eigen::Vector3d& p : nipples_m)
-      centres_.emplace_back((p - plane_origin_).dot(plane_u_), (p - plane_origin_).dot(plane_v_));
+    // Each mode is centred at the nipple's foot point on the wall: the closest point of the
+    // all-sliding boundary triangles (or, without any, the closest sliding node).
+    for (const Eigen::Vector3d& p : nipples_m) {
+      Eigen::Vector3d best = rest_.row(0).transpose();
+      double best_d = std::numeric_limits<double>::infinity();
+      bool any_triangle = false;
+      for (Eigen::Index f = 0; f < b.triangles.rows(); ++f) {
+        const int a0 = b.triangles(f, 0), a1 = b.triangles(f, 1), a2 = b.triangles(f, 2);
+        if (slot[a0] < 0 || slot[a1] < 0 || slot[a2] < 0) continue;
+        any_triangle = true;
+        const Eigen::Vector3d q = closestOnTriangle(p, mesh.nodes().row(a0).transpose(), mesh.nodes().row(a1).transpose(),
+                                                    mesh.nodes().row(a2).transpose());
+        const double d = (q - p).squaredNorm();
+        if (d < best_d) {
+          best_d = d;
+          best = q;
+        }
+      }
+      if (!any_triangle)
+        for (int i = 0; i < n; ++i) {
+          const double d = (rest_.row(i).transpose() - p).squaredNorm();
+          if (d < best_d) {
+            best_d = d;
+            best = rest_.row(i).transpose();
+          }
+        }
+      centre_points_.push_back(best);
+      centres_.emplace_back((best - plane_origin_).dot(plane_u_), (best - plane_origin_).dot(plane_v_));
+    }
     if (settings_.gaussian_sigma_m > 0) {
       gaussian_sigma_ = Eigen::Vector2d::Constant(settings_.gaussian_sigma_m);
     } else {
@@ -202,6 +303,40 @@ ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
   weight_ = thickness_factor_.cwiseProduct(gaussian_factor_);
   for (int i = 0; i < n; ++i)
     if (held_flag_[i]) weight_[i] = 0.0;
+
+  // Wall graph, rim nodes and wall elements.
+  std::vector<std::vector<int>> adj(n);
+  static constexpr int kEdges[6][2] = {{0, 1}, {0, 2}, {0, 3}, {1, 2}, {1, 3}, {2, 3}};
+  const Tets& tets = mesh.tets();
+  for (Eigen::Index t = 0; t < tets.rows(); ++t) {
+    Eigen::Vector4i sl;
+    bool any = false;
+    for (int c = 0; c < 4; ++c) {
+      sl[c] = slot[tets(t, c)];
+      any = any || sl[c] >= 0;
+    }
+    if (!any) continue;
+    const Eigen::Vector4i tv(tets(t, 0), tets(t, 1), tets(t, 2), tets(t, 3));
+    wall_tets_.push_back(tv);
+    wall_slots_.push_back(sl);
+    wall_rest_volume_.push_back(tetVolume(mesh.nodes().row(tv[0]).transpose(), mesh.nodes().row(tv[1]).transpose(),
+                                          mesh.nodes().row(tv[2]).transpose(), mesh.nodes().row(tv[3]).transpose()));
+    for (const auto& e : kEdges)
+      if (sl[e[0]] >= 0 && sl[e[1]] >= 0) {
+        adj[sl[e[0]]].push_back(sl[e[1]]);
+        adj[sl[e[1]]].push_back(sl[e[0]]);
+      }
+  }
+  nbr_start_.assign(n + 1, 0);
+  for (int i = 0; i < n; ++i) {
+    std::sort(adj[i].begin(), adj[i].end());
+    adj[i].erase(std::unique(adj[i].begin(), adj[i].end()), adj[i].end());
+    nbr_start_[i + 1] = nbr_start_[i] + static_cast<int>(adj[i].size());
+  }
+  nbr_.reserve(nbr_start_[n]);
+  for (int i = 0; i < n; ++i) nbr_.insert(nbr_.end(), adj[i].begin(), adj[i].end());
+  rim_flag_.assign(n, 0);
+  for (int i = 0; i < n; ++i) rim_flag_[i] = rim_level_[i] > 0 ? 1 : 0;
 }
 
 double ChestWallSliding::gaussianWeight(const Eigen::Vector3d& p_m) const {
@@ -231,6 +366,8 @@ void ChestWallSliding::attach(DynamicSimulator& sim) {
   const Eigen::VectorXd& u = sim.state().displacement_m;
   for (size_t i = 0; i < nodes_.size(); ++i) targets_.row(i) = u.segment<3>(3 * nodes_[i]).transpose();
   velocity_.setZero();
+  move_scale_ = 1.0;
+  last_moved_ = false;
   // Stiffness diagonal at the current state: K from one assembly.
   sim.elasticForces();  // updates the element linearisation
   SparseMatrix K = sim.elements().pattern().matrix();
@@ -259,101 +396,226 @@ SlidingStepStats ChestWallSliding::update(DynamicSimulator& sim, const Eigen::Ve
 SlidingStepStats ChestWallSliding::update(const Eigen::VectorXd& u, const Eigen::VectorXd& f_el,
                                           const Eigen::VectorXd& mass, const Eigen::Vector3d& g, double dt,
                                           const Eigen::VectorXd* f_ext) {
-  const auto t0 = std::chrono::steady_clock::now();
   const long n3 = 3L * num_mesh_nodes_;
   if (u.size() != n3 || f_el.size() != n3 || mass.size() != num_mesh_nodes_ || (f_ext && f_ext->size() != n3))
     throw std::invalid_argument("ChestWallSliding::update: vectors do not match the mesh's " +
                                 std::to_string(num_mesh_nodes_) + " nodes");
+  // Applied load on each sliding node (the reaction is its negative), quasi-static.
+  Eigen::VectorXd load = Eigen::VectorXd::Zero(n3);
+  for (int v : nodes_) {
+    Eigen::Vector3d l = f_el.segment<3>(3 * v) + mass[v] * g;
+    if (f_ext) l += f_ext->segment<3>(3 * v);
+    load.segment<3>(3 * v) = l;
+  }
+  return updateFromLoads(u, load, dt, 1.0);
+}
+
+SlidingStepStats ChestWallSliding::updateFromLoads(const Eigen::VectorXd& u, const Eigen::VectorXd& load, double dt,
+                                                   double scale) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const long n3 = 3L * num_mesh_nodes_;
+  if (u.size() != n3 || load.size() != n3)
+    throw std::invalid_argument("ChestWallSliding::updateFromLoads: vectors do not match the mesh's " +
+                                std::to_string(num_mesh_nodes_) + " nodes");
   if (!(dt > 0) || !std::isfinite(dt)) bad("update dt_s", dt, "a finite time step > 0 [s]");
+  if (!(scale > 0 && scale <= 1)) bad("updateFromLoads move_scale", scale, "(0, 1]");
   const SlidingSettings& s = settings_;
   const int n = static_cast<int>(nodes_.size());
-  int moving = 0, stuck = 0, capped = 0, failures = 0, limited = 0;
   const bool have_k = stiffness_.size() == 9L * n;
-  double max_move = 0, max_slide = 0, max_pen = 0;
-#pragma omp parallel for schedule(static) reduction(+ : moving, stuck, capped, failures, limited) \
-    reduction(max : max_move, max_slide, max_pen)
+  auto movable = [&](int i) { return !held_flag_[i] && weight_[i] > 0; };
+
+  // 1. Traction per node [Pa]: the load of the node and its ring(s) of wall neighbours over their area.
+  Points F(n, 3);
+  Eigen::VectorXd A = area_;
+  for (int i = 0; i < n; ++i) F.row(i) = load.segment<3>(3 * nodes_[i]).transpose();
+  for (int ring = 0; ring < s.traction_smoothing_rings; ++ring) {
+    Points F2 = F;
+    Eigen::VectorXd A2 = A;
+    for (int i = 0; i < n; ++i)
+      for (int k = nbr_start_[i]; k < nbr_start_[i + 1]; ++k) {
+        F2.row(i) += F.row(nbr_[k]);
+        A2[i] += A[nbr_[k]];
+      }
+    F.swap(F2);
+    A.swap(A2);
+  }
+
+  // 2. Per-node move from friction and mobility (stability-capped), plus inertia.
+  Points move = Points::Zero(n, 3), normal = Points::Zero(n, 3);
+  int limited = 0;
   for (int i = 0; i < n; ++i) {
-    const int v = nodes_[i];
-    const Eigen::Vector3d X = rest_.row(i).transpose();
-    const Eigen::Vector3d ui = u.segment<3>(3 * v);
-    const Eigen::Vector3d x = X + ui;
-    if (held_flag_[i] || !(weight_[i] > 0)) {
-      targets_.row(i) = ui.transpose();
-      velocity_.row(i).setZero();
-      ++stuck;
-      continue;
-    }
-    // Applied load on the node (the reaction is its negative).
-    Eigen::Vector3d load = f_el.segment<3>(3 * v) + mass[v] * g;
-    if (f_ext) load += f_ext->segment<3>(3 * v);
+    if (!movable(i)) continue;
+    const Eigen::Vector3d x = rest_.row(i).transpose() + u.segment<3>(3 * nodes_[i]);
     const Eigen::Vector3d nrm = surface_->normal(x);
-    if (nrm.isZero()) {
-      targets_.row(i) = ui.transpose();
-      ++stuck;
-      continue;
-    }
-    const double fn = load.dot(nrm);
-    const Eigen::Vector3d ft = load - fn * nrm;
-    const double tau_n = std::abs(fn) / area_[i], tau_t = ft.norm() / area_[i];
+    if (nrm.isZero()) continue;
+    normal.row(i) = nrm.transpose();
+    const Eigen::Vector3d tau = F.row(i).transpose() / A[i];
+    const double tn = tau.dot(nrm);
+    const Eigen::Vector3d tt = tau - tn * nrm;
+    const double tau_n = std::abs(tn), tau_t = tt.norm();
     const Eigen::Vector3d v_prev = velocity_.row(i).transpose();
     const Eigen::Vector3d v_prev_t = v_prev - v_prev.dot(nrm) * nrm;
     const bool was_moving = v_prev_t.squaredNorm() > 0;
-    // Force-driven move (stability-capped), plus the share of the last velocity kept (inertia).
-    Eigen::Vector3d move = Eigen::Vector3d::Zero();
-    if (was_moving || tau_t > s.static_friction * tau_n + s.static_threshold_pa) {
-      const double drive = std::max(0.0, tau_t - s.kinetic_friction * tau_n - s.static_threshold_pa);
-      if (tau_t > 0 && drive > 0) {
-        double len = dt * (1.0 - s.inertia) * weight_[i] * s.mobility_m_per_pa_s * drive;
-        // Stiffness of the node along its driving direction t: tᵀ K_ii t [N/m].
-        const double kt = have_k ? Eigen::Map<const Eigen::Matrix3d>(&stiffness_[9 * i]).transpose()
-                                       .operator*(ft / ft.norm()).dot(ft / ft.norm())
-                                 : 0.0;
-        if (kt > 0 && s.stiffness_safety > 0) {
-          const double stable = drive * area_[i] / (s.stiffness_safety * kt);
-          if (len > stable) {
-            len = stable;
-            ++limited;
-          }
+    if (!(was_moving || tau_t > s.static_friction * tau_n + s.static_threshold_pa)) continue;
+    Eigen::Vector3d m = Eigen::Vector3d::Zero();
+    const double drive = std::max(0.0, tau_t - s.kinetic_friction * tau_n - s.static_threshold_pa);
+    if (tau_t > 0 && drive > 0) {
+      const Eigen::Vector3d t = tt / tau_t;
+      double len = dt * (1.0 - s.inertia) * weight_[i] * s.mobility_m_per_pa_s * drive;
+      // Stiffness of the node along its driving direction: tᵀ K_ii t [N/m].
+      const double kt = have_k ? t.dot(Eigen::Map<const Eigen::Matrix3d>(&stiffness_[9 * i]).transpose() * t) : 0.0;
+      if (kt > 0 && s.stiffness_safety > 0) {
+        const double stable = drive * area_[i] / (s.stiffness_safety * kt);
+        if (len > stable) {
+          len = stable;
+          ++limited;
         }
-        move = (len / ft.norm()) * ft;
       }
-      move += dt * s.inertia * v_prev_t;
+      m = len * t;
     }
-    const double len = move.norm();
-    if (len > s.max_step_m) move *= s.max_step_m / len;
-    if (!(move.squaredNorm() > 0)) {
-      targets_.row(i) = ui.transpose();
-      velocity_.row(i).setZero();
-      ++stuck;
-      continue;
+    m += dt * s.inertia * v_prev_t;
+    move.row(i) = m.transpose();
+  }
+
+  // 3. Rim and rim-band nodes follow their neighbours of a lower level (the rim follows the wall
+  //    nodes next to it, the band the rim), level by level.
+  int rim = 0;
+  if (s.rim_follows_neighbours) {
+    const int max_level = n > 0 ? *std::max_element(rim_level_.begin(), rim_level_.end()) : 0;
+    for (int lv = 1; lv <= max_level; ++lv)
+      for (int i = 0; i < n; ++i) {
+        if (rim_level_[i] != lv || !movable(i) || normal.row(i).isZero()) continue;
+        Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+        int cnt = 0;
+        for (int k = nbr_start_[i]; k < nbr_start_[i + 1]; ++k)
+          if (rim_level_[nbr_[k]] < lv) {
+            sum += move.row(nbr_[k]).transpose();
+            ++cnt;
+          }
+        if (cnt == 0) continue;
+        const Eigen::Vector3d nrm = normal.row(i).transpose();
+        sum /= cnt;
+        move.row(i) = (sum - sum.dot(nrm) * nrm).transpose();
+        ++rim;
+      }
+  }
+
+  // 4. Smoothing of the move field (held nodes take part with 0), back into each tangent plane.
+  for (int it = 0; it < s.move_smoothing_iterations; ++it) {
+    Points next = move;
+    for (int i = 0; i < n; ++i) {
+      if (!movable(i) || normal.row(i).isZero()) continue;
+      const int deg = nbr_start_[i + 1] - nbr_start_[i];
+      if (deg == 0) continue;
+      Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+      for (int k = nbr_start_[i]; k < nbr_start_[i + 1]; ++k) mean += move.row(nbr_[k]).transpose();
+      mean /= deg;
+      const Eigen::Vector3d nrm = normal.row(i).transpose();
+      Eigen::Vector3d m = 0.5 * (move.row(i).transpose() + mean);
+      m -= m.dot(nrm) * nrm;
+      next.row(i) = m.transpose();
     }
-    Eigen::Vector3d y = x + move;
-    bool cap = false;
+    move.swap(next);
+  }
+
+  // 5. Scale, step cap, permissible shift, projection onto the node's rest level of the wall.
+  Points proposed(n, 3), current(n, 3);
+  std::vector<char> ok(n, 0), cap(n, 0);
+  int failures = 0;
+#pragma omp parallel for schedule(static) reduction(+ : failures)
+  for (int i = 0; i < n; ++i) {
+    const Eigen::Vector3d X = rest_.row(i).transpose();
+    const Eigen::Vector3d x = X + u.segment<3>(3 * nodes_[i]);
+    current.row(i) = x.transpose();
+    proposed.row(i) = x.transpose();
+    Eigen::Vector3d m = scale * move.row(i).transpose();
+    const double len = m.norm();
+    if (len > s.max_step_m) m *= s.max_step_m / len;
+    if (!movable(i) || !(m.squaredNorm() > 0)) continue;
+    Eigen::Vector3d y = x + m;
     if (s.max_slide_m > 0) {
       const double limit = weight_[i] * s.max_slide_m;
       const Eigen::Vector3d d = y - X;
       if (d.norm() > limit) {
         y = X + d * (limit / d.norm());
-        cap = true;
+        cap[i] = 1;
       }
     }
     const WallProjection p = surface_->project(y, h0_[i], s.projection_iterations, s.projection_tolerance_m);
     if (!p.converged && p.residual_m > 1e-5) {  // keep the old constraint rather than a bad point
-      targets_.row(i) = ui.transpose();
-      velocity_.row(i).setZero();
       ++failures;
       continue;
     }
-    const Eigen::Vector3d moved = p.point_m - x;
-    targets_.row(i) = (p.point_m - X).transpose();
-    velocity_.row(i) = cap ? Eigen::RowVector3d::Zero() : Eigen::RowVector3d((moved / dt).transpose());
-    ++moving;
-    capped += cap ? 1 : 0;
-    max_move = std::max(max_move, moved.norm());
-    max_slide = std::max(max_slide, (p.point_m - X).norm());
-    max_pen = std::max(max_pen, -surface_->signedDistance(p.point_m));
+    proposed.row(i) = p.point_m.transpose();
+    ok[i] = 1;
   }
-  // Slides of nodes that did not move this step count for the maximum too.
+
+  // 6. Volume guard on the wall elements: halve the moves of an element's sliding nodes while it
+  //    would shrink below min_volume_fraction of its rest volume (or invert); six halvings, then hold.
+  std::vector<double> factor(n, 1.0);
+  std::vector<char> guarded(n, 0);
+  int guard_held = 0;
+  const int m_tets = static_cast<int>(wall_tets_.size());
+  for (int round = 0; round <= 6; ++round) {
+    std::vector<char> shrink(n, 0);
+    bool any = false;
+    for (int e = 0; e < m_tets; ++e) {
+      const Eigen::Vector4i& tv = wall_tets_[e];
+      const Eigen::Vector4i& sl = wall_slots_[e];
+      bool moves = false;
+      for (int c = 0; c < 4; ++c) moves = moves || (sl[c] >= 0 && ok[sl[c]] && factor[sl[c]] > 0);
+      if (!moves) continue;
+      Eigen::Vector3d pc[4], pt[4];
+      for (int c = 0; c < 4; ++c) {
+        const int i = sl[c];
+        if (i < 0) {
+          pc[c] = pt[c] = mesh_rest_.row(tv[c]).transpose() + u.segment<3>(3 * tv[c]);
+        } else {
+          pc[c] = current.row(i).transpose();
+          pt[c] = ok[i] ? Eigen::Vector3d(pc[c] + factor[i] * (proposed.row(i) - current.row(i)).transpose()) : pc[c];
+        }
+      }
+      const double v_new = tetVolume(pt[0], pt[1], pt[2], pt[3]);
+      const double v_now = tetVolume(pc[0], pc[1], pc[2], pc[3]);
+      if (v_new >= s.min_volume_fraction * wall_rest_volume_[e] && v_new > 0) continue;
+      if (v_new >= v_now && v_new > 0) continue;  // the move does not shrink it
+      any = true;
+      for (int c = 0; c < 4; ++c)
+        if (sl[c] >= 0 && ok[sl[c]]) shrink[sl[c]] = 1;
+    }
+    if (!any) break;
+    for (int i = 0; i < n; ++i)
+      if (shrink[i]) {
+        guarded[i] = 1;
+        factor[i] = round < 6 ? 0.5 * factor[i] : 0.0;
+      }
+  }
+
+  // 7. The new targets.
+  int moving = 0, stuck = 0, capped = 0, guard_limited = 0;
+  double max_move = 0, max_slide = 0, max_pen = 0;
+  for (int i = 0; i < n; ++i) {
+    const Eigen::Vector3d X = rest_.row(i).transpose();
+    const Eigen::Vector3d x = current.row(i).transpose();
+    if (guarded[i]) {
+      ++guard_limited;
+      if (factor[i] == 0) ++guard_held;
+    }
+    if (!ok[i] || factor[i] == 0) {
+      targets_.row(i) = (x - X).transpose();
+      velocity_.row(i).setZero();
+      ++stuck;
+      continue;
+    }
+    const Eigen::Vector3d y = x + factor[i] * (proposed.row(i).transpose() - x);
+    const Eigen::Vector3d moved = y - x;
+    targets_.row(i) = (y - X).transpose();
+    velocity_.row(i) = cap[i] || guarded[i] ? Eigen::RowVector3d::Zero() : Eigen::RowVector3d((moved / dt).transpose());
+    ++moving;
+    capped += cap[i];
+    max_move = std::max(max_move, moved.norm());
+    max_pen = std::max(max_pen, -surface_->signedDistance(y));
+  }
   for (int i = 0; i < n; ++i) max_slide = std::max(max_slide, targets_.row(i).norm());
   SlidingStepStats st;
   st.moving = moving;
@@ -361,6 +623,10 @@ SlidingStepStats ChestWallSliding::update(const Eigen::VectorXd& u, const Eigen:
   st.capped = capped;
   st.stiffness_limited = limited;
   st.projection_failures = failures;
+  st.guard_limited = guard_limited;
+  st.guard_held = guard_held;
+  st.rim_nodes = rim;
+  st.move_scale = scale;
   st.max_move_m = max_move;
   st.max_slide_m = max_slide;
   st.max_penetration_m = std::max(0.0, max_pen);
@@ -368,9 +634,95 @@ SlidingStepStats ChestWallSliding::update(const Eigen::VectorXd& u, const Eigen:
   return st;
 }
 
+SlidingStepStats ChestWallSliding::afterStep(StiffeningSimulation& stiff, const StiffeningStepResult& r) {
+  const auto t0 = std::chrono::steady_clock::now();
+  DynamicSimulator& sim = stiff.simulator();
+  if (sim.numNodes() != num_mesh_nodes_)
+    throw std::invalid_argument("ChestWallSliding::afterStep: the simulator has " + std::to_string(sim.numNodes()) +
+                                " nodes, the mesh " + std::to_string(num_mesh_nodes_));
+  const Eigen::VectorXd& u = sim.state().displacement_m;
+  const int n = static_cast<int>(nodes_.size());
+  SlidingStepStats st;
+  if (!r.advanced) {
+    // The call could not advance: the state is where it started.
+    st.taken_back = true;
+    if (last_moved_) {
+      // The pending move is the suspect: no α saves an inversion that the targets force. Undo the
+      // α escalation of the failed call (state, moduli, controller of the last accepted step) and
+      // take half the move back; hold the wall once the scale is exhausted.
+      if (stiff.historySize() > 0) stiff.revertTo(0);
+      move_scale_ *= 0.25;
+      const bool hold = move_scale_ < settings_.min_move_scale;
+      for (int i = 0; i < n; ++i) {
+        const Eigen::RowVector3d now = u.segment<3>(3 * nodes_[i]).transpose();
+        targets_.row(i) = hold ? now : Eigen::RowVector3d(now + 0.5 * (targets_.row(i) - now));
+        st.max_move_m = std::max(st.max_move_m, (targets_.row(i) - now).norm());
+      }
+      velocity_.setZero();
+      if (hold) {
+        move_scale_ = settings_.min_move_scale;
+        last_moved_ = false;
+        st.held_wall = true;
+      }
+      sim.setNodeTargets(nodes_, targets_);
+    }
+    for (int i = 0; i < n; ++i) st.max_slide_m = std::max(st.max_slide_m, targets_.row(i).norm());
+    st.move_scale = move_scale_;
+    st.seconds = since(t0);
+    return st;
+  }
+  move_scale_ = r.reversals > 0 && last_moved_ ? std::max(settings_.min_move_scale, 0.5 * move_scale_)
+                                               : std::min(1.0, 1.25 * move_scale_);
+  Eigen::VectorXd load = -sim.constraintForces();
+  st = updateFromLoads(u, load, sim.params().time_step_s, move_scale_);
+  last_moved_ = st.max_move_m > 0;
+  sim.setNodeTargets(nodes_, targets_);
+  st.seconds = since(t0);
+  return st;
+}
+
+void ChestWallSliding::setTargets(DynamicSimulator& sim, const Points& targets_m) {
+  if (targets_m.rows() != static_cast<Eigen::Index>(nodes_.size()) || !targets_m.allFinite())
+    throw std::invalid_argument("ChestWallSliding::setTargets: " + std::to_string(targets_m.rows()) +
+                                " rows given; expected " + std::to_string(nodes_.size()) +
+                                " finite rows, one per node of nodes()");
+  targets_ = targets_m;
+  velocity_.setZero();
+  last_moved_ = true;
+  sim.setNodeTargets(nodes_, targets_);
+}
+
 Points ChestWallSliding::slidingVectors() const {
   Points out = Points::Zero(num_mesh_nodes_, 3);
   for (size_t i = 0; i < nodes_.size(); ++i) out.row(nodes_[i]) = targets_.row(i);
+  return out;
+}
+
+StiffSlidingSettleResult settleWithSlidingAndStiffening(
+    StiffeningSimulation& stiff, ChestWallSliding& sliding, int max_calls, double increment_tolerance_m,
+    int consecutive_steps, const std::function<void(int, const StiffeningStepResult&, const SlidingStepStats&)>& progress) {
+  if (max_calls < 1) bad("settleWithSlidingAndStiffening max_calls", max_calls, "≥ 1");
+  if (!(increment_tolerance_m > 0))
+    bad("settleWithSlidingAndStiffening increment_tolerance_m", increment_tolerance_m, "> 0 [m]");
+  if (consecutive_steps < 1) bad("settleWithSlidingAndStiffening consecutive_steps", consecutive_steps, "≥ 1");
+  StiffSlidingSettleResult out;
+  const auto t0 = std::chrono::steady_clock::now();
+  int quiet = 0;
+  while (out.calls < max_calls) {
+    const StiffeningStepResult r = stiff.step();
+    ++out.calls;
+    const SlidingStepStats st = sliding.afterStep(stiff, r);
+    out.sliding_seconds += st.seconds;
+    out.take_backs += st.taken_back ? 1 : 0;
+    out.max_slide_m = st.max_slide_m;
+    if (progress) progress(out.calls, r, st);
+    quiet = r.advanced && stiff.stats().settled && st.max_move_m <= increment_tolerance_m ? quiet + 1 : 0;
+    if (quiet >= consecutive_steps) {
+      out.settled = true;
+      break;
+    }
+  }
+  out.seconds = since(t0);
   return out;
 }
 

@@ -55,6 +55,7 @@
 
 #include "breast_sim/core/fem/dynamic_simulator.h"
 #include "breast_sim/core/image/label_image.h"
+#include "breast_sim/core/material/stiffening.h"
 #include "breast_sim/core/mesh/tet_mesh.h"
 #include "breast_sim/core/model/tissue_labels.h"
 #include "breast_sim/core/sliding/chest_wall_surface.h"
@@ -93,6 +94,35 @@ struct SlidingSettings {
   /// Permissible total slide at weight 1 [m]; a node's slide is capped at w_i times this; 0 = no cap.
   double max_slide_m = 0.03;
 
+  // Robustness of the constraint moves (both update() and afterStep()); see the file comment.
+  /// Rings of area-weighted traction averaging over the wall graph (a node and its wall neighbours):
+  /// τ_i = Σ_j f_j / Σ_j A_j over the ring. Nodal reactions of an unstructured mesh vary from node to
+  /// node far more than the traction they sample; in [0, 20], 0 = none.
+  int traction_smoothing_rings = 1;
+  /// Jacobi sweeps of neighbour averaging of the move field, m_i ← (m_i + mean_j m_j) / 2 (held
+  /// nodes take part with move 0, so moving regions blend into held ones); in [0, 50], 0 = none.
+  int move_smoothing_iterations = 2;
+  /// Rim nodes (in both the sliding set and `skin`: where the skin meets the wall) take the mean
+  /// move of their non-rim wall neighbours instead of their own: their reaction carries the skin's
+  /// pull, not the wall's traction.
+  bool rim_follows_neighbours = true;
+  /// Rim band: the skin nodes within max_wall_distance_m of the wall that are joined to the rim
+  /// through skin nodes join the sliding set (held at their rest distance from the wall, following
+  /// the rim like it follows the wall). Without it, the skin next to the rim folds onto the wall as
+  /// the breast spreads: a free skin node is pushed through the rim triangle of a sliver whose three
+  /// other corners are constrained, an inversion no α prevents (measured: rim elements flattened to
+  /// 2 % of their rest volume over accepted steps, then inverting at E_r = 1e6).
+  bool rim_band = true;
+  /// Volume guard [-], in [0, 1): a move may not take a wall element (one with a sliding node) below
+  /// this fraction of its rest volume unless the element grows; the moves of its sliding nodes are
+  /// halved until it holds (at most 6 times, then they are not moved). 0 = only non-inversion.
+  double min_volume_fraction = 0.3;
+  /// afterStep(): the moves are scaled by a factor s in [min_move_scale, 1] that is halved after a
+  /// stiffening call whose step reversed (the move may have caused it) and grows by 1.25 after clean
+  /// steps; a call that could not advance takes the last move back by half (and s by a quarter)
+  /// until s < min_move_scale, then holds the wall. In (0, 1].
+  double min_move_scale = 1.0 / 64.0;
+
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
 };
@@ -107,8 +137,14 @@ struct SlidingStepStats {
   double max_move_m = 0.0;      ///< largest constraint move of this step [m]
   double max_slide_m = 0.0;     ///< largest total slide [m]
   double max_penetration_m = 0.0;  ///< largest max(0, −h) over the targets [m] (0 = none inside)
+  int guard_limited = 0;        ///< moves shortened by the volume guard
+  int guard_held = 0;           ///< of which not moved at all (six halvings were not enough)
+  int rim_nodes = 0;            ///< rim nodes that followed their neighbours
+  double move_scale = 1.0;      ///< afterStep(): scale s of this step's moves
+  bool taken_back = false;      ///< afterStep(): the stiffening call did not advance; the last move was shrunk
+  bool held_wall = false;       ///< afterStep(): … and the wall is now held at its current position
   double seconds = 0.0;         ///< the update without the elastic forces [s]
-  double force_seconds = 0.0;   ///< DynamicSimulator::elasticForces() in update(sim) [s]
+  double force_seconds = 0.0;   ///< DynamicSimulator::elasticForces() in update(sim) [s] (0 in afterStep)
 };
 
 /// The sliding constraints of one node set on one chest wall.
@@ -147,6 +183,44 @@ class ChestWallSliding {
   SlidingStepStats update(const Eigen::VectorXd& displacement_m, const Eigen::VectorXd& elastic_forces_n,
                           const Eigen::VectorXd& mass_kg, const Eigen::Vector3d& gravity_mps2, double dt_s,
                           const Eigen::VectorXd* external_forces_n = nullptr);
+  /// The update from the loads the nodes put on the wall: u (3N [m]), loads (3N [N], e.g.
+  /// −DynamicSimulator::constraintForces()), dt [s], move scale in (0, 1].
+  SlidingStepStats updateFromLoads(const Eigen::VectorXd& displacement_m, const Eigen::VectorXd& wall_loads_n,
+                                   double dt_s, double move_scale = 1.0);
+
+  /// The sliding step of the combined loop (seed Figure 2), called after EVERY
+  /// StiffeningSimulation::step() (constraints attach()ed to stiff.simulator() first):
+  ///  - the call advanced: the constraints move by the load the nodes put on the wall, read from the
+  ///    step's constraint reactions (load = −sim.constraintForces(): the reaction of the constraint
+  ///    rows, inertia and damping of the wall nodes included; no extra elastic-force evaluation),
+  ///    scaled by the move scale s (halved if the call reversed a step, else ×1.25 up to 1), with the
+  ///    volume guard on the wall elements;
+  ///  - the call could not advance (reversal limit): if the wall moved last time, that move is taken
+  ///    to be the cause (no α saves an inversion that the targets force): stiff.revertTo(0) undoes the
+  ///    α escalation of the failed call, the pending move is halved and s quartered; once s falls
+  ///    below min_move_scale the wall is held where it is. If the wall did not move, the failure is
+  ///    not sliding's: nothing changes (α keeps rising as the seed's loop wants).
+  /// The simulator never keeps targets that the guard did not pass. Usage:
+  /// @code
+  ///   StiffeningSimulation stiff(sim, mesh);
+  ///   ChestWallSliding sliding = ChestWallSliding::fromCase(model_case, mesh, SlidingSettings{});
+  ///   sliding.attach(sim);
+  ///   for (int k = 0; k < max_calls; ++k) {
+  ///     // (morphing forces, if any, go to sim.addNodalForces() before the step)
+  ///     const StiffeningStepResult r = stiff.step();
+  ///     const SlidingStepStats s = sliding.afterStep(stiff, r);
+  ///     if (r.advanced && stiff.stats().settled && s.max_move_m < 1e-5) break;
+  ///   }
+  ///   Points arrows = sliding.slidingVectors();  // per node [m]
+  /// @endcode
+  /// @throws std::invalid_argument if stiff's simulator does not match the mesh.
+  SlidingStepStats afterStep(StiffeningSimulation& stiff, const StiffeningStepResult& r);
+  double moveScale() const { return move_scale_; }  ///< s of afterStep()
+  /// Prescribes the constraint targets [m] (one row per node of nodes(), displacement from rest) and
+  /// hands them to the simulator, unchecked (no guard, no projection): a wall moved from outside,
+  /// e.g. a repositioned patient. afterStep() treats it like its own move: taken back if the next
+  /// stiffening call cannot advance. @throws std::invalid_argument for a wrong row count.
+  void setTargets(DynamicSimulator& sim, const Points& targets_m);
 
   const std::vector<int>& nodes() const { return nodes_; }
   const SlidingSettings& settings() const { return settings_; }
@@ -170,6 +244,12 @@ class ChestWallSliding {
   Eigen::Vector2d gaussianSigma() const { return gaussian_sigma_; }  ///< (σu, σv) [m]
   /// The bimodal Gaussian weight z(u, v) at a point (clamped to [0, 1]).
   double gaussianWeight(const Eigen::Vector3d& p_m) const;
+  /// Centres of the Gaussian modes [m]: each nipple's foot point on the wall (the closest point of
+  /// the chest-wall boundary triangles at rest, i.e. along the wall normal), not the nipple
+  /// projected along the anterior direction (which a curved wall shifts laterally).
+  const std::vector<Eigen::Vector3d>& gaussianCentres() const { return centre_points_; }
+  /// Rim and rim-band nodes (sliding nodes that are also skin nodes), 0/1 per node of nodes().
+  const std::vector<char>& rimFlags() const { return rim_flag_; }
 
  private:
   SlidingSettings settings_;
@@ -177,6 +257,7 @@ class ChestWallSliding {
   std::vector<int> nodes_;
   int num_mesh_nodes_;
   Points rest_;          // rest positions of the sliding nodes
+  Points mesh_rest_;     // rest positions of all mesh nodes (volume guard)
   Points targets_;       // target displacements
   Points velocity_;      // constraint velocities [m/s]
   Eigen::VectorXd stiffness_;
@@ -186,7 +267,18 @@ class ChestWallSliding {
   Eigen::Vector3d plane_origin_ = Eigen::Vector3d::Zero(), plane_u_ = Eigen::Vector3d::UnitX(),
                   plane_v_ = Eigen::Vector3d::UnitZ();
   std::vector<Eigen::Vector2d> centres_;
+  std::vector<Eigen::Vector3d> centre_points_;
   Eigen::Vector2d gaussian_sigma_ = Eigen::Vector2d::Ones();
+  // Wall graph (CSR over slots: sliding nodes joined by a tet edge), rim flags, and the wall
+  // elements for the volume guard: tet nodes, slot per corner (−1 = not sliding), rest volume.
+  std::vector<int> nbr_start_, nbr_;
+  std::vector<char> rim_flag_;
+  std::vector<int> rim_level_;  // 0 wall, 1 rim (wall and skin), 2… rim band rings
+  std::vector<Eigen::Vector4i> wall_tets_, wall_slots_;
+  std::vector<double> wall_rest_volume_;
+  // afterStep(): move scale and whether the last call moved the wall.
+  double move_scale_ = 1.0;
+  bool last_moved_ = false;
 };
 
 /// Runs steps with a sliding update after each until both the largest nodal displacement change
@@ -203,6 +295,22 @@ struct SlidingSettleResult {
   double last_increment_m = 0.0;
   double max_slide_m = 0.0;
 };
+/// The combined loop with stiffening: stiff.step() then sliding.afterStep() until the stiffening
+/// settle criterion holds on an advanced call and no constraint moved more than
+/// increment_tolerance_m [m] for consecutive_steps calls in a row, or max_calls calls.
+struct StiffSlidingSettleResult {
+  bool settled = false;
+  int calls = 0;                 ///< stiffening calls
+  int take_backs = 0;            ///< calls that could not advance and took the move back
+  double seconds = 0.0;          ///< wall time [s]
+  double sliding_seconds = 0.0;  ///< of which in afterStep() [s]
+  double max_slide_m = 0.0;      ///< at the end [m]
+};
+StiffSlidingSettleResult settleWithSlidingAndStiffening(
+    StiffeningSimulation& stiff, ChestWallSliding& sliding, int max_calls, double increment_tolerance_m,
+    int consecutive_steps = 3,
+    const std::function<void(int, const StiffeningStepResult&, const SlidingStepStats&)>& progress = {});
+
 SlidingSettleResult settleWithSliding(DynamicSimulator& sim, ChestWallSliding& sliding, int max_steps,
                                       double increment_tolerance_m, int consecutive_steps = 2,
                                       const std::function<void(int, double, const SlidingStepStats&)>& progress = {});
