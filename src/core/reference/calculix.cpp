@@ -29,15 +29,15 @@ namespace fs = std::filesystem;
 
 namespace {
 
-/// Node coordinates: 17 significant digits (a double exactly).
+/// Numbers in messages.
 std::string num(double v) {
   char buf[40];
   std::snprintf(buf, sizeof buf, "%.17g", v);
   return buf;
 }
 
-/// Material, increment and load values: CalculiX reads these fields with at most 20 characters
-/// ("*ERROR reading *STATIC" otherwise), so 14 significant digits ("-1.2345678901234e-05").
+/// Numbers in the deck: CalculiX reads a field of at most 20 characters ("*ERROR reading *NODE" /
+/// "*STATIC" otherwise), so 14 significant digits ("-1.2345678901234e-05"): 1e-14 relative.
 std::string par(double v) {
   char buf[40];
   std::snprintf(buf, sizeof buf, "%.14g", v);
@@ -143,7 +143,7 @@ std::string calculixInputDeck(const TetMesh& mesh, const CalculixLoadCase& load)
   s += "*NODE, NSET=NALL\n";
   const Points& X = mesh.nodes();
   for (int n = 0; n < N; ++n)
-    s += std::to_string(n + 1) + ", " + num(X(n, 0)) + ", " + num(X(n, 1)) + ", " + num(X(n, 2)) + "\n";
+    s += std::to_string(n + 1) + ", " + par(X(n, 0)) + ", " + par(X(n, 1)) + ", " + par(X(n, 2)) + "\n";
 
   // C3D10: mid-edge nodes N+1, … in order of first appearance; CalculiX's node order is
   // corners 1–4, then edges 1-2, 2-3, 3-1, 1-4, 2-4, 3-4.
@@ -164,7 +164,7 @@ std::string calculixInputDeck(const TetMesh& mesh, const CalculixLoadCase& load)
         auto [it, inserted] = edge_id.emplace(key, next);
         if (inserted) {
           const Eigen::Vector3d m = 0.5 * (X.row(a) + X.row(b)).transpose();
-          s += std::to_string(next) + ", " + num(m.x()) + ", " + num(m.y()) + ", " + num(m.z()) + "\n";
+          s += std::to_string(next) + ", " + par(m.x()) + ", " + par(m.y()) + ", " + par(m.z()) + "\n";
           if (is_fixed[a] && is_fixed[b]) fixed_mid.push_back(next);
           ++next;
         }

@@ -2,7 +2,15 @@
 
 #include "breast_sim/core/reference/reference_case.h"
 
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
 #include <stdexcept>
+
+#include <unistd.h>
+
+#include "breast_sim/core/mesh/mesh_io.h"
 
 #include "breast_sim/core/model/phantom.h"
 
@@ -24,6 +32,47 @@ Eigen::Vector3d gravityLoad(const ModelCase& c, GravityLoadCase which, double g)
   if (which == GravityLoadCase::kProneHanging) return prone;
   const Eigen::Vector3d supine = c.phantom ? Eigen::Vector3d(c.phantom->gravity_supine_mps2) : Eigen::Vector3d(-prone);
   return supine - prone;
+}
+
+SimulationModel cachedSimulationModel(const ModelCase& c, const std::string& cache_dir, bool* from_cache) {
+  namespace fs = std::filesystem;
+  if (from_cache) *from_cache = false;
+  if (cache_dir.empty()) return buildSimulationModel(c);
+  std::ostringstream k;
+  k.precision(17);
+  if (!c.source_path.empty()) {
+    std::ifstream f(c.source_path);
+    k << f.rdbuf();
+  } else {
+    k << c.name;
+  }
+  const MeshingOptions& o = c.meshing;
+  k << "|" << o.target_elements << "," << o.interior_size_m << "," << o.skin_size_factor << "," << o.grading_distance_m
+    << "," << o.lesion_size_factor << "," << o.lesion_grading_distance_m << "," << o.facet_angle_deg << ","
+    << o.facet_distance_m << "," << o.cell_radius_edge_ratio << "," << o.perturb << o.exude << ","
+    << o.min_island_volume_fraction << "|" << c.lesion_snap_tolerance_m;
+  for (const Lesion& l : c.lesions) k << "|" << l.name << "," << l.position_m.transpose() << "," << l.radius_m;
+  const fs::path file = fs::path(cache_dir) / (referenceCacheKey(k.str()) + ".model.vtu");
+  Points lesion_points(static_cast<Eigen::Index>(c.lesions.size()), 3);
+  std::vector<std::string> names;
+  for (std::size_t i = 0; i < c.lesions.size(); ++i) {
+    lesion_points.row(i) = c.lesions[i].position_m.transpose();
+    names.push_back(c.lesions[i].name);
+  }
+  if (fs::exists(file)) {
+    SimulationModel m;
+    m.mesh = readTetMesh(file.string());
+    m.lesions = c.lesions;
+    m.lesion_embedding = PointEmbedding(m.mesh, lesion_points, names, c.lesion_snap_tolerance_m);
+    if (from_cache) *from_cache = true;
+    return m;
+  }
+  SimulationModel m = buildSimulationModel(c);
+  fs::create_directories(cache_dir);
+  const fs::path tmp = file.string() + ".tmp" + std::to_string(::getpid()) + ".vtu";
+  writeTetMesh(tmp.string(), m.mesh);
+  fs::rename(tmp, file);
+  return m;
 }
 
 CalculixLoadCase referenceLoadCase(const SimulationSettings& s, const Eigen::Vector3d& g, ReferenceElement element) {

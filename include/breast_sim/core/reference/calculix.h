@@ -20,7 +20,8 @@
 /// chest wall (a node set) is fixed by `*BOUNDARY`.
 ///
 /// Results are cached (a solve of a 300k-element model takes minutes): the key is a 64-bit FNV-1a
-/// hash of the complete input deck, which holds every node coordinate (17 significant digits),
+/// hash of the complete input deck, which holds every node coordinate (14 significant digits, the
+/// most CalculiX's 20-character fields take),
 /// element, material constant, boundary condition and load, so any change to the mesh, material
 /// or load makes a new key.
 

@@ -37,6 +37,17 @@ GravityLoadCase gravityLoadCaseFromName(const std::string& name);
 /// @throws std::invalid_argument for a non-positive magnitude or a zero prone direction.
 Eigen::Vector3d gravityLoad(const ModelCase& model_case, GravityLoadCase which, double g_mps2);
 
+/// The case's simulation model, kept in a cache folder so that a cached reference solve can be used
+/// again: meshing is not repeatable from run to run (CGAL's sliver perturbation and exudation stop
+/// on time limits), and a reference belongs to one mesh. The key hashes the case file's text (or
+/// the case name without a file), the meshing options and the lesions; the mesh is stored as
+/// `<key>.model.vtu` (node sets and region labels included). Lesions are embedded again on loading.
+/// @param cache_dir  "" = no cache (meshes every time)
+/// @param from_cache if not null, set to whether the mesh came from the cache
+/// @throws as buildSimulationModel, and std::runtime_error for an unreadable cached mesh.
+SimulationModel cachedSimulationModel(const ModelCase& model_case, const std::string& cache_dir,
+                                      bool* from_cache = nullptr);
+
 /// The CalculiX problem matching a simulation's settings: its material, its fixed node set, the
 /// given gravity load, neo-Hookean with NLGEOM.
 CalculixLoadCase referenceLoadCase(const SimulationSettings& settings, const Eigen::Vector3d& gravity_mps2,

@@ -1,0 +1,367 @@
+// Speed against accuracy (issue 9): our settled gravity states against an independent CalculiX
+// reference (neo-Hookean, NLGEOM; reference/calculix.h), two studies:
+//
+//  locking  at one mesh, error against Poisson's ratio ν: our co-rotated linear tetrahedra (settled
+//           tightly with CHOLMOD: no solver error), CalculiX C3D4 (the same elements, neo-Hookean)
+//           and CalculiX C3D10 (quadratic tetrahedra on the same corners: the locking-free
+//           reference). Errors are against C3D10.
+//  sweep    element counts × methods: compute time to a settled state [s] against the error of the
+//           settled displacement [mm] with respect to the reference on the finest mesh
+//           (--reference-target, --reference-element), interpolated at our nodes. Methods:
+//             linear/multigrid                linear FEM (no rotations), multigrid-PCG, settle()
+//             corotated/multigrid             co-rotated FEM, multigrid-PCG, settle()
+//             corotated/cholmod               co-rotated FEM, CHOLMOD, settle()
+//             corotated+stiffening/multigrid  von Mises stiffening with time-step reversal (the main job)
+//             corotated+stiffening/cholmod    the same with CHOLMOD
+//           Time = the settling steps (the simulator's set-up — multigrid hierarchy, CHOLMOD
+//           analysis — is listed beside it, not included; meshing is listed too).
+//
+//   bench_speed_accuracy [--study locking|sweep|all] [--case FILE] [--load supine|hanging]
+//        [--targets 5000,10000,20000,47895,99390] [--methods NAME,...] [--reference-target 99390]
+//        [--reference-element c3d10|c3d4] [--locking-target 10000] [--nus 0.3,0.4,0.45,0.48,0.49,0.495]
+//        [--ccx-threads 2] [--cache DIR] [--json FILE] [--csv FILE] [--curve-method NAME]
+//        [--lesion-target-mm 2]
+// The CalculiX results are cached (reference/calculix.h): a rerun only pays for our runs.
+#include <algorithm>
+#include <cstdio>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include <omp.h>
+
+#include <nlohmann/json.hpp>
+
+#include "bench_util.h"
+#include "breast_sim/core/fem/corotated_tet_fem.h"
+#include "breast_sim/core/fem/equilibrium.h"
+#include "breast_sim/core/fem/simulation_settings.h"
+#include "breast_sim/core/material/stiffening.h"
+#include "breast_sim/core/mesh/tet_quality.h"
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/reference/calculix.h"
+#include "breast_sim/core/reference/error_metrics.h"
+#include "breast_sim/core/reference/model_choice.h"
+#include "breast_sim/core/reference/reference_case.h"
+
+using namespace breast_sim::core;
+using namespace breast_sim::bench;
+
+namespace {
+
+std::vector<std::string> splitNames(const std::string& text) {
+  std::vector<std::string> out;
+  std::stringstream ss(text);
+  for (std::string t; std::getline(ss, t, ',');)
+    if (!t.empty()) out.push_back(t);
+  return out;
+}
+
+Points lesionPoints(const ModelCase& c) {
+  Points p(static_cast<Eigen::Index>(c.lesions.size()), 3);
+  for (std::size_t i = 0; i < c.lesions.size(); ++i) p.row(i) = c.lesions[i].position_m.transpose();
+  return p;
+}
+
+/// One settled run of our model.
+struct OurRun {
+  Points u;
+  double settle_seconds = 0, setup_seconds = 0;
+  int steps = 0;
+  bool settled = false;
+  int inverted = 0;
+  long reversed = 0;
+  double alpha = 0;
+};
+
+/// Settles the model under gravity g with a method named "<formulation>/<solver>": formulation
+/// linear | corotated | corotated+stiffening, solver multigrid | cholmod. tight = CHOLMOD-style
+/// reference settling (dt 1 s, increments below 1e-8 m).
+OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings s, const Eigen::Vector3d& g,
+               const std::string& method, bool tight = false) {
+  const std::size_t slash = method.find('/');
+  if (slash == std::string::npos) throw std::invalid_argument("method '" + method + "': expected <formulation>/<solver>");
+  const std::string form = method.substr(0, slash), solver = method.substr(slash + 1);
+  if (form != "linear" && form != "corotated" && form != "corotated+stiffening")
+    throw std::invalid_argument("method '" + method + "': formulation must be linear, corotated or corotated+stiffening");
+  s.solver.kind = SolverSettings::kindFromName(solver);
+  s.dynamics.gravity_mps2 = g;
+  SimulatorBuild b = buildSimulator(c, m, s);
+  DynamicSimulator& sim = *b.simulator;
+  if (form == "linear") dynamic_cast<CorotatedTetFem&>(sim.elements()).setCorotated(false);
+  OurRun r;
+  r.setup_seconds = b.hierarchy_seconds + b.setup_seconds;
+  if (form != "corotated+stiffening") {
+    SettleOptions o = s.settle;
+    if (tight) {
+      o.time_step_s = 1.0;
+      o.increment_tolerance_m = 1e-8;
+      o.max_steps = 300;
+    }
+    const SettleResult sr = settle(sim, o);
+    r.settle_seconds = sr.seconds;
+    r.steps = sr.steps;
+    r.settled = sr.settled;
+  } else {
+    // As breast_sim_run: settling time step, stiffening driver until its settle criterion holds.
+    DynamicsParams p = sim.params();
+    if (s.settle.time_step_s > 0) p.time_step_s = s.settle.time_step_s;
+    sim.setParams(p);
+    StiffeningSimulation stiff(sim, m.mesh);
+    stiff.setGravity(g);
+    const auto t0 = Clock::now();
+    long calls = 0;
+    while (stiff.stats().steps < s.settle.max_steps && calls < 2L * s.settle.max_steps) {
+      ++calls;
+      const StiffeningStepResult sr = stiff.step();
+      if (sr.advanced && stiff.stats().settled) break;
+    }
+    r.settle_seconds = since(t0);
+    const RunStats st = stiff.stats();
+    r.steps = static_cast<int>(st.steps);
+    r.settled = st.settled;
+    r.reversed = st.reversed_steps;
+    r.alpha = st.final_alpha_per_pa;
+  }
+  r.u = sim.displacement();
+  r.inverted = static_cast<int>(invertedTets(m.mesh.tets(), m.mesh.nodes() + r.u).size());
+  return r;
+}
+
+nlohmann::json errorsJson(const DisplacementErrors& e) {
+  return {{"error_mean_mm", e.mean_mm},
+          {"error_rms_mm", e.rms_mm},
+          {"error_p95_mm", e.p95_mm},
+          {"error_max_mm", e.max_mm},
+          {"lesion_error_mm", e.lesion_error_mm},
+          {"lesion_error_max_mm", e.lesion_max_mm},
+          {"surface_distance_mean_mm", e.surface_distance_mean_mm},
+          {"surface_distance_max_mm", e.surface_distance_max_mm},
+          {"rest_surface_distance_mean_mm", e.rest_surface_distance_mean_mm},
+          {"volume_change_percent", e.volume_change_percent},
+          {"reference_volume_change_percent", e.reference_volume_change_percent},
+          {"max_displacement_mm", e.max_displacement_mm},
+          {"reference_max_displacement_mm", e.reference_max_displacement_mm}};
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string study = "all", case_file = std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml";
+  std::string load_name = "supine", ref_element = "c3d10", json_path, csv_path;
+  std::string curve_method = "corotated+stiffening/multigrid";
+  std::vector<double> targets = {5000, 10000, 20000, 47895, 99390};
+  std::vector<std::string> methods = {"linear/multigrid", "corotated/multigrid", "corotated/cholmod",
+                                      "corotated+stiffening/multigrid", "corotated+stiffening/cholmod"};
+  int reference_target = 99390, locking_target = 10000;
+  std::vector<double> nus = {0.3, 0.4, 0.45, 0.48, 0.49, 0.495};
+  double lesion_target_mm = 2.0;
+  CalculixOptions copt;
+  copt.threads = 2;
+  for (int i = 1; i < argc; ++i) {
+    const std::string k = argv[i];
+    auto value = [&]() -> std::string {
+      if (i + 1 >= argc) throw std::invalid_argument(k + " needs a value");
+      return argv[++i];
+    };
+    if (k == "--study") study = value();
+    else if (k == "--case") case_file = value();
+    else if (k == "--load") load_name = value();
+    else if (k == "--targets") targets = parseList(value());
+    else if (k == "--methods") methods = splitNames(value());
+    else if (k == "--reference-target") reference_target = std::stoi(value());
+    else if (k == "--reference-element") ref_element = value();
+    else if (k == "--locking-target") locking_target = std::stoi(value());
+    else if (k == "--nus") nus = parseList(value());
+    else if (k == "--ccx-threads") copt.threads = std::stoi(value());
+    else if (k == "--cache") copt.cache_dir = value();
+    else if (k == "--json") json_path = value();
+    else if (k == "--csv") csv_path = value();
+    else if (k == "--curve-method") curve_method = value();
+    else if (k == "--lesion-target-mm") lesion_target_mm = std::stod(value());
+    else {
+      std::fprintf(stderr,
+                   "usage: bench_speed_accuracy [--study locking|sweep|all] [--case FILE] [--load supine|hanging]\n"
+                   "         [--targets N,...] [--methods NAME,...] [--reference-target N] [--reference-element c3d10|c3d4]\n"
+                   "         [--locking-target N] [--nus 0.3,...] [--ccx-threads 2] [--cache DIR] [--json FILE] [--csv FILE]\n"
+                   "         [--curve-method NAME] [--lesion-target-mm 2]\n");
+      return 2;
+    }
+  }
+  if (!calculixAvailable(copt.executable)) {
+    std::fprintf(stderr, "bench_speed_accuracy: CalculiX (ccx) is not installed: apt-get install calculix-ccx\n");
+    return 1;
+  }
+  const ModelCase base = loadModelCase(case_file);
+  const SimulationSettings settings = loadSimulationSettings(case_file);
+  const GravityLoadCase which = gravityLoadCaseFromName(load_name);
+  const Eigen::Vector3d g = gravityLoad(base, which, settings.gravity_mps2);
+  const Points lesions = lesionPoints(base);
+  nlohmann::json out;
+  out["case"] = base.name;
+  out["load"] = load_name;
+  out["gravity_mps2"] = {g.x(), g.y(), g.z()};
+  out["threads"] = omp_get_max_threads();
+  out["ccx_threads"] = copt.threads;
+  out["youngs_modulus_pa"] = settings.material.youngs_modulus_pa;
+  out["poisson_ratio"] = settings.material.poisson_ratio;
+  std::printf("case %s, load %s: g = (%.3f, %.3f, %.3f) m/s^2, E = %.0f Pa, %d threads (ccx %d)\n", base.name.c_str(),
+              load_name.c_str(), g.x(), g.y(), g.z(), settings.material.youngs_modulus_pa, omp_get_max_threads(),
+              copt.threads);
+
+  // ---- locking ------------------------------------------------------------------------------------
+  if (study == "locking" || study == "all") {
+    ModelCase c = base;
+    c.meshing.target_elements = locking_target;
+    const SimulationModel m = cachedSimulationModel(c, copt.cache_dir);  // the mesh the cached references belong to
+    std::printf("\nLocking at %d elements (%d nodes): error against CalculiX C3D10 (neo-Hookean, NLGEOM) on the same corners\n",
+                m.mesh.numTets(), m.mesh.numNodes());
+    std::printf("%6s | %8s %8s %8s | %22s | %22s | %22s | %7s %7s\n", "nu", "ours max", "C3D4 max", "C3D10max",
+                "ours-C3D10 mean/p95/les", "C3D4-C3D10 mean/p95/les", "ours-C3D4 mean/p95/les", "ccx4[s]", "ccx10[s]");
+    nlohmann::json rows = nlohmann::json::array();
+    for (double nu : nus) {
+      SimulationSettings s = settings;
+      s.material.poisson_ratio = nu;
+      const OurRun ours = runOurs(c, m, s, g, "corotated/cholmod", /*tight=*/true);
+      const CalculixResult c4 = solveWithCalculix(m.mesh, referenceLoadCase(s, g, ReferenceElement::kC3D4), copt);
+      CalculixResult c10;
+      try {
+        c10 = solveWithCalculix(m.mesh, referenceLoadCase(s, g, ReferenceElement::kC3D10), copt);
+      } catch (const std::runtime_error& ex) {
+        // C3D10 neo-Hookean runs can stall (increment below the minimum) on these meshes: reported.
+        std::printf("%6.3f | C3D10 failed: %s\n", nu, ex.what());
+        std::fflush(stdout);
+        const DisplacementErrors e_oc4 = compareDisplacements(m.mesh, ours.u, m.mesh, c4.displacement_m, lesions);
+        rows.push_back({{"poisson_ratio", nu}, {"c3d10_failed", ex.what()}, {"ours_vs_c3d4", errorsJson(e_oc4)},
+                        {"ccx_c3d4_seconds", c4.solve_seconds}});
+        continue;
+      }
+      const DisplacementErrors e_ours = compareDisplacements(m.mesh, ours.u, m.mesh, c10.displacement_m, lesions);
+      const DisplacementErrors e_c4 = compareDisplacements(m.mesh, c4.displacement_m, m.mesh, c10.displacement_m, lesions);
+      const DisplacementErrors e_oc4 = compareDisplacements(m.mesh, ours.u, m.mesh, c4.displacement_m, lesions);
+      std::printf("%6.3f | %8.3f %8.3f %8.3f | %6.3f %6.3f %6.3f mm | %6.3f %6.3f %6.3f mm | %6.3f %6.3f %6.3f mm | %7.1f %7.1f%s\n",
+                  nu, e_ours.max_displacement_mm, e_c4.max_displacement_mm, e_ours.reference_max_displacement_mm,
+                  e_ours.mean_mm, e_ours.p95_mm, e_ours.lesion_max_mm, e_c4.mean_mm, e_c4.p95_mm, e_c4.lesion_max_mm,
+                  e_oc4.mean_mm, e_oc4.p95_mm, e_oc4.lesion_max_mm, c4.solve_seconds, c10.solve_seconds,
+                  ours.settled ? "" : "  (ours not settled)");
+      std::fflush(stdout);
+      rows.push_back({{"poisson_ratio", nu},
+                      {"ours_vs_c3d10", errorsJson(e_ours)},
+                      {"c3d4_vs_c3d10", errorsJson(e_c4)},
+                      {"ours_vs_c3d4", errorsJson(e_oc4)},
+                      {"ours_settled", ours.settled},
+                      {"ours_steps", ours.steps},
+                      {"ccx_c3d4_seconds", c4.solve_seconds},
+                      {"ccx_c3d10_seconds", c10.solve_seconds},
+                      {"ccx_c3d10_deck_nodes", c10.deck_nodes}});
+    }
+    out["locking"] = {{"target_elements", locking_target},
+                      {"elements", m.mesh.numTets()},
+                      {"nodes", m.mesh.numNodes()},
+                      {"reference", "CalculiX C3D10 neo-Hookean NLGEOM on the same corner nodes"},
+                      {"ours", "corotated/cholmod settled to 1e-8 m increments"},
+                      {"rows", rows}};
+  }
+
+  // ---- sweep --------------------------------------------------------------------------------------
+  if (study == "sweep" || study == "all") {
+    ModelCase rc = base;
+    rc.meshing.target_elements = reference_target;
+    const SimulationModel rm = cachedSimulationModel(rc, copt.cache_dir);
+    const ReferenceElement rtype = referenceElementFromName(ref_element);
+    std::printf("\nReference: CalculiX %s neo-Hookean NLGEOM on %d elements (%d nodes) ...\n",
+                referenceElementName(rtype).c_str(), rm.mesh.numTets(), rm.mesh.numNodes());
+    std::fflush(stdout);
+    const CalculixResult ref = solveWithCalculix(rm.mesh, referenceLoadCase(settings, g, rtype), copt);
+    const double ref_max = 1e3 * ref.displacement_m.rowwise().norm().maxCoeff();
+    std::printf("  %s, ccx %.1f s, %d deck nodes, largest displacement %.3f mm (key %s)\n",
+                ref.from_cache ? "from the cache" : "computed", ref.solve_seconds, ref.deck_nodes, ref_max, ref.key.c_str());
+    std::printf("%-32s %8s %7s | %8s %8s %6s %4s | %7s %7s %7s %7s %7s %6s | %4s\n", "method", "tets", "nodes", "settle[s]",
+                "setup[s]", "steps", "ok", "mean", "p95", "max", "lesion", "surf", "dV[%]", "inv");
+    nlohmann::json rows = nlohmann::json::array();
+    std::ofstream csv;
+    if (!csv_path.empty()) {
+      csv.open(csv_path);
+      csv << "method,target_elements,elements,nodes,settle_seconds,setup_seconds,meshing_seconds,steps,settled,"
+             "error_mean_mm,error_p95_mm,error_max_mm,lesion_error_max_mm,surface_distance_mean_mm,"
+             "volume_change_percent,max_displacement_mm,inverted\n";
+    }
+    for (double tt : targets) {
+      ModelCase c = base;
+      c.meshing.target_elements = static_cast<int>(tt);
+      const auto tm = Clock::now();
+      const SimulationModel m = buildSimulationModel(c);
+      const double t_mesh = since(tm);
+      for (const std::string& method : methods) {
+        // CHOLMOD refactorizes every step: past ~100k elements a settling takes minutes; skipped.
+        if (method.find("cholmod") != std::string::npos && m.mesh.numTets() > 120000) continue;
+        const OurRun r = runOurs(c, m, settings, g, method);
+        const DisplacementErrors e = compareDisplacements(m.mesh, r.u, rm.mesh, ref.displacement_m, lesions);
+        std::printf("%-32s %8d %7d | %8.3f %8.3f %6d %4s | %7.3f %7.3f %7.3f %7.3f %7.3f %6.2f | %4d\n", method.c_str(),
+                    m.mesh.numTets(), m.mesh.numNodes(), r.settle_seconds, r.setup_seconds, r.steps,
+                    r.settled ? "yes" : "NO", e.mean_mm, e.p95_mm, e.max_mm, e.lesion_max_mm, e.surface_distance_mean_mm,
+                    e.volume_change_percent, r.inverted);
+        std::fflush(stdout);
+        nlohmann::json row = errorsJson(e);
+        row.update({{"method", method},
+                    {"target_elements", static_cast<int>(tt)},
+                    {"elements", m.mesh.numTets()},
+                    {"nodes", m.mesh.numNodes()},
+                    {"settle_seconds", r.settle_seconds},
+                    {"setup_seconds", r.setup_seconds},
+                    {"meshing_seconds", t_mesh},
+                    {"steps", r.steps},
+                    {"settled", r.settled},
+                    {"inverted", r.inverted},
+                    {"reversed_steps", r.reversed},
+                    {"final_alpha_per_pa", r.alpha}});
+        rows.push_back(row);
+        if (csv)
+          csv << method << ',' << static_cast<int>(tt) << ',' << m.mesh.numTets() << ',' << m.mesh.numNodes() << ','
+              << r.settle_seconds << ',' << r.setup_seconds << ',' << t_mesh << ',' << r.steps << ',' << (r.settled ? 1 : 0)
+              << ',' << e.mean_mm << ',' << e.p95_mm << ',' << e.max_mm << ',' << e.lesion_max_mm << ','
+              << e.surface_distance_mean_mm << ',' << e.volume_change_percent << ',' << e.max_displacement_mm << ','
+              << r.inverted << '\n';
+      }
+    }
+    out["sweep"] = {{"reference",
+                     {{"solver", "CalculiX"},
+                      {"element_type", referenceElementName(rtype)},
+                      {"material", "neo-Hookean, C10 = mu/2, D1 = 2/K"},
+                      {"nlgeom", true},
+                      {"target_elements", reference_target},
+                      {"elements", rm.mesh.numTets()},
+                      {"nodes", rm.mesh.numNodes()},
+                      {"deck_nodes", ref.deck_nodes},
+                      {"ccx_seconds", ref.solve_seconds},
+                      {"max_displacement_mm", ref_max},
+                      {"key", ref.key}}},
+                    {"time", "settling steps only [s]; setup_seconds (multigrid hierarchy, solver analysis) and "
+                             "meshing_seconds beside it"},
+                    {"rows", rows}};
+
+    // Model no more than a scene needs: the coarsest mesh meeting a lesion-error target.
+    std::vector<ErrorCurvePoint> curve;
+    for (const auto& r : rows)
+      if (r["method"] == curve_method)
+        curve.push_back({r["target_elements"].get<int>(), r["elements"].get<int>(), r["lesion_error_max_mm"].get<double>(),
+                         r["settle_seconds"].get<double>()});
+    if (!curve.empty()) {
+      const ModelChoice mc = chooseCoarsestModel(curve, lesion_target_mm);
+      std::printf("\nModel choice (%s, lesion error <= %.1f mm): %s\n", curve_method.c_str(), lesion_target_mm,
+                  mc.explanation.c_str());
+      out["model_choice"] = {{"method", curve_method},
+                             {"measure", "lesion"},
+                             {"target_mm", lesion_target_mm},
+                             {"met", mc.met},
+                             {"target_elements", mc.target_elements},
+                             {"elements", mc.elements},
+                             {"expected_error_mm", mc.expected_error_mm},
+                             {"expected_seconds", mc.expected_seconds},
+                             {"explanation", mc.explanation}};
+    }
+  }
+  if (!json_path.empty()) std::ofstream(json_path) << out.dump(2) << '\n';
+  return 0;
+}
