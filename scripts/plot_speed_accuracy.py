@@ -1,0 +1,100 @@
+#!/usr/bin/python3
+"""Speed-accuracy chart from bench_speed_accuracy's CSV (--csv FILE).
+
+x = compute time to a settled state [s] (the settling steps; log scale), y = mean nodal displacement
+error against the CalculiX reference [mm]; one curve per method, points labelled by element count;
+the Pareto front over all points (no other point is both faster and more accurate) is highlighted.
+
+usage: /usr/bin/python3 scripts/plot_speed_accuracy.py docs/speed_accuracy/speed_accuracy.csv
+           [--out docs/speed_accuracy/speed_accuracy.png] [--y error_mean_mm] [--title TEXT]
+Writes the PNG and, beside it, <stem>_pareto.csv (the front's points).
+"""
+import argparse
+import csv
+import os
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+LABELS = {
+    "error_mean_mm": "mean nodal displacement error [mm]",
+    "error_p95_mm": "95th-percentile nodal error [mm]",
+    "error_max_mm": "largest nodal error [mm]",
+    "lesion_error_max_mm": "largest lesion position error [mm]",
+    "surface_distance_mean_mm": "mean surface distance [mm]",
+}
+STYLE = {
+    "linear/multigrid": ("tab:gray", "s"),
+    "corotated/multigrid": ("tab:blue", "o"),
+    "corotated/cholmod": ("tab:cyan", "D"),
+    "corotated+stiffening/multigrid": ("tab:red", "^"),
+    "corotated+stiffening/cholmod": ("tab:orange", "v"),
+}
+
+
+def pareto(points):
+    """Points (t, e, row) not dominated by any other (faster-or-equal and more-accurate-or-equal)."""
+    front = []
+    best = float("inf")
+    for t, e, r in sorted(points, key=lambda p: (p[0], p[1])):
+        if e < best:
+            front.append((t, e, r))
+            best = e
+    return front
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("csv")
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--y", default="error_mean_mm", choices=sorted(LABELS))
+    ap.add_argument("--title", default=None)
+    a = ap.parse_args()
+    out = a.out or os.path.join(os.path.dirname(a.csv) or ".", "speed_accuracy.png")
+    with open(a.csv) as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise SystemExit(f"{a.csv}: no rows")
+    methods = []
+    for r in rows:
+        if r["method"] not in methods:
+            methods.append(r["method"])
+    fig, ax = plt.subplots(figsize=(9, 6))
+    pts = []
+    for m in methods:
+        mr = sorted((r for r in rows if r["method"] == m), key=lambda r: int(r["elements"]))
+        x = [float(r["settle_seconds"]) for r in mr]
+        y = [float(r[a.y]) for r in mr]
+        color, marker = STYLE.get(m, (None, "o"))
+        ax.plot(x, y, marker=marker, color=color, label=m, alpha=0.85)
+        for r, xi, yi in zip(mr, x, y):
+            ok = r["settled"] == "1" and r["inverted"] == "0"
+            lab = f"{int(r['elements']) / 1000:.0f}k" + ("" if ok else "!")
+            ax.annotate(lab, (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=7, color=color)
+            pts.append((xi, yi, r))
+    front = pareto(pts)
+    ax.plot([p[0] for p in front], [p[1] for p in front], "-", color="black", lw=2.5, alpha=0.25, zorder=0,
+            label="Pareto front")
+    ax.scatter([p[0] for p in front], [p[1] for p in front], s=140, facecolors="none", edgecolors="black", zorder=5)
+    ax.set_xscale("log")
+    ax.set_xlabel("compute time to a settled supine state [s] (settling steps, log scale)")
+    ax.set_ylabel(LABELS[a.y])
+    ax.grid(True, which="both", alpha=0.3)
+    ax.set_ylim(bottom=0)
+    ax.set_title(a.title or "Speed against accuracy (reference: CalculiX neo-Hookean, NLGEOM)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=130)
+    pf = os.path.splitext(out)[0] + "_pareto.csv"
+    with open(pf, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["method", "elements", "settle_seconds", a.y])
+        for t, e, r in front:
+            w.writerow([r["method"], r["elements"], t, e])
+    print(f"wrote {out} and {pf} ({len(front)} Pareto points of {len(pts)})")
+
+
+if __name__ == "__main__":
+    main()
