@@ -13,7 +13,8 @@
 // vector, limiting weights) for docs/sliding/plot_sliding.py.
 //   bench_sliding [--case FILE] [--targets 47895] [--steps 25] [--solver multigrid|cholmod]
 //                 [--no-settle] [--max-calls 600] [--fixed-first] [--legacy] [--diagnose]
-//                 [--rings N] [--move-smoothing N] [--min-volume F] [--no-rim]
+//                 [--rings N] [--move-smoothing N] [--min-volume F] [--no-rim] [--no-band]
+//                 [--wall-distance-mm D]
 //                 [--sigma-fraction F] [--no-gaussian] [--json FILE] [--csv FILE]
 #include <algorithm>
 #include <chrono>
@@ -104,7 +105,6 @@ SlideSummary summarize(const TetMesh& mesh, const ChestWallSliding& sl, const Mo
 int main(int argc, char** argv) {
   Options o;
   o.case_path = std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_two_breasts.yaml";
-  o.sliding.gaussian_sigma_fraction = 0.25;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto next = [&]() -> std::string {
@@ -127,6 +127,8 @@ int main(int argc, char** argv) {
     else if (a == "--move-smoothing") o.sliding.move_smoothing_iterations = std::stoi(next());
     else if (a == "--min-volume") o.sliding.min_volume_fraction = std::stod(next());
     else if (a == "--no-rim") o.sliding.rim_follows_neighbours = false;
+    else if (a == "--no-band") o.sliding.rim_band = false;
+    else if (a == "--wall-distance-mm") o.sliding.max_wall_distance_m = 1e-3 * std::stod(next());
     else if (a == "--sigma-fraction") o.sliding.gaussian_sigma_fraction = std::stod(next());
     else if (a == "--no-gaussian") o.sliding.gaussian_limit = false;
     else if (a == "--json") o.json_path = next();
@@ -135,8 +137,9 @@ int main(int argc, char** argv) {
       std::fprintf(stderr,
                    "usage: bench_sliding [--case FILE] [--targets 47895,...] [--steps 25] [--solver multigrid|cholmod]\n"
                    "                     [--no-settle] [--max-calls 600] [--fixed-first] [--legacy] [--diagnose]\n"
-                   "                     [--rings N] [--move-smoothing N] [--min-volume F] [--no-rim]\n"
-                   "                     [--sigma-fraction 0.25] [--no-gaussian] [--json FILE] [--csv FILE]\n");
+                   "                     [--rings N] [--move-smoothing N] [--min-volume F] [--no-rim] [--no-band]\n"
+                   "                     [--wall-distance-mm D]\n"
+                   "                     [--sigma-fraction 0.5] [--no-gaussian] [--json FILE] [--csv FILE]\n");
       return 2;
     }
   }
@@ -144,9 +147,11 @@ int main(int argc, char** argv) {
   const SimulationSettings case_settings = loadSimulationSettings(o.case_path);
   std::printf("sliding benchmark: %s, %d threads%s%s\n", o.case_path.c_str(), omp_get_max_threads(),
               o.legacy ? ", LEGACY update()+hold" : "", o.fixed_first ? ", fixed-wall settle first" : "");
-  std::printf("smoothing rings %d, move smoothing %d, min volume %.2f, rim follows %d, Gaussian %d (sigma fraction %.2f)\n",
+  std::printf("smoothing rings %d, move smoothing %d, min volume %.2f, rim follows %d, rim band %d, wall distance "
+              "%.1f mm, Gaussian %d (sigma fraction %.2f)\n",
               o.sliding.traction_smoothing_rings, o.sliding.move_smoothing_iterations, o.sliding.min_volume_fraction,
-              o.sliding.rim_follows_neighbours, o.sliding.gaussian_limit, o.sliding.gaussian_sigma_fraction);
+              o.sliding.rim_follows_neighbours, o.sliding.rim_band, 1e3 * o.sliding.max_wall_distance_m,
+              o.sliding.gaussian_limit, o.sliding.gaussian_sigma_fraction);
   nlohmann::json rows = nlohmann::json::array();
   for (double target : o.targets) {
     ModelCase c = base;

@@ -29,6 +29,16 @@
 ///     wall and never enters it); with a permissible shift (max_slide_m > 0) the total slide
 ///     |x_i − X_i| is capped at w_i · max_slide_m first.
 ///
+/// Robustness (what keeps the constraint moves from inverting elements, which no stiffening α can
+/// undo because the targets force them): the traction of step 2 is averaged over a ring of wall
+/// neighbours (area-weighted), the moves are smoothed over the wall graph (held nodes count with
+/// move 0), rim nodes (wall and skin) follow the mean move of their wall neighbours, and the skin
+/// nodes within max_wall_distance_m of the wall next to the rim join the set (rim band: without
+/// it the skin next to the rim folds onto the wall and pushes a free node through a rim sliver);
+/// finally a volume guard halves the moves of the sliding corners of any wall element the moves
+/// would take below min_volume_fraction of its rest volume. afterStep() adds the take-back of a
+/// move after a stiffening call that could not advance.
+///
 /// Limiting factors w_i ∈ [0, 1], each optional (all off: the seed's bypass, "free sliding governed
 /// by friction and shape alone"):
 ///  - tissue thickness: the distance from the wall to the skin along the rest normal (ray marching
@@ -37,10 +47,12 @@
 ///       z(u, v) = A exp(−((u−u0)²/(2σu²) + (v−v0)²/(2σv²))) + A exp(−((u−u1)²/(2σu²) + (v−v1)²/(2σv²)))
 ///    clamped to [0, 1], in chest-wall plane coordinates (u, v): the plane through the nipples'
 ///    midpoint perpendicular to the anterior direction a (prone gravity, chest wall → nipple);
+///    each mode is centred at its nipple's foot point on the wall (closest wall point);
 ///    u along the nipple-to-nipple direction projected into that plane (lateral, towards the first
-///    nipple), v = a × u (superior for LPS images with a = −y and u = +x). (u_k, v_k) are the nipple
-///    points' coordinates; σu, σv by default half of a breast's extent along u and v, measured
-///    from the sliding nodes closest to each nipple. The seed uses one v0 for both modes; here each
+///    nipple), v = a × u (superior for LPS images with a = −y and u = +x). (u_k, v_k) are the foot
+///    points' coordinates (not the nipples projected along a, which a curved wall shifts
+///    laterally); σu, σv by default half of a breast's extent along u and v, measured from the
+///    sliding nodes closest to each nipple. The seed uses one v0 for both modes; here each
 ///    nipple gives its own v_k (equal for a symmetric patient). With one nipple there is one mode.
 ///
 /// \note Without a permissible shift the limiting factors scale only the rate (seed: d = d + z D_f):
@@ -222,6 +234,7 @@ class ChestWallSliding {
   /// stiffening call cannot advance. @throws std::invalid_argument for a wrong row count.
   void setTargets(DynamicSimulator& sim, const Points& targets_m);
 
+  /// The sliding nodes: the given set, then the rim band (rim_band) appended.
   const std::vector<int>& nodes() const { return nodes_; }
   const SlidingSettings& settings() const { return settings_; }
   const ChestWallSurface& surface() const { return *surface_; }
