@@ -313,7 +313,7 @@ int main(int argc, char** argv) {
       const StageReport& mo = pipe->morphingReport();
       auto stage = [](const StageReport& r) {
         nlohmann::json j = {{"ran", r.ran}, {"converged", r.converged}, {"steps", r.steps}, {"reversed_steps", r.reversed_steps},
-                            {"reversal_limit_hits", r.reversal_limit_hits}, {"seconds", r.seconds},
+                            {"reversal_limit_hits", r.reversal_limit_hits}, {"stuck", r.stuck}, {"seconds", r.seconds},
                             {"last_increment_mm", r.last_increment_m * 1e3}, {"final_alpha_per_pa", r.final_alpha_per_pa}};
         if (r.surface_mean_m >= 0) j["pulled_vertices_to_target_mm"] = {{"mean", r.surface_mean_m * 1e3}, {"p95", r.surface_p95_m * 1e3}};
         if (r.max_slide_m > 0) j["max_slide_mm"] = r.max_slide_m * 1e3;
@@ -399,7 +399,9 @@ int main(int argc, char** argv) {
       auto line = [&](const char* name, const nlohmann::json& r, const char* extra) {
         if (!r["ran"].get<bool>()) return;
         std::printf("  %-26s %s in %d steps, %.2f s, %ld reversed, alpha %.3g 1/Pa%s\n", name,
-                    r["converged"].get<bool>() ? "converged" : "NOT converged", r["steps"].get<int>(),
+                    r["converged"].get<bool>() ? "converged"
+                    : r["stuck"].get<bool>()   ? "STUCK (no step without inverting)"
+                                               : "NOT converged", r["steps"].get<int>(),
                     r["seconds"].get<double>(), r["reversed_steps"].get<long>(), r["final_alpha_per_pa"].get<double>(), extra);
       };
       char slide[64] = "";

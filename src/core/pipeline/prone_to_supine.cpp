@@ -17,6 +17,10 @@ namespace breast_sim::core {
 
 namespace {
 
+/// A stage stops after this many stiffening calls in a row that could not advance (each already
+/// tried max_reversals_per_step α increases): the state cannot go on without inverting elements.
+constexpr int kMaxStuckCalls = 5;
+
 double since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
@@ -113,25 +117,17 @@ void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
 void ProneToSupinePipeline::attachSliding() {
   if (!sliding_) return;
   sliding_->attach(simulator());
+  sliding_attached_ = true;
   stiff_->restartAlphaSearch();
 }
 
 bool ProneToSupinePipeline::slideAfter(const StiffeningStepResult& r, int* stalls) {
-  if (!sliding_ || stage_ == PipelineStage::kGravity) return false;
-  if (!r.advanced) {
-    // The last constraint move inverts elements that no α saves: take it back (hold the wall nodes
-    // where they are).
-    const std::vector<int>& nodes = sliding_->nodes();
-    Points hold(static_cast<Eigen::Index>(nodes.size()), 3);
-    const Eigen::VectorXd& u = simulator().state().displacement_m;
-    for (size_t i = 0; i < nodes.size(); ++i) hold.row(static_cast<Eigen::Index>(i)) = u.segment<3>(3 * nodes[i]).transpose();
-    simulator().setNodeTargets(nodes, hold);
-    if (stalls) ++*stalls;
-    return false;
-  }
-  if (stalls) *stalls = 0;
-  const SlidingStepStats ss = sliding_->update(simulator(), &simulator().externalForces());
-  sliding_report_.max_slide_m = ss.max_slide_m;
+  if (!sliding_ || !sliding_attached_) return false;
+  // Moves the constraints after an accepted step; after a call that could not advance it takes the
+  // last move back (the move may be what inverts), holding the wall once that does not help.
+  const SlidingStepStats ss = sliding_->afterStep(*stiff_, r);
+  sliding_report_.max_slide_m = std::max(sliding_report_.max_slide_m, ss.max_slide_m);
+  if (stalls) *stalls = ss.held_wall ? *stalls + 1 : 0;
   return ss.max_move_m > settings_.simulation.settle.increment_tolerance_m;
 }
 
@@ -147,7 +143,7 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
   const RunStats before = stiff_->stats();
   double first = -1;
   long calls = 0;
-  int quiet = 0;
+  int quiet = 0, stuck = 0;
   // Stage 1: the wall fixed. Without stiffening the step is the plain co-rotated one, settled by the
   // increment; with it, by the stiffening driver's residual-and-speed criterion.
   while (rep.steps < so.max_steps && calls < 2L * so.max_steps) {
@@ -158,6 +154,11 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
     ++calls;
     const StiffeningStepResult r = stiff_->step();
     if (r.advanced) ++rep.steps;
+    stuck = r.advanced ? 0 : stuck + 1;
+    if (stuck >= kMaxStuckCalls) {
+      rep.stuck = true;
+      break;
+    }
     rep.last_increment_m = increment(previous);
     if (first < 0) first = rep.last_increment_m;
     quiet = rep.last_increment_m <= tol ? quiet + 1 : 0;
@@ -188,7 +189,7 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
     setTimeStep(settings_.simulation.dynamics.time_step_s);
     attachSliding();
     const RunStats b2 = stiff_->stats();
-    int stalls = 0, quiet_steps = 0;
+    int stalls = 0, quiet_steps = 0, stuck_calls = 0;
     long sl_calls = 0;
     first = -1;
     while (sr.steps < so.max_steps && sl_calls < 2L * so.max_steps) {
@@ -200,9 +201,13 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
       const StiffeningStepResult r = stiff_->step();
       const bool moving = slideAfter(r, &stalls);
       if (!r.advanced) {
-        if (stalls >= 3) break;  // the wall cannot move further without inverting elements
+        if (stalls >= 3 || ++stuck_calls >= kMaxStuckCalls) {  // no α and no take-back lets it advance
+          sr.stuck = true;
+          break;
+        }
         continue;
       }
+      stuck_calls = 0;
       ++sr.steps;
       sr.last_increment_m = increment(previous);
       if (first < 0) first = sr.last_increment_m;
@@ -281,9 +286,10 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   rep.ran = true;
   stage_ = PipelineStage::kMorphing;
   setTimeStep(ms.time_step_s);
+  if (sliding_ && !sliding_attached_) attachSliding();  // e.g. the gravity stage was skipped
   const RunStats before = stiff_->stats();
   long calls = 0;
-  int quiet = 0;
+  int quiet = 0, stuck = 0;
   double first = -1;
   while (rep.steps < ms.max_steps && calls < 2L * ms.max_steps) {
     if (cancel && cancel->load()) {
@@ -292,6 +298,11 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
     }
     ++calls;
     const IterationReport it = iterate();
+    stuck = it.advanced ? 0 : stuck + 1;
+    if (stuck >= kMaxStuckCalls) {
+      rep.stuck = true;
+      break;
+    }
     if (!it.advanced) continue;
     ++rep.steps;
     rep.last_increment_m = it.increment_m;
@@ -390,8 +401,8 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
   simulator().elements().setModulusFactors(s.modulus_factors);
   stiff_->controller().setState(s.alpha);
   if (sliding_ && s.sliding_targets_m.rows() > 0) {
-    sliding_->attach(simulator());
-    simulator().setNodeTargets(sliding_->nodes(), s.sliding_targets_m);
+    attachSliding();
+    sliding_->setTargets(simulator(), s.sliding_targets_m);
   }
   simulator().clearExternalForces();
   if (s.morphing_forces_n.rows() > 0) ensureMorphing().restoreForces(simulator(), s.morphing_forces_n);

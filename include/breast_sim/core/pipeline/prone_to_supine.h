@@ -96,6 +96,9 @@ struct StageReport {
   bool ran = false;
   bool converged = false;     ///< settled (gravity, sliding) or within tolerance (morphing)
   bool cancelled = false;
+  /// Stopped because several stiffening calls in a row could not advance (reversal limit each time):
+  /// no α lets the state go on without inverting an element.
+  bool stuck = false;
   int steps = 0;              ///< accepted steps
   long reversed_steps = 0;    ///< trial steps reverted (time-step reversal)
   long reversal_limit_hits = 0;
@@ -226,6 +229,7 @@ class ProneToSupinePipeline {
   PipelineStage stage_ = PipelineStage::kIdle;
   StageReport gravity_, sliding_report_, morphing_;
   bool last_advanced_ = true;
+  bool sliding_attached_ = false;  // the wall nodes are moving constraints (after the fixed-wall settle)
   double mesh_volume_m3_ = 0.0;
 };
 
