@@ -74,11 +74,10 @@ struct SimulationSettings {
   /// Von Mises stiffening with time-step reversal (material/stiffening.h) while settling: no element
   /// ends inverted. false = co-rotated FEM with fixed E (faster; soft loads only).
   bool stiffening = true;
-  /// Sliding of the chest-wall nodes on the wall (sliding/chest_wall_sliding.h, default settings)
-  /// after the fixed-wall settling; needs stiffening and a fixed node set. Off by default: with the
-  /// stiffening driver the constraint moves still invert wall elements that no α saves (on the 5k
-  /// phantom α runs to its ceiling with 90 % reversed steps and the slide stays at 1.5 mm) — the
-  /// combined loop is issue 7's work.
+  /// Sliding of the chest-wall nodes on the wall (sliding/chest_wall_sliding.h) after the fixed-wall
+  /// settling; needs stiffening and a fixed node set. Off by default: as the supine breast spreads
+  /// beyond its prone footprint, the skin next to the rim falls onto the chest wall and the elements
+  /// there collapse whatever α (measured with bench_sliding --diagnose); skin–wall contact is needed.
   bool sliding = false;
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
