@@ -22,6 +22,7 @@
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "breast_sim/core/reference/model_choice.h"
 #include "breast_sim/core/render/cross_section.h"
 
 namespace fs = std::filesystem;
@@ -56,6 +57,10 @@ Options:
   --no-sliding           overrides simulation.sliding (chest wall fixed)
   --no-morphing          overrides morphing.enabled (gravity only)
   --frames N             a series frame every N accepted steps (default 5; 0 = no series)
+  --max-lesion-error-mm E  "model no more than a scene needs": mesh with the fewest elements whose
+                         measured lesion error against the CalculiX reference is at most E mm (from
+                         --error-curve, bench_speed_accuracy's JSON, e.g.
+                         docs/speed_accuracy/sweep_supine.json); overrides the case's target_elements
   --json FILE            also write the metrics to FILE
   --quiet                no progress bar
 Exit status: 0 done, 2 bad input (the message names the file, key or value), 3 a stage did not
@@ -66,6 +71,8 @@ struct Args {
   std::string case_file, out_dir, json, solver;
   int target_elements = 0;
   int frame_interval = 5;
+  double max_lesion_error_mm = 0.0;
+  std::string error_curve;
   bool model_only = false, quiet = false, no_sliding = false, no_morphing = false;
 };
 
@@ -84,6 +91,16 @@ Args parse(int argc, char** argv) {
     else if (k == "--model-only") a.model_only = true;
     else if (k == "--quiet") a.quiet = true;
     else if (k == "--no-sliding") a.no_sliding = true;
+    else if (k == "--error-curve") a.error_curve = value();
+    else if (k == "--max-lesion-error-mm") {
+      const std::string v = value();
+      try {
+        a.max_lesion_error_mm = std::stod(v);
+      } catch (...) {
+        throw std::invalid_argument("--max-lesion-error-mm '" + v + "' is not a number");
+      }
+      if (!(a.max_lesion_error_mm > 0)) throw std::invalid_argument("--max-lesion-error-mm must be positive, got " + v);
+    }
     else if (k == "--no-morphing") a.no_morphing = true;
     else if (k == "--frames") {
       const std::string v = value();
@@ -107,6 +124,9 @@ Args parse(int argc, char** argv) {
       std::exit(0);
     } else throw std::invalid_argument("unknown option '" + k + "'\n" + kUsage);
   }
+  if (a.max_lesion_error_mm > 0 && a.error_curve.empty())
+    throw std::invalid_argument("--max-lesion-error-mm needs --error-curve FILE (bench_speed_accuracy --json output, e.g. "
+                                "docs/speed_accuracy/sweep_supine.json)");
   if (a.case_file.empty() || a.out_dir.empty()) throw std::invalid_argument(std::string("--case and --out are required\n") + kUsage);
   return a;
 }
@@ -157,6 +177,15 @@ int main(int argc, char** argv) {
     if (!args.solver.empty()) settings.simulation.solver.kind = SolverSettings::kindFromName(args.solver);
     if (args.no_sliding) settings.simulation.sliding = false;
     if (args.no_morphing) settings.morphing.enabled = false;
+    // Model no more than the scene needs: the coarsest mesh whose measured lesion error meets the request.
+    ModelChoice choice;
+    if (args.max_lesion_error_mm > 0) {
+      const std::string method = std::string(settings.simulation.stiffening ? "corotated+stiffening/" : "corotated/") +
+                                 SolverSettings::kindName(settings.simulation.solver.kind);
+      choice = chooseCoarsestModel(loadErrorCurve(args.error_curve, method, ErrorMeasure::kLesionMax), args.max_lesion_error_mm);
+      c.meshing.target_elements = choice.target_elements;
+      std::fprintf(stderr, "  model choice: %s\n", choice.explanation.c_str());
+    }
     const double t_case = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     const SimulationModel m = buildSimulationModel(c);
     const double t_model = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -189,6 +218,11 @@ int main(int argc, char** argv) {
     s["node_sets"] = nlohmann::json::object();
     for (const auto& kv : m.mesh.nodeSets()) s["node_sets"][kv.first] = kv.second.size();
     s["boundary_faces"] = m.mesh.boundary().triangles.rows();
+    if (args.max_lesion_error_mm > 0)
+      s["model_choice"] = {{"max_lesion_error_mm", args.max_lesion_error_mm}, {"met", choice.met},
+                           {"target_elements", choice.target_elements}, {"expected_lesion_error_mm", choice.expected_error_mm},
+                           {"expected_seconds", choice.expected_seconds}, {"explanation", choice.explanation},
+                           {"error_curve", args.error_curve}};
     s["prone_gravity_direction"] = {c.prone_gravity_direction.x(), c.prone_gravity_direction.y(), c.prone_gravity_direction.z()};
     s["boundary_closed"] = isClosedManifold(m.mesh.boundary().triangles);
     s["seconds"] = {{"case_and_image", t_case}, {"meshing", m.meshing.seconds}, {"model_total", t_model}};
