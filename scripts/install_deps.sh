@@ -18,6 +18,10 @@ PACKAGES=(
   ros-message-generation ros-message-runtime libroscpp-dev
   libstd-msgs-dev libsensor-msgs-dev libgeometry-msgs-dev libvisualization-msgs-dev
   libtf2-ros-dev libpcl-conversions-dev
+  libstd-srvs-dev libdiagnostic-msgs-dev libtf2-msgs-dev libtf2-geometry-msgs-dev
+  libactionlib-dev libactionlib-msgs-dev librosbag-dev librosbag-storage-dev python3-rosbag
+  # rviz demo and its headless screenshot (scripts/rviz_screenshot.sh)
+  rviz xvfb
   # scripts (charts, checks) use Debian's python
   python3-numpy python3-yaml python3-matplotlib
 )

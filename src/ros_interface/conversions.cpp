@@ -1,6 +1,12 @@
 #include "breast_sim/ros_interface/conversions.h"
 
+#include <algorithm>
+#include <cmath>
+#include <cstring>
 #include <stdexcept>
+#include <unordered_map>
+#include <unordered_set>
+#include <array>
 
 namespace breast_sim::ros_interface {
 
@@ -91,6 +97,416 @@ breast_sim::LesionArray toMessage(const std::vector<core::Lesion>& lesions,
     msg.lesions.push_back(l);
   }
   return msg;
+}
+
+breast_sim::LesionArray lesionsMessage(const std::vector<core::Lesion>& lesions, const core::Points& positions_m,
+                                       const std::string& frame_id, const ros::Time& stamp) {
+  if (positions_m.rows() != static_cast<Eigen::Index>(lesions.size()))
+    throw std::invalid_argument("lesionsMessage: " + std::to_string(positions_m.rows()) + " positions for " +
+                                std::to_string(lesions.size()) + " lesions");
+  breast_sim::LesionArray msg;
+  msg.header.frame_id = frame_id;
+  msg.header.stamp = stamp;
+  for (size_t i = 0; i < lesions.size(); ++i) {
+    breast_sim::Lesion l;
+    l.id = lesions[i].name;
+    l.prone_position.x = lesions[i].position_m.x();
+    l.prone_position.y = lesions[i].position_m.y();
+    l.prone_position.z = lesions[i].position_m.z();
+    const auto r = static_cast<Eigen::Index>(i);
+    l.position.x = positions_m(r, 0);
+    l.position.y = positions_m(r, 1);
+    l.position.z = positions_m(r, 2);
+    msg.lesions.push_back(l);
+  }
+  return msg;
+}
+
+namespace {
+
+const sensor_msgs::PointField* findField(const sensor_msgs::PointCloud2& msg, const char* name) {
+  for (const auto& f : msg.fields)
+    if (f.name == name) return &f;
+  return nullptr;
+}
+
+double readFloat(const uint8_t* p, uint8_t datatype) {
+  if (datatype == sensor_msgs::PointField::FLOAT32) {
+    float v;
+    std::memcpy(&v, p, sizeof v);
+    return v;
+  }
+  double v;
+  std::memcpy(&v, p, sizeof v);
+  return v;
+}
+
+}  // namespace
+
+CloudPoints pointsFromCloud(const sensor_msgs::PointCloud2& msg, size_t max_points) {
+  CloudPoints out;
+  const size_t n = static_cast<size_t>(msg.width) * msg.height;
+  out.total = n;
+  if (n == 0) {
+    out.points_m.resize(0, 3);
+    return out;
+  }
+  const char* names[3] = {"x", "y", "z"};
+  const sensor_msgs::PointField* f[3];
+  for (int k = 0; k < 3; ++k) {
+    f[k] = findField(msg, names[k]);
+    if (!f[k])
+      throw std::invalid_argument(std::string("PointCloud2: no field '") + names[k] +
+                                  "'; a surface cloud needs FLOAT32 or FLOAT64 fields x, y, z");
+    if (f[k]->datatype != sensor_msgs::PointField::FLOAT32 && f[k]->datatype != sensor_msgs::PointField::FLOAT64)
+      throw std::invalid_argument(std::string("PointCloud2: field '") + names[k] + "' has datatype " +
+                                  std::to_string(f[k]->datatype) + "; expected FLOAT32 (7) or FLOAT64 (8)");
+    const size_t size = f[k]->datatype == sensor_msgs::PointField::FLOAT32 ? 4 : 8;
+    if (f[k]->offset + size > msg.point_step)
+      throw std::invalid_argument(std::string("PointCloud2: field '") + names[k] + "' at offset " +
+                                  std::to_string(f[k]->offset) + " does not fit in point_step " +
+                                  std::to_string(msg.point_step));
+  }
+  const bool host_big = [] {
+    const uint16_t one = 1;
+    uint8_t b;
+    std::memcpy(&b, &one, 1);
+    return b == 0;
+  }();
+  if (static_cast<bool>(msg.is_bigendian) != host_big)
+    throw std::invalid_argument(std::string("PointCloud2: is_bigendian = ") + (msg.is_bigendian ? "true" : "false") +
+                                " differs from this machine; publish the cloud in host byte order");
+  if (static_cast<size_t>(msg.point_step) * msg.width > msg.row_step)
+    throw std::invalid_argument("PointCloud2: row_step " + std::to_string(msg.row_step) + " < point_step " +
+                                std::to_string(msg.point_step) + " x width " + std::to_string(msg.width));
+  if (static_cast<size_t>(msg.row_step) * msg.height > msg.data.size())
+    throw std::invalid_argument("PointCloud2: data has " + std::to_string(msg.data.size()) + " bytes, row_step x height = " +
+                                std::to_string(static_cast<size_t>(msg.row_step) * msg.height) + " (truncated message)");
+  out.stride = (max_points > 0 && n > max_points) ? (n + max_points - 1) / max_points : 1;
+  out.points_m.resize(static_cast<Eigen::Index>((n + out.stride - 1) / out.stride), 3);
+  Eigen::Index m = 0;
+  for (size_t i = 0; i < n; i += out.stride) {
+    const size_t row = i / msg.width, col = i % msg.width;
+    const uint8_t* p = msg.data.data() + row * msg.row_step + col * msg.point_step;
+    const double x = readFloat(p + f[0]->offset, f[0]->datatype);
+    const double y = readFloat(p + f[1]->offset, f[1]->datatype);
+    const double z = readFloat(p + f[2]->offset, f[2]->datatype);
+    if (!std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z)) {
+      ++out.non_finite;
+      continue;
+    }
+    out.points_m.row(m++) << x, y, z;
+  }
+  out.points_m.conservativeResize(m, 3);
+  return out;
+}
+
+sensor_msgs::PointCloud2 cloudToMessage(const core::Points& points_m, const std::string& frame_id,
+                                        const ros::Time& stamp) {
+  sensor_msgs::PointCloud2 msg;
+  msg.header.frame_id = frame_id;
+  msg.header.stamp = stamp;
+  msg.height = 1;
+  msg.width = static_cast<uint32_t>(points_m.rows());
+  const char* names[3] = {"x", "y", "z"};
+  for (int k = 0; k < 3; ++k) {
+    sensor_msgs::PointField f;
+    f.name = names[k];
+    f.offset = static_cast<uint32_t>(4 * k);
+    f.datatype = sensor_msgs::PointField::FLOAT32;
+    f.count = 1;
+    msg.fields.push_back(f);
+  }
+  msg.is_bigendian = false;
+  msg.point_step = 12;
+  msg.row_step = msg.point_step * msg.width;
+  msg.is_dense = points_m.allFinite();
+  msg.data.resize(msg.row_step);
+  for (Eigen::Index i = 0; i < points_m.rows(); ++i)
+    for (int k = 0; k < 3; ++k) {
+      const float v = static_cast<float>(points_m(i, k));
+      std::memcpy(msg.data.data() + 12 * i + 4 * k, &v, 4);
+    }
+  return msg;
+}
+
+Eigen::Isometry3d isometryFromPose(const geometry_msgs::Pose& pose) {
+  const Eigen::Vector3d p(pose.position.x, pose.position.y, pose.position.z);
+  Eigen::Quaterniond q(pose.orientation.w, pose.orientation.x, pose.orientation.y, pose.orientation.z);
+  if (!p.allFinite() || !q.coeffs().allFinite())
+    throw std::invalid_argument("pose: a position or orientation value is not finite");
+  if (q.norm() < 1e-6)
+    throw std::invalid_argument("pose: the orientation quaternion is zero; give a unit quaternion (w = 1 for none)");
+  q.normalize();
+  Eigen::Isometry3d t = Eigen::Isometry3d::Identity();
+  t.linear() = q.toRotationMatrix();
+  t.translation() = p;
+  return t;
+}
+
+geometry_msgs::Pose poseFromIsometry(const Eigen::Isometry3d& t) {
+  geometry_msgs::Pose pose;
+  pose.position.x = t.translation().x();
+  pose.position.y = t.translation().y();
+  pose.position.z = t.translation().z();
+  const Eigen::Quaterniond q(t.linear());
+  pose.orientation.w = q.w();
+  pose.orientation.x = q.x();
+  pose.orientation.y = q.y();
+  pose.orientation.z = q.z();
+  return pose;
+}
+
+Eigen::Isometry3d isometryFromTransform(const geometry_msgs::Transform& t) {
+  geometry_msgs::Pose p;
+  p.position.x = t.translation.x;
+  p.position.y = t.translation.y;
+  p.position.z = t.translation.z;
+  p.orientation = t.rotation;
+  return isometryFromPose(p);
+}
+
+geometry_msgs::Transform transformFromIsometry(const Eigen::Isometry3d& t) {
+  const geometry_msgs::Pose p = poseFromIsometry(t);
+  geometry_msgs::Transform out;
+  out.translation.x = p.position.x;
+  out.translation.y = p.position.y;
+  out.translation.z = p.position.z;
+  out.rotation = p.orientation;
+  return out;
+}
+
+core::Points transformPoints(const Eigen::Isometry3d& t, const core::Points& points_m) {
+  core::Points out(points_m.rows(), 3);
+  const Eigen::Matrix3d r = t.linear();
+  const Eigen::RowVector3d c = t.translation().transpose();
+  out.noalias() = points_m * r.transpose();
+  out.rowwise() += c;
+  return out;
+}
+
+Eigen::Vector3d gravityLoad(const Eigen::Matrix3d& model_from_gravity, double g_mps2,
+                            const Eigen::Vector3d& prone_gravity_mps2) {
+  return model_from_gravity * Eigen::Vector3d(0.0, 0.0, -g_mps2) - prone_gravity_mps2;
+}
+
+double angleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
+  const double na = a.norm(), nb = b.norm();
+  if (na == 0.0 || nb == 0.0) return 0.0;
+  return std::atan2(a.cross(b).norm(), a.dot(b)) * 180.0 / M_PI;
+}
+
+DisplaySurface decimateSurface(const core::Points& positions_m, const core::Triangles& triangles, int max_triangles) {
+  const Eigen::Index nv = positions_m.rows();
+  for (Eigen::Index i = 0; i < triangles.size(); ++i)
+    if (triangles.data()[i] < 0 || triangles.data()[i] >= nv)
+      throw std::invalid_argument("decimateSurface: triangle index " + std::to_string(triangles.data()[i]) +
+                                  " out of range for " + std::to_string(nv) + " vertices");
+  // Collapse vertices cell by cell; representative = the first vertex met in a cell.
+  auto cluster = [&](double cell, std::vector<int>& rep) {
+    rep.assign(static_cast<size_t>(nv), -1);
+    std::unordered_map<long long, int> first;
+    for (Eigen::Index t = 0; t < triangles.rows(); ++t)
+      for (int k = 0; k < 3; ++k) {
+        const int v = triangles(t, k);
+        if (rep[static_cast<size_t>(v)] >= 0) continue;
+        if (cell <= 0) {
+          rep[static_cast<size_t>(v)] = v;
+          continue;
+        }
+        const Eigen::RowVector3d p = positions_m.row(v) / cell;
+        const long long key = (static_cast<long long>(std::floor(p.x())) & 0x1FFFFF) |
+                              ((static_cast<long long>(std::floor(p.y())) & 0x1FFFFF) << 21) |
+                              ((static_cast<long long>(std::floor(p.z())) & 0x1FFFFF) << 42);
+        rep[static_cast<size_t>(v)] = first.emplace(key, v).first->second;
+      }
+  };
+  auto collapse = [&](const std::vector<int>& rep, DisplaySurface& out) {
+    std::unordered_map<int, int> index;
+    std::unordered_set<std::string> seen;
+    std::vector<Eigen::Vector3i> tris;
+    for (Eigen::Index t = 0; t < triangles.rows(); ++t) {
+      const int a = rep[static_cast<size_t>(triangles(t, 0))], b = rep[static_cast<size_t>(triangles(t, 1))],
+                c = rep[static_cast<size_t>(triangles(t, 2))];
+      if (a == b || b == c || a == c) continue;
+      std::array<int, 3> key{a, b, c};
+      std::sort(key.begin(), key.end());
+      if (!seen.insert(std::to_string(key[0]) + ',' + std::to_string(key[1]) + ',' + std::to_string(key[2])).second) continue;
+      Eigen::Vector3i tri;
+      const int abc[3] = {a, b, c};
+      for (int k = 0; k < 3; ++k) {
+        auto it = index.find(abc[k]);
+        if (it == index.end()) {
+          it = index.emplace(abc[k], static_cast<int>(out.vertices.size())).first;
+          out.vertices.push_back(abc[k]);
+        }
+        tri[k] = it->second;
+      }
+      tris.push_back(tri);
+    }
+    out.triangles.resize(static_cast<Eigen::Index>(tris.size()), 3);
+    for (size_t i = 0; i < tris.size(); ++i) out.triangles.row(static_cast<Eigen::Index>(i)) = tris[i].transpose();
+  };
+  DisplaySurface out;
+  std::vector<int> rep;
+  if (max_triangles <= 0 || triangles.rows() <= max_triangles) {
+    cluster(0.0, rep);
+    collapse(rep, out);
+    return out;
+  }
+  double edge = 0.0;
+  for (Eigen::Index t = 0; t < triangles.rows(); ++t)
+    edge += (positions_m.row(triangles(t, 0)) - positions_m.row(triangles(t, 1))).norm();
+  double cell = edge / static_cast<double>(triangles.rows());
+  for (int attempt = 0; attempt < 30; ++attempt, cell *= 1.5) {
+    out = DisplaySurface();
+    cluster(cell, rep);
+    collapse(rep, out);
+    out.cell_m = cell;
+    if (out.triangles.rows() <= max_triangles) break;
+  }
+  return out;
+}
+
+visualization_msgs::Marker surfaceMarker(const DisplaySurface& surface, const core::Points& positions_m,
+                                         const std::string& frame_id, const ros::Time& stamp) {
+  visualization_msgs::Marker m;
+  m.header.frame_id = frame_id;
+  m.header.stamp = stamp;
+  m.ns = "skin";
+  m.id = 0;
+  m.type = visualization_msgs::Marker::TRIANGLE_LIST;
+  m.action = visualization_msgs::Marker::ADD;
+  m.pose.orientation.w = 1.0;
+  m.scale.x = m.scale.y = m.scale.z = 1.0;
+  m.color.r = 0.96f;
+  m.color.g = 0.76f;
+  m.color.b = 0.64f;
+  m.color.a = 0.85f;
+  m.points.resize(static_cast<size_t>(3 * surface.triangles.rows()));
+  for (Eigen::Index t = 0; t < surface.triangles.rows(); ++t)
+    for (int k = 0; k < 3; ++k) {
+      const int node = surface.vertices[static_cast<size_t>(surface.triangles(t, k))];
+      auto& p = m.points[static_cast<size_t>(3 * t + k)];
+      p.x = positions_m(node, 0);
+      p.y = positions_m(node, 1);
+      p.z = positions_m(node, 2);
+    }
+  return m;
+}
+
+visualization_msgs::MarkerArray lesionMarkers(const std::vector<core::Lesion>& lesions, const core::Points& positions_m,
+                                              const std::string& frame_id, const ros::Time& stamp) {
+  if (positions_m.rows() != static_cast<Eigen::Index>(lesions.size()))
+    throw std::invalid_argument("lesionMarkers: " + std::to_string(positions_m.rows()) + " positions for " +
+                                std::to_string(lesions.size()) + " lesions");
+  visualization_msgs::MarkerArray out;
+  for (size_t i = 0; i < lesions.size(); ++i) {
+    const auto r = static_cast<Eigen::Index>(i);
+    visualization_msgs::Marker s;
+    s.header.frame_id = frame_id;
+    s.header.stamp = stamp;
+    s.ns = "lesions";
+    s.id = static_cast<int>(i);
+    s.type = visualization_msgs::Marker::SPHERE;
+    s.action = visualization_msgs::Marker::ADD;
+    s.pose.position.x = positions_m(r, 0);
+    s.pose.position.y = positions_m(r, 1);
+    s.pose.position.z = positions_m(r, 2);
+    s.pose.orientation.w = 1.0;
+    s.scale.x = s.scale.y = s.scale.z = 2.0 * std::max(lesions[i].radius_m, 2e-3);
+    s.color.r = 0.9f;
+    s.color.g = 0.1f;
+    s.color.b = 0.1f;
+    s.color.a = 1.0f;
+    out.markers.push_back(s);
+    visualization_msgs::Marker t = s;
+    t.ns = "lesion_labels";
+    t.type = visualization_msgs::Marker::TEXT_VIEW_FACING;
+    t.text = lesions[i].name;
+    t.pose.position.z += s.scale.z;
+    t.scale.x = t.scale.y = 0.0;
+    t.scale.z = 0.008;
+    t.color.r = t.color.g = t.color.b = 1.0f;
+    out.markers.push_back(t);
+  }
+  return out;
+}
+
+std::vector<geometry_msgs::TransformStamped> lesionTransforms(const std::vector<core::Lesion>& lesions,
+                                                              const core::Points& positions_m,
+                                                              const std::string& frame_id, const std::string& prefix,
+                                                              const ros::Time& stamp) {
+  if (positions_m.rows() != static_cast<Eigen::Index>(lesions.size()))
+    throw std::invalid_argument("lesionTransforms: " + std::to_string(positions_m.rows()) + " positions for " +
+                                std::to_string(lesions.size()) + " lesions");
+  std::vector<geometry_msgs::TransformStamped> out;
+  for (size_t i = 0; i < lesions.size(); ++i) {
+    geometry_msgs::TransformStamped t;
+    t.header.frame_id = frame_id;
+    t.header.stamp = stamp;
+    t.child_frame_id = prefix + lesions[i].name;
+    const auto r = static_cast<Eigen::Index>(i);
+    t.transform.translation.x = positions_m(r, 0);
+    t.transform.translation.y = positions_m(r, 1);
+    t.transform.translation.z = positions_m(r, 2);
+    t.transform.rotation.w = 1.0;
+    out.push_back(t);
+  }
+  return out;
+}
+
+visualization_msgs::MarkerArray slidingMarkers(const core::Points& positions_m, const core::Points& vectors_m,
+                                               const std::vector<int>& nodes, double scale, double min_length_m,
+                                               int max_arrows, const std::string& frame_id, const ros::Time& stamp) {
+  if (vectors_m.rows() != positions_m.rows())
+    throw std::invalid_argument("slidingMarkers: " + std::to_string(vectors_m.rows()) + " vectors for " +
+                                std::to_string(positions_m.rows()) + " nodes");
+  visualization_msgs::MarkerArray out;
+  visualization_msgs::Marker clear;
+  clear.header.frame_id = frame_id;
+  clear.header.stamp = stamp;
+  clear.ns = "sliding";
+  clear.action = visualization_msgs::Marker::DELETEALL;
+  out.markers.push_back(clear);
+  std::vector<int> moving;
+  for (int n : nodes) {
+    if (n < 0 || n >= positions_m.rows())
+      throw std::invalid_argument("slidingMarkers: node " + std::to_string(n) + " out of range");
+    if (vectors_m.row(n).norm() > min_length_m) moving.push_back(n);
+  }
+  const size_t step = (max_arrows > 0 && moving.size() > static_cast<size_t>(max_arrows))
+                          ? (moving.size() + static_cast<size_t>(max_arrows) - 1) / static_cast<size_t>(max_arrows)
+                          : 1;
+  int id = 0;
+  for (size_t i = 0; i < moving.size(); i += step) {
+    const int n = moving[i];
+    visualization_msgs::Marker a;
+    a.header.frame_id = frame_id;
+    a.header.stamp = stamp;
+    a.ns = "sliding";
+    a.id = id++;
+    a.type = visualization_msgs::Marker::ARROW;
+    a.action = visualization_msgs::Marker::ADD;
+    a.pose.orientation.w = 1.0;
+    geometry_msgs::Point p0, p1;
+    p0.x = positions_m(n, 0);
+    p0.y = positions_m(n, 1);
+    p0.z = positions_m(n, 2);
+    p1.x = p0.x + scale * vectors_m(n, 0);
+    p1.y = p0.y + scale * vectors_m(n, 1);
+    p1.z = p0.z + scale * vectors_m(n, 2);
+    a.points = {p0, p1};
+    a.scale.x = 0.0006;  // shaft diameter [m]
+    a.scale.y = 0.0012;  // head diameter [m]
+    a.scale.z = 0.0015;  // head length [m]
+    a.color.r = 0.1f;
+    a.color.g = 0.5f;
+    a.color.b = 1.0f;
+    a.color.a = 1.0f;
+    out.markers.push_back(a);
+  }
+  return out;
 }
 
 }  // namespace breast_sim::ros_interface

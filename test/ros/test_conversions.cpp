@@ -1,6 +1,15 @@
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <cstring>
+#include <random>
+
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/morphing/target_surface.h"
 #include "breast_sim/ros_interface/conversions.h"
+#include "breast_sim/ros_interface/surface_tracker.h"
+#include "breast_sim/ros_interface/tracker_simulation.h"
 
 using namespace breast_sim;
 
@@ -66,4 +75,266 @@ TEST(Conversions, LesionsMoveWithTheDisplacement) {
   ASSERT_EQ(msg.lesions.size(), 1u);
   EXPECT_NEAR(msg.lesions[0].position.x, 0.007, 1e-12);
   EXPECT_NEAR(msg.lesions[0].prone_position.x, 0.002, 1e-12);
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Clouds, poses, gravity, display surfaces, markers.
+
+TEST(Conversions, CloudRoundTripsAndDropsNonFinitePoints) {
+  core::Points p(4, 3);
+  p << 0.1, 0.2, 0.3, 1, 2, 3, std::nan(""), 0, 0, -0.5, 0.25, 0.125;
+  const auto msg = ros_interface::cloudToMessage(p, "tracker", ros::Time(3));
+  EXPECT_EQ(msg.width, 4u);
+  EXPECT_FALSE(msg.is_dense);
+  const auto back = ros_interface::pointsFromCloud(msg);
+  EXPECT_EQ(back.total, 4u);
+  EXPECT_EQ(back.non_finite, 1u);
+  ASSERT_EQ(back.points_m.rows(), 3);
+  EXPECT_NEAR(back.points_m(0, 0), 0.1, 1e-7);  // float32 on the wire
+  EXPECT_NEAR(back.points_m(2, 2), 0.125, 0);
+}
+
+TEST(Conversions, HugeCloudsAreReadWithAStride) {
+  core::Points p = core::Points::Random(10000, 3);
+  const auto back = ros_interface::pointsFromCloud(ros_interface::cloudToMessage(p, "f", ros::Time(0)), 3000);
+  EXPECT_EQ(back.stride, 4u);
+  EXPECT_EQ(back.points_m.rows(), 2500);
+  EXPECT_NEAR(back.points_m(1, 0), p(4, 0), 1e-6);
+}
+
+TEST(Conversions, Float64CloudsAndPaddedRowsAreRead) {
+  // A 2×2 organised cloud of FLOAT64 x, y, z with 8 bytes of padding per point and per row.
+  sensor_msgs::PointCloud2 msg;
+  msg.height = 2;
+  msg.width = 2;
+  for (int k = 0; k < 3; ++k) {
+    sensor_msgs::PointField f;
+    f.name = std::string(1, "xyz"[k]);
+    f.offset = 8 + 8 * k;
+    f.datatype = sensor_msgs::PointField::FLOAT64;
+    f.count = 1;
+    msg.fields.push_back(f);
+  }
+  msg.point_step = 32;
+  msg.row_step = 72;
+  msg.data.assign(144, 0);
+  for (int i = 0; i < 4; ++i)
+    for (int k = 0; k < 3; ++k) {
+      const double v = 10 * i + k;
+      std::memcpy(msg.data.data() + (i / 2) * 72 + (i % 2) * 32 + 8 + 8 * k, &v, 8);
+    }
+  const auto c = ros_interface::pointsFromCloud(msg);
+  ASSERT_EQ(c.points_m.rows(), 4);
+  EXPECT_EQ(c.points_m(3, 0), 30.0);
+  EXPECT_EQ(c.points_m(2, 2), 22.0);
+}
+
+TEST(Conversions, MalformedCloudsAreRejectedWithTheField) {
+  const auto good = ros_interface::cloudToMessage(core::Points::Random(5, 3), "f", ros::Time(0));
+  auto expectError = [](const sensor_msgs::PointCloud2& m, const std::string& what) {
+    try {
+      ros_interface::pointsFromCloud(m);
+      FAIL() << "expected an error about " << what;
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+    }
+  };
+  auto a = good;
+  a.fields.pop_back();
+  expectError(a, "'z'");
+  auto b = good;
+  b.data.resize(10);
+  expectError(b, "truncated");
+  auto c = good;
+  c.fields[1].datatype = sensor_msgs::PointField::UINT8;
+  expectError(c, "'y'");
+  auto d = good;
+  d.row_step = 4;
+  expectError(d, "row_step");
+  auto e = good;
+  e.fields[2].offset = 100;
+  expectError(e, "point_step");
+  auto empty = good;
+  empty.width = 0;
+  empty.data.clear();
+  EXPECT_EQ(ros_interface::pointsFromCloud(empty).points_m.rows(), 0);
+}
+
+TEST(Conversions, PosesAndTransformsRoundTrip) {
+  Eigen::Isometry3d t = Eigen::Isometry3d::Identity();
+  t.linear() = Eigen::AngleAxisd(0.3, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  t.translation() << 0.1, -0.2, 0.3;
+  EXPECT_TRUE(ros_interface::isometryFromPose(ros_interface::poseFromIsometry(t)).isApprox(t, 1e-12));
+  EXPECT_TRUE(ros_interface::isometryFromTransform(ros_interface::transformFromIsometry(t)).isApprox(t, 1e-12));
+  geometry_msgs::Pose zero;  // all-zero quaternion
+  EXPECT_THROW(ros_interface::isometryFromPose(zero), std::invalid_argument);
+  core::Points p(2, 3);
+  p << 1, 0, 0, 0, 1, 0;
+  const core::Points q = ros_interface::transformPoints(t, p);
+  for (int i = 0; i < 2; ++i)
+    EXPECT_TRUE(q.row(i).transpose().isApprox(t * Eigen::Vector3d(p.row(i).transpose()), 1e-12));
+}
+
+TEST(Conversions, GravityLoadFollowsTheTableTilt) {
+  // The simulated tracker's table at its mean tilt gives the phantom's own supine gravity.
+  const core::ModelCase c = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
+  ros_interface::TrackerSimulation sim(c);
+  const Eigen::Vector3d g_prone = 9.81 * c.prone_gravity_direction.normalized();
+  const Eigen::Matrix3d model_from_world = sim.worldFromModel(0.0).linear().transpose();
+  const Eigen::Vector3d load = ros_interface::gravityLoad(model_from_world, 9.81, g_prone);
+  EXPECT_TRUE((load + g_prone).isApprox(c.phantom->gravity_supine_mps2, 1e-9)) << (load + g_prone).transpose();
+  // A quarter of the tilt period later the table has rolled by the amplitude (2°).
+  const Eigen::Matrix3d r2 = sim.worldFromModel(2.0).linear().transpose();
+  EXPECT_NEAR(ros_interface::angleDeg(ros_interface::gravityLoad(r2, 9.81, g_prone) + g_prone, load + g_prone), 2.0, 1e-9);
+  EXPECT_NEAR(ros_interface::angleDeg(Eigen::Vector3d::UnitX(), Eigen::Vector3d::UnitY()), 90.0, 1e-12);
+  EXPECT_EQ(ros_interface::angleDeg(Eigen::Vector3d::Zero(), Eigen::Vector3d::UnitY()), 0.0);
+}
+
+TEST(Conversions, SimulatedTrackerCloudsAreTheSameInBothFrames) {
+  const core::ModelCase c = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
+  ros_interface::TrackerSimulationOptions o;
+  o.points = 500;
+  ros_interface::TrackerSimulation a(c, o), b(c, o);
+  const double t = 1.3;
+  const core::Points in_model = a.cloudInModel(t);
+  const core::Points in_tracker = b.cloudInTracker(t);
+  const Eigen::Isometry3d model_from_tracker = (a.worldFromTracker().inverse() * a.worldFromModel(t)).inverse();
+  EXPECT_LT((ros_interface::transformPoints(model_from_tracker, in_tracker) - in_model).cwiseAbs().maxCoeff(), 1e-12);
+  // Noise-free and without outliers the points lie on the visible supine skin (breathing ≤ 1 mm).
+  o.noise_m = 0;
+  o.outlier_fraction = 0;
+  o.breathing_amplitude_m = 0;
+  ros_interface::TrackerSimulation clean(c, o);
+  const core::SurfaceDistance d(clean.visibleSkin());
+  EXPECT_LT(d.stats(clean.cloudInModel(0.7)).max_m, 1e-9);
+}
+
+TEST(Conversions, DecimatedSurfaceFitsTheBudgetAndKeepsValidIndices) {
+  // A finely triangulated square plate 0.1 m × 0.1 m.
+  const int n = 40;
+  core::Points x((n + 1) * (n + 1), 3);
+  for (int i = 0; i <= n; ++i)
+    for (int j = 0; j <= n; ++j) x.row(i * (n + 1) + j) << 0.1 * i / n, 0.1 * j / n, 0.0;
+  core::Triangles t(2 * n * n, 3);
+  for (int i = 0, k = 0; i < n; ++i)
+    for (int j = 0; j < n; ++j) {
+      const int a = i * (n + 1) + j, b = a + 1, c = a + n + 1, d = c + 1;
+      t.row(k++) << a, b, d;
+      t.row(k++) << a, d, c;
+    }
+  const auto all = ros_interface::decimateSurface(x, t, 0);
+  EXPECT_EQ(all.triangles.rows(), t.rows());
+  const auto small = ros_interface::decimateSurface(x, t, 500);
+  EXPECT_LE(small.triangles.rows(), 500);
+  EXPECT_GT(small.triangles.rows(), 100);  // not collapsed to nothing
+  EXPECT_GT(small.cell_m, 0.0);
+  for (Eigen::Index i = 0; i < small.triangles.size(); ++i) {
+    ASSERT_GE(small.triangles.data()[i], 0);
+    ASSERT_LT(small.triangles.data()[i], static_cast<int>(small.vertices.size()));
+  }
+  // The decimated plate still covers most of the plate's area (slow reference: the exact 0.01 m²).
+  double area = 0;
+  for (Eigen::Index i = 0; i < small.triangles.rows(); ++i) {
+    const Eigen::Vector3d a = x.row(small.vertices[small.triangles(i, 0)]), b = x.row(small.vertices[small.triangles(i, 1)]),
+                          c = x.row(small.vertices[small.triangles(i, 2)]);
+    area += 0.5 * (b - a).cross(c - a).norm();
+  }
+  EXPECT_GT(area, 0.8 * 0.01);
+  EXPECT_LT(area, 1.01 * 0.01);
+  const auto marker = ros_interface::surfaceMarker(small, x, "m", ros::Time(1));
+  EXPECT_EQ(marker.points.size(), static_cast<size_t>(3 * small.triangles.rows()));
+  EXPECT_EQ(marker.type, visualization_msgs::Marker::TRIANGLE_LIST);
+  core::Triangles bad = t;
+  bad(0, 0) = 99999;
+  EXPECT_THROW(ros_interface::decimateSurface(x, bad, 10), std::invalid_argument);
+}
+
+TEST(Conversions, LesionMessagesMarkersAndFrames) {
+  std::vector<core::Lesion> lesions = {{"L1", Eigen::Vector3d(0.01, 0.02, 0.03), 0.005}, {"L2", Eigen::Vector3d::Zero(), 0.0}};
+  core::Points x(2, 3);
+  x << 0.011, 0.022, 0.033, 0.001, 0.002, 0.003;
+  const auto msg = ros_interface::lesionsMessage(lesions, x, "breast_model", ros::Time(2));
+  ASSERT_EQ(msg.lesions.size(), 2u);
+  EXPECT_EQ(msg.lesions[1].id, "L2");
+  EXPECT_DOUBLE_EQ(msg.lesions[0].position.y, 0.022);
+  EXPECT_DOUBLE_EQ(msg.lesions[0].prone_position.y, 0.02);
+  const auto markers = ros_interface::lesionMarkers(lesions, x, "breast_model", ros::Time(2));
+  ASSERT_EQ(markers.markers.size(), 4u);  // sphere + label each
+  EXPECT_DOUBLE_EQ(markers.markers[0].scale.x, 0.01);
+  EXPECT_DOUBLE_EQ(markers.markers[2].scale.x, 0.004);  // a point lesion is drawn 4 mm wide
+  const auto tfs = ros_interface::lesionTransforms(lesions, x, "breast_model", "lesion_", ros::Time(2));
+  ASSERT_EQ(tfs.size(), 2u);
+  EXPECT_EQ(tfs[0].child_frame_id, "lesion_L1");
+  EXPECT_DOUBLE_EQ(tfs[1].transform.translation.z, 0.003);
+  EXPECT_THROW(ros_interface::lesionsMessage(lesions, core::Points(1, 3), "f", ros::Time(0)), std::invalid_argument);
+}
+
+TEST(Conversions, SlidingArrowsSkipShortVectorsAndRespectTheBudget) {
+  core::Points x = core::Points::Zero(10, 3), v = core::Points::Zero(10, 3);
+  for (int i = 0; i < 10; ++i) v(i, 0) = 1e-3 * i;  // node 0 does not move
+  const auto m = ros_interface::slidingMarkers(x, v, {0, 1, 2, 3, 4, 5, 6, 7, 8, 9}, 2.0, 0.5e-3, 0, "f", ros::Time(0));
+  ASSERT_EQ(m.markers.size(), 10u);  // DELETEALL + 9 arrows
+  EXPECT_EQ(m.markers[0].action, visualization_msgs::Marker::DELETEALL);
+  EXPECT_DOUBLE_EQ(m.markers[1].points[1].x, 2.0 * 1e-3);
+  const auto few = ros_interface::slidingMarkers(x, v, {0, 1, 2, 3, 4, 5, 6, 7, 8, 9}, 1.0, 0.0, 3, "f", ros::Time(0));
+  EXPECT_LE(few.markers.size(), 4u);
+  EXPECT_THROW(ros_interface::slidingMarkers(x, v, {10}, 1.0, 0.0, 0, "f", ros::Time(0)), std::invalid_argument);
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Cloud filtering and ICP (PCL).
+
+namespace {
+core::Points spherePatch(int n, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  core::Points p(n, 3);
+  for (int i = 0; i < n; ++i) {
+    // A bumpy cap (not rotationally symmetric, so ICP has a unique answer).
+    const double a = 0.04 * u(rng), b = 0.04 * u(rng);
+    p.row(i) << a, b, 0.02 * std::exp(-(a * a + 2 * b * b) / 0.0008) + 0.004 * std::sin(60 * a);
+  }
+  return p;
+}
+}  // namespace
+
+TEST(CloudProcessing, VoxelGridDecimatesAndOutliersGo) {
+  core::Points p = spherePatch(20000, 3);
+  ros_interface::CloudFilterOptions o;
+  o.remove_outliers = false;
+  const core::Points d = ros_interface::filterCloud(p, o);
+  EXPECT_LT(d.rows(), 2000);  // 80 mm × 80 mm at 3 mm: about 700 cells
+  EXPECT_GT(d.rows(), 300);
+  // Ten far strays are removed by the statistical filter, the surface stays.
+  core::Points q(d.rows() + 10, 3);
+  q.topRows(d.rows()) = d;
+  for (int i = 0; i < 10; ++i) q.row(d.rows() + i) << 0.2 + 0.05 * i, 0.3, -0.2;
+  o.remove_outliers = true;
+  o.voxel_leaf_m = 0;
+  const core::Points f = ros_interface::filterCloud(q, o);
+  EXPECT_LE(f.rows(), d.rows());
+  EXPECT_GT(f.rows(), 0.9 * d.rows());
+  EXPECT_LT(f.col(0).maxCoeff(), 0.1);
+}
+
+TEST(CloudProcessing, IcpRecoversASmallMisregistrationAndRefusesALargeOne) {
+  const core::Points reference = spherePatch(4000, 5);
+  Eigen::Isometry3d mis = Eigen::Isometry3d::Identity();
+  mis.linear() = Eigen::AngleAxisd(1.5 * M_PI / 180.0, Eigen::Vector3d(0.3, 1, 0.2).normalized()).toRotationMatrix();
+  mis.translation() << 0.002, -0.001, 0.0015;
+  const core::Points cloud = ros_interface::transformPoints(mis, spherePatch(3000, 6));
+  ros_interface::IcpOptions o;
+  o.max_iterations = 50;
+  const auto r = ros_interface::rigidAlign(cloud, reference, Eigen::Isometry3d::Identity(), o);
+  ASSERT_TRUE(r.applied) << r.note;
+  // The correction undoes the misregistration: residual pose error well below the 2.7 mm offset.
+  const Eigen::Isometry3d err = r.transform * mis;
+  EXPECT_LT(err.translation().norm(), 0.5e-3);
+  EXPECT_LT(Eigen::AngleAxisd(err.linear()).angle() * 180 / M_PI, 0.3);
+  EXPECT_LT(r.rms_m, 1.5e-3);
+  o.max_translation_m = 0.0005;  // the same correction is now beyond the limit
+  const auto refused = ros_interface::rigidAlign(cloud, reference, Eigen::Isometry3d::Identity(), o);
+  EXPECT_FALSE(refused.applied);
+  EXPECT_TRUE(refused.transform.isApprox(Eigen::Isometry3d::Identity()));
+  EXPECT_NE(refused.note.find("beyond"), std::string::npos) << refused.note;
 }

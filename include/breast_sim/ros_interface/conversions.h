@@ -1,14 +1,23 @@
 #pragma once
 /// @file conversions.h
-/// Pure conversions between core types and ROS messages. Messages are validated before anything is
-/// built from them; a malformed message raises std::invalid_argument naming the field and the fix.
+/// Pure conversions between core types and ROS messages, and the small pure functions the node wires
+/// with (gravity from a pose, surface decimation for rviz, markers). Messages are validated before
+/// anything is built from them; a malformed message raises std::invalid_argument naming the field and
+/// the fix. Units: SI (REP 103), positions in metres in the frame the caller names.
 
 #include <string>
+#include <vector>
 
+#include <Eigen/Geometry>
 #include <ros/time.h>
 
 #include <breast_sim/LesionArray.h>
 #include <breast_sim/TetrahedralMesh.h>
+#include <geometry_msgs/Pose.h>
+#include <geometry_msgs/TransformStamped.h>
+#include <sensor_msgs/PointCloud2.h>
+#include <visualization_msgs/Marker.h>
+#include <visualization_msgs/MarkerArray.h>
 
 #include "breast_sim/core/mesh/tet_mesh.h"
 #include "breast_sim/core/model/point_embedding.h"
@@ -33,5 +42,83 @@ breast_sim::LesionArray toMessage(const std::vector<core::Lesion>& lesions,
                                   const core::PointEmbedding& embedding,
                                   const core::Points& displacement_m, const std::string& frame_id,
                                   const ros::Time& stamp);
+
+/// Lesions at given current positions (#lesions×3 [m], e.g. ProneToSupinePipeline::lesionPositions()).
+/// @throws std::invalid_argument when the row count differs from the number of lesions.
+breast_sim::LesionArray lesionsMessage(const std::vector<core::Lesion>& lesions, const core::Points& positions_m,
+                                       const std::string& frame_id, const ros::Time& stamp);
+
+/// The points of a PointCloud2 and what was left out.
+struct CloudPoints {
+  core::Points points_m;     ///< finite points [m], in the message's frame
+  size_t total = 0;          ///< points in the message (width × height)
+  size_t non_finite = 0;     ///< points dropped for a NaN or infinite coordinate
+  size_t stride = 1;         ///< every stride-th point was read (1 = all)
+};
+
+/// Reads the x, y, z fields (FLOAT32 or FLOAT64, any offsets, either endianness of this machine only)
+/// of a cloud. Clouds with more than `max_points` points (0 = no limit) are read with a stride so at
+/// most `max_points` are taken. Non-finite points are dropped and counted.
+/// @throws std::invalid_argument naming the field when x/y/z are missing or not floating point, or
+///         when point_step, row_step and the data size disagree (a truncated or malformed message).
+CloudPoints pointsFromCloud(const sensor_msgs::PointCloud2& msg, size_t max_points = 0);
+
+/// A dense (height 1) PointCloud2 with FLOAT32 x, y, z fields of the given points [m].
+sensor_msgs::PointCloud2 cloudToMessage(const core::Points& points_m, const std::string& frame_id,
+                                        const ros::Time& stamp);
+
+/// Rigid transform of a pose (position [m] + quaternion, normalised here).
+/// @throws std::invalid_argument for a non-finite value or a zero quaternion.
+Eigen::Isometry3d isometryFromPose(const geometry_msgs::Pose& pose);
+geometry_msgs::Pose poseFromIsometry(const Eigen::Isometry3d& t);
+/// As isometryFromPose, for a geometry_msgs/Transform.
+Eigen::Isometry3d isometryFromTransform(const geometry_msgs::Transform& t);
+geometry_msgs::Transform transformFromIsometry(const Eigen::Isometry3d& t);
+
+/// Applies a rigid transform to every row of `points_m`.
+core::Points transformPoints(const Eigen::Isometry3d& t, const core::Points& points_m);
+
+/// The gravity load on the prone model [m/s²] when gravity points along −z of a frame G (REP 103:
+/// z up) and `model_from_gravity` rotates G's vectors into the model frame:
+/// load = R·(0, 0, −g) − g_prone, with g_prone the gravity the prone rest shape hangs under.
+Eigen::Vector3d gravityLoad(const Eigen::Matrix3d& model_from_gravity, double g_mps2,
+                            const Eigen::Vector3d& prone_gravity_mps2);
+
+/// Angle between two vectors [deg] (0 when either is zero).
+double angleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b);
+
+/// A surface decimated for display by vertex clustering on a grid: vertices falling into one cell
+/// collapse onto one representative vertex; triangles that degenerate or repeat are dropped.
+struct DisplaySurface {
+  std::vector<int> vertices;  ///< mesh node of each display vertex
+  core::Triangles triangles;  ///< indices into `vertices`
+  double cell_m = 0.0;        ///< the cell size that was used [m] (0: not decimated)
+};
+
+/// Decimates `triangles` (node indices into `positions_m`) to at most `max_triangles` (0 = keep all)
+/// by doubling a clustering cell from the mean edge length until the count fits.
+/// @throws std::invalid_argument for an index out of range.
+DisplaySurface decimateSurface(const core::Points& positions_m, const core::Triangles& triangles, int max_triangles);
+
+/// A TRIANGLE_LIST marker of a display surface at nodal positions `positions_m` (#nodes×3 [m]).
+visualization_msgs::Marker surfaceMarker(const DisplaySurface& surface, const core::Points& positions_m,
+                                         const std::string& frame_id, const ros::Time& stamp);
+
+/// A sphere (diameter = 2·max(radius, 2 mm)) and a text label per lesion, ids stable per index.
+visualization_msgs::MarkerArray lesionMarkers(const std::vector<core::Lesion>& lesions, const core::Points& positions_m,
+                                              const std::string& frame_id, const ros::Time& stamp);
+
+/// One transform per lesion: parent `frame_id`, child `prefix + name`, translation = position.
+std::vector<geometry_msgs::TransformStamped> lesionTransforms(const std::vector<core::Lesion>& lesions,
+                                                              const core::Points& positions_m,
+                                                              const std::string& frame_id, const std::string& prefix,
+                                                              const ros::Time& stamp);
+
+/// Arrows from the positions of `nodes` along their sliding vectors (×`scale`), for vectors longer
+/// than `min_length_m`, at most `max_arrows` (evenly sub-sampled). The first marker is a DELETEALL so
+/// arrows of an earlier frame disappear.
+visualization_msgs::MarkerArray slidingMarkers(const core::Points& positions_m, const core::Points& vectors_m,
+                                               const std::vector<int>& nodes, double scale, double min_length_m,
+                                               int max_arrows, const std::string& frame_id, const ros::Time& stamp);
 
 }  // namespace breast_sim::ros_interface

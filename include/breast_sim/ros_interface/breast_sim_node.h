@@ -1,0 +1,198 @@
+#pragma once
+/// @file breast_sim_node.h
+/// The breast_sim navigation node: loads a case, precomputes the prone-to-supine deformation on a
+/// worker thread, then follows the skin surface a tracker sees and publishes the deformed mesh, the
+/// lesions (messages, markers, tf2 frames), sliding vectors, its state and diagnostics.
+///
+/// Threads: ROS callbacks run on an AsyncSpinner and never compute; one worker runs the long jobs
+/// (case loading, precomputation) one at a time; one tracking thread processes the newest cloud (older
+/// ones are dropped, so the node never falls behind its tracker). The pipeline is guarded by one mutex;
+/// services that need it refuse with a reason while a long job runs.
+///
+/// Every interface, parameter, frame and unit is listed in docs/ros/README_section.md and
+/// config/node.yaml.
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+
+#include <actionlib/server/action_server.h>
+#include <geometry_msgs/PoseStamped.h>
+#include <ros/ros.h>
+#include <sensor_msgs/PointCloud2.h>
+#include <std_srvs/Trigger.h>
+#include <tf2_ros/buffer.h>
+#include <tf2_ros/transform_broadcaster.h>
+#include <tf2_ros/transform_listener.h>
+
+#include <breast_sim/LoadCase.h>
+#include <breast_sim/NodeState.h>
+#include <breast_sim/PrecomputeAction.h>
+#include <breast_sim/StartPrecomputation.h>
+#include <breast_sim/StateFile.h>
+
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "breast_sim/ros_interface/conversions.h"
+#include "breast_sim/ros_interface/surface_tracker.h"
+
+namespace breast_sim::ros_interface {
+
+/// Parameters of the node (config/node.yaml documents each with unit and default).
+struct NodeParams {
+  std::string case_file;
+  int target_elements = 0;
+  std::string settings_file;          ///< "" = the case file's simulation/sliding/morphing maps
+  double field_voxel_size_m = 0.0;    ///< 0 = the settings' morphing.voxel_size_mm
+  std::string frame_id = "breast_model";
+  bool precompute_on_start = false;
+  // gravity
+  std::string gravity_frame = "world";
+  bool follow_patient_pose = true;
+  double gravity_update_threshold_deg = 0.5;
+  bool publish_pose_tf = true;
+  // tracking
+  TrackerOptions tracker;
+  size_t max_cloud_points = 300000;
+  double max_transform_age_s = 0.5;
+  double tf_wait_s = 0.05;
+  bool require_precomputation = true;
+  int degraded_after_rejected = 5;
+  double tracking_timeout_s = 2.0;
+  // publishing
+  double mesh_rate_hz = 0.0;          ///< 0 = every tracked frame
+  double marker_rate_hz = 10.0;
+  int marker_max_triangles = 4000;
+  bool publish_lesion_tf = true;
+  std::string lesion_frame_prefix = "lesion_";
+  double sliding_arrow_scale = 5.0;
+  double sliding_min_length_m = 1e-4;
+  int sliding_max_arrows = 300;
+  double diagnostics_period_s = 1.0;
+  double progress_rate_hz = 5.0;
+  double warn_throttle_s = 5.0;
+
+  /// Reads every parameter from the private namespace (missing keys keep the defaults above).
+  /// @throws std::invalid_argument naming the parameter for a value out of range.
+  static NodeParams fromRos(const ros::NodeHandle& pnh);
+};
+
+class BreastSimNode {
+ public:
+  BreastSimNode(ros::NodeHandle nh, ros::NodeHandle pnh);
+  ~BreastSimNode();
+  /// Reads parameters, advertises, starts the tracking thread and loads the configured case.
+  void initialize();
+
+ private:
+  /// A loaded case with its model, pipeline and what the node derives from them.
+  struct Engine {
+    std::string case_file;
+    std::unique_ptr<core::ModelCase> model_case;
+    std::unique_ptr<core::SimulationModel> model;
+    core::PipelineSettings settings;
+    std::unique_ptr<core::ProneToSupinePipeline> pipeline;
+    DisplaySurface display;
+    std::vector<int> wall_nodes;
+    Eigen::Vector3d prone_gravity_mps2 = Eigen::Vector3d::Zero();
+    Eigen::Vector3d gravity_load_mps2 = Eigen::Vector3d::Zero();
+    bool precomputed = false;
+  };
+  using PrecomputeServer = actionlib::ActionServer<breast_sim::PrecomputeAction>;
+
+  // Long jobs.
+  std::unique_ptr<Engine> buildEngine(const std::string& case_file, int target_elements) const;
+  bool startJob(std::function<void()> job, std::string* why);
+  void loadCaseJob(const std::string& case_file, int target_elements, std::string* message, bool* ok);
+  void precomputeJob(bool gravity_only, std::optional<PrecomputeServer::GoalHandle> goal);
+
+  // Services and action.
+  bool loadCaseSrv(breast_sim::LoadCase::Request& req, breast_sim::LoadCase::Response& res);
+  bool startPrecomputationSrv(breast_sim::StartPrecomputation::Request& req,
+                              breast_sim::StartPrecomputation::Response& res);
+  bool cancelSrv(std_srvs::Trigger::Request& req, std_srvs::Trigger::Response& res);
+  bool resetSrv(std_srvs::Trigger::Request& req, std_srvs::Trigger::Response& res);
+  bool saveStateSrv(breast_sim::StateFile::Request& req, breast_sim::StateFile::Response& res);
+  bool loadStateSrv(breast_sim::StateFile::Request& req, breast_sim::StateFile::Response& res);
+  void goalCb(PrecomputeServer::GoalHandle goal);
+  void cancelGoalCb(PrecomputeServer::GoalHandle goal);
+
+  // Tracking.
+  void cloudCb(const sensor_msgs::PointCloud2ConstPtr& msg);
+  void poseCb(const geometry_msgs::PoseStampedConstPtr& msg);
+  void trackingLoop();
+  void processCloud(const sensor_msgs::PointCloud2ConstPtr& msg, std::chrono::steady_clock::time_point received);
+  /// model ← cloud frame at `stamp`; false with the reason when unknown or stale.
+  bool cloudTransform(const std::string& frame, const ros::Time& stamp, Eigen::Isometry3d* t, std::string* why);
+  bool lookup(const std::string& target, const std::string& source, const ros::Time& stamp, Eigen::Isometry3d* t,
+              std::string* why);
+  /// Rotation of gravity-frame vectors into the model frame, if known now.
+  bool gravityRotation(Eigen::Matrix3d* r);
+  void applyGravity(Engine& e);
+  void rejectFrame(const std::string& reason);
+
+  // Publishing.
+  void publishModel(Engine& e, const ros::Time& stamp, bool force_all);
+  void setState(uint8_t state, const std::string& message, bool force = true);
+  void publishDiagnostics(const ros::WallTimerEvent&);
+
+  ros::NodeHandle nh_, pnh_;
+  NodeParams params_;
+  ros::Publisher mesh_pub_, lesions_pub_, lesion_markers_pub_, surface_pub_, sliding_pub_, state_pub_, diag_pub_;
+  ros::Subscriber cloud_sub_, pose_sub_;
+  std::vector<ros::ServiceServer> services_;
+  std::unique_ptr<PrecomputeServer> action_;
+  ros::WallTimer diag_timer_;
+  tf2_ros::Buffer tf_buffer_;
+  std::unique_ptr<tf2_ros::TransformListener> tf_listener_;
+  tf2_ros::TransformBroadcaster tf_broadcaster_;
+
+  std::mutex engine_mutex_;
+  std::unique_ptr<Engine> engine_;
+
+  // The long-job worker.
+  std::mutex job_mutex_;
+  std::thread worker_;
+  std::atomic<bool> busy_{false};
+  std::atomic<bool> cancel_{false};
+  std::mutex goal_mutex_;
+  std::optional<PrecomputeServer::GoalHandle> goal_;
+
+  // The newest cloud, handed to the tracking thread.
+  std::mutex cloud_mutex_;
+  std::condition_variable cloud_cv_;
+  sensor_msgs::PointCloud2ConstPtr pending_cloud_;
+  std::chrono::steady_clock::time_point pending_received_;
+  bool stop_ = false;
+  std::thread tracking_thread_;
+  SurfaceTracker tracker_;
+
+  std::mutex pose_mutex_;
+  geometry_msgs::PoseStampedConstPtr pose_;
+
+  // State and statistics.
+  std::mutex state_mutex_;
+  breast_sim::NodeState state_;
+  std::chrono::steady_clock::time_point last_progress_pub_, last_marker_pub_, last_mesh_pub_, last_quality_;
+  std::mutex stats_mutex_;
+  struct Window {
+    int clouds = 0, tracked = 0, rejected = 0, dropped = 0;
+    double latency_sum_s = 0, latency_max_s = 0, step_sum_s = 0, field_sum_s = 0, icp_sum_s = 0, filter_sum_s = 0;
+    size_t points_in = 0, points_used = 0;
+  } window_;
+  std::chrono::steady_clock::time_point window_start_;
+  long total_tracked_ = 0, total_rejected_ = 0;
+  int consecutive_rejected_ = 0;
+  int inverted_elements_ = 0;
+  double surface_mean_m_ = -1, surface_p95_m_ = -1, alpha_ = 0, icp_rms_m_ = -1;
+  std::chrono::steady_clock::time_point last_tracked_;
+  std::string last_reject_;
+};
+
+}  // namespace breast_sim::ros_interface

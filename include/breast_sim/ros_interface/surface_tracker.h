@@ -1,0 +1,90 @@
+#pragma once
+/// @file surface_tracker.h
+/// One tracker frame, from a cloud in the model frame to an updated model, without ROS transport:
+///   1. PCL voxel-grid decimation (the scanner delivers far more points than the skin has vertices),
+///   2. statistical outlier removal (drapes, instruments, stray returns),
+///   3. rigid pre-alignment with PCL ICP against the current model skin (small residual registration
+///      errors of the tracker; a large or poorly fitting correction is refused and the cloud used as
+///      it is),
+///   4. ProneToSupinePipeline::setTarget (the distance field of the cloud) and a few Figure-2
+///      iterations (iterate()).
+/// The node and the latency benchmark both call this, so the benchmark measures what the node does.
+
+#include <string>
+
+#include <Eigen/Geometry>
+
+#include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+
+namespace breast_sim::ros_interface {
+
+struct CloudFilterOptions {
+  double voxel_leaf_m = 0.003;      ///< voxel-grid leaf size [m]; 0 = no decimation
+  bool remove_outliers = true;      ///< statistical outlier removal
+  int outlier_neighbours = 8;       ///< neighbours for the mean distance
+  double outlier_stddev = 2.0;      ///< points whose mean distance is above mean + this × σ are removed
+};
+
+struct IcpOptions {
+  bool enabled = true;
+  int max_iterations = 10;
+  double max_correspondence_m = 0.01;  ///< pairs farther apart are ignored [m]
+  double max_translation_m = 0.01;     ///< a larger correction is refused [m]
+  double max_rotation_deg = 5.0;       ///< a larger correction is refused [deg]
+  double max_rms_m = 0.004;            ///< a correction whose RMS residual is above this is refused [m]
+};
+
+struct TrackerOptions {
+  CloudFilterOptions filter;
+  IcpOptions icp;
+  int iterations_per_frame = 1;  ///< Figure-2 iterations per frame
+  int min_points = 50;           ///< fewer points after filtering: the frame is refused
+};
+
+/// Timings [s] and outcome of one frame.
+struct TrackResult {
+  bool tracked = false;       ///< false: refused (see reason); the model was not touched
+  std::string reason;
+  size_t points_in = 0, points_decimated = 0, points_used = 0;
+  bool icp_applied = false;
+  double icp_rms_m = -1;
+  double icp_translation_m = 0, icp_rotation_deg = 0;
+  std::string icp_note;       ///< why a correction was refused
+  double filter_s = 0, icp_s = 0, field_s = 0, iterate_s = 0;
+  int iterations = 0, reversals = 0;
+  core::IterationReport last;  ///< the last iteration
+};
+
+/// Voxel-grid decimation and outlier removal of a cloud [m].
+core::Points filterCloud(const core::Points& cloud_m, const CloudFilterOptions& options);
+
+/// ICP result: `transform` maps the cloud onto the reference (identity when refused).
+struct IcpResult {
+  bool applied = false;
+  bool converged = false;
+  Eigen::Isometry3d transform = Eigen::Isometry3d::Identity();
+  double rms_m = -1;
+  std::string note;
+};
+
+/// Rigid alignment of `cloud_m` onto `reference_m` (both #×3 [m]) starting from `guess`.
+IcpResult rigidAlign(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
+                     const IcpOptions& options);
+
+class SurfaceTracker {
+ public:
+  explicit SurfaceTracker(const TrackerOptions& options = {}) : options_(options) {}
+  /// One frame: `cloud_m` in the model frame [m]. Throws only what the pipeline throws.
+  TrackResult track(core::ProneToSupinePipeline& pipeline, const core::Points& cloud_m);
+  /// Forgets the last ICP correction (a new model or a reset).
+  void reset() { guess_ = Eigen::Isometry3d::Identity(); }
+  const TrackerOptions& options() const { return options_; }
+  void setOptions(const TrackerOptions& o) { options_ = o; }
+
+ private:
+  TrackerOptions options_;
+  Eigen::Isometry3d guess_ = Eigen::Isometry3d::Identity();
+};
+
+}  // namespace breast_sim::ros_interface

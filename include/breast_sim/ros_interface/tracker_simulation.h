@@ -1,0 +1,64 @@
+#pragma once
+/// @file tracker_simulation.h
+/// A simulated surgical tracker for the phantom, for the recorded test bags, the rviz demo and the
+/// latency benchmark: the supine target skin as a tracked surface scanner sees it (the anterior part,
+/// area-uniform samples, Gaussian noise, a share of stray outliers, a small breathing motion) and the
+/// patient's pose on a table that tilts slowly. Deterministic for a given seed.
+///
+/// Frames (REP 103/105): `world` is gravity-aligned (z up); the model frame (prone image patient
+/// space, LPS) lies supine on the table: model y (posterior) points down, model z (superior) along
+/// world x; the table rolls about its long axis by tilt(t), which in the model frame gives gravity
+/// g·(sin tilt, cos tilt, 0), the phantom's supine gravity at the mean tilt. The scanner frame
+/// `tracker` hangs above the table looking down.
+
+#include <random>
+#include <string>
+
+#include <Eigen/Geometry>
+
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/morphing/target_surface.h"
+
+namespace breast_sim::ros_interface {
+
+struct TrackerSimulationOptions {
+  int points = 2500;                 ///< points per cloud (before noise outliers are added)
+  double noise_m = 0.5e-3;           ///< isotropic Gaussian noise σ [m]
+  double outlier_fraction = 0.01;    ///< share of points replaced by stray returns near the breast
+  double breathing_amplitude_m = 1e-3;  ///< anterior skin motion at the apex [m], zero at the wall
+  double breathing_period_s = 4.0;
+  double tilt_amplitude_deg = 2.0;   ///< table roll around the mean tilt [deg]
+  double tilt_period_s = 8.0;
+  double sway_amplitude_m = 2e-3;    ///< vertical table motion [m]
+  double sway_period_s = 5.0;
+  unsigned seed = 1;
+};
+
+class TrackerSimulation {
+ public:
+  /// @param model_case a phantom case (its supine surface and gravity tilt are used)
+  /// @throws std::invalid_argument when the case is not the software phantom.
+  TrackerSimulation(const core::ModelCase& model_case, const TrackerSimulationOptions& options = {});
+
+  /// Pose of the model frame in `world` at time t [s].
+  Eigen::Isometry3d worldFromModel(double t_s) const;
+  /// Pose of the scanner frame `tracker` in `world` (fixed).
+  Eigen::Isometry3d worldFromTracker() const;
+  /// The cloud at time t in the model frame [m] (noise and outliers drawn from the generator).
+  core::Points cloudInModel(double t_s);
+  /// The same cloud in the scanner frame [m].
+  core::Points cloudInTracker(double t_s);
+  /// The visible (anterior-facing) supine skin triangles that are sampled.
+  const core::TargetSurface& visibleSkin() const { return skin_; }
+
+ private:
+  TrackerSimulationOptions options_;
+  core::TargetSurface skin_;
+  std::vector<double> cumulative_area_;
+  double depth_m_ = 0.0;  // anterior extent of the supine skin (−y) [m]
+  double mean_tilt_rad_ = 0.0;
+  Eigen::AlignedBox3d box_;
+  std::mt19937 rng_;
+};
+
+}  // namespace breast_sim::ros_interface

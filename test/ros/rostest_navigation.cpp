@@ -1,0 +1,369 @@
+// Integration test of the navigation node (test/ros/navigation.test), on simulated time:
+//  1. it starts and advertises every interface; a bad case is refused and the model kept;
+//  2. the precomputation runs off the callback thread (a second request and other services are
+//     answered at once, refused with a reason) and its lesions match the offline pipeline (same case,
+//     same settings, computed here with the core);
+//  3. the ~precompute action gives feedback, can be cancelled, and runs to a result;
+//  4. while the recorded tracker bag plays (rosbag play --clock) and malformed clouds (NaN, empty,
+//     unknown frame, truncated) arrive in between, the node keeps publishing meshes and lesions at the
+//     cloud rate, the lesions stay within LESION_TOLERANCE_MM of the offline precomputed positions,
+//     and /diagnostics reports the tracking;
+//  5. a saved state loads back to the same lesion positions.
+// All waits are on wall time (simulated time stands still until the bag plays).
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <mutex>
+#include <thread>
+
+#include <actionlib/client/simple_action_client.h>
+#include <diagnostic_msgs/DiagnosticArray.h>
+#include <ros/ros.h>
+#include <sensor_msgs/PointCloud2.h>
+#include <std_srvs/Trigger.h>
+
+#include <breast_sim/LesionArray.h>
+#include <breast_sim/LoadCase.h>
+#include <breast_sim/NodeState.h>
+#include <breast_sim/PrecomputeAction.h>
+#include <breast_sim/StartPrecomputation.h>
+#include <breast_sim/StateFile.h>
+#include <breast_sim/TetrahedralMesh.h>
+
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "breast_sim/ros_interface/conversions.h"
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+// Lesions while tracking vs the offline precomputed supine positions: the bag's clouds are that
+// supine skin with 0.5 mm noise, 1 % strays, ±1 mm breathing and a ±2° table roll (gravity follows).
+constexpr double LESION_TOLERANCE_MM = 3.0;
+// Node after precomputation vs the offline pipeline (same deterministic computation; OpenMP
+// reductions may reorder sums).
+constexpr double PRECOMPUTE_TOLERANCE_MM = 0.05;
+
+double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+/// Everything the node publishes, recorded with wall-clock arrival times.
+struct Recorder {
+  std::mutex m;
+  breast_sim::NodeState::ConstPtr state;
+  breast_sim::LesionArray::ConstPtr lesions;
+  breast_sim::TetrahedralMesh::ConstPtr mesh;
+  diagnostic_msgs::DiagnosticArray::ConstPtr diagnostics;
+  std::vector<double> mesh_times, lesion_times;
+  std::vector<breast_sim::LesionArray::ConstPtr> lesion_history;
+  bool recording = false;
+  int feedbacks = 0;
+};
+Recorder rec;
+
+template <typename F>
+bool waitUntil(F condition, double timeout_s) {
+  const auto t0 = Clock::now();
+  while (since(t0) < timeout_s) {
+    {
+      std::lock_guard<std::mutex> l(rec.m);
+      if (condition()) return true;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  std::lock_guard<std::mutex> l(rec.m);
+  return condition();
+}
+
+std::string stateText() {
+  std::lock_guard<std::mutex> l(rec.m);
+  return rec.state ? rec.state->state_name + ": " + rec.state->message : "(no state)";
+}
+
+/// The offline pipeline: same case, size and settings as the node, precomputed here.
+struct Offline {
+  core::ModelCase c;
+  std::unique_ptr<core::SimulationModel> model;
+  core::Points lesions;
+};
+Offline& offline() {
+  static Offline o = [] {
+    ros::NodeHandle pnh("~");
+    std::string case_file;
+    int target = 0;
+    pnh.getParam("case_file", case_file);
+    pnh.getParam("target_elements", target);
+    Offline r;
+    r.c = core::loadModelCase(case_file);
+    r.c.meshing.target_elements = target;
+    r.model = std::make_unique<core::SimulationModel>(core::buildSimulationModel(r.c));
+    core::ProneToSupinePipeline p(r.c, *r.model, core::loadPipelineSettings(case_file));
+    p.run();
+    r.lesions = p.lesionPositions();
+    return r;
+  }();
+  return o;
+}
+
+double maxLesionErrorMm(const breast_sim::LesionArray& msg, const core::Points& reference) {
+  double worst = 0;
+  for (size_t i = 0; i < msg.lesions.size(); ++i) {
+    const auto& p = msg.lesions[i].position;
+    const auto r = static_cast<Eigen::Index>(i);
+    worst = std::max(worst, 1e3 * (Eigen::Vector3d(p.x, p.y, p.z) - reference.row(r).transpose()).norm());
+  }
+  return worst;
+}
+
+bool precomputed() { return rec.state && rec.state->precomputed && rec.state->state == breast_sim::NodeState::IDLE; }
+
+}  // namespace
+
+TEST(Navigation, AdvertisesItsInterfaces) {
+  for (const char* s : {"load_case", "start_precomputation", "cancel_precomputation", "reset", "save_state", "load_state"})
+    EXPECT_TRUE(ros::service::waitForService(std::string("/breast_sim/") + s, ros::Duration(30.0))) << s;
+  ros::master::V_TopicInfo topics;
+  ASSERT_TRUE(waitUntil([] { return rec.mesh && rec.state && rec.state->model_loaded; }, 240.0)) << stateText();
+  ros::master::getTopics(topics);
+  auto advertised = [&](const std::string& name) {
+    for (const auto& t : topics)
+      if (t.name == name) return true;
+    return false;
+  };
+  for (const char* t : {"/breast_sim/deformed_mesh", "/breast_sim/lesions", "/breast_sim/lesion_markers",
+                        "/breast_sim/surface_marker", "/breast_sim/sliding_vectors", "/breast_sim/state", "/diagnostics",
+                        "/breast_sim/precompute/feedback", "/breast_sim/precompute/result", "/breast_sim/precompute/status"})
+    EXPECT_TRUE(advertised(t)) << t << " is not advertised";
+  std::lock_guard<std::mutex> l(rec.m);
+  EXPECT_EQ(rec.mesh->header.frame_id, "breast_model");
+  const auto mesh = ros_interface::meshFromMessage(*rec.mesh);
+  EXPECT_GT(mesh.numTets(), 1500);
+  EXPECT_LT(mesh.numTets(), 6000);
+}
+
+TEST(Navigation, BadCaseIsRefusedAndTheModelKept) {
+  ros::NodeHandle pnh("~");
+  breast_sim::LoadCase srv;
+  pnh.getParam("bad_case_file", srv.request.case_file);
+  ASSERT_TRUE(ros::service::call("/breast_sim/load_case", srv));
+  EXPECT_FALSE(srv.response.success);
+  EXPECT_NE(srv.response.message.find("does_not_exist.yaml"), std::string::npos) << srv.response.message;
+  ASSERT_TRUE(waitUntil([] { return rec.state && rec.state->model_loaded; }, 10.0));
+}
+
+TEST(Navigation, PrecomputesOffTheCallbackThreadAndMatchesTheOfflinePipeline) {
+  Offline& off = offline();  // computed before the node starts, so the timings below are the node's
+  breast_sim::StartPrecomputation start;
+  ASSERT_TRUE(ros::service::call("/breast_sim/start_precomputation", start));
+  ASSERT_TRUE(start.response.accepted) << start.response.message;
+  // The node keeps answering: a second request and a save are refused at once, with a reason.
+  const auto t0 = Clock::now();
+  breast_sim::StartPrecomputation again;
+  ASSERT_TRUE(ros::service::call("/breast_sim/start_precomputation", again));
+  breast_sim::StateFile save;
+  save.request.path = "/tmp/breast_sim_rostest_busy.state";
+  ASSERT_TRUE(ros::service::call("/breast_sim/save_state", save));
+  const double answer_s = since(t0);
+  bool saw_precomputing = waitUntil([] { return rec.state && rec.state->state == breast_sim::NodeState::PRECOMPUTING; }, 5.0);
+  EXPECT_FALSE(again.response.accepted);
+  EXPECT_NE(again.response.message.find("busy"), std::string::npos) << again.response.message;
+  EXPECT_LT(answer_s, 2.0) << "the node did not answer while precomputing";
+  ASSERT_TRUE(waitUntil(precomputed, 180.0)) << stateText();
+  EXPECT_TRUE(saw_precomputing || !save.response.success);  // either seen on ~state or the save was refused
+  std::lock_guard<std::mutex> l(rec.m);
+  ASSERT_TRUE(rec.lesions);
+  ASSERT_EQ(rec.lesions->lesions.size(), static_cast<size_t>(off.lesions.rows()));
+  const double err = maxLesionErrorMm(*rec.lesions, off.lesions);
+  std::printf("[ measure  ] node vs offline precomputed lesions: %.4f mm (tolerance %.2f mm)\n", err, PRECOMPUTE_TOLERANCE_MM);
+  EXPECT_LT(err, PRECOMPUTE_TOLERANCE_MM);
+  // The lesions moved: the supine shape is not the prone one.
+  double moved = 0;
+  for (const auto& le : rec.lesions->lesions)
+    moved = std::max(moved, std::hypot(le.position.x - le.prone_position.x, le.position.y - le.prone_position.y,
+                                       le.position.z - le.prone_position.z));
+  EXPECT_GT(moved, 5e-3);
+}
+
+TEST(Navigation, ActionGivesFeedbackCanBeCancelledAndRuns) {
+  actionlib::SimpleActionClient<breast_sim::PrecomputeAction> client("/breast_sim/precompute", true);
+  ASSERT_TRUE(client.waitForServer(ros::Duration(10.0)));
+  std_srvs::Trigger reset;
+  ASSERT_TRUE(ros::service::call("/breast_sim/reset", reset));
+  ASSERT_TRUE(reset.response.success) << reset.response.message;
+  breast_sim::PrecomputeGoal goal;
+  goal.gravity_only = false;
+  {
+    std::lock_guard<std::mutex> l(rec.m);
+    rec.feedbacks = 0;
+  }
+  auto feedback = [](const breast_sim::PrecomputeFeedbackConstPtr&) {
+    std::lock_guard<std::mutex> l(rec.m);
+    ++rec.feedbacks;
+  };
+  client.sendGoal(goal, {}, {}, feedback);
+  ASSERT_TRUE(waitUntil([] { return rec.feedbacks > 0; }, 60.0)) << "no feedback";
+  client.cancelGoal();
+  const auto t0 = Clock::now();
+  while (!client.getState().isDone() && since(t0) < 60) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  EXPECT_EQ(client.getState(), actionlib::SimpleClientGoalState::PREEMPTED) << client.getState().toString();
+  ASSERT_TRUE(waitUntil([] { return rec.state && rec.state->state == breast_sim::NodeState::IDLE && !rec.state->precomputed; }, 30.0))
+      << stateText();
+  // Now to the end.
+  client.sendGoal(goal);
+  const auto t1 = Clock::now();
+  while (!client.getState().isDone() && since(t1) < 180) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  ASSERT_EQ(client.getState(), actionlib::SimpleClientGoalState::SUCCEEDED) << client.getState().toString();
+  const auto result = client.getResult();
+  EXPECT_TRUE(result->success) << result->message;
+  EXPECT_GT(result->gravity_steps, 0);
+  EXPECT_GT(result->morphing_steps, 0);
+  EXPECT_EQ(result->inverted_elements, 0);
+  EXPECT_GE(result->surface_mean_m, 0.0);
+  EXPECT_LT(result->surface_mean_m, 1e-3);
+  ASSERT_TRUE(waitUntil(precomputed, 10.0)) << stateText();
+  std::lock_guard<std::mutex> l(rec.m);
+  const double err = maxLesionErrorMm(*rec.lesions, offline().lesions);
+  std::printf("[ measure  ] action precomputation vs offline lesions: %.4f mm\n", err);
+  EXPECT_LT(err, PRECOMPUTE_TOLERANCE_MM);
+}
+
+TEST(Navigation, FollowsTheRecordedTrackerAndSurvivesMalformedClouds) {
+  ros::NodeHandle nh, pnh("~");
+  breast_sim::StateFile save;
+  save.request.path = "/tmp/breast_sim_rostest.state";
+  ASSERT_TRUE(ros::service::call("/breast_sim/save_state", save));
+  ASSERT_TRUE(save.response.success) << save.response.message;
+  std::string bag;
+  pnh.getParam("bag", bag);
+  ros::Publisher bad = nh.advertise<sensor_msgs::PointCloud2>("/tracker/surface_points", 5);
+  {
+    std::lock_guard<std::mutex> l(rec.m);
+    rec.recording = true;
+    rec.mesh_times.clear();
+    rec.lesion_times.clear();
+    rec.lesion_history.clear();
+  }
+  std::atomic<bool> played{false};
+  int play_status = -1;
+  const auto t0 = Clock::now();
+  std::thread player([&] {
+    play_status = std::system(("rosbag play --clock -q " + bag + " > /dev/null 2>&1").c_str());
+    played = true;
+  });
+  // Malformed clouds in between the bag's: NaN only, empty, an unknown frame, a truncated one.
+  int sent = 0;
+  while (!played) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(700));
+    if (played) break;
+    core::Points nan = core::Points::Constant(100, 3, std::numeric_limits<double>::quiet_NaN());
+    sensor_msgs::PointCloud2 m;
+    switch (sent % 4) {
+      case 0: m = ros_interface::cloudToMessage(nan, "tracker", ros::Time::now()); break;
+      case 1: m = ros_interface::cloudToMessage(core::Points(0, 3), "tracker", ros::Time::now()); break;
+      case 2: m = ros_interface::cloudToMessage(core::Points::Random(500, 3), "no_such_frame", ros::Time::now()); break;
+      case 3:
+        m = ros_interface::cloudToMessage(core::Points::Random(500, 3), "tracker", ros::Time::now());
+        m.data.resize(m.data.size() / 2);
+        break;
+    }
+    bad.publish(m);
+    ++sent;
+  }
+  player.join();
+  const double play_s = since(t0);
+  ASSERT_EQ(play_status, 0) << "rosbag play failed";
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  std::lock_guard<std::mutex> l(rec.m);
+  rec.recording = false;
+  // The bag: 10 s of clouds at 10 Hz.
+  const double rate = rec.mesh_times.size() > 1
+                          ? (rec.mesh_times.size() - 1) / (rec.mesh_times.back() - rec.mesh_times.front())
+                          : 0.0;
+  std::printf("[ measure  ] bag played in %.1f s, %d malformed clouds sent; %zu meshes, %zu lesion arrays; mesh rate %.2f Hz\n",
+              play_s, sent, rec.mesh_times.size(), rec.lesion_times.size(), rate);
+  EXPECT_GE(sent, 8);
+  EXPECT_GE(rec.mesh_times.size(), 70u) << "of 100 clouds";
+  EXPECT_GE(rec.lesion_times.size(), 70u);
+  EXPECT_GT(rate, 7.0);
+  // The largest gap between meshes: the malformed clouds did not stall the node.
+  double gap = 0;
+  for (size_t i = 1; i < rec.mesh_times.size(); ++i) gap = std::max(gap, rec.mesh_times[i] - rec.mesh_times[i - 1]);
+  std::printf("[ measure  ] largest gap between meshes: %.3f s\n", gap);
+  EXPECT_LT(gap, 1.0);
+  double worst = 0;
+  for (const auto& le : rec.lesion_history) worst = std::max(worst, maxLesionErrorMm(*le, offline().lesions));
+  std::printf("[ measure  ] lesions while tracking vs offline precomputed: max %.3f mm (tolerance %.1f mm)\n", worst,
+              LESION_TOLERANCE_MM);
+  EXPECT_LT(worst, LESION_TOLERANCE_MM);
+  ASSERT_FALSE(rec.lesion_history.empty());
+  EXPECT_GT(rec.lesion_history.back()->header.stamp.toSec(), 100.0);  // stamped with the bag's (simulated) time
+  ASSERT_TRUE(rec.diagnostics);
+  std::string tracked;
+  for (const auto& s : rec.diagnostics->status)
+    for (const auto& kv : s.values) {
+      if (kv.key == "clouds tracked total") tracked = kv.value;
+      if (kv.key.find("latency") != std::string::npos || kv.key.find("rate") != std::string::npos ||
+          kv.key.find("rejected total") != std::string::npos || kv.key.find("residual") != std::string::npos)
+        std::printf("[ measure  ] diagnostics: %s = %s\n", kv.key.c_str(), kv.value.c_str());
+    }
+  EXPECT_FALSE(tracked.empty());
+  if (!tracked.empty()) EXPECT_GE(std::stol(tracked), 70);
+}
+
+TEST(Navigation, SavedStateLoadsBack) {
+  breast_sim::StateFile missing;
+  missing.request.path = "/tmp/breast_sim_no_such_dir/none.state";
+  ASSERT_TRUE(ros::service::call("/breast_sim/load_state", missing));
+  EXPECT_FALSE(missing.response.success);
+  EXPECT_NE(missing.response.message.find("none.state"), std::string::npos) << missing.response.message;
+  breast_sim::StateFile load;
+  load.request.path = "/tmp/breast_sim_rostest.state";
+  {
+    std::lock_guard<std::mutex> l(rec.m);
+    rec.lesions.reset();
+  }
+  ASSERT_TRUE(ros::service::call("/breast_sim/load_state", load));
+  ASSERT_TRUE(load.response.success) << load.response.message;
+  ASSERT_TRUE(waitUntil([] { return rec.lesions != nullptr; }, 10.0));
+  std::lock_guard<std::mutex> l(rec.m);
+  const double err = maxLesionErrorMm(*rec.lesions, offline().lesions);
+  std::printf("[ measure  ] lesions after load_state vs offline: %.4f mm\n", err);
+  EXPECT_LT(err, PRECOMPUTE_TOLERANCE_MM);
+}
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  ros::init(argc, argv, "navigation_test");
+  ros::NodeHandle nh;
+  auto stamp = [] { return std::chrono::duration<double>(Clock::now().time_since_epoch()).count(); };
+  ros::Subscriber s1 = nh.subscribe<breast_sim::NodeState>("/breast_sim/state", 10, [](const breast_sim::NodeState::ConstPtr& m) {
+    std::lock_guard<std::mutex> l(rec.m);
+    rec.state = m;
+  });
+  ros::Subscriber s2 = nh.subscribe<breast_sim::TetrahedralMesh>("/breast_sim/deformed_mesh", 5,
+                                                                 [&](const breast_sim::TetrahedralMesh::ConstPtr& m) {
+    std::lock_guard<std::mutex> l(rec.m);
+    rec.mesh = m;
+    if (rec.recording) rec.mesh_times.push_back(stamp());
+  });
+  ros::Subscriber s3 = nh.subscribe<breast_sim::LesionArray>("/breast_sim/lesions", 5, [&](const breast_sim::LesionArray::ConstPtr& m) {
+    std::lock_guard<std::mutex> l(rec.m);
+    rec.lesions = m;
+    if (rec.recording) {
+      rec.lesion_times.push_back(stamp());
+      rec.lesion_history.push_back(m);
+    }
+  });
+  ros::Subscriber s4 = nh.subscribe<diagnostic_msgs::DiagnosticArray>("/diagnostics", 5,
+                                                                      [](const diagnostic_msgs::DiagnosticArray::ConstPtr& m) {
+    std::lock_guard<std::mutex> l(rec.m);
+    rec.diagnostics = m;
+  });
+  ros::AsyncSpinner spinner(2);
+  spinner.start();
+  offline();  // while the node loads its case
+  return RUN_ALL_TESTS();
+}
