@@ -107,6 +107,11 @@ TEST(Pipeline, AZeroDistanceTargetLeavesTheModelUnchanged) {
   own.vertices_m = p.m.mesh.nodes();
   own.triangles = skinTriangles(p.m.mesh, p.m.mesh.nodeSet(node_sets::kSkin));
   pipe.setTarget(own);
+  // A bad frame (no points) is refused and the last good target stays.
+  EXPECT_THROW(pipe.setTarget(TargetSurface{}), std::invalid_argument);
+  ASSERT_TRUE(pipe.hasTarget());
+  EXPECT_EQ(pipe.target().vertices_m.rows(), own.vertices_m.rows());
+  pipe.setTarget(own);  // the same target again: an in-place rebuild
   for (int k = 0; k < 10; ++k) {
     const IterationReport it = pipe.iterate();
     EXPECT_TRUE(it.advanced);

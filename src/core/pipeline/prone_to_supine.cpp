@@ -105,11 +105,15 @@ void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
   Eigen::AlignedBox3d region;
   const Points x = positions();
   for (Eigen::Index i = 0; i < x.rows(); ++i) region.extend(x.row(i).transpose());
-  auto field = std::make_shared<const SurfaceVectorField>(target, region, settings_.morphing.field);
-  auto distance = std::make_unique<SurfaceDistance>(target);
-  // Everything built: swap in.
+  auto distance = std::make_unique<SurfaceDistance>(target);  // validates the target first
+  if (field_) {
+    // A new frame (e.g. a tracker cloud): rebuild in place, reusing the grid storage (a fresh build
+    // pays its page faults again); the field is unchanged if the rebuild throws.
+    field_->rebuild(target, region, settings_.morphing.field);
+  } else {
+    field_ = std::make_shared<SurfaceVectorField>(target, region, settings_.morphing.field);
+  }
   target_ = target;
-  field_ = std::move(field);
   distance_ = std::move(distance);
   if (morphing_forces_) morphing_forces_->setField(field_);
 }

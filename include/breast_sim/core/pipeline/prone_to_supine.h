@@ -163,8 +163,10 @@ class ProneToSupinePipeline {
   /// @throws std::logic_error without a target.
   IterationReport iterate();
 
-  /// Replaces the target (e.g. a new tracker cloud): rebuilds the distance field over the model's
-  /// reach; the accumulated morphing forces are kept (they are what holds the current shape).
+  /// Replaces the target (e.g. a new tracker cloud): rebuilds the distance field in place over the
+  /// model's current box (SurfaceVectorField::rebuild reuses its storage); the accumulated morphing
+  /// forces are kept (they are what holds the current shape). On a bad target it throws and the
+  /// previous target stays.
   void setTarget(const TargetSurface& target);
   bool hasTarget() const { return static_cast<bool>(field_); }
   const TargetSurface& target() const { return target_; }
@@ -223,7 +225,7 @@ class ProneToSupinePipeline {
   std::unique_ptr<StiffeningSimulation> stiff_;
   std::unique_ptr<ChestWallSliding> sliding_;
   TargetSurface target_;
-  std::shared_ptr<const SurfaceVectorField> field_;
+  std::shared_ptr<SurfaceVectorField> field_;  // rebuilt in place for a new target
   std::unique_ptr<SurfaceMorphing> morphing_forces_;
   std::unique_ptr<SurfaceDistance> distance_;
   PipelineStage stage_ = PipelineStage::kIdle;
