@@ -65,6 +65,9 @@ void CorotatedTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
 
 void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
   const int nt = static_cast<int>(tets_.rows());
+  const bool determinant = volume_term_ == VolumeTerm::kDeterminant && corotated_;
+  if (determinant) volume_grads_.resize(12 * static_cast<size_t>(nt));
+  stiffness_is_determinant_ = determinant;
   // Per element: rotation, co-rotated strain and stress, element forces −V R σ ∇N_i.
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < nt; ++e) {
@@ -79,7 +82,25 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
     const Eigen::Matrix3d Fr = R.transpose() * F;
     const Eigen::Matrix3d eps = 0.5 * (Fr + Fr.transpose()) - Eigen::Matrix3d::Identity();
     const double s = modulus_factor_[e];
-    const Eigen::Matrix3d sigma = s * (lambda_ * eps.trace() * Eigen::Matrix3d::Identity() + 2.0 * mu_ * eps);
+    // Co-rotated stress σ with P = R σ (corotated_tet_fem.h, VolumeTerm).
+    Eigen::Matrix3d sigma;
+    if (volume_term_ == VolumeTerm::kTrace || !corotated_) {
+      sigma = s * (lambda_ * eps.trace() * Eigen::Matrix3d::Identity() + 2.0 * mu_ * eps);
+    } else {
+      // Rᵀ cof F = J S⁻¹ (symmetric for the polar R): λ (J − 1) J S⁻¹; its columns are Rᵀ times
+      // the cross products of F's columns.
+      Eigen::Matrix3d cof;
+      cof.col(0) = F.col(1).cross(F.col(2));
+      cof.col(1) = F.col(2).cross(F.col(0));
+      cof.col(2) = F.col(0).cross(F.col(1));
+      const double J = F.col(0).dot(cof.col(0));
+      const Eigen::Matrix3d rc = R.transpose() * cof;
+      sigma = s * (lambda_ * (J - 1.0) * 0.5 * (rc + rc.transpose()) + 2.0 * mu_ * eps);
+      // ∂J/∂x_i = cof F ∇N_i, kept for the volumetric (Gauss–Newton) part of the stiffness.
+      double* cg = &volume_grads_[12 * static_cast<size_t>(e)];
+      for (int i = 0; i < 4; ++i)
+        Eigen::Map<Eigen::Vector3d>(cg + 3 * i) = cof * Eigen::Vector3d(g[3 * i], g[3 * i + 1], g[3 * i + 2]);
+    }
     const double d01 = sigma(0, 0) - sigma(1, 1), d12 = sigma(1, 1) - sigma(2, 2), d20 = sigma(2, 2) - sigma(0, 0);
     von_mises_[e] = std::sqrt(0.5 * (d01 * d01 + d12 * d12 + d20 * d20) +
                               3.0 * (sigma(0, 1) * sigma(0, 1) + sigma(1, 2) * sigma(1, 2) + sigma(0, 2) * sigma(0, 2)));
@@ -115,6 +136,10 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
 }
 
 void CorotatedTetFem::addStiffness(double scale, SparseMatrix& A) const {
+  if (stiffness_is_determinant_) {
+    addDeterminantStiffness(scale, A);
+    return;
+  }
   const int nn = pattern_.numNodes();
   double* const values = A.valuePtr();
   const int* const outer = A.outerIndexPtr();
@@ -182,6 +207,38 @@ void CorotatedTetFem::addStiffness(double scale, SparseMatrix& A) const {
   }
 }
 
+void CorotatedTetFem::addDeterminantStiffness(double scale, SparseMatrix& A) const {
+  // Block (i, j): V E_r (λ c_i c_jᵀ + μ a_j a_iᵀ + μ (a_i·a_j) I) with a = R ∇N and c = cof F ∇N
+  // (= ∂J/∂x): the μ part of R K_e0 Rᵀ and the Gauss–Newton part of λ (J − 1) cof F, whose
+  // dropped remainder λ (J − 1) ∂cof F/∂x is indefinite. SPD, and R K_e0 Rᵀ at rest.
+  const int nn = pattern_.numNodes();
+  double* const values = A.valuePtr();
+  const int* const outer = A.outerIndexPtr();
+  const double* const recs = records();
+  const int* const islots = incident_slots_.data();
+  const double sl = scale * lambda_, sm = scale * mu_;
+#pragma omp parallel for schedule(dynamic, 64)
+  for (int n = 0; n < nn; ++n) {
+    double* const row0 = values + outer[3 * n];
+    const int len = outer[3 * n + 1] - outer[3 * n];
+    double* const rows[3] = {row0, row0 + len, row0 + 2 * len};
+    for (int k = pattern_.incidentStart(n); k < pattern_.incidentStart(n + 1); ++k) {
+      const int i = pattern_.incidentLocal(k);
+      const size_t e = static_cast<size_t>(pattern_.incidentElement(k));
+      const double* const a = recs + kRecord * e;
+      const double* const c = &volume_grads_[12 * e];
+      const double w = a[12];
+      for (int j = 0; j < 4; ++j) {
+        const int slot = islots[4 * static_cast<size_t>(k) + j];
+        const double d = w * sm * (a[3 * i] * a[3 * j] + a[3 * i + 1] * a[3 * j + 1] + a[3 * i + 2] * a[3 * j + 2]);
+        for (int r = 0; r < 3; ++r)
+          for (int q = 0; q < 3; ++q)
+            rows[r][slot + q] += w * (sl * c[3 * i + r] * c[3 * j + q] + sm * a[3 * j + r] * a[3 * i + q]) + (r == q ? d : 0.0);
+      }
+    }
+  }
+}
+
 Eigen::MatrixXd CorotatedTetFem::denseStiffness() const {
   const int nn = pattern_.numNodes();
   Eigen::MatrixXd K = Eigen::MatrixXd::Zero(3 * nn, 3 * nn);
@@ -199,14 +256,18 @@ Eigen::MatrixXd CorotatedTetFem::denseStiffness() const {
       B(5, 3 * i) = gz, B(5, 3 * i + 2) = gx;
     }
     Eigen::Matrix<double, 6, 6> C = Eigen::Matrix<double, 6, 6>::Zero();
-    C.topLeftCorner<3, 3>().setConstant(lambda_);
+    C.topLeftCorner<3, 3>().setConstant(stiffness_is_determinant_ ? 0.0 : lambda_);
     C.topLeftCorner<3, 3>().diagonal().array() += 2.0 * mu_;
     C.bottomRightCorner<3, 3>().diagonal().setConstant(mu_);
     const Eigen::Matrix<double, 12, 12> K0 = volumes_[e] * B.transpose() * C * B;
     const Eigen::Map<const Eigen::Matrix3d> R(&rotations_[9 * static_cast<size_t>(e)]);
     Eigen::Matrix<double, 12, 12> Rb = Eigen::Matrix<double, 12, 12>::Zero();
     for (int i = 0; i < 4; ++i) Rb.block<3, 3>(3 * i, 3 * i) = R;
-    const Eigen::Matrix<double, 12, 12> Ke = modulus_factor_[e] * Rb * K0 * Rb.transpose();
+    Eigen::Matrix<double, 12, 12> Ke = modulus_factor_[e] * Rb * K0 * Rb.transpose();
+    if (stiffness_is_determinant_) {
+      const Eigen::Map<const Eigen::Matrix<double, 12, 1>> c(&volume_grads_[12 * static_cast<size_t>(e)]);
+      Ke += modulus_factor_[e] * volumes_[e] * lambda_ * c * c.transpose();
+    }
     for (int i = 0; i < 4; ++i)
       for (int j = 0; j < 4; ++j) K.block<3, 3>(3 * tets_(e, i), 3 * tets_(e, j)) += Ke.block<3, 3>(3 * i, 3 * j);
   }

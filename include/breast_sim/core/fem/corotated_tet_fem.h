@@ -35,6 +35,28 @@ class CorotatedTetFem : public ElementFormulation {
   Eigen::Matrix3d rotation(int e) const { return Eigen::Map<const Eigen::Matrix3d>(&rotations_[9 * static_cast<size_t>(e)]); }
   /// When false, rotations stay identity: plain (not co-rotated) linear FEM, for comparisons.
   void setCorotated(bool corotated) { corotated_ = corotated; }
+
+  /// What the volumetric (λ) part of the co-rotated stress penalises. With S = Rᵀ F the stretch and
+  /// J = det F, the first Piola stress is P = E_r (2μ R (S − I) + λ v) with
+  ///   kTrace:       v = (tr S − 3) R        classic co-rotated linear elasticity [RB86, GW08]
+  ///   kDeterminant: v = (J − 1) cof F       "fixed co-rotated" (Stomakhin et al. 2012), cof F = J F⁻ᵀ
+  /// Both have the same linearisation at rest (J − 1 ≈ tr S − 3, cof F ≈ R), so small-strain results,
+  /// the patch test and the stiffness R K_e0 Rᵀ are unchanged. They differ under large compression:
+  /// tr S − 3 is only a linearised volume change, so with λ ≫ μ (ν = 0.48: λ/μ = 24) kTrace holds
+  /// the SUM of the principal stretches, not their product: an element can flatten (stretches
+  /// 1.5, 1.5, 0 keep tr S = 3 at J = 0) and pass through inversion (1.6, 1.6, −0.2) resisted by μ
+  /// alone. Near the clamped rim under the supine load this makes spurious collapsed and inverted
+  /// equilibria (docs/corotated/README.md). kDeterminant penalises J − 1 itself, so flattening and
+  /// inversion cost λ, as in the neo-Hookean reference.
+  /// \note Stiffness: kTrace uses R K_e0 Rᵀ (it omits ∂R/∂x). kDeterminant replaces its λ part by
+  /// the Gauss–Newton term λ V E_r (∂J/∂x)(∂J/∂x)ᵀ (∂J/∂x_i = cof F ∇N_i), dropping the indefinite
+  /// λ (J − 1) ∂(cof F)/∂x: SPD, equal to R K_e0 Rᵀ at rest, and stiff enough under compression
+  /// (cof F ∇N grows there) that the long settling steps do not overshoot. Both are exact at rest;
+  /// elsewhere the implicit step is a quasi-Newton step converging to the same equilibrium.
+  enum class VolumeTerm { kTrace, kDeterminant };
+  /// Selects the volumetric term (kTrace by default).
+  void setVolumeTerm(VolumeTerm term) { volume_term_ = term; }
+  VolumeTerm volumeTerm() const { return volume_term_; }
   /// \note update() must run before addStiffness() and denseStiffness(): both use its rotations.
 
   /// Dense 3N×3N stiffness at the last update, element by element (the slow reference for tests).
@@ -66,6 +88,10 @@ class CorotatedTetFem : public ElementFormulation {
   Eigen::VectorXd modulus_factor_;
   Eigen::VectorXd von_mises_;
   bool corotated_ = true;
+  VolumeTerm volume_term_ = VolumeTerm::kTrace;
+  bool stiffness_is_determinant_ = false;  // the volume term at the last update()
+  std::vector<double> volume_grads_;       // kDeterminant: 12 per element, ∂J/∂x_i = cof F ∇N_i [1/m]
+  void addDeterminantStiffness(double scale, SparseMatrix& A) const;
 };
 
 }  // namespace breast_sim::core
