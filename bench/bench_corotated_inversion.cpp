@@ -260,6 +260,24 @@ int main(int argc, char** argv) {
       std::printf("%-40s | %6s %5d %6d %6d %4d | %8.2f %7.3f %7s %7s %7s\n", v.name.c_str(), r.settled ? "yes" : "NO",
                   r.steps, r.first_inverted_step, r.max_inverted, r.inverted, r.seconds, umax, "-", "-", "-");
     }
+    {
+      const std::vector<int> inv = invertedTets(m.mesh.tets(), m.mesh.nodes() + r.u);
+      const std::vector<int>& cw = m.mesh.nodeSet("chest_wall");
+      const std::vector<int>& sk = m.mesh.nodeSet("skin");
+      const std::set<int> cws(cw.begin(), cw.end()), sks(sk.begin(), sk.end());
+      int rim = 0;
+      for (int e : inv) {
+        bool c = false, k = false;
+        for (int i = 0; i < 4; ++i) {
+          c = c || cws.count(m.mesh.tets()(e, i));
+          k = k || sks.count(m.mesh.tets()(e, i));
+        }
+        rim += c && k;
+      }
+      if (!inv.empty()) std::printf("%-40s   (%d of the %d inverted touch both the fixed chest wall and the skin)\n", "", rim,
+                                    static_cast<int>(inv.size()));
+      row["inverted_at_rim"] = rim;
+    }
     std::fflush(stdout);
     rows.push_back(row);
   }
