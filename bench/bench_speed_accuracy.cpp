@@ -13,6 +13,7 @@
 //             corotated/cholmod               co-rotated FEM, CHOLMOD, settle()
 //             corotated+stiffening/multigrid  von Mises stiffening with time-step reversal (the main job)
 //             corotated+stiffening/cholmod    the same with CHOLMOD
+//             corotated-det[+stiffening]/...  with the fixed co-rotated J − 1 volume term (docs/corotated)
 //           Time = the settling steps (the simulator's set-up — multigrid hierarchy, CHOLMOD
 //           analysis — is listed beside it, not included; meshing is listed too).
 //
@@ -83,8 +84,14 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
   const std::size_t slash = method.find('/');
   if (slash == std::string::npos) throw std::invalid_argument("method '" + method + "': expected <formulation>/<solver>");
   const std::string form = method.substr(0, slash), solver = method.substr(slash + 1);
-  if (form != "linear" && form != "corotated" && form != "corotated+stiffening")
-    throw std::invalid_argument("method '" + method + "': formulation must be linear, corotated or corotated+stiffening");
+  if (form != "linear" && form != "corotated" && form != "corotated+stiffening" && form != "corotated-det" &&
+      form != "corotated-det+stiffening")
+    throw std::invalid_argument("method '" + method +
+                                "': formulation must be linear, corotated, corotated+stiffening, corotated-det or "
+                                "corotated-det+stiffening");
+  // "-det": the fixed co-rotated J − 1 volume term (docs/corotated) instead of the seed's trace term.
+  if (form.rfind("corotated-det", 0) == 0) s.volume_term = CorotatedTetFem::VolumeTerm::kDeterminant;
+  const bool stiffening = form.size() > 11 && form.substr(form.size() - 11) == "+stiffening";
   s.solver.kind = SolverSettings::kindFromName(solver);
   s.dynamics.gravity_mps2 = g;
   SimulatorBuild b = buildSimulator(c, m, s);
@@ -92,7 +99,7 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
   if (form == "linear") dynamic_cast<CorotatedTetFem&>(sim.elements()).setCorotated(false);
   OurRun r;
   r.setup_seconds = b.hierarchy_seconds + b.setup_seconds;
-  if (form != "corotated+stiffening") {
+  if (!stiffening) {
     SettleOptions o = s.settle;
     if (tight) {
       o.time_step_s = 1.0;
@@ -153,7 +160,8 @@ int main(int argc, char** argv) {
   std::string curve_method = "corotated+stiffening/multigrid";
   std::vector<double> targets = {5000, 10000, 20000, 47895, 99390};
   std::vector<std::string> methods = {"linear/multigrid", "corotated/multigrid", "corotated/cholmod",
-                                      "corotated+stiffening/multigrid", "corotated+stiffening/cholmod"};
+                                      "corotated+stiffening/multigrid", "corotated+stiffening/cholmod",
+                                      "corotated-det/multigrid", "corotated-det/cholmod"};
   int reference_target = 99390, locking_target = 10000;
   std::vector<double> nus = {0.3, 0.4, 0.45, 0.48, 0.49, 0.495};
   double lesion_target_mm = 2.0;

@@ -44,6 +44,7 @@ TEST(SimulationSettings, DefaultsWithoutASimulationMap) {
   EXPECT_DOUBLE_EQ(s.material.youngs_modulus_pa, 2000.0);
   EXPECT_EQ(s.fixed_node_set, "chest_wall");
   EXPECT_TRUE(s.stiffening);
+  EXPECT_EQ(s.volume_term, CorotatedTetFem::VolumeTerm::kTrace);  // the seed's
   EXPECT_FALSE(s.sliding);
 }
 
@@ -69,6 +70,7 @@ simulation:
   settle_increment_tolerance_mm: 0.002
   settle_max_steps: 77
   stiffening: false
+  volume_term: determinant
   sliding: true
 )"));
   EXPECT_DOUBLE_EQ(s.material.youngs_modulus_pa, 3000);
@@ -91,6 +93,7 @@ simulation:
   EXPECT_DOUBLE_EQ(s.settle.increment_tolerance_m, 2e-6);
   EXPECT_EQ(s.settle.max_steps, 77);
   EXPECT_FALSE(s.stiffening);
+  EXPECT_EQ(s.volume_term, CorotatedTetFem::VolumeTerm::kDeterminant);
   EXPECT_TRUE(s.sliding);
 }
 

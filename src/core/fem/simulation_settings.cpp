@@ -77,7 +77,7 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
             {"youngs_modulus_pa", "poisson_ratio", "density_kg_per_m3", "time_step_s", "mass_damping_per_s",
              "stiffness_damping_s", "solver", "solver_relative_tolerance", "solver_max_iterations",
              "multigrid_smoother", "multigrid_smoothing_steps", "multigrid_coarse_update_interval",
-             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "sliding", "settle_time_step_s",
+             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "sliding", "settle_time_step_s",
              "settle_increment_tolerance_mm", "settle_max_steps"},
             f, "simulation");
   const double inf = std::numeric_limits<double>::infinity();
@@ -106,6 +106,10 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
   if (m["gravity_mps2"]) s.gravity_mps2 = numberIn(m["gravity_mps2"], f, key("gravity_mps2"), 0, 1000, false, false, "m/s^2");
   if (m["stiffening"]) s.stiffening = boolean(m["stiffening"], f, key("stiffening"));
   if (m["sliding"]) s.sliding = boolean(m["sliding"], f, key("sliding"));
+  if (m["volume_term"])
+    s.volume_term = choice(m["volume_term"], f, key("volume_term"), {"trace", "determinant"}) == "trace"
+                        ? CorotatedTetFem::VolumeTerm::kTrace
+                        : CorotatedTetFem::VolumeTerm::kDeterminant;
   if (m["settle_time_step_s"]) s.settle.time_step_s = numberIn(m["settle_time_step_s"], f, key("settle_time_step_s"), 0, 100, false, false, "s");
   if (m["settle_increment_tolerance_mm"]) s.settle.increment_tolerance_m = 1e-3 * numberIn(m["settle_increment_tolerance_mm"], f, key("settle_increment_tolerance_mm"), 0, 10, true, false, "mm");
   if (m["settle_max_steps"]) s.settle.max_steps = static_cast<int>(integer(m["settle_max_steps"], f, key("settle_max_steps"), 1, 1000000));
@@ -149,9 +153,10 @@ SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel
   }
   b.hierarchy_seconds = since(t0);
   const auto t1 = std::chrono::steady_clock::now();
-  b.simulator = std::make_unique<DynamicSimulator>(
-      model.mesh, std::make_unique<CorotatedTetFem>(model.mesh, settings.material), settings.material,
-      settings.dynamics, std::move(solver));
+  auto elements = std::make_unique<CorotatedTetFem>(model.mesh, settings.material);
+  elements->setVolumeTerm(settings.volume_term);
+  b.simulator = std::make_unique<DynamicSimulator>(model.mesh, std::move(elements), settings.material, settings.dynamics,
+                                                   std::move(solver));
   if (!fixed.empty()) b.simulator->fixNodes(fixed);
   b.setup_seconds = since(t1);
   return b;
