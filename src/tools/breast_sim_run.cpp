@@ -432,6 +432,12 @@ int main(int argc, char** argv) {
       const auto& st = metrics["stages"];
       auto line = [&](const char* name, const nlohmann::json& r, const char* extra) {
         if (!r["ran"].get<bool>()) return;
+        if (!settings.simulation.stiffening) {
+          std::printf("  %-26s %s in %d steps, %.2f s (no stiffening)%s\n", name,
+                      r["converged"].get<bool>() ? "converged" : "NOT converged", r["steps"].get<int>(),
+                      r["seconds"].get<double>(), extra);
+          return;
+        }
         std::printf("  %-26s %s in %d steps, %.2f s, %ld reversed, alpha %.3g 1/Pa%s\n", name,
                     r["converged"].get<bool>() ? "converged"
                     : r["stuck"].get<bool>()   ? "STUCK (no step without inverting)"
