@@ -69,12 +69,14 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   t.filter.outlier_stddev = param(pnh, "tracking/outlier_stddev", t.filter.outlier_stddev);
   t.icp.enabled = param(pnh, "tracking/icp/enabled", t.icp.enabled);
   t.icp.max_iterations = param(pnh, "tracking/icp/max_iterations", t.icp.max_iterations);
+  t.icp.max_points = param(pnh, "tracking/icp/max_points", t.icp.max_points);
   t.icp.max_correspondence_m = param(pnh, "tracking/icp/max_correspondence_m", t.icp.max_correspondence_m);
   t.icp.max_translation_m = param(pnh, "tracking/icp/max_translation_m", t.icp.max_translation_m);
   t.icp.max_rotation_deg = param(pnh, "tracking/icp/max_rotation_deg", t.icp.max_rotation_deg);
   t.icp.max_rms_m = param(pnh, "tracking/icp/max_rms_m", t.icp.max_rms_m);
   t.iterations_per_frame = param(pnh, "tracking/iterations_per_frame", t.iterations_per_frame);
   t.min_points = param(pnh, "tracking/min_points", t.min_points);
+  t.hold_unseen_skin_m = param(pnh, "tracking/hold_unseen_skin_m", t.hold_unseen_skin_m);
   p.max_cloud_points = static_cast<size_t>(param(pnh, "tracking/max_cloud_points", static_cast<int>(p.max_cloud_points)));
   p.max_transform_age_s = param(pnh, "tracking/max_transform_age_s", p.max_transform_age_s);
   p.tf_wait_s = param(pnh, "tracking/tf_wait_s", p.tf_wait_s);
@@ -103,6 +105,7 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   require(t.icp.max_correspondence_m > 0, "tracking/icp/max_correspondence_m", "must be > 0 m");
   require(t.iterations_per_frame >= 1 && t.iterations_per_frame <= 100, "tracking/iterations_per_frame", "must be in [1, 100]");
   require(t.min_points >= 10, "tracking/min_points", "must be ≥ 10");
+  require(t.hold_unseen_skin_m >= 0, "tracking/hold_unseen_skin_m", "must be ≥ 0 m (0 = off)");
   require(p.max_cloud_points >= 1000, "tracking/max_cloud_points", "must be ≥ 1000");
   require(p.max_transform_age_s > 0, "tracking/max_transform_age_s", "must be > 0 s");
   require(p.tf_wait_s >= 0 && p.tf_wait_s <= 1.0, "tracking/tf_wait_s", "must be in [0, 1] s");
@@ -837,6 +840,8 @@ void BreastSimNode::processCloud(const sensor_msgs::PointCloud2ConstPtr& msg, Cl
     surface_p95_m_ = r.last.surface_p95_m;
     alpha_ = r.last.alpha_per_pa;
     icp_rms_m_ = r.icp_rms_m;
+    skin_seen_ = r.skin_seen;
+    skin_held_ = r.skin_held;
     last_tracked_ = now;
   }
   (void)quality;
@@ -971,9 +976,11 @@ void BreastSimNode::publishDiagnostics(const ros::WallTimerEvent&) {
   kv("points in mean", w.tracked ? num(w.points_in / n, 0) : "-");
   kv("points used mean", w.tracked ? num(w.points_used / n, 0) : "-");
   kv("inverted elements", std::to_string(inverted_elements_));
+  // Pulled skin vertices to the target before the last step; held (unseen) vertices count as 0.
   kv("residual surface distance mean [mm]", mean_m >= 0 ? num(1e3 * mean_m) : "-");
   kv("residual surface distance p95 [mm]", p95_m >= 0 ? num(1e3 * p95_m) : "-");
   kv("icp rms [mm]", icp_rms >= 0 ? num(1e3 * icp_rms) : "-");
+  kv("skin vertices seen / held", std::to_string(skin_seen_) + " / " + std::to_string(skin_held_));
   kv("alpha [1/Pa]", num(alpha, 6));
   diagnostic_msgs::DiagnosticArray a;
   a.header.stamp = ros::Time::now();

@@ -7,6 +7,7 @@
 
 #include <pcl/filters/statistical_outlier_removal.h>
 #include <pcl/filters/voxel_grid.h>
+#include <pcl/kdtree/kdtree_flann.h>
 #include <pcl/point_cloud.h>
 #include <pcl/point_types.h>
 #include <pcl/registration/icp.h>
@@ -121,10 +122,17 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
     const std::vector<int>& skin = pipeline.model().mesh.nodeSet(core::node_sets::kSkin);
     core::Points reference(static_cast<Eigen::Index>(skin.size()), 3);
     for (size_t i = 0; i < skin.size(); ++i) reference.row(static_cast<Eigen::Index>(i)) = x.row(skin[i]);
-    IcpResult icp = rigidAlign(cloud, reference, guess_, options_.icp);
+    // ICP needs far fewer points than the morphing: an even sub-sample.
+    core::Points sample = cloud;
+    if (options_.icp.max_points > 0 && cloud.rows() > options_.icp.max_points) {
+      const Eigen::Index stride = (cloud.rows() + options_.icp.max_points - 1) / options_.icp.max_points;
+      sample.resize((cloud.rows() + stride - 1) / stride, 3);
+      for (Eigen::Index i = 0; i < sample.rows(); ++i) sample.row(i) = cloud.row(i * stride);
+    }
+    IcpResult icp = rigidAlign(sample, reference, guess_, options_.icp);
     if (!icp.applied && !guess_.matrix().isIdentity(0)) {
       // The previous correction may be what is wrong now: try once from identity.
-      IcpResult again = rigidAlign(cloud, reference, Eigen::Isometry3d::Identity(), options_.icp);
+      IcpResult again = rigidAlign(sample, reference, Eigen::Isometry3d::Identity(), options_.icp);
       if (again.applied) icp = again;
     }
     res.icp_rms_m = icp.rms_m;
@@ -143,7 +151,28 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
   res.points_used = static_cast<size_t>(cloud.rows());
   t0 = std::chrono::steady_clock::now();
   core::TargetSurface target;
-  target.vertices_m = std::move(cloud);
+  if (options_.hold_unseen_skin_m > 0) {
+    // Skin vertices the scanner did not see keep their current positions as their target.
+    const core::Points x = pipeline.positions();
+    const std::vector<int>& skin = pipeline.model().mesh.nodeSet(core::node_sets::kSkin);
+    pcl::KdTreeFLANN<pcl::PointXYZ> tree;
+    tree.setInputCloud(toPcl(cloud));
+    std::vector<int> index(1);
+    std::vector<float> d2(1);
+    const double limit2 = options_.hold_unseen_skin_m * options_.hold_unseen_skin_m;
+    std::vector<int> held;
+    for (int n : skin) {
+      const pcl::PointXYZ p(static_cast<float>(x(n, 0)), static_cast<float>(x(n, 1)), static_cast<float>(x(n, 2)));
+      if (tree.nearestKSearch(p, 1, index, d2) < 1 || d2[0] > limit2) held.push_back(n);
+    }
+    res.skin_held = static_cast<int>(held.size());
+    res.skin_seen = static_cast<int>(skin.size() - held.size());
+    target.vertices_m.resize(cloud.rows() + static_cast<Eigen::Index>(held.size()), 3);
+    target.vertices_m.topRows(cloud.rows()) = cloud;
+    for (size_t i = 0; i < held.size(); ++i) target.vertices_m.row(cloud.rows() + static_cast<Eigen::Index>(i)) = x.row(held[i]);
+  } else {
+    target.vertices_m = std::move(cloud);
+  }
   pipeline.setTarget(target);
   res.field_s = since(t0);
   t0 = std::chrono::steady_clock::now();

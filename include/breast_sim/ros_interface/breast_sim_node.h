@@ -49,7 +49,7 @@ struct NodeParams {
   std::string case_file;
   int target_elements = 0;
   std::string settings_file;          ///< "" = the case file's simulation/sliding/morphing maps
-  double field_voxel_size_m = 0.0;    ///< 0 = the settings' morphing.voxel_size_mm
+  double field_voxel_size_m = 0.003;  ///< [m]; 0 = the settings' morphing.voxel_size_mm
   std::string frame_id = "breast_model";
   bool precompute_on_start = false;
   // gravity
@@ -191,6 +191,7 @@ class BreastSimNode {
   int consecutive_rejected_ = 0;
   int inverted_elements_ = 0;
   double surface_mean_m_ = -1, surface_p95_m_ = -1, alpha_ = 0, icp_rms_m_ = -1;
+  int skin_seen_ = 0, skin_held_ = 0;
   std::chrono::steady_clock::time_point last_tracked_;
   std::string last_reject_;
 };

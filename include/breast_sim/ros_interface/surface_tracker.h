@@ -6,7 +6,9 @@
 ///   3. rigid pre-alignment with PCL ICP against the current model skin (small residual registration
 ///      errors of the tracker; a large or poorly fitting correction is refused and the cloud used as
 ///      it is),
-///   4. ProneToSupinePipeline::setTarget (the distance field of the cloud) and a few Figure-2
+///   4. unseen skin (farther than hold_unseen_skin_m from the cloud) is added to the target at its
+///      current position, so only what the scanner sees pulls the model,
+///   5. ProneToSupinePipeline::setTarget (the distance field of the cloud) and a few Figure-2
 ///      iterations (iterate()).
 /// The node and the latency benchmark both call this, so the benchmark measures what the node does.
 
@@ -29,6 +31,7 @@ struct CloudFilterOptions {
 struct IcpOptions {
   bool enabled = true;
   int max_iterations = 10;
+  int max_points = 500;                ///< the cloud is sub-sampled (evenly) to this many points for ICP
   double max_correspondence_m = 0.01;  ///< pairs farther apart are ignored [m]
   double max_translation_m = 0.01;     ///< a larger correction is refused [m]
   double max_rotation_deg = 5.0;       ///< a larger correction is refused [deg]
@@ -39,6 +42,11 @@ struct TrackerOptions {
   CloudFilterOptions filter;
   IcpOptions icp;
   int iterations_per_frame = 1;  ///< Figure-2 iterations per frame
+  /// A scanner sees only part of the skin. Skin vertices farther than this from every cloud point are
+  /// unseen: their current positions are added to the target, so the morphing holds them where they
+  /// are instead of pulling them onto the rim of the seen patch [m]. 0 = off (every skin vertex is
+  /// pulled to the cloud).
+  double hold_unseen_skin_m = 0.005;
   int min_points = 50;           ///< fewer points after filtering: the frame is refused
 };
 
@@ -53,6 +61,7 @@ struct TrackResult {
   std::string icp_note;       ///< why a correction was refused
   double filter_s = 0, icp_s = 0, field_s = 0, iterate_s = 0;
   int iterations = 0, reversals = 0;
+  int skin_seen = 0, skin_held = 0;  ///< skin vertices near the cloud / held where they are
   core::IterationReport last;  ///< the last iteration
 };
 
