@@ -30,13 +30,7 @@ int main(int argc, char** argv) {
   std::vector<double> dts = {0.033, 0.1, 0.33}, gains = {10, 20, 40};
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
-    auto next = [&]() -> std::string {
-      if (i + 1 >= argc) {
-        std::fprintf(stderr, "%s needs a value\n", a.c_str());
-        std::exit(2);
-      }
-      return argv[++i];
-    };
+    auto next = [&] { return argValue(argc, argv, i); };
     if (a == "--elements") elements = std::stoi(next());
     else if (a == "--target") target = next();
     else if (a == "--stretch") stretch = std::stod(next());

@@ -40,13 +40,7 @@ int main(int argc, char** argv) {
   std::string json_path;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
-    auto next = [&]() -> std::string {
-      if (i + 1 >= argc) {
-        std::fprintf(stderr, "%s needs a value\n", a.c_str());
-        std::exit(2);
-      }
-      return argv[++i];
-    };
+    auto next = [&] { return argValue(argc, argv, i); };
     if (a == "--sizes") sizes = parseList(next());
     else if (a == "--repeats") repeats = std::stoi(next());
     else if (a == "--samples") samples = std::stoi(next());

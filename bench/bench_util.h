@@ -3,6 +3,8 @@
 // comma-separated number lists from the command line.
 #include <algorithm>
 #include <chrono>
+#include <cstdio>
+#include <cstdlib>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -35,6 +37,15 @@ inline std::vector<double> parseList(const std::string& text) {
   for (std::string t; std::getline(ss, t, ',');)
     if (!t.empty()) out.push_back(std::stod(t));
   return out;
+}
+
+/// The value after option argv[i] (advancing i); exits with status 2 and a message when it is missing.
+inline std::string argValue(int argc, char** argv, int& i) {
+  if (i + 1 >= argc) {
+    std::fprintf(stderr, "%s needs a value\n", argv[i]);
+    std::exit(2);
+  }
+  return argv[++i];
 }
 
 }  // namespace breast_sim::bench

@@ -34,6 +34,14 @@ double logFraction(double first, double now, double tolerance) {
 
 }  // namespace
 
+void ProneToSupinePipeline::closeReport(StageReport& r, const RunStats& before, double seconds) const {
+  const RunStats after = stiff_->stats();
+  r.reversed_steps = after.reversed_steps - before.reversed_steps;
+  r.reversal_limit_hits = after.reversal_limit_hits - before.reversal_limit_hits;
+  r.final_alpha_per_pa = stiff_->controller().alpha();
+  r.seconds = seconds;
+}
+
 const char* stageName(PipelineStage stage) {
   switch (stage) {
     case PipelineStage::kIdle: return "idle";
@@ -175,11 +183,7 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
       break;
     }
   }
-  const RunStats after = stiff_->stats();
-  rep.reversed_steps = after.reversed_steps - before.reversed_steps;
-  rep.reversal_limit_hits = after.reversal_limit_hits - before.reversal_limit_hits;
-  rep.final_alpha_per_pa = stiff_->controller().alpha();
-  rep.seconds = since(t0);
+  closeReport(rep, before, since(t0));
   gravity_ = rep;
 
   // Sliding on the chest wall after the fixed-wall settling: the wall nodes become moving
@@ -224,12 +228,8 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
         break;
       }
     }
-    const RunStats a2 = stiff_->stats();
-    sr.reversed_steps = a2.reversed_steps - b2.reversed_steps;
-    sr.reversal_limit_hits = a2.reversal_limit_hits - b2.reversal_limit_hits;
-    sr.final_alpha_per_pa = stiff_->controller().alpha();
+    closeReport(sr, b2, since(ts));
     sr.max_slide_m = sliding_report_.max_slide_m;
-    sr.seconds = since(ts);
     sliding_report_ = sr;
   }
   stage_ = PipelineStage::kIdle;
@@ -328,12 +328,8 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   rep.surface_p95_m = d.p95_m;
   rep.converged = rep.converged && d.mean_m <= ms.tolerance_mean_m && d.p95_m <= ms.tolerance_p95_m;
   stiff_->holdAlpha(false);
-  const RunStats after = stiff_->stats();
-  rep.reversed_steps = after.reversed_steps - before.reversed_steps;
-  rep.reversal_limit_hits = after.reversal_limit_hits - before.reversal_limit_hits;
-  rep.final_alpha_per_pa = stiff_->controller().alpha();
+  closeReport(rep, before, since(t0));
   rep.max_slide_m = sliding_report_.max_slide_m;
-  rep.seconds = since(t0);
   morphing_ = rep;
   stage_ = PipelineStage::kIdle;
   return rep;

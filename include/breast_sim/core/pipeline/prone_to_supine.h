@@ -214,6 +214,8 @@ class ProneToSupinePipeline {
  private:
   void attachSliding();
   SurfaceMorphing& ensureMorphing();  // the force generator, on first use
+  /// Reversal counts since `before`, the final α and the wall time of a stage.
+  void closeReport(StageReport& r, const RunStats& before, double seconds) const;
   bool slideAfter(const StiffeningStepResult& r, int* stalls);
   void setTimeStep(double dt_s);
   double increment(Eigen::VectorXd& previous) const;
