@@ -8,19 +8,24 @@
 //     the breast centres and the largest slide near the sternum, wall time. With --diagnose every
 //     reversal is repeated once to classify the elements the trial step inverted (how many sliding
 //     corners, rim, skin), which is how the cause of the inversions was found.
+// Skin–wall contact (on by default, as in SlidingSettings): the settle line reports the contact
+// nodes at the end, how many were made and released, and the smallest wall distance of the free
+// skin at the end. --verbose N prints the loop every N calls.
 // The one-off normal field and the set-up are reported too. Prints a table; --json FILE writes the
 // same figures; --csv FILE writes the chest-wall nodes of the settled state (rest position, sliding
 // vector, limiting weights) for docs/sliding/plot_sliding.py.
 //   bench_sliding [--case FILE] [--targets 47895] [--steps 25] [--solver multigrid|cholmod]
 //                 [--no-settle] [--max-calls 600] [--fixed-first] [--legacy] [--diagnose]
 //                 [--rings N] [--move-smoothing N] [--min-volume F] [--no-rim] [--no-band]
-//                 [--wall-distance-mm D]
+//                 [--wall-distance-mm D] [--no-contact] [--contact-tol-mm T] [--contact-gap-mm G]
+//                 [--no-release] [--release-pa P] [--max-slide-mm S] [--verbose N]
 //                 [--sigma-fraction F] [--no-gaussian] [--json FILE] [--csv FILE]
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <limits>
 #include <map>
 #include <sstream>
 #include <string>
@@ -47,7 +52,7 @@ namespace {
 struct Options {
   std::string case_path, json_path, csv_path, solver = "multigrid";
   std::vector<double> targets = {47895};
-  int steps = 25, max_calls = 600;
+  int steps = 25, max_calls = 600, verbose = 0;
   bool settle = true, fixed_first = false, legacy = false, diagnose = false;
   SlidingSettings sliding;
 };
@@ -129,6 +134,13 @@ int main(int argc, char** argv) {
     else if (a == "--no-rim") o.sliding.rim_follows_neighbours = false;
     else if (a == "--no-band") o.sliding.rim_band = false;
     else if (a == "--wall-distance-mm") o.sliding.max_wall_distance_m = 1e-3 * std::stod(next());
+    else if (a == "--no-contact") o.sliding.contact = false;
+    else if (a == "--contact-tol-mm") o.sliding.contact_tolerance_m = 1e-3 * std::stod(next());
+    else if (a == "--contact-gap-mm") o.sliding.contact_gap_m = 1e-3 * std::stod(next());
+    else if (a == "--no-release") o.sliding.contact_release = false;
+    else if (a == "--release-pa") o.sliding.contact_release_pa = std::stod(next());
+    else if (a == "--max-slide-mm") o.sliding.max_slide_m = 1e-3 * std::stod(next());
+    else if (a == "--verbose") o.verbose = std::stoi(next());
     else if (a == "--sigma-fraction") o.sliding.gaussian_sigma_fraction = std::stod(next());
     else if (a == "--no-gaussian") o.sliding.gaussian_limit = false;
     else if (a == "--json") o.json_path = next();
@@ -138,7 +150,9 @@ int main(int argc, char** argv) {
                    "usage: bench_sliding [--case FILE] [--targets 47895,...] [--steps 25] [--solver multigrid|cholmod]\n"
                    "                     [--no-settle] [--max-calls 600] [--fixed-first] [--legacy] [--diagnose]\n"
                    "                     [--rings N] [--move-smoothing N] [--min-volume F] [--no-rim] [--no-band]\n"
-                   "                     [--wall-distance-mm D]\n"
+                   "                     [--wall-distance-mm D] [--no-contact] [--contact-tol-mm T]\n"
+                   "                     [--contact-gap-mm G] [--no-release] [--release-pa P] [--max-slide-mm S]\n"
+                   "                     [--verbose N]\n"
                    "                     [--sigma-fraction 0.5] [--no-gaussian] [--json FILE] [--csv FILE]\n");
       return 2;
     }
@@ -148,10 +162,13 @@ int main(int argc, char** argv) {
   std::printf("sliding benchmark: %s, %d threads%s%s\n", o.case_path.c_str(), omp_get_max_threads(),
               o.legacy ? ", LEGACY update()+hold" : "", o.fixed_first ? ", fixed-wall settle first" : "");
   std::printf("smoothing rings %d, move smoothing %d, min volume %.2f, rim follows %d, rim band %d, wall distance "
-              "%.1f mm, Gaussian %d (sigma fraction %.2f)\n",
+              "%.1f mm, Gaussian %d (sigma fraction %.2f), max slide %.1f mm\n",
               o.sliding.traction_smoothing_rings, o.sliding.move_smoothing_iterations, o.sliding.min_volume_fraction,
               o.sliding.rim_follows_neighbours, o.sliding.rim_band, 1e3 * o.sliding.max_wall_distance_m,
-              o.sliding.gaussian_limit, o.sliding.gaussian_sigma_fraction);
+              o.sliding.gaussian_limit, o.sliding.gaussian_sigma_fraction, 1e3 * o.sliding.max_slide_m);
+  std::printf("contact %d (tolerance %.2f mm, gap %.2f mm, release %d at %.0f Pa)\n", o.sliding.contact,
+              1e3 * o.sliding.contact_tolerance_m, 1e3 * o.sliding.contact_gap_m, o.sliding.contact_release,
+              o.sliding.contact_release_pa);
   nlohmann::json rows = nlohmann::json::array();
   for (double target : o.targets) {
     ModelCase c = base;
@@ -232,7 +249,8 @@ int main(int argc, char** argv) {
       const RunStats before = stiff.stats();
       ChestWallSliding sl = makeSliding();
       sl.attach(sim);
-      int calls = 0, take_backs = 0, held = 0, quiet = 0, stalls = 0, guard_limited = 0;
+      int calls = 0, take_backs = 0, held = 0, quiet = 0, stalls = 0, guard_limited = 0, contacts = 0;
+      double min_skin_h = std::numeric_limits<double>::quiet_NaN();
       bool settled = false;
       double slide_s = 0, max_alpha = 0;
       std::map<std::string, int> classes;
@@ -315,7 +333,15 @@ int main(int argc, char** argv) {
           slide_s += st.seconds;
           take_backs += st.taken_back ? 1 : 0;
           held += st.held_wall ? 1 : 0;
+          contacts = st.contacts;
+          if (r.advanced) min_skin_h = st.min_free_skin_distance_m;
         }
+        if (o.verbose > 0 && calls % o.verbose == 0)
+          std::printf("  call %d: %s, reversals %d, alpha %.3g /Pa, move %.4f mm (scale %.3g), slide %.2f mm, contacts %d "
+                      "(+%d −%d), free skin h min %.2f mm, settled %d\n",
+                      calls, r.advanced ? "advanced" : "NOT advanced", r.reversals, r.alpha_per_pa, 1e3 * st.max_move_m,
+                      st.move_scale, 1e3 * st.max_slide_m, st.contacts, st.contacts_added, st.contacts_released,
+                      1e3 * st.min_free_skin_distance_m, stiff.stats().settled);
         guard_limited += st.guard_limited;
         quiet = r.advanced && stiff.stats().settled && st.max_move_m <= tol ? quiet + 1 : 0;
         if (quiet >= 3) {
@@ -338,6 +364,8 @@ int main(int argc, char** argv) {
       std::printf("        slide: max %.2f mm, breast centres %.2f mm lateral, sternum region max %.2f mm; guard-limited "
                   "moves %d\n",
                   sum.max_mm, sum.centre_lateral_mm, sum.sternum_max_mm, guard_limited);
+      std::printf("        contact: %d nodes at the end (%d made, %d released), free skin min wall distance %.2f mm\n",
+                  contacts, sl.contactsMade(), sl.contactsReleased(), 1e3 * min_skin_h);
       if (o.diagnose) {
         std::printf("        inverted in reversed trials by class (wallK = K sliding corners):");
         for (const auto& kv : classes) std::printf(" %s:%d", kv.first.c_str(), kv.second);
@@ -362,19 +390,31 @@ int main(int argc, char** argv) {
                            {"centre_lateral_slide_mm", sum.centre_lateral_mm},
                            {"sternum_region_max_slide_mm", sum.sternum_max_mm},
                            {"guard_limited_moves", guard_limited},
+                           {"contact", o.sliding.contact},
+                           {"contact_nodes_end", contacts},
+                           {"contacts_made", sl.contactsMade()},
+                           {"contacts_released", sl.contactsReleased()},
+                           {"free_skin_min_wall_distance_mm", std::isfinite(min_skin_h) ? 1e3 * min_skin_h : -1.0},
+                           {"max_slide_setting_mm", 1e3 * o.sliding.max_slide_m},
+                           {"gaussian_limit", o.sliding.gaussian_limit},
+                           {"rim_band", o.sliding.rim_band},
                            {"fixed_wall_settle_first", o.fixed_first},
                            {"legacy", o.legacy}};
       if (o.diagnose) js["inverted_trial_classes"] = classes;
       row["settle"] = js;
       if (!o.csv_path.empty()) {
         std::ofstream f(o.csv_path);
-        f << "node,x_mm,y_mm,z_mm,slide_x_mm,slide_y_mm,slide_z_mm,weight,gaussian,thickness_mm\n";
+        f << "node,x_mm,y_mm,z_mm,slide_x_mm,slide_y_mm,slide_z_mm,weight,gaussian,thickness_mm,contact\n";
         const Points d = sl.slidingVectors();
-        for (size_t i = 0; i < sl.nodes().size(); ++i) {
-          const int v = sl.nodes()[i];
+        std::vector<int> all = sl.nodes();
+        const std::vector<int> cn = sl.contactNodes();
+        all.insert(all.end(), cn.begin(), cn.end());
+        for (size_t i = 0; i < all.size(); ++i) {
+          const int v = all[i];
           f << v << ',' << 1e3 * model.mesh.nodes()(v, 0) << ',' << 1e3 * model.mesh.nodes()(v, 1) << ','
             << 1e3 * model.mesh.nodes()(v, 2) << ',' << 1e3 * d(v, 0) << ',' << 1e3 * d(v, 1) << ',' << 1e3 * d(v, 2)
-            << ',' << sl.weights()[i] << ',' << sl.gaussianFactors()[i] << ',' << 1e3 * sl.tissueThickness()[i] << '\n';
+            << ',' << sl.weights()[i] << ',' << sl.gaussianFactors()[i] << ',' << 1e3 * sl.tissueThickness()[i] << ','
+            << (i >= sl.nodes().size() ? 1 : 0) << '\n';
         }
       }
     }
@@ -390,6 +430,14 @@ int main(int argc, char** argv) {
                         {"move_smoothing_iterations", o.sliding.move_smoothing_iterations},
                         {"min_volume_fraction", o.sliding.min_volume_fraction},
                         {"rim_follows_neighbours", o.sliding.rim_follows_neighbours},
+                        {"rim_band", o.sliding.rim_band},
+                        {"contact", o.sliding.contact},
+                        {"contact_tolerance_mm", 1e3 * o.sliding.contact_tolerance_m},
+                        {"contact_gap_mm", 1e3 * o.sliding.contact_gap_m},
+                        {"contact_release", o.sliding.contact_release},
+                        {"contact_release_pa", o.sliding.contact_release_pa},
+                        {"gaussian_limit", o.sliding.gaussian_limit},
+                        {"max_slide_mm", 1e3 * o.sliding.max_slide_m},
                         {"rows", rows}};
     std::ofstream(o.json_path) << j.dump(2) << "\n";
   }

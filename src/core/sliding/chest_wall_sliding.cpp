@@ -16,6 +16,10 @@ namespace breast_sim::core {
 
 namespace {
 
+// Accepted calls in a row a contact node must pull off the wall before it is freed: one call's
+// reaction carries inertia (a node caught while falling, a bounce), which is no lift-off.
+constexpr int kReleaseCalls = 3;
+
 double since(std::chrono::steady_clock::time_point t) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
 }
@@ -89,6 +93,12 @@ void SlidingSettings::validate() const {
   if (!(min_volume_fraction >= 0 && min_volume_fraction < 1))
     bad("min_volume_fraction", min_volume_fraction, "[0, 1) of the rest volume");
   if (!(min_move_scale > 0 && min_move_scale <= 1)) bad("min_move_scale", min_move_scale, "(0, 1]");
+  if (!(contact_gap_m >= 0) || !finite(contact_gap_m))
+    bad("contact_gap_m", contact_gap_m, "a finite length ≥ 0 [m], below contact_tolerance_m, e.g. 0.0002");
+  if (!(contact_tolerance_m > contact_gap_m && contact_tolerance_m <= 3 * field.sigma_m))
+    bad("contact_tolerance_m", contact_tolerance_m, "(contact_gap_m, 3·sigma] [m], e.g. 0.0005");
+  if (!(contact_release_pa >= 0) || !finite(contact_release_pa))
+    bad("contact_release_pa", contact_release_pa, "a finite traction ≥ 0 [Pa], e.g. 50");
 }
 
 ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
@@ -148,6 +158,13 @@ ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
   }
   n = static_cast<int>(nodes_.size());
   rim_level_ = level;
+  base_nodes_ = nodes_;
+  num_base_ = n;
+  mesh_tets_ = mesh.tets();
+  released_.assign(mesh.numNodes(), 0);
+  tension_calls_.assign(mesh.numNodes(), 0);
+  for (int v = 0; v < mesh.numNodes(); ++v)
+    if (skin[v] && slot[v] < 0) skin_candidates_.push_back(v);
   if (settings_.thickness_limit && !labels)
     throw std::invalid_argument("ChestWallSliding: the thickness limit needs the label image");
   if (settings_.gaussian_limit && (nipples_m.empty() || nipples_m.size() > 2))
@@ -158,8 +175,10 @@ ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
 
   rest_.resize(n, 3);
   for (int i = 0; i < n; ++i) rest_.row(i) = mesh.nodes().row(nodes_[i]);
+  origin_ = rest_;
   mesh_rest_ = mesh.nodes();
   targets_ = Points::Zero(n, 3);
+  base_targets_ = targets_;
   velocity_ = Points::Zero(n, 3);
 
   // Wall area per node: a third of each boundary triangle whose three nodes all slide.
@@ -304,23 +323,31 @@ ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
   for (int i = 0; i < n; ++i)
     if (held_flag_[i]) weight_[i] = 0.0;
 
-  // Wall graph, rim nodes and wall elements.
+  buildGraph();
+}
+
+void ChestWallSliding::buildGraph() {
+  const int n = static_cast<int>(nodes_.size());
+  slot_of_.assign(num_mesh_nodes_, -1);
+  for (int i = 0; i < n; ++i) slot_of_[nodes_[i]] = i;
   std::vector<std::vector<int>> adj(n);
   static constexpr int kEdges[6][2] = {{0, 1}, {0, 2}, {0, 3}, {1, 2}, {1, 3}, {2, 3}};
-  const Tets& tets = mesh.tets();
-  for (Eigen::Index t = 0; t < tets.rows(); ++t) {
+  wall_tets_.clear();
+  wall_slots_.clear();
+  wall_rest_volume_.clear();
+  for (Eigen::Index t = 0; t < mesh_tets_.rows(); ++t) {
     Eigen::Vector4i sl;
     bool any = false;
     for (int c = 0; c < 4; ++c) {
-      sl[c] = slot[tets(t, c)];
+      sl[c] = slot_of_[mesh_tets_(t, c)];
       any = any || sl[c] >= 0;
     }
     if (!any) continue;
-    const Eigen::Vector4i tv(tets(t, 0), tets(t, 1), tets(t, 2), tets(t, 3));
+    const Eigen::Vector4i tv(mesh_tets_(t, 0), mesh_tets_(t, 1), mesh_tets_(t, 2), mesh_tets_(t, 3));
     wall_tets_.push_back(tv);
     wall_slots_.push_back(sl);
-    wall_rest_volume_.push_back(tetVolume(mesh.nodes().row(tv[0]).transpose(), mesh.nodes().row(tv[1]).transpose(),
-                                          mesh.nodes().row(tv[2]).transpose(), mesh.nodes().row(tv[3]).transpose()));
+    wall_rest_volume_.push_back(tetVolume(mesh_rest_.row(tv[0]).transpose(), mesh_rest_.row(tv[1]).transpose(),
+                                          mesh_rest_.row(tv[2]).transpose(), mesh_rest_.row(tv[3]).transpose()));
     for (const auto& e : kEdges)
       if (sl[e[0]] >= 0 && sl[e[1]] >= 0) {
         adj[sl[e[0]]].push_back(sl[e[1]]);
@@ -333,10 +360,68 @@ ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
     adj[i].erase(std::unique(adj[i].begin(), adj[i].end()), adj[i].end());
     nbr_start_[i + 1] = nbr_start_[i] + static_cast<int>(adj[i].size());
   }
+  nbr_.clear();
   nbr_.reserve(nbr_start_[n]);
   for (int i = 0; i < n; ++i) nbr_.insert(nbr_.end(), adj[i].begin(), adj[i].end());
+  // Levels of the contact slots: graph distance from the sliding set (its levels kept), so a
+  // contact node follows the constrained neighbours closer to the wall; unreached: one above all.
+  rim_level_.resize(n);
+  const int unset = std::numeric_limits<int>::max();
+  for (int i = num_base_; i < n; ++i) rim_level_[i] = unset;
+  for (bool changed = n > num_base_; changed;) {
+    changed = false;
+    for (int i = num_base_; i < n; ++i)
+      for (int k = nbr_start_[i]; k < nbr_start_[i + 1]; ++k) {
+        const int l = rim_level_[nbr_[k]];
+        if (l != unset && l + 1 < rim_level_[i]) {
+          rim_level_[i] = l + 1;
+          changed = true;
+        }
+      }
+  }
+  int top = 0;
+  for (int i = 0; i < n; ++i)
+    if (rim_level_[i] != unset) top = std::max(top, rim_level_[i]);
+  for (int i = num_base_; i < n; ++i)
+    if (rim_level_[i] == unset) rim_level_[i] = top + 1;
   rim_flag_.assign(n, 0);
   for (int i = 0; i < n; ++i) rim_flag_[i] = rim_level_[i] > 0 ? 1 : 0;
+}
+
+void ChestWallSliding::compactSlots(const std::vector<char>& keep) {
+  const int n = static_cast<int>(nodes_.size());
+  int w = 0;
+  for (int i = 0; i < n; ++i) {
+    if (!keep[i]) continue;
+    if (w != i) {
+      nodes_[w] = nodes_[i];
+      rest_.row(w) = rest_.row(i);
+      origin_.row(w) = origin_.row(i);
+      targets_.row(w) = targets_.row(i);
+      velocity_.row(w) = velocity_.row(i);
+      if (stiffness_.size() >= 9L * (i + 1)) stiffness_.segment<9>(9L * w) = stiffness_.segment<9>(9L * i);
+      h0_[w] = h0_[i];
+      area_[w] = area_[i];
+      weight_[w] = weight_[i];
+      thickness_factor_[w] = thickness_factor_[i];
+      gaussian_factor_[w] = gaussian_factor_[i];
+      thickness_m_[w] = thickness_m_[i];
+      held_flag_[w] = held_flag_[i];
+      rim_level_[w] = rim_level_[i];
+    }
+    ++w;
+  }
+  nodes_.resize(w);
+  rest_.conservativeResize(w, 3);
+  origin_.conservativeResize(w, 3);
+  targets_.conservativeResize(w, 3);
+  velocity_.conservativeResize(w, 3);
+  if (stiffness_.size() > 9L * w) stiffness_.conservativeResize(9L * w);
+  for (Eigen::VectorXd* v : {&h0_, &area_, &weight_, &thickness_factor_, &gaussian_factor_, &thickness_m_})
+    v->conservativeResize(w);
+  held_flag_.resize(w);
+  rim_level_.resize(w);
+  buildGraph();
 }
 
 double ChestWallSliding::gaussianWeight(const Eigen::Vector3d& p_m) const {
@@ -364,7 +449,22 @@ void ChestWallSliding::attach(DynamicSimulator& sim) {
     throw std::invalid_argument("ChestWallSliding::attach: the simulator has " + std::to_string(sim.numNodes()) +
                                 " nodes, the mesh " + std::to_string(num_mesh_nodes_));
   const Eigen::VectorXd& u = sim.state().displacement_m;
+  if (static_cast<int>(nodes_.size()) > num_base_) {  // contacts of an earlier run
+    std::vector<char> keep(nodes_.size(), 0);
+    std::fill(keep.begin(), keep.begin() + num_base_, 1);
+    compactSlots(keep);
+  }
+  std::fill(released_.begin(), released_.end(), 0);
+  tension_calls_.assign(num_mesh_nodes_, 0);
+  contacts_made_ = contacts_released_ = 0;
+  // Nodes constrained by others (re-imposed as fixed when a contact is released).
+  foreign_fixed_.clear();
+  for (int v = 0; v < num_mesh_nodes_; ++v)
+    if (slot_of_[v] < 0 && (sim.constrainedDofs()[3 * v] || sim.constrainedDofs()[3 * v + 1] ||
+                            sim.constrainedDofs()[3 * v + 2]))
+      foreign_fixed_.push_back(v);
   for (size_t i = 0; i < nodes_.size(); ++i) targets_.row(i) = u.segment<3>(3 * nodes_[i]).transpose();
+  base_targets_ = targets_;
   velocity_.setZero();
   move_scale_ = 1.0;
   last_moved_ = false;
@@ -421,7 +521,7 @@ SlidingStepStats ChestWallSliding::updateFromLoads(const Eigen::VectorXd& u, con
   if (!(scale > 0 && scale <= 1)) bad("updateFromLoads move_scale", scale, "(0, 1]");
   const SlidingSettings& s = settings_;
   const int n = static_cast<int>(nodes_.size());
-  const bool have_k = stiffness_.size() == 9L * n;
+  const Eigen::Index k_slots = stiffness_.size() / 9;  // slots with a measured stiffness block
   auto movable = [&](int i) { return !held_flag_[i] && weight_[i] > 0; };
 
   // 1. Traction per node [Pa]: the load of the node and its ring(s) of wall neighbours over their area.
@@ -463,7 +563,7 @@ SlidingStepStats ChestWallSliding::updateFromLoads(const Eigen::VectorXd& u, con
       const Eigen::Vector3d t = tt / tau_t;
       double len = dt * (1.0 - s.inertia) * weight_[i] * s.mobility_m_per_pa_s * drive;
       // Stiffness of the node along its driving direction: tᵀ K_ii t [N/m].
-      const double kt = have_k ? t.dot(Eigen::Map<const Eigen::Matrix3d>(&stiffness_[9 * i]).transpose() * t) : 0.0;
+      const double kt = i < k_slots ? t.dot(Eigen::Map<const Eigen::Matrix3d>(&stiffness_[9 * i]).transpose() * t) : 0.0;
       if (kt > 0 && s.stiffness_safety > 0) {
         const double stable = drive * area_[i] / (s.stiffness_safety * kt);
         if (len > stable) {
@@ -531,13 +631,16 @@ SlidingStepStats ChestWallSliding::updateFromLoads(const Eigen::VectorXd& u, con
     Eigen::Vector3d m = scale * move.row(i).transpose();
     const double len = m.norm();
     if (len > s.max_step_m) m *= s.max_step_m / len;
-    if (!movable(i) || !(m.squaredNorm() > 0)) continue;
+    // Contact nodes are projected even without a move: their level may have changed.
+    const bool relevel = i >= num_base_;
+    if (!movable(i) || !(m.squaredNorm() > 0 || relevel)) continue;
     Eigen::Vector3d y = x + m;
     if (s.max_slide_m > 0) {
+      const Eigen::Vector3d O = origin_.row(i).transpose();
       const double limit = weight_[i] * s.max_slide_m;
-      const Eigen::Vector3d d = y - X;
+      const Eigen::Vector3d d = y - O;
       if (d.norm() > limit) {
-        y = X + d * (limit / d.norm());
+        y = O + d * (limit / d.norm());
         cap[i] = 1;
       }
     }
@@ -616,7 +719,9 @@ SlidingStepStats ChestWallSliding::updateFromLoads(const Eigen::VectorXd& u, con
     max_move = std::max(max_move, moved.norm());
     max_pen = std::max(max_pen, -surface_->signedDistance(y));
   }
-  for (int i = 0; i < n; ++i) max_slide = std::max(max_slide, targets_.row(i).norm());
+  for (int i = 0; i < n; ++i)
+    max_slide = std::max(max_slide, (rest_.row(i) + targets_.row(i) - origin_.row(i)).norm());
+  base_targets_ = targets_.topRows(num_base_);
   SlidingStepStats st;
   st.moving = moving;
   st.stuck = stuck;
@@ -634,6 +739,142 @@ SlidingStepStats ChestWallSliding::updateFromLoads(const Eigen::VectorXd& u, con
   return st;
 }
 
+bool ChestWallSliding::updateContacts(DynamicSimulator& sim, const Eigen::VectorXd& load, SlidingStepStats& st) {
+  const SlidingSettings& s = settings_;
+  st.min_free_skin_distance_m = std::numeric_limits<double>::infinity();
+  if (!s.contact || skin_candidates_.empty()) return false;
+  const Eigen::VectorXd& u = sim.state().displacement_m;
+  const Eigen::VectorXd& vel = sim.state().velocity_mps;
+  const double dt = sim.params().time_step_s;
+  auto position = [&](int v) { return Eigen::Vector3d(mesh_rest_.row(v).transpose() + u.segment<3>(3 * v)); };
+
+  // 1. Contact nodes: freed when their load pulls them off the wall (unilateral), else their level
+  //    descends half way to the gap while they press on it.
+  int n = static_cast<int>(nodes_.size());
+  std::vector<char> keep(n, 1);
+  int released = 0;
+  for (int i = num_base_; i < n; ++i) {
+    const int v = nodes_[i];
+    const Eigen::Vector3d nrm = surface_->normal(position(v));
+    if (nrm.isZero()) continue;
+    const double fn = load.segment<3>(3 * v).dot(nrm);  // > 0: the node pulls away from the wall
+    const bool pulled = fn > s.contact_release_pa * area_[i];
+    tension_calls_[v] = pulled ? tension_calls_[v] + 1 : 0;
+    if (s.contact_release && tension_calls_[v] >= kReleaseCalls) {
+      keep[i] = 0;
+      released_[v] = 1;
+      tension_calls_[v] = 0;
+      ++released;
+    } else if (fn < 0) {
+      h0_[i] = std::max(s.contact_gap_m, h0_[i] - 0.5 * (h0_[i] - s.contact_gap_m));
+    }
+  }
+  if (released > 0) {
+    compactSlots(keep);
+    // No call frees single nodes: clear, then re-impose the others' constraints (file comment);
+    // the caller re-imposes the slots' targets.
+    sim.clearConstraints();
+    sim.fixNodes(foreign_fixed_);
+    contacts_released_ += released;
+    n = static_cast<int>(nodes_.size());
+  }
+
+  // 2. Free skin nodes that touch the wall, now or one step ahead along their velocity.
+  const int m = static_cast<int>(skin_candidates_.size());
+  std::vector<double> level(m, -1.0);
+  double min_h = std::numeric_limits<double>::infinity();
+#pragma omp parallel for schedule(static) reduction(min : min_h)
+  for (int q = 0; q < m; ++q) {
+    const int v = skin_candidates_[q];
+    if (slot_of_[v] >= 0) continue;
+    Eigen::Vector3d grad;
+    const Eigen::Vector3d x = position(v);
+    const double h = surface_->signedDistance(x, grad);
+    // Look two steps ahead along the approach: a node falling onto the wall still accelerates.
+    const double h_pred = h + 2.0 * dt * std::min(0.0, grad.dot(vel.segment<3>(3 * v)));
+    // A freed node was let go at the gap or above: it is caught again only below half of it.
+    const double threshold = released_[v] ? 0.5 * s.contact_gap_m : s.contact_tolerance_m;
+    if (std::min(h, h_pred) <= threshold) level[q] = std::max(s.contact_gap_m, h);
+    else min_h = std::min(min_h, h);
+  }
+  std::vector<int> add_v;
+  std::vector<Eigen::Vector3d> add_y;
+  std::vector<double> add_l;
+  for (int q = 0; q < m; ++q) {
+    if (level[q] < 0) continue;
+    const int v = skin_candidates_[q];
+    const WallProjection p = surface_->project(position(v), level[q], s.projection_iterations, s.projection_tolerance_m);
+    if (!p.converged && p.residual_m > 1e-5) {  // no usable wall point: stays free this call
+      min_h = std::min(min_h, surface_->signedDistance(position(v)));
+      continue;
+    }
+    add_v.push_back(v);
+    add_y.push_back(p.point_m);
+    add_l.push_back(level[q]);
+  }
+  st.min_free_skin_distance_m = min_h;
+  st.contacts_released = released;
+  st.contacts_added = static_cast<int>(add_v.size());
+  if (!add_v.empty()) {
+    const int k = static_cast<int>(add_v.size());
+    const int n2 = n + k;
+    rest_.conservativeResize(n2, 3);
+    origin_.conservativeResize(n2, 3);
+    targets_.conservativeResize(n2, 3);
+    velocity_.conservativeResize(n2, 3);
+    for (Eigen::VectorXd* vec : {&h0_, &area_, &weight_, &thickness_factor_, &gaussian_factor_, &thickness_m_})
+      vec->conservativeResize(n2);
+    held_flag_.resize(n2, 0);
+    rim_level_.resize(n2, 0);
+    // The median wall area of the sliding set: a contact node's share of the contact surface.
+    std::vector<double> areas(area_.data(), area_.data() + num_base_);
+    std::nth_element(areas.begin(), areas.begin() + areas.size() / 2, areas.end());
+    const double median_area = areas.empty() ? 1e-6 : areas[areas.size() / 2];
+    for (int j = 0; j < k; ++j) {
+      const int i = n + j, v = add_v[j];
+      nodes_.push_back(v);
+      rest_.row(i) = mesh_rest_.row(v);
+      origin_.row(i) = add_y[j].transpose();
+      targets_.row(i) = (add_y[j] - mesh_rest_.row(v).transpose()).transpose();
+      velocity_.row(i).setZero();
+      h0_[i] = add_l[j];
+      area_[i] = median_area;
+      // Limiting weight of the touch-down point's foot on the wall.
+      const WallProjection foot = surface_->project(add_y[j], 0.0, s.projection_iterations, s.projection_tolerance_m);
+      gaussian_factor_[i] = s.gaussian_limit ? gaussianWeight(foot.point_m) : 1.0;
+      thickness_factor_[i] = 1.0;
+      thickness_m_[i] = 0.0;
+      held_flag_[i] = 0;
+    }
+    contacts_made_ += k;
+    buildGraph();
+    // Thickness factor and stiffness block (when attach() measured them): the means of the node's
+    // constrained neighbours.
+    const bool have_k = stiffness_.size() == 9L * n;
+    if (have_k) stiffness_.conservativeResize(9L * n2);
+    for (int i = n; i < n2; ++i) {
+      double tf = 0;
+      Eigen::Matrix<double, 9, 1> kb = Eigen::Matrix<double, 9, 1>::Zero();
+      int cnt = 0, kcnt = 0;
+      for (int q = nbr_start_[i]; q < nbr_start_[i + 1]; ++q) {
+        const int j = nbr_[q];
+        if (j >= n) continue;
+        tf += thickness_factor_[j];
+        ++cnt;
+        if (have_k) {
+          kb += stiffness_.segment<9>(9L * j);
+          ++kcnt;
+        }
+      }
+      if (s.thickness_limit && cnt > 0) thickness_factor_[i] = tf / cnt;
+      if (have_k) stiffness_.segment<9>(9L * i) = kcnt > 0 ? Eigen::Matrix<double, 9, 1>(kb / kcnt) : kb;
+      weight_[i] = thickness_factor_[i] * gaussian_factor_[i];
+    }
+  }
+  st.contacts = static_cast<int>(nodes_.size()) - num_base_;
+  return released > 0;
+}
+
 SlidingStepStats ChestWallSliding::afterStep(StiffeningSimulation& stiff, const StiffeningStepResult& r) {
   const auto t0 = std::chrono::steady_clock::now();
   DynamicSimulator& sim = stiff.simulator();
@@ -641,15 +882,16 @@ SlidingStepStats ChestWallSliding::afterStep(StiffeningSimulation& stiff, const 
     throw std::invalid_argument("ChestWallSliding::afterStep: the simulator has " + std::to_string(sim.numNodes()) +
                                 " nodes, the mesh " + std::to_string(num_mesh_nodes_));
   const Eigen::VectorXd& u = sim.state().displacement_m;
-  const int n = static_cast<int>(nodes_.size());
   SlidingStepStats st;
   if (!r.advanced) {
     // The call could not advance: the state is where it started.
+    const int n = static_cast<int>(nodes_.size());
     st.taken_back = true;
     if (last_moved_) {
       // The pending move is the suspect: no α saves an inversion that the targets force. Undo the
       // α escalation of the failed call (state, moduli, controller of the last accepted step) and
-      // take half the move back; hold the wall once the scale is exhausted.
+      // take half the move back; hold the wall once the scale is exhausted. Contact nodes are part
+      // of it: their constraints were made at that same state.
       if (stiff.historySize() > 0) stiff.revertTo(0);
       move_scale_ *= 0.25;
       const bool hold = move_scale_ < settings_.min_move_scale;
@@ -664,29 +906,40 @@ SlidingStepStats ChestWallSliding::afterStep(StiffeningSimulation& stiff, const 
         last_moved_ = false;
         st.held_wall = true;
       }
+      base_targets_ = targets_.topRows(num_base_);
       sim.setNodeTargets(nodes_, targets_);
     }
-    for (int i = 0; i < n; ++i) st.max_slide_m = std::max(st.max_slide_m, targets_.row(i).norm());
+    for (int i = 0; i < n; ++i)
+      st.max_slide_m = std::max(st.max_slide_m, (rest_.row(i) + targets_.row(i) - origin_.row(i)).norm());
     st.move_scale = move_scale_;
+    st.contacts = n - num_base_;
+    st.min_free_skin_distance_m = std::numeric_limits<double>::quiet_NaN();
     st.seconds = since(t0);
     return st;
   }
   move_scale_ = r.reversals > 0 && last_moved_ ? std::max(settings_.min_move_scale, 0.5 * move_scale_)
                                                : std::min(1.0, 1.25 * move_scale_);
   Eigen::VectorXd load = -sim.constraintForces();
+  SlidingStepStats cs;
+  updateContacts(sim, load, cs);
   st = updateFromLoads(u, load, sim.params().time_step_s, move_scale_);
-  last_moved_ = st.max_move_m > 0;
+  st.contacts = cs.contacts;
+  st.contacts_added = cs.contacts_added;
+  st.contacts_released = cs.contacts_released;
+  st.min_free_skin_distance_m = cs.min_free_skin_distance_m;
+  last_moved_ = st.max_move_m > 0 || cs.contacts_added > 0 || cs.contacts_released > 0;
   sim.setNodeTargets(nodes_, targets_);
   st.seconds = since(t0);
   return st;
 }
 
 void ChestWallSliding::setTargets(DynamicSimulator& sim, const Points& targets_m) {
-  if (targets_m.rows() != static_cast<Eigen::Index>(nodes_.size()) || !targets_m.allFinite())
+  if (targets_m.rows() != static_cast<Eigen::Index>(num_base_) || !targets_m.allFinite())
     throw std::invalid_argument("ChestWallSliding::setTargets: " + std::to_string(targets_m.rows()) +
-                                " rows given; expected " + std::to_string(nodes_.size()) +
+                                " rows given; expected " + std::to_string(num_base_) +
                                 " finite rows, one per node of nodes()");
-  targets_ = targets_m;
+  targets_.topRows(num_base_) = targets_m;
+  base_targets_ = targets_m;
   velocity_.setZero();
   last_moved_ = true;
   sim.setNodeTargets(nodes_, targets_);
@@ -694,7 +947,7 @@ void ChestWallSliding::setTargets(DynamicSimulator& sim, const Points& targets_m
 
 Points ChestWallSliding::slidingVectors() const {
   Points out = Points::Zero(num_mesh_nodes_, 3);
-  for (size_t i = 0; i < nodes_.size(); ++i) out.row(nodes_[i]) = targets_.row(i);
+  for (size_t i = 0; i < nodes_.size(); ++i) out.row(nodes_[i]) = rest_.row(i) + targets_.row(i) - origin_.row(i);
   return out;
 }
 

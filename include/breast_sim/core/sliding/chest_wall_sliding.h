@@ -39,6 +39,35 @@
 /// would take below min_volume_fraction of its rest volume. afterStep() adds the take-back of a
 /// move after a stiffening call that could not advance.
 ///
+/// Skin–wall contact (afterStep(), contact = true). As the breast spreads beyond its footprint
+/// under supine gravity, the free skin next to the rim falls onto the chest wall; a free node that
+/// reaches the wall (or the plane of a rim triangle that lies on it) flattens and inverts the
+/// elements between it and the wall, which no α and no constraint move prevents (measured, see
+/// docs/sliding/README_section.md). So after every accepted step each free skin node (node set
+/// "skin", not yet constrained) whose signed wall distance, predicted two steps ahead along its
+/// approach velocity, h_pred = h(x) + 2 dt min(0, ∇h·u̇) (two: a falling node still accelerates),
+/// or h(x) itself, is at most contact_tolerance_m becomes a contact node: a
+/// sliding constraint held at the level ℓ = max(contact_gap_m, h(x)) of the wall (it is caught where
+/// it is; a node that crossed into the wall is put back at the gap: never inside). Under a pressing
+/// load ℓ descends half way to the gap per step (the skin settles onto the wall). A contact node
+/// then slides like a rim node: it follows the mean move of its constrained neighbours closer to
+/// the wall (graph distance), else it moves by its own traction under the same friction law, with
+/// the limiting weight of its touch-down point on the wall (the Gaussian there, times the mean
+/// thickness factor of its constrained neighbours) and its permissible shift counted from its
+/// touch-down point. The contact is unilateral (contact_release): a contact node whose load pulls
+/// it off the wall with more than contact_release_pa of normal traction in three accepted calls in
+/// a row is freed (one call's reaction carries inertia: a node caught falling, a bounce; a released node
+/// is caught again only once it comes within contact_gap_m / 2). The chest-wall attachment of the rest
+/// footprint (nodes()) stays bilateral: fascia. Contacts are part of the take-back like the wall:
+/// the simulator's state does not hold constraints, and stiff.revertTo(0) restores the state of the
+/// last accepted step, the state the contact was made at, so the kept constraint is consistent;
+/// its pending move is halved, then held, as the wall's.
+/// \note DynamicSimulator has no call that frees single nodes, so a release calls
+/// clearConstraints() and re-imposes every other constraint: the sliding set and the remaining
+/// contacts as targets, the nodes that were constrained by others at attach() as fixed nodes (where
+/// they are). A target that another component set on a node outside the sliding set would thus
+/// become a fixation; nothing in breast_sim does that (the pipeline constrains only the wall).
+///
 /// Limiting factors w_i ∈ [0, 1], each optional (all off: the seed's bypass, "free sliding governed
 /// by friction and shape alone"):
 ///  - tissue thickness: the distance from the wall to the skin along the rest normal (ray marching
@@ -135,6 +164,18 @@ struct SlidingSettings {
   /// until s < min_move_scale, then holds the wall. In (0, 1].
   double min_move_scale = 1.0 / 64.0;
 
+  /// Skin–wall contact in afterStep() (see the file comment).
+  bool contact = true;
+  /// A free skin node becomes a contact node when its wall distance predicted one step ahead is at
+  /// most this [m]; in (contact_gap_m, 3σ].
+  double contact_tolerance_m = 0.5e-3;
+  /// Smallest distance a contact node is held off the wall surface [m], in [0, contact_tolerance_m).
+  double contact_gap_m = 0.2e-3;
+  /// Unilateral contact: a contact node whose load pulls it off the wall is freed.
+  bool contact_release = true;
+  /// Normal traction [Pa] pulling a contact node off the wall beyond which it is freed, ≥ 0.
+  double contact_release_pa = 50.0;
+
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
 };
@@ -155,6 +196,12 @@ struct SlidingStepStats {
   double move_scale = 1.0;      ///< afterStep(): scale s of this step's moves
   bool taken_back = false;      ///< afterStep(): the stiffening call did not advance; the last move was shrunk
   bool held_wall = false;       ///< afterStep(): … and the wall is now held at its current position
+  int contacts = 0;             ///< afterStep(): contact nodes after this call
+  int contacts_added = 0;       ///< afterStep(): free skin nodes that touched the wall in this call
+  int contacts_released = 0;    ///< afterStep(): contact nodes freed in this call (pulled off the wall)
+  /// afterStep(): smallest signed wall distance of the free skin nodes after the call [m]
+  /// (+inf without contact or skin).
+  double min_free_skin_distance_m = 0.0;
   double seconds = 0.0;         ///< the update without the elastic forces [s]
   double force_seconds = 0.0;   ///< DynamicSimulator::elasticForces() in update(sim) [s] (0 in afterStep)
 };
@@ -179,7 +226,8 @@ class ChestWallSliding {
   /// none), anterior direction and the model's "chest_wall" node set.
   static ChestWallSliding fromCase(const ModelCase& model_case, const TetMesh& mesh, const SlidingSettings& settings);
 
-  /// Replaces the Dirichlet fixation of the sliding nodes by targets at their current displacement,
+  /// Replaces the Dirichlet fixation of the sliding nodes by targets at their current displacement
+  /// (and drops the contact nodes of an earlier run: they are made again as the skin touches),
   /// and measures each sliding node's stiffness k_i for the stability cap (one stiffness assembly at
   /// the current state).
   void attach(DynamicSimulator& sim);
@@ -234,15 +282,25 @@ class ChestWallSliding {
   /// stiffening call cannot advance. @throws std::invalid_argument for a wrong row count.
   void setTargets(DynamicSimulator& sim, const Points& targets_m);
 
-  /// The sliding nodes: the given set, then the rim band (rim_band) appended.
-  const std::vector<int>& nodes() const { return nodes_; }
+  /// The sliding nodes: the given set, then the rim band (rim_band) appended. Fixed after
+  /// construction (contact nodes are separate: contactNodes()).
+  const std::vector<int>& nodes() const { return base_nodes_; }
   const SlidingSettings& settings() const { return settings_; }
   const ChestWallSurface& surface() const { return *surface_; }
   /// Target displacements of the sliding nodes [m], one row per node of nodes().
-  const Points& targets() const { return targets_; }
+  const Points& targets() const { return base_targets_; }
+  /// The current contact nodes (skin nodes that touched the wall), in activation order.
+  std::vector<int> contactNodes() const { return std::vector<int>(nodes_.begin() + num_base_, nodes_.end()); }
+  /// Target displacements of the contact nodes [m], one row per node of contactNodes().
+  Points contactTargets() const { return targets_.bottomRows(targets_.rows() - num_base_); }
+  int contactsMade() const { return contacts_made_; }          ///< activations since attach()
+  int contactsReleased() const { return contacts_released_; }  ///< releases since attach()
   /// Sliding vector per mesh node [m]: the total constraint displacement along the wall (target −
-  /// rest) for sliding nodes, 0 elsewhere; #N×3 (for VTK point data and rviz arrows).
+  /// rest) for sliding nodes, the slide since touch-down (target − touch-down point) for contact
+  /// nodes, 0 elsewhere; #N×3 (for VTK point data and rviz arrows).
   Points slidingVectors() const;
+  /// The per-node arrays below (weights() … rimFlags()) have one entry per node of nodes(), then
+  /// one per contact node (contactNodes()).
   /// Limiting weight w_i ∈ [0, 1] per sliding node (1 with all limits off; 0 for held nodes).
   const Eigen::VectorXd& weights() const { return weight_; }
   const Eigen::VectorXd& thicknessFactors() const { return thickness_factor_; }  ///< 1 when off
@@ -265,10 +323,32 @@ class ChestWallSliding {
   const std::vector<char>& rimFlags() const { return rim_flag_; }
 
  private:
+  // Contact: frees pulled-off contact nodes and adds the free skin nodes that touch the wall as
+  // slots (slot arrays compacted, graph rebuilt, constraints re-imposed on a release). Fills the
+  // contact counts of st; returns whether a node was freed.
+  bool updateContacts(DynamicSimulator& sim, const Eigen::VectorXd& load, SlidingStepStats& st);
+  // Wall graph, rim levels of the contact slots and wall elements from the current slots.
+  void buildGraph();
+  // Drops the slots whose keep flag is 0 (every per-slot array).
+  void compactSlots(const std::vector<char>& keep);
+
   SlidingSettings settings_;
   std::shared_ptr<const ChestWallSurface> surface_;
+  // Slots: the sliding nodes (nodes(), the first num_base_) then the contact nodes. Every per-slot
+  // array below follows this order.
   std::vector<int> nodes_;
+  std::vector<int> base_nodes_;
+  int num_base_ = 0;
+  Points base_targets_;  // the first num_base_ rows of targets_ (targets())
   int num_mesh_nodes_;
+  Tets mesh_tets_;
+  std::vector<int> slot_of_;          // per mesh node: slot or −1
+  std::vector<int> skin_candidates_;  // skin nodes outside nodes()
+  std::vector<char> released_;        // per mesh node: freed once (caught again only within the gap)
+  std::vector<int> tension_calls_;    // per mesh node: accepted calls in a row pulling off the wall
+  std::vector<int> foreign_fixed_;    // nodes constrained by others at attach()
+  int contacts_made_ = 0, contacts_released_ = 0;
+  Points origin_;        // per slot: where its slide is counted from (rest; touch-down for contacts)
   Points rest_;          // rest positions of the sliding nodes
   Points mesh_rest_;     // rest positions of all mesh nodes (volume guard)
   Points targets_;       // target displacements
