@@ -586,15 +586,20 @@ SlidingStepStats ChestWallSliding::updateFromLoads(const Eigen::VectorXd& u, con
       for (int i = 0; i < n; ++i) {
         if (rim_level_[i] != lv || !movable(i) || normal.row(i).isZero()) continue;
         Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+        double wsum = 0.0;
         int cnt = 0;
         for (int k = nbr_start_[i]; k < nbr_start_[i + 1]; ++k)
           if (rim_level_[nbr_[k]] < lv) {
             sum += move.row(nbr_[k]).transpose();
+            wsum += weight_[nbr_[k]];
             ++cnt;
           }
         if (cnt == 0) continue;
         const Eigen::Vector3d nrm = normal.row(i).transpose();
         sum /= cnt;
+        // The node's own limiting weight still applies: scaled by it relative to its neighbours'
+        // (a rim node near the sternum does not take the full move of livelier neighbours).
+        if (wsum > 0) sum *= std::min(1.0, weight_[i] * cnt / wsum);
         move.row(i) = (sum - sum.dot(nrm) * nrm).transpose();
         ++rim;
       }
@@ -610,6 +615,11 @@ SlidingStepStats ChestWallSliding::updateFromLoads(const Eigen::VectorXd& u, con
       Eigen::Vector3d mean = Eigen::Vector3d::Zero();
       for (int k = nbr_start_[i]; k < nbr_start_[i + 1]; ++k) mean += move.row(nbr_[k]).transpose();
       mean /= deg;
+      double wmean = 0.0;
+      for (int k = nbr_start_[i]; k < nbr_start_[i + 1]; ++k) wmean += weight_[nbr_[k]];
+      wmean /= deg;
+      // Smoothing blends the neighbours' moves in, but not beyond the node's own limiting weight.
+      if (wmean > 0) mean *= std::min(1.0, weight_[i] / wmean);
       const Eigen::Vector3d nrm = normal.row(i).transpose();
       Eigen::Vector3d m = 0.5 * (move.row(i).transpose() + mean);
       m -= m.dot(nrm) * nrm;
