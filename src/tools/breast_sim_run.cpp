@@ -76,6 +76,23 @@ struct Args {
   bool model_only = false, quiet = false, no_sliding = false, no_morphing = false;
 };
 
+/// The number after `option`: a whole number if `whole`, at least `min` (strictly above it if
+/// `exclusive`). @throws std::invalid_argument naming the option and the value.
+double number(const std::string& option, const std::string& v, bool whole, double min, bool exclusive) {
+  double x = 0.0;
+  size_t used = 0;
+  try {
+    x = whole ? static_cast<double>(std::stoi(v, &used)) : std::stod(v, &used);
+  } catch (...) {
+    used = 0;
+  }
+  if (used == 0 || used != v.size())
+    throw std::invalid_argument(option + " '" + v + "' is not " + (whole ? "a whole number" : "a number"));
+  if (exclusive ? !(x > min) : !(x >= min))
+    throw std::invalid_argument(option + " must be " + (exclusive ? "positive" : "0 or positive") + ", got " + v);
+  return x;
+}
+
 Args parse(int argc, char** argv) {
   Args a;
   for (int i = 1; i < argc; ++i) {
@@ -92,34 +109,10 @@ Args parse(int argc, char** argv) {
     else if (k == "--quiet") a.quiet = true;
     else if (k == "--no-sliding") a.no_sliding = true;
     else if (k == "--error-curve") a.error_curve = value();
-    else if (k == "--max-lesion-error-mm") {
-      const std::string v = value();
-      try {
-        a.max_lesion_error_mm = std::stod(v);
-      } catch (...) {
-        throw std::invalid_argument("--max-lesion-error-mm '" + v + "' is not a number");
-      }
-      if (!(a.max_lesion_error_mm > 0)) throw std::invalid_argument("--max-lesion-error-mm must be positive, got " + v);
-    }
+    else if (k == "--max-lesion-error-mm") a.max_lesion_error_mm = number(k, value(), false, 0.0, true);
     else if (k == "--no-morphing") a.no_morphing = true;
-    else if (k == "--frames") {
-      const std::string v = value();
-      try {
-        a.frame_interval = std::stoi(v);
-      } catch (...) {
-        throw std::invalid_argument("--frames '" + v + "' is not a whole number");
-      }
-      if (a.frame_interval < 0) throw std::invalid_argument("--frames must be 0 or positive, got " + v);
-    }
-    else if (k == "--target-elements") {
-      const std::string v = value();
-      try {
-        a.target_elements = std::stoi(v);
-      } catch (...) {
-        throw std::invalid_argument("--target-elements '" + v + "' is not a whole number");
-      }
-      if (a.target_elements <= 0) throw std::invalid_argument("--target-elements must be positive, got " + v);
-    } else if (k == "-h" || k == "--help") {
+    else if (k == "--frames") a.frame_interval = static_cast<int>(number(k, value(), true, 0.0, false));
+    else if (k == "--target-elements") a.target_elements = static_cast<int>(number(k, value(), true, 0.0, true)); else if (k == "-h" || k == "--help") {
       std::cout << kUsage;
       std::exit(0);
     } else throw std::invalid_argument("unknown option '" + k + "'\n" + kUsage);

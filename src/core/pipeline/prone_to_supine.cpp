@@ -100,10 +100,12 @@ void ProneToSupinePipeline::setTimeStep(double dt_s) {
 }
 
 double ProneToSupinePipeline::increment(Eigen::VectorXd& previous) const {
+  // Largest nodal change, without a temporary (iterate() runs per tracker frame).
   const Eigen::VectorXd& u = simulator().state().displacement_m;
-  const double inc = maxNodalNorm(u - previous);
-  previous = u;
-  return inc;
+  double worst = 0.0;
+  for (Eigen::Index i = 0; i + 2 < u.size(); i += 3) worst = std::max(worst, (u.segment<3>(i) - previous.segment<3>(i)).squaredNorm());
+  previous = u;  // same size: no allocation
+  return std::sqrt(worst);
 }
 
 void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
@@ -253,7 +255,7 @@ IterationReport ProneToSupinePipeline::iterate() {
   const auto t0 = std::chrono::steady_clock::now();
   ensureMorphing();
   IterationReport it;
-  const Eigen::VectorXd before = simulator().state().displacement_m;
+  iterate_previous_ = simulator().state().displacement_m;  // reuses the buffer
   // Seed 2.6: after a step that could not advance, no new forces (the positions are back where
   // they received the last ones).
   DistanceStats d;
@@ -277,7 +279,7 @@ IterationReport ProneToSupinePipeline::iterate() {
   it.advanced = r.advanced;
   it.reversals = r.reversals;
   it.alpha_per_pa = r.alpha_per_pa;
-  it.increment_m = maxNodalNorm(simulator().state().displacement_m - before);
+  it.increment_m = increment(iterate_previous_);
   it.seconds = since(t0);
   return it;
 }

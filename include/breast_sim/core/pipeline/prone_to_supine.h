@@ -233,6 +233,7 @@ class ProneToSupinePipeline {
   PipelineStage stage_ = PipelineStage::kIdle;
   StageReport gravity_, sliding_report_, morphing_;
   bool last_advanced_ = true;
+  Eigen::VectorXd iterate_previous_;  // iterate(): displacement before the step (kept to avoid a per-frame allocation)
   bool sliding_attached_ = false;  // the wall nodes are moving constraints (after the fixed-wall settle)
   double mesh_volume_m3_ = 0.0;
 };
