@@ -21,9 +21,16 @@ def main(root):
             continue
         p = f = s = 0
         for case in tree.iter("testcase"):
-            if case.find("failure") is not None or case.find("error") is not None:
+            problem = case.find("failure")
+            if problem is None:
+                problem = case.find("error")
+            if problem is not None:
                 f += 1
                 print(f"FAILED: {case.get('classname')}.{case.get('name')} ({os.path.relpath(path, root)})")
+                # What the assertion said (CI shows only the end of the log): a few lines of it.
+                text = (problem.get("message") or problem.text or "").strip().splitlines()
+                for line in text[:6]:
+                    print(f"    {line[:300]}")
             elif case.find("skipped") is not None or case.get("status") == "notrun":
                 s += 1
             else:
