@@ -230,3 +230,100 @@ TEST(DynamicSimulator, ConstraintForcesBalanceTheWeightAtRest) {
   sim.addNodalForces({5}, Points::Constant(1, 3, 0.25));
   EXPECT_DOUBLE_EQ(sim.externalForces()[15], 0.5);
 }
+
+namespace {
+DynamicSimulator cantileverSim(const TetMesh& m, const DynamicsParams& p) {
+  ElasticMaterial mat;
+  mat.youngs_modulus_pa = 20e3;
+  return DynamicSimulator(m, std::make_unique<CorotatedTetFem>(m, mat), mat, p, std::make_unique<CholmodSolver>());
+}
+}  // namespace
+
+TEST(DynamicSimulator, NodeSpringsCarryTheWeightAndStiffOnesActLikeAFixedWall) {
+  const TetMesh m = makeBoxMesh({6, 2, 2}, {0.06, 0.02, 0.02});
+  DynamicsParams p;
+  p.gravity_mps2 = {0.5, -1.0, -9.81};
+  SettleOptions o;
+  o.time_step_s = 0.5;
+  o.increment_tolerance_m = 1e-11;
+  const std::vector<int>& wall = m.nodeSet("x_min");
+  // Reference: the x_min face fixed (Dirichlet).
+  DynamicSimulator fixed = cantileverSim(m, p);
+  fixed.fixNodes(wall);
+  ASSERT_TRUE(settle(fixed, o).settled);
+  // The same face on very stiff isotropic springs anchored at rest: the same equilibrium, reached
+  // with long steps (implicit springs: 1e7 N/m per node at dt 0.5 s would explode explicitly).
+  DynamicSimulator sprung = cantileverSim(m, p);
+  const double k = 1e7;  // [N/m]
+  std::vector<Eigen::Matrix3d> ks(wall.size(), k * Eigen::Matrix3d::Identity());
+  Points anchors(static_cast<Eigen::Index>(wall.size()), 3);
+  for (size_t i = 0; i < wall.size(); ++i) anchors.row(static_cast<Eigen::Index>(i)) = m.nodes().row(wall[i]);
+  sprung.setNodeSprings(wall, ks, anchors);
+  ASSERT_TRUE(settle(sprung, o).settled);
+  const double tip = fixed.state().displacement_m.cwiseAbs().maxCoeff();
+  EXPECT_GT(tip, 1e-4);
+  EXPECT_LT((sprung.state().displacement_m - fixed.state().displacement_m).cwiseAbs().maxCoeff(), 1e-3 * tip);
+  // At rest the springs carry the whole weight: Σ f_spring = −m g.
+  const Eigen::VectorXd f = sprung.currentSpringForces();
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  for (int n = 0; n < m.numNodes(); ++n) sum += f.segment<3>(3 * n);
+  const double weight = sprung.lumpedMass().sum();
+  EXPECT_LT((sum + weight * p.gravity_mps2).norm(), 1e-5 * weight * 9.81) << sum.transpose();
+  // A spring along z only (a frictionless floor under the face): the face slides freely in x and y
+  // under the sideways gravity, so the body keeps accelerating sideways instead of settling.
+  DynamicSimulator floor = cantileverSim(m, p);
+  Eigen::Matrix3d kz = Eigen::Matrix3d::Zero();
+  kz(2, 2) = k;
+  std::vector<Eigen::Matrix3d> kzs(wall.size(), kz);
+  floor.setNodeSprings(wall, kzs, anchors);
+  for (int s = 0; s < 10; ++s) floor.step();
+  double max_z = 0;
+  for (int n : wall) max_z = std::max(max_z, std::abs(floor.state().displacement_m[3 * n + 2]));
+  const double t = floor.state().time_s;
+  // Free sliding under g_x = 0.5 m/s² moves the face by about g_x t²/2 (less the mass damping).
+  EXPECT_GT(floor.state().displacement_m[3 * wall[0]], 0.5 * (0.5 * p.gravity_mps2.x() * t * t));
+  EXPECT_LT(max_z, 1e-4);  // but it stayed on the floor
+}
+
+TEST(DynamicSimulator, NodeSpringForceMatchesItsStiffnessAndBadSpringsAreRefused) {
+  const TetMesh m = makeBoxMesh({2, 1, 1}, {0.02, 0.01, 0.01});
+  DynamicSimulator sim = cantileverSim(m, DynamicsParams{});
+  Eigen::Matrix3d k;
+  k << 3, 1, 0, 1, 2, 0.5, 0, 0.5, 4;
+  Points a(1, 3);
+  a << 0.001, -0.002, 0.003;
+  sim.setNodeSprings({1}, {k}, a);
+  // f = −K (x − a), and its derivative is −K: finite differences in the displacement.
+  SimulationState s = sim.state();
+  const Eigen::Vector3d x = m.nodes().row(1).transpose();
+  EXPECT_LT((sim.currentSpringForces().segment<3>(3) + k * (x - a.row(0).transpose())).norm(), 1e-15);
+  const double h = 1e-6;
+  for (int c = 0; c < 3; ++c) {
+    SimulationState plus = s;
+    plus.displacement_m[3 + c] += h;
+    sim.restore(plus);
+    const Eigen::Vector3d fp = sim.currentSpringForces().segment<3>(3);
+    plus.displacement_m[3 + c] -= 2 * h;
+    sim.restore(plus);
+    const Eigen::Vector3d fm = sim.currentSpringForces().segment<3>(3);
+    EXPECT_LT(((fp - fm) / (2 * h) + k.col(c)).norm(), 1e-8);
+  }
+  auto err = [&](const std::vector<int>& n, const std::vector<Eigen::Matrix3d>& ks, const Points& an) {
+    try {
+      sim.setNodeSprings(n, ks, an);
+    } catch (const std::invalid_argument& e) {
+      return std::string(e.what());
+    }
+    return std::string("(no error)");
+  };
+  Eigen::Matrix3d skew = k;
+  skew(0, 1) = 7;
+  EXPECT_NE(err({1}, {skew}, a).find("node 1"), std::string::npos);
+  EXPECT_NE(err({99}, {k}, a).find("node 99"), std::string::npos);
+  EXPECT_NE(err({1, 1}, {k, k}, Points::Zero(2, 3)).find("twice"), std::string::npos);
+  EXPECT_NE(err({1}, {k, k}, a).find("one of each"), std::string::npos);
+  // The refused calls left the last good springs in place.
+  EXPECT_EQ(sim.springNodes(), std::vector<int>{1});
+  sim.clearNodeSprings();
+  EXPECT_TRUE(sim.springNodes().empty());
+}

@@ -54,6 +54,8 @@ DynamicSimulator::DynamicSimulator(const TetMesh& mesh, std::unique_ptr<ElementF
   rhs_ = Eigen::VectorXd::Zero(n3);
   v_next_ = Eigen::VectorXd::Zero(n3);
   constraint_force_ = Eigen::VectorXd::Zero(n3);
+  spring_force_ = Eigen::VectorXd::Zero(n3);
+  spring_anchor_.resize(0, 3);
   saved_start_.assign(1, 0);
   x_ = rest_;
   // Diagonal positions: columns are sorted, found once by binary search (the pattern is fixed).
@@ -180,6 +182,23 @@ StepStats DynamicSimulator::step() {
     const int r = constrained_rows_[q];
     constraint_velocity_[r] = is_target_[r] ? (target_displacement_[r] - state_.displacement_m[r]) / dt : 0.0;
   }
+  // Node springs, implicitly: f_s(x_{t+1}) ≈ f_s(x_t) − K dt v_{t+1} gives dt² K in the matrix and
+  // dt f_s(x_t) on the right-hand side. The node's own 3×3 block is contiguous in each of its rows
+  // (columns sorted, the diagonal at diag_pos_).
+  spring_force_.setZero(n3);
+  for (size_t i = 0; i < spring_nodes_.size(); ++i) {
+    const int n = spring_nodes_[i];
+    const Eigen::Vector3d x = rest_.row(n).transpose() + state_.displacement_m.segment<3>(3 * n);
+    const Eigen::Vector3d f = -spring_k_[i] * (x - spring_anchor_.row(static_cast<Eigen::Index>(i)).transpose());
+    spring_force_.segment<3>(3 * n) = f;
+    for (int c = 0; c < 3; ++c) {
+      const int r = 3 * n + c;
+      double* block = values + diag[r] - c;  // columns 3n, 3n+1, 3n+2 of row r
+      for (int d = 0; d < 3; ++d) block[d] += dt * dt * spring_k_[i](c, d);
+      rhs[r] += dt * f[c];
+    }
+  }
+
   const double* cv = constraint_velocity_.data();
   saved_values_.resize(static_cast<size_t>(saved_start_.back()));
   saved_rhs_.resize(static_cast<size_t>(num_constrained));
@@ -232,6 +251,47 @@ StepStats DynamicSimulator::step() {
   ++state_.step;
   st.total_seconds = since(t0);
   return st;
+}
+
+void DynamicSimulator::setNodeSprings(const std::vector<int>& nodes, const std::vector<Eigen::Matrix3d>& stiffness_n_per_m,
+                                      const Points& anchors_m) {
+  if (nodes.size() != stiffness_n_per_m.size() || static_cast<Eigen::Index>(nodes.size()) != anchors_m.rows() ||
+      (anchors_m.rows() > 0 && anchors_m.cols() != 3))
+    throw std::invalid_argument("setNodeSprings: " + std::to_string(nodes.size()) + " nodes, " +
+                                std::to_string(stiffness_n_per_m.size()) + " stiffness blocks and " +
+                                std::to_string(anchors_m.rows()) + " anchors; give one of each per node");
+  std::vector<char> seen(static_cast<size_t>(num_nodes_), 0);
+  for (size_t i = 0; i < nodes.size(); ++i) {
+    const int n = nodes[i];
+    if (n < 0 || n >= num_nodes_)
+      throw std::invalid_argument("setNodeSprings: node " + std::to_string(n) + " is not in [0, " + std::to_string(num_nodes_) + ")");
+    if (seen[static_cast<size_t>(n)]++)
+      throw std::invalid_argument("setNodeSprings: node " + std::to_string(n) + " is given twice; sum its springs into one block");
+    const Eigen::Matrix3d& k = stiffness_n_per_m[i];
+    if (!k.allFinite() || !anchors_m.row(static_cast<Eigen::Index>(i)).allFinite() ||
+        (k - k.transpose()).cwiseAbs().maxCoeff() > 1e-9 * std::max(1.0, k.cwiseAbs().maxCoeff()))
+      throw std::invalid_argument("setNodeSprings: the spring of node " + std::to_string(n) +
+                                  " is not finite or not symmetric; K must be a symmetric 3x3 block [N/m]");
+  }
+  spring_nodes_ = nodes;
+  spring_k_ = stiffness_n_per_m;
+  spring_anchor_ = anchors_m;
+}
+
+void DynamicSimulator::clearNodeSprings() {
+  spring_nodes_.clear();
+  spring_k_.clear();
+  spring_anchor_.resize(0, 3);
+}
+
+Eigen::VectorXd DynamicSimulator::currentSpringForces() const {
+  Eigen::VectorXd f = Eigen::VectorXd::Zero(3 * num_nodes_);
+  for (size_t i = 0; i < spring_nodes_.size(); ++i) {
+    const int n = spring_nodes_[i];
+    const Eigen::Vector3d x = rest_.row(n).transpose() + state_.displacement_m.segment<3>(3 * n);
+    f.segment<3>(3 * n) = -spring_k_[i] * (x - spring_anchor_.row(static_cast<Eigen::Index>(i)).transpose());
+  }
+  return f;
 }
 
 void DynamicSimulator::restore(const SimulationState& s) {

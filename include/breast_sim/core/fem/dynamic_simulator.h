@@ -73,6 +73,24 @@ class DynamicSimulator {
   /// the end of the next step (used by sliding). Replaces earlier targets of those nodes.
   void setNodeTargets(const std::vector<int>& nodes, const Points& targets_m);
 
+  /// Linear node springs (used by implicit sliding: a stiff spring along the wall normal keeps a node
+  /// on the wall, softer tangential ones model friction and tethering): node nodes[i] feels
+  ///   f_i = −K_i (x_i − a_i),  K_i = stiffness_n_per_m[i] (symmetric positive semi-definite 3×3 [N/m]),
+  ///   a_i = anchors_m.row(i) (a position [m], not a displacement),
+  /// taken implicitly: the step adds dt² K_i to its matrix (one diagonal 3×3 block per node, inside
+  /// the fixed pattern), so a stiff spring costs no stability. Replaces all earlier springs; a node
+  /// may appear once. Springs are not part of the state (like constraints).
+  /// @throws std::invalid_argument for mismatched sizes, a node out of range or repeated, or a
+  ///         non-finite or non-symmetric block (names the node).
+  void setNodeSprings(const std::vector<int>& nodes, const std::vector<Eigen::Matrix3d>& stiffness_n_per_m,
+                      const Points& anchors_m);
+  void clearNodeSprings();
+  const std::vector<int>& springNodes() const { return spring_nodes_; }
+  /// Spring forces at the state the last step() started from [N], 3N (0 without springs).
+  const Eigen::VectorXd& springForces() const { return spring_force_; }
+  /// Spring forces at the current state [N], 3N (computed now).
+  Eigen::VectorXd currentSpringForces() const;
+
   /// Adds to the per-node external forces [N]; they accumulate until clearExternalForces() (used by
   /// surface morphing). Gravity is separate (params().gravity_mps2).
   void addNodalForces(const std::vector<int>& nodes, const Points& forces_n);
@@ -123,6 +141,10 @@ class DynamicSimulator {
   SparseMatrix A_;
   Eigen::VectorXd f_el_, rhs_, v_next_;
   Eigen::VectorXd constraint_force_;       // 3N, reactions of the last step [N]
+  std::vector<int> spring_nodes_;
+  std::vector<Eigen::Matrix3d> spring_k_;  // [N/m]
+  Points spring_anchor_;                   // [m]
+  Eigen::VectorXd spring_force_;           // 3N [N]
   std::vector<int> saved_start_;           // per constrained row: offset into saved_values_ (+1)
   std::vector<double> saved_values_, saved_rhs_;  // constrained rows before elimination
   Points x_;
