@@ -56,6 +56,7 @@ DynamicSimulator::DynamicSimulator(const TetMesh& mesh, std::unique_ptr<ElementF
   constraint_force_ = Eigen::VectorXd::Zero(n3);
   spring_force_ = Eigen::VectorXd::Zero(n3);
   spring_anchor_.resize(0, 3);
+  spring_constant_.resize(0, 3);
   saved_start_.assign(1, 0);
   x_ = rest_;
   // Diagonal positions: columns are sorted, found once by binary search (the pattern is fixed).
@@ -189,7 +190,8 @@ StepStats DynamicSimulator::step() {
   for (size_t i = 0; i < spring_nodes_.size(); ++i) {
     const int n = spring_nodes_[i];
     const Eigen::Vector3d x = rest_.row(n).transpose() + state_.displacement_m.segment<3>(3 * n);
-    const Eigen::Vector3d f = -spring_k_[i] * (x - spring_anchor_.row(static_cast<Eigen::Index>(i)).transpose());
+    const Eigen::Vector3d f = -spring_k_[i] * (x - spring_anchor_.row(static_cast<Eigen::Index>(i)).transpose()) +
+                              spring_constant_.row(static_cast<Eigen::Index>(i)).transpose();
     spring_force_.segment<3>(3 * n) = f;
     for (int c = 0; c < 3; ++c) {
       const int r = 3 * n + c;
@@ -254,12 +256,14 @@ StepStats DynamicSimulator::step() {
 }
 
 void DynamicSimulator::setNodeSprings(const std::vector<int>& nodes, const std::vector<Eigen::Matrix3d>& stiffness_n_per_m,
-                                      const Points& anchors_m) {
+                                      const Points& anchors_m, const Points& forces_n) {
   if (nodes.size() != stiffness_n_per_m.size() || static_cast<Eigen::Index>(nodes.size()) != anchors_m.rows() ||
-      (anchors_m.rows() > 0 && anchors_m.cols() != 3))
+      (anchors_m.rows() > 0 && anchors_m.cols() != 3) ||
+      (forces_n.size() > 0 && (forces_n.rows() != anchors_m.rows() || forces_n.cols() != 3)))
     throw std::invalid_argument("setNodeSprings: " + std::to_string(nodes.size()) + " nodes, " +
                                 std::to_string(stiffness_n_per_m.size()) + " stiffness blocks and " +
-                                std::to_string(anchors_m.rows()) + " anchors; give one of each per node");
+                                std::to_string(anchors_m.rows()) + " anchors (and " + std::to_string(forces_n.rows()) +
+                                " constant forces, or none); give one of each per node");
   std::vector<char> seen(static_cast<size_t>(num_nodes_), 0);
   for (size_t i = 0; i < nodes.size(); ++i) {
     const int n = nodes[i];
@@ -269,6 +273,7 @@ void DynamicSimulator::setNodeSprings(const std::vector<int>& nodes, const std::
       throw std::invalid_argument("setNodeSprings: node " + std::to_string(n) + " is given twice; sum its springs into one block");
     const Eigen::Matrix3d& k = stiffness_n_per_m[i];
     if (!k.allFinite() || !anchors_m.row(static_cast<Eigen::Index>(i)).allFinite() ||
+        (forces_n.size() > 0 && !forces_n.row(static_cast<Eigen::Index>(i)).allFinite()) ||
         (k - k.transpose()).cwiseAbs().maxCoeff() > 1e-9 * std::max(1.0, k.cwiseAbs().maxCoeff()))
       throw std::invalid_argument("setNodeSprings: the spring of node " + std::to_string(n) +
                                   " is not finite or not symmetric; K must be a symmetric 3x3 block [N/m]");
@@ -276,12 +281,14 @@ void DynamicSimulator::setNodeSprings(const std::vector<int>& nodes, const std::
   spring_nodes_ = nodes;
   spring_k_ = stiffness_n_per_m;
   spring_anchor_ = anchors_m;
+  spring_constant_ = forces_n.size() > 0 ? forces_n : Points(Points::Zero(anchors_m.rows(), 3));
 }
 
 void DynamicSimulator::clearNodeSprings() {
   spring_nodes_.clear();
   spring_k_.clear();
   spring_anchor_.resize(0, 3);
+  spring_constant_.resize(0, 3);
 }
 
 Eigen::VectorXd DynamicSimulator::currentSpringForces() const {
@@ -289,7 +296,8 @@ Eigen::VectorXd DynamicSimulator::currentSpringForces() const {
   for (size_t i = 0; i < spring_nodes_.size(); ++i) {
     const int n = spring_nodes_[i];
     const Eigen::Vector3d x = rest_.row(n).transpose() + state_.displacement_m.segment<3>(3 * n);
-    f.segment<3>(3 * n) = -spring_k_[i] * (x - spring_anchor_.row(static_cast<Eigen::Index>(i)).transpose());
+    f.segment<3>(3 * n) = -spring_k_[i] * (x - spring_anchor_.row(static_cast<Eigen::Index>(i)).transpose()) +
+                          spring_constant_.row(static_cast<Eigen::Index>(i)).transpose();
   }
   return f;
 }

@@ -314,7 +314,10 @@ StiffeningStepResult StiffeningSimulation::step() {
     // (through this class or on the simulator directly, e.g. sliding's moving targets).
     const std::vector<char>& dofs = sim_.constrainedDofs();
     for (int n = 0; n < mesh_.numNodes(); ++n) fixed_node_[n] = dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2];
-    r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, sim_.externalForces(), sim_.lumpedMass(),
+    // Node springs (implicit sliding, wall_slip.h) are loads on their nodes like external forces.
+    const Eigen::VectorXd loads =
+        sim_.springNodes().empty() ? sim_.externalForces() : Eigen::VectorXd(sim_.externalForces() + sim_.currentSpringForces());
+    r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, loads, sim_.lumpedMass(),
                               sim_.params().gravity_mps2, fixed_node_);
     settle_run_ = r.settle.below ? settle_run_ + 1 : 0;
     if (settle_run_ >= params_.settle.consecutive_steps && steps_to_settle_ < 0) steps_to_settle_ = accepted_;

@@ -77,13 +77,14 @@ class DynamicSimulator {
   /// on the wall, softer tangential ones model friction and tethering): node nodes[i] feels
   ///   f_i = −K_i (x_i − a_i),  K_i = stiffness_n_per_m[i] (symmetric positive semi-definite 3×3 [N/m]),
   ///   a_i = anchors_m.row(i) (a position [m], not a displacement),
+  /// plus, if given, a constant force forces_n.row(i) [N] on the node (e.g. kinetic friction),
   /// taken implicitly: the step adds dt² K_i to its matrix (one diagonal 3×3 block per node, inside
   /// the fixed pattern), so a stiff spring costs no stability. Replaces all earlier springs; a node
   /// may appear once. Springs are not part of the state (like constraints).
   /// @throws std::invalid_argument for mismatched sizes, a node out of range or repeated, or a
   ///         non-finite or non-symmetric block (names the node).
   void setNodeSprings(const std::vector<int>& nodes, const std::vector<Eigen::Matrix3d>& stiffness_n_per_m,
-                      const Points& anchors_m);
+                      const Points& anchors_m, const Points& forces_n = Points());
   void clearNodeSprings();
   const std::vector<int>& springNodes() const { return spring_nodes_; }
   /// Spring forces at the state the last step() started from [N], 3N (0 without springs).
@@ -144,6 +145,7 @@ class DynamicSimulator {
   std::vector<int> spring_nodes_;
   std::vector<Eigen::Matrix3d> spring_k_;  // [N/m]
   Points spring_anchor_;                   // [m]
+  Points spring_constant_;                 // [N], one row per spring node (zero when none given)
   Eigen::VectorXd spring_force_;           // 3N [N]
   std::vector<int> saved_start_;           // per constrained row: offset into saved_values_ (+1)
   std::vector<double> saved_values_, saved_rhs_;  // constrained rows before elimination

@@ -1,0 +1,132 @@
+#pragma once
+/// @file wall_slip.h
+/// Implicit sliding on the chest wall: the wall nodes are free DOFs held on the wall by springs that
+/// the implicit step takes into its matrix (DynamicSimulator::setNodeSprings), instead of moving
+/// displacement constraints updated after each step (chest_wall_sliding.h, seed 2.4 / [GLDW10]).
+///
+/// Why: with the explicit update the wall lags the tissue by a step; under the stiffening loop of
+/// seed Figure 2 its moves flattened and inverted the rim elements (measured on the two-breast
+/// phantom: 74–96 % of the steps reversed, the loop never settled). Here the wall's reaction, the
+/// slide and the tissue are solved together, so nothing lags and no move has to be taken back.
+///
+/// Per wall node i (area A_i, rest signed distance h0_i, normal n_i = ∇h at the start of the step),
+/// with h the chest wall's signed distance from the segmentation (ChestWallSurface, no analytic
+/// model) and P = I − n nᵀ the tangent projector, the spring is
+///   K_i = A_i [κ_n n nᵀ + (κ_f + κ_g,i) P],
+///   f_i = −A_i κ_n (h(x_i) − h0_i) n − A_i P [κ_f (x_i − s_i) + κ_g,i (x_i − r_i)]
+///  - normal: a stiff penalty keeps the node at its rest distance from the wall (bilateral: the
+///    fascia holds the breast on the wall in any posture); its force is the wall's normal reaction
+///    F_n,i = A_i κ_n |h − h0|, linearised about the current point, re-linearised every step (curved
+///    walls: the projection follows the wall, the normal turns with it);
+///  - friction, stick or slip per node: a sticking node is held by a tangential stick spring κ_f to its
+///    stick point s_i (it moves elastically by at most limit / (A κ_f): 0.14 mm at the defaults under
+///    700 Pa of pressure); when after an accepted step that spring's force exceeds the static limit
+///    μ_s F_n + τ0 A_i the node slips: the stick spring is dropped and the kinetic friction
+///    μ_k F_n + τ0 A_i acts against its slip direction as a constant force of the step (F_n from the
+///    start of the step); when its tangential speed falls below stick_speed_mps or reverses, it sticks
+///    again where it is (s_i = x_i, put on the wall);
+///  - limiting factors (seed): the retromammary fascia lets the breast slide on the pectoral fascia
+///    but holds it, more so toward the sternum and the axilla. Every wall node is tethered to its rest
+///    point r_i by a tangential spring κ_g,i = κ_0 / w_i, with w_i ∈ (0, 1] the limiting weight of
+///    ChestWallSliding (the seed's bimodal Gaussian z, the thickness factor; 0 for nodes held there).
+///    For a tangential traction τ the settled slide is then τ w_i / κ_0: the seed's "d = d + z D_f"
+///    scales each explicit move by z, this scales the settled slide by it (a move scaled by z alone
+///    only slows a node, which still slides until its traction is gone: measured on the two-breast
+///    phantom, medial rim nodes with z ≈ 0.15 slid as far as with z = 1). Without a tether (κ_0 = 0)
+///    only friction holds the wall, and a breast whose tangential load exceeds μ_k times its normal
+///    load slides off;
+///  - contact: free skin nodes may not enter the wall: a node whose h is below contact_gap_m gets a
+///    normal penalty to that level (unilateral, decided from x_t each step).
+/// All stiffnesses are per unit wall area [Pa/m], so they do not depend on the mesh size.
+#include <memory>
+#include <vector>
+
+#include <Eigen/Dense>
+
+#include "breast_sim/core/fem/dynamic_simulator.h"
+#include "breast_sim/core/sliding/chest_wall_sliding.h"
+
+namespace breast_sim::core {
+
+struct WallSlipSettings {
+  /// κ_n: normal penalty per wall area [Pa/m], > 0. 1e8: 700 Pa of wall pressure (a 7 cm column of
+  /// tissue under 1 g) leaves the node 7 µm off its level, ~250× stiffer than the tissue (E/h).
+  double normal_stiffness_pa_per_m = 1e8;
+  /// κ_f: tangential stick stiffness per area [Pa/m], > 0 (elastic pre-slip = limit / κ_f).
+  double friction_stiffness_pa_per_m = 1e6;
+  double static_friction = 0.2;      ///< μ_s [-], ≥ 0
+  double kinetic_friction = 0.15;    ///< μ_k [-], in [0, μ_s]
+  double static_threshold_pa = 0.0;  ///< τ0: traction needed besides friction [Pa], ≥ 0
+  /// A slipping node whose tangential speed falls below this sticks again [m/s], ≥ 0.
+  double stick_speed_mps = 1e-4;
+  /// κ_0: tangential tether per wall area of a node with weight 1 [Pa/m], ≥ 0 (a node of weight w
+  /// gets κ_0 / w); 0 = no tether. 5e4: a tangential traction of 500 Pa slides such a node 10 mm.
+  double tether_stiffness_pa_per_m = 5e4;
+  /// Weights below this count as this [-], in (0, 1] (a held node, w = 0, gets κ_0 / min_weight).
+  double min_weight = 1e-3;
+  bool contact = true;               ///< unilateral skin–wall contact
+  double contact_gap_m = 0.2e-3;     ///< a free skin node is held at least this far off the wall [m], ≥ 0
+  /// Skin nodes farther from the wall than this at rest are never contact candidates [m], > gap.
+  double contact_range_m = 20e-3;
+
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
+  void validate() const;
+};
+
+/// What the last afterStep() saw.
+struct WallSlipStats {
+  int slipping = 0;              ///< wall nodes slipping after the step
+  int contacts = 0;              ///< skin nodes held off the wall in the last step
+  double max_slide_m = 0.0;      ///< largest tangential displacement of a wall node from rest [m]
+  double max_normal_error_m = 0.0;  ///< largest |h − h0| of a wall node [m]
+};
+
+class WallSlip {
+ public:
+  /// @param geometry the wall nodes, their areas, rest distances and limiting weights (the node set
+  ///                 and limiting factors of `settings.sliding`, built by ChestWallSliding::fromCase)
+  WallSlip(std::shared_ptr<const ChestWallSliding> geometry, const TetMesh& mesh, const WallSlipSettings& settings);
+  /// Builds the geometry from a case (the chest-wall mask of its label image) and sliding settings.
+  static WallSlip fromCase(const ModelCase& model_case, const TetMesh& mesh, const SlidingSettings& sliding,
+                           const WallSlipSettings& settings);
+
+  /// Frees the wall nodes in `sim` (their Dirichlet conditions) and sets the springs from its state.
+  void attach(DynamicSimulator& sim);
+  /// Before each step (and before each retry of a reversed step): the springs linearised at the
+  /// simulator's current state. Contacts are decided here.
+  void beforeStep(DynamicSimulator& sim);
+  /// After an accepted step: the friction return mapping (stick points follow slipping nodes).
+  WallSlipStats afterStep(const DynamicSimulator& sim);
+
+  const std::vector<int>& nodes() const { return nodes_; }
+  const WallSlipSettings& settings() const { return settings_; }
+  const ChestWallSliding& geometry() const { return *geometry_; }
+  /// Stick points s_i [m], one row per node of nodes() (positions, not displacements).
+  const Points& stickPoints() const { return stick_; }
+  /// Per node of nodes(): 1 while slipping (kinetic friction), 0 while sticking.
+  const std::vector<char>& slipping() const { return slipping_; }
+  /// Restores stick points and slip states (e.g. from a saved pipeline state; slip directions are
+  /// taken from the velocities at the next step). @throws on a wrong row count.
+  void setStickPoints(const Points& stick_m, const std::vector<char>& slipping = {});
+  /// Tether stiffness per node, κ_g,i [Pa/m].
+  const Eigen::VectorXd& tetherStiffness() const { return tether_; }
+  /// Sliding vector per mesh node [m]: a wall node's displacement projected on the wall's tangent
+  /// plane at its rest point; 0 elsewhere (#N×3, for VTK point data and rviz arrows).
+  Points slidingVectors(const DynamicSimulator& sim) const;
+
+ private:
+  std::shared_ptr<const ChestWallSliding> geometry_;
+  const TetMesh& mesh_;
+  WallSlipSettings settings_;
+  std::vector<int> nodes_;
+  Eigen::VectorXd area_, h0_, tether_;
+  Points stick_;
+  std::vector<char> slipping_;
+  Points slip_dir_;                   // unit tangent of the slip velocity per node
+  std::vector<char> on_wall_;         // per mesh node
+  std::vector<int> contact_candidates_;
+  double contact_area_m2_ = 0.0;      // nominal area of a skin node (the mean wall-node area)
+  int last_contacts_ = 0;
+};
+
+}  // namespace breast_sim::core

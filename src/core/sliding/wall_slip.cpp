@@ -1,0 +1,214 @@
+// Implicit sliding on the chest wall: node springs the implicit step solves with the tissue (see
+// wall_slip.h for the model).
+#include "breast_sim/core/sliding/wall_slip.h"
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+#include <string>
+
+
+namespace breast_sim::core {
+
+namespace {
+
+void require(bool ok, const std::string& field, double value, const std::string& range) {
+  if (!ok) throw std::invalid_argument("WallSlipSettings::" + field + " = " + std::to_string(value) + ": must be " + range);
+}
+
+}  // namespace
+
+void WallSlipSettings::validate() const {
+  require(normal_stiffness_pa_per_m > 0 && std::isfinite(normal_stiffness_pa_per_m), "normal_stiffness_pa_per_m",
+          normal_stiffness_pa_per_m, "> 0 Pa/m");
+  require(friction_stiffness_pa_per_m > 0 && std::isfinite(friction_stiffness_pa_per_m), "friction_stiffness_pa_per_m",
+          friction_stiffness_pa_per_m, "> 0 Pa/m");
+  require(static_friction >= 0 && std::isfinite(static_friction), "static_friction", static_friction, ">= 0");
+  require(kinetic_friction >= 0 && kinetic_friction <= static_friction, "kinetic_friction", kinetic_friction,
+          "in [0, static_friction]");
+  require(static_threshold_pa >= 0 && std::isfinite(static_threshold_pa), "static_threshold_pa", static_threshold_pa, ">= 0 Pa");
+  require(stick_speed_mps >= 0 && std::isfinite(stick_speed_mps), "stick_speed_mps", stick_speed_mps, ">= 0 m/s");
+  require(tether_stiffness_pa_per_m >= 0 && std::isfinite(tether_stiffness_pa_per_m), "tether_stiffness_pa_per_m",
+          tether_stiffness_pa_per_m, ">= 0 Pa/m");
+  require(min_weight > 0 && min_weight <= 1, "min_weight", min_weight, "in (0, 1]");
+  require(contact_gap_m >= 0 && std::isfinite(contact_gap_m), "contact_gap_m", contact_gap_m, ">= 0 m");
+  require(contact_range_m > contact_gap_m && std::isfinite(contact_range_m), "contact_range_m", contact_range_m,
+          "> contact_gap_m");
+}
+
+WallSlip::WallSlip(std::shared_ptr<const ChestWallSliding> geometry, const TetMesh& mesh, const WallSlipSettings& settings)
+    : geometry_(std::move(geometry)), mesh_(mesh), settings_(settings) {
+  settings_.validate();
+  if (!geometry_) throw std::invalid_argument("WallSlip: no chest-wall geometry given");
+  nodes_ = geometry_->nodes();
+  const Eigen::Index n = static_cast<Eigen::Index>(nodes_.size());
+  area_ = geometry_->nodeAreas().head(n);
+  const Eigen::VectorXd w = geometry_->weights().head(n);
+  h0_.resize(n);
+  tether_.resize(n);
+  stick_.resize(n, 3);
+  slipping_.assign(static_cast<size_t>(n), 0);
+  slip_dir_ = Points::Zero(n, 3);
+  on_wall_.assign(static_cast<size_t>(mesh.numNodes()), 0);
+  const ChestWallSurface& wall = geometry_->surface();
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const int v = nodes_[static_cast<size_t>(i)];
+    on_wall_[static_cast<size_t>(v)] = 1;
+    h0_[i] = wall.signedDistance(mesh.nodes().row(v).transpose());
+    stick_.row(i) = mesh.nodes().row(v);
+    const double wi = std::clamp(w[i], settings_.min_weight, 1.0);
+    tether_[i] = settings_.tether_stiffness_pa_per_m / wi;
+  }
+  contact_area_m2_ = n > 0 ? area_.mean() : 0.0;
+  if (settings_.contact) {
+    for (int v : mesh.nodeSet(node_sets::kSkin)) {
+      if (on_wall_[static_cast<size_t>(v)]) continue;
+      if (std::abs(wall.signedDistance(mesh.nodes().row(v).transpose())) <= settings_.contact_range_m)
+        contact_candidates_.push_back(v);
+    }
+  }
+}
+
+WallSlip WallSlip::fromCase(const ModelCase& model_case, const TetMesh& mesh, const SlidingSettings& sliding,
+                            const WallSlipSettings& settings) {
+  SlidingSettings s = sliding;
+  s.rim_band = false;  // the rim band is a device of the explicit update; here the skin is free
+  return WallSlip(std::make_shared<ChestWallSliding>(ChestWallSliding::fromCase(model_case, mesh, s)), mesh, settings);
+}
+
+void WallSlip::attach(DynamicSimulator& sim) {
+  sim.clearConstraints();
+  beforeStep(sim);
+}
+
+void WallSlip::setStickPoints(const Points& stick_m, const std::vector<char>& slipping) {
+  if (stick_m.rows() != stick_.rows() || stick_m.cols() != 3 ||
+      (!slipping.empty() && static_cast<Eigen::Index>(slipping.size()) != stick_.rows()))
+    throw std::invalid_argument("WallSlip::setStickPoints: " + std::to_string(stick_m.rows()) + " stick points and " +
+                                std::to_string(slipping.size()) + " slip states for " + std::to_string(stick_.rows()) +
+                                " wall nodes");
+  stick_ = stick_m;
+  slipping_ = slipping.empty() ? std::vector<char>(static_cast<size_t>(stick_.rows()), 0) : slipping;
+  slip_dir_.setZero();
+}
+
+void WallSlip::beforeStep(DynamicSimulator& sim) {
+  const ChestWallSurface& wall = geometry_->surface();
+  const Eigen::VectorXd& u = sim.state().displacement_m;
+  const Eigen::VectorXd& vel = sim.state().velocity_mps;
+  const double dt = sim.params().time_step_s;
+  const double kn = settings_.normal_stiffness_pa_per_m, kf = settings_.friction_stiffness_pa_per_m;
+  std::vector<int> nodes = nodes_;
+  std::vector<Eigen::Matrix3d> k(nodes_.size());
+  Points anchors(static_cast<Eigen::Index>(nodes_.size()), 3);
+  Points forces = Points::Zero(static_cast<Eigen::Index>(nodes_.size()), 3);
+  for (size_t i = 0; i < nodes_.size(); ++i) {
+    const int v = nodes_[i];
+    const Eigen::Index r = static_cast<Eigen::Index>(i);
+    const Eigen::Vector3d x = mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v);
+    Eigen::Vector3d grad;
+    const double h = wall.signedDistance(x, grad);
+    const double gn = grad.norm();
+    const Eigen::Vector3d n = gn > 0 ? Eigen::Vector3d(grad / gn) : Eigen::Vector3d::UnitZ();
+    const Eigen::Matrix3d nn = n * n.transpose();
+    const Eigen::Matrix3d p = Eigen::Matrix3d::Identity() - nn;
+    const Eigen::Vector3d rest = mesh_.nodes().row(v).transpose();
+    Eigen::Vector3d m = rest;  // tangential anchor
+    double kt = tether_[r];
+    if (slipping_[i]) {
+      // Kinetic friction against the slip direction (in today's tangent plane), F_n from now.
+      Eigen::Vector3d dir = p * slip_dir_.row(r).transpose();
+      const double dn = dir.norm();
+      if (dn > 0) {
+        const double fn = area_[r] * kn * std::abs(h - h0_[r]);
+        const double limit = settings_.kinetic_friction * fn + settings_.static_threshold_pa * area_[r];
+        forces.row(r) = (-limit / dn * dir).transpose();
+      }
+    } else {
+      kt += kf;
+      m = (kf * stick_.row(r).transpose() + tether_[r] * rest) / kt;
+    }
+    k[i] = area_[r] * (kn * nn + kt * p);
+    anchors.row(r) = (nn * x - (h - h0_[r]) * n + p * m).transpose();
+  }
+  // Contact: skin nodes at (or, by their velocity, within a step of) the gap level.
+  last_contacts_ = 0;
+  for (int v : contact_candidates_) {
+    const Eigen::Vector3d x = mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v);
+    Eigen::Vector3d grad;
+    const double h = wall.signedDistance(x, grad);
+    const double h_ahead = wall.signedDistance(Eigen::Vector3d(x + dt * vel.segment<3>(3 * v)));
+    if (std::min(h, h_ahead) >= settings_.contact_gap_m) continue;
+    const double gn = grad.norm();
+    if (gn <= 0) continue;
+    const Eigen::Vector3d n = grad / gn;
+    nodes.push_back(v);
+    k.push_back(contact_area_m2_ * kn * n * n.transpose());
+    anchors.conservativeResize(anchors.rows() + 1, 3);
+    anchors.row(anchors.rows() - 1) = (x - (h - settings_.contact_gap_m) * n).transpose();
+    forces.conservativeResize(forces.rows() + 1, 3);
+    forces.row(forces.rows() - 1).setZero();
+    ++last_contacts_;
+  }
+  sim.setNodeSprings(nodes, k, anchors, forces);
+}
+
+WallSlipStats WallSlip::afterStep(const DynamicSimulator& sim) {
+  WallSlipStats st;
+  st.contacts = last_contacts_;
+  const ChestWallSurface& wall = geometry_->surface();
+  const Eigen::VectorXd& u = sim.state().displacement_m;
+  const double kn = settings_.normal_stiffness_pa_per_m, kf = settings_.friction_stiffness_pa_per_m;
+  for (size_t i = 0; i < nodes_.size(); ++i) {
+    const int v = nodes_[i];
+    const Eigen::Index r = static_cast<Eigen::Index>(i);
+    const Eigen::Vector3d x = mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v);
+    Eigen::Vector3d grad;
+    const double h = wall.signedDistance(x, grad);
+    const double gn = grad.norm();
+    const Eigen::Vector3d n = gn > 0 ? Eigen::Vector3d(grad / gn) : Eigen::Vector3d::UnitZ();
+    st.max_normal_error_m = std::max(st.max_normal_error_m, std::abs(h - h0_[r]));
+    const Eigen::Vector3d rest = mesh_.nodes().row(v).transpose();
+    st.max_slide_m = std::max(st.max_slide_m, ((x - rest) - n * n.dot(x - rest)).norm());
+    const Eigen::Matrix3d p = Eigen::Matrix3d::Identity() - n * n.transpose();
+    if (slipping_[i]) {
+      // Slipping: on while it keeps moving the same way, else it sticks where it is.
+      const Eigen::Vector3d vt = p * sim.state().velocity_mps.segment<3>(3 * v);
+      const double speed = vt.norm();
+      if (speed > settings_.stick_speed_mps && vt.dot(slip_dir_.row(r).transpose()) > 0) {
+        slip_dir_.row(r) = (vt / speed).transpose();
+        ++st.slipping;
+        continue;
+      }
+      slipping_[i] = 0;
+      const WallProjection pr = wall.project(x, h0_[r]);
+      stick_.row(r) = (pr.converged ? pr.point_m : x).transpose();
+      continue;
+    }
+    // Sticking: the stick spring's force against the static limit.
+    const Eigen::Vector3d t = p * (x - stick_.row(r).transpose());
+    const double ft = area_[r] * kf * t.norm();
+    const double fn = area_[r] * kn * std::abs(h - h0_[r]);
+    const double limit_static = settings_.static_friction * fn + settings_.static_threshold_pa * area_[r];
+    if (ft <= limit_static || ft <= 0) continue;
+    slipping_[i] = 1;
+    slip_dir_.row(r) = (t / t.norm()).transpose();
+    ++st.slipping;
+  }
+  return st;
+}
+
+Points WallSlip::slidingVectors(const DynamicSimulator& sim) const {
+  Points out = Points::Zero(mesh_.numNodes(), 3);
+  const ChestWallSurface& wall = geometry_->surface();
+  const Eigen::VectorXd& u = sim.state().displacement_m;
+  for (int v : nodes_) {
+    const Eigen::Vector3d rest = mesh_.nodes().row(v).transpose();
+    const Eigen::Vector3d n = wall.normal(rest);
+    const Eigen::Vector3d d = u.segment<3>(3 * v);
+    out.row(v) = (d - n * n.dot(d)).transpose();
+  }
+  return out;
+}
+
+}  // namespace breast_sim::core
