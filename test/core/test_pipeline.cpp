@@ -210,6 +210,14 @@ TEST(PipelineSettings, TheDocumentedDefaultsOfTheCaseFileAreTheCodeDefaults) {
   EXPECT_DOUBLE_EQ(a.gaussian_amplitude, b.gaussian_amplitude);
   EXPECT_DOUBLE_EQ(a.gaussian_sigma_m, b.gaussian_sigma_m);
   EXPECT_DOUBLE_EQ(a.gaussian_sigma_fraction, b.gaussian_sigma_fraction);
+  EXPECT_EQ(file.sliding_method, code.sliding_method);
+  const WallSlipSettings &w = file.wall_slip, &v = code.wall_slip;
+  EXPECT_DOUBLE_EQ(w.normal_stiffness_pa_per_m, v.normal_stiffness_pa_per_m);
+  EXPECT_DOUBLE_EQ(w.friction_stiffness_pa_per_m, v.friction_stiffness_pa_per_m);
+  EXPECT_DOUBLE_EQ(w.tether_stiffness_pa_per_m, v.tether_stiffness_pa_per_m);
+  EXPECT_DOUBLE_EQ(w.stick_speed_mps, v.stick_speed_mps);
+  EXPECT_EQ(w.contact, v.contact);
+  EXPECT_DOUBLE_EQ(w.contact_gap_m, v.contact_gap_m);
   const MorphingStageSettings &m = file.morphing, &n = code.morphing;
   EXPECT_EQ(m.enabled, n.enabled);
   EXPECT_EQ(m.target, n.target);

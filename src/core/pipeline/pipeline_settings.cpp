@@ -30,6 +30,13 @@ void PipelineSettings::validate() const {
   simulation.validate();
   stiffening.validate();
   sliding.validate();
+  {
+    WallSlipSettings w = wall_slip;  // with the shared friction of `sliding`
+    w.static_friction = sliding.static_friction;
+    w.kinetic_friction = sliding.kinetic_friction;
+    w.static_threshold_pa = sliding.static_threshold_pa;
+    w.validate();
+  }
   morphing.validate();
   if (simulation.sliding && (!simulation.stiffening || simulation.fixed_node_set.empty()))
     throw std::invalid_argument(
@@ -49,7 +56,9 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     checkKeys(m,
               {"normal_sigma_mm", "mobility_mm_per_pa_s", "static_friction", "kinetic_friction", "static_threshold_pa",
                "inertia", "max_step_mm", "max_slide_mm", "thickness_limit", "gaussian_limit", "gaussian_amplitude",
-               "gaussian_sigma_mm", "gaussian_sigma_fraction"},
+               "gaussian_sigma_mm", "gaussian_sigma_fraction", "method", "normal_stiffness_pa_per_mm",
+               "friction_stiffness_pa_per_mm", "tether_stiffness_pa_per_mm", "stick_speed_mm_per_s", "contact",
+               "contact_gap_mm"},
               f, "sliding");
     auto key = [](const char* k) { return std::string("sliding.") + k; };
     SlidingSettings& d = s.sliding;
@@ -66,6 +75,19 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     if (m["gaussian_amplitude"]) d.gaussian_amplitude = numberIn(m["gaussian_amplitude"], f, key("gaussian_amplitude"), 0, 100, true, false);
     if (m["gaussian_sigma_mm"]) d.gaussian_sigma_m = 1e-3 * numberIn(m["gaussian_sigma_mm"], f, key("gaussian_sigma_mm"), 0, 1000, false, false, "mm");
     if (m["gaussian_sigma_fraction"]) d.gaussian_sigma_fraction = numberIn(m["gaussian_sigma_fraction"], f, key("gaussian_sigma_fraction"), 0, 2, true, false);
+    if (m["method"]) {
+      const std::string method = text(m["method"], f, key("method"));
+      if (method == "implicit") s.sliding_method = PipelineSettings::SlidingMethod::kImplicit;
+      else if (method == "explicit") s.sliding_method = PipelineSettings::SlidingMethod::kExplicit;
+      else throw std::runtime_error(f + ": sliding.method is '" + method + "'; expected implicit or explicit");
+    }
+    WallSlipSettings& w = s.wall_slip;
+    if (m["normal_stiffness_pa_per_mm"]) w.normal_stiffness_pa_per_m = 1e3 * numberIn(m["normal_stiffness_pa_per_mm"], f, key("normal_stiffness_pa_per_mm"), 0, inf, true, false, "Pa/mm");
+    if (m["friction_stiffness_pa_per_mm"]) w.friction_stiffness_pa_per_m = 1e3 * numberIn(m["friction_stiffness_pa_per_mm"], f, key("friction_stiffness_pa_per_mm"), 0, inf, true, false, "Pa/mm");
+    if (m["tether_stiffness_pa_per_mm"]) w.tether_stiffness_pa_per_m = 1e3 * numberIn(m["tether_stiffness_pa_per_mm"], f, key("tether_stiffness_pa_per_mm"), 0, inf, false, false, "Pa/mm");
+    if (m["stick_speed_mm_per_s"]) w.stick_speed_mps = 1e-3 * numberIn(m["stick_speed_mm_per_s"], f, key("stick_speed_mm_per_s"), 0, inf, false, false, "mm/s");
+    if (m["contact"]) w.contact = boolean(m["contact"], f, key("contact"));
+    if (m["contact_gap_mm"]) w.contact_gap_m = 1e-3 * numberIn(m["contact_gap_mm"], f, key("contact_gap_mm"), 0, 10, false, false, "mm");
   }
   if (root.IsMap() && root["morphing"] && !root["morphing"].IsNull()) {
     const YAML::Node m = root["morphing"];

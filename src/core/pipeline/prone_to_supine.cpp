@@ -64,8 +64,12 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
   if (!settings_.simulation.stiffening) sp.update_moduli = false;  // co-rotated with E0 throughout
   stiff_ = std::make_unique<StiffeningSimulation>(*build_.simulator, model_.mesh, sp);
   stiff_->setGravity(settings_.simulation.dynamics.gravity_mps2);
-  if (settings_.simulation.sliding)
-    sliding_ = std::make_unique<ChestWallSliding>(ChestWallSliding::fromCase(case_, model_.mesh, settings_.sliding));
+  if (settings_.simulation.sliding) {
+    if (settings_.sliding_method == PipelineSettings::SlidingMethod::kImplicit)
+      slip_ = std::make_unique<WallSlip>(WallSlip::fromCase(case_, model_.mesh, settings_.sliding, wallSlipSettings()));
+    else
+      sliding_ = std::make_unique<ChestWallSliding>(ChestWallSliding::fromCase(case_, model_.mesh, settings_.sliding));
+  }
   const MorphingStageSettings& ms = settings_.morphing;
   if (ms.enabled && !ms.target.empty() && !(ms.target == "auto" && !case_.phantom)) {
     if (ms.target == "phantom" || ms.target == "auto") {
@@ -128,7 +132,38 @@ void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
   if (morphing_forces_) morphing_forces_->setField(field_);
 }
 
+WallSlipSettings ProneToSupinePipeline::wallSlipSettings() const {
+  WallSlipSettings w = settings_.wall_slip;
+  w.static_friction = settings_.sliding.static_friction;
+  w.kinetic_friction = settings_.sliding.kinetic_friction;
+  w.static_threshold_pa = settings_.sliding.static_threshold_pa;
+  return w;
+}
+
+StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* moving) {
+  if (slip_ && sliding_attached_) {
+    slip_->beforeStep(simulator());
+    const StiffeningStepResult r = stiff_->step();
+    if (r.advanced) {
+      const WallSlipStats ws = slip_->afterStep(simulator());
+      sliding_report_.max_slide_m = std::max(sliding_report_.max_slide_m, ws.max_slide_m);
+    }
+    if (moving) *moving = false;  // the wall moves with the tissue: the tissue's increment says it
+    return r;
+  }
+  const StiffeningStepResult r = stiff_->step();
+  const bool m = slideAfter(r, stalls);
+  if (moving) *moving = m;
+  return r;
+}
+
 void ProneToSupinePipeline::attachSliding() {
+  if (slip_) {
+    slip_->attach(simulator());
+    sliding_attached_ = true;
+    stiff_->restartAlphaSearch();
+    return;
+  }
   if (!sliding_) return;
   sliding_->attach(simulator());
   sliding_attached_ = true;
@@ -191,7 +226,7 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
   // Sliding on the chest wall after the fixed-wall settling: the wall nodes become moving
   // constraints, updated after every accepted step at the dynamics time step (the explicit
   // constraint update is tuned for it), until the wall stops moving and the tissue has settled.
-  if (sliding_ && rep.converged) {
+  if (hasSliding() && rep.converged) {
     const auto ts = std::chrono::steady_clock::now();
     StageReport sr;
     sr.ran = true;
@@ -208,8 +243,8 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
         break;
       }
       ++sl_calls;
-      const StiffeningStepResult r = stiff_->step();
-      const bool moving = slideAfter(r, &stalls);
+      bool moving = false;
+      const StiffeningStepResult r = stepWithSliding(&stalls, &moving);
       if (!r.advanced) {
         if (stalls >= 3 || ++stuck_calls >= kMaxStuckCalls) {  // no α and no take-back lets it advance
           sr.stuck = true;
@@ -272,9 +307,8 @@ IterationReport ProneToSupinePipeline::iterate() {
   const bool met = d.mean_m <= settings_.morphing.tolerance_mean_m && d.p95_m <= settings_.morphing.tolerance_p95_m;
   stiff_->holdAlpha(met);
   it.alpha_held = met;
-  const StiffeningStepResult r = stiff_->step();
   int stalls = 0;
-  slideAfter(r, &stalls);
+  const StiffeningStepResult r = stepWithSliding(&stalls, nullptr);
   last_advanced_ = r.advanced;
   it.advanced = r.advanced;
   it.reversals = r.reversals;
@@ -292,7 +326,7 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   rep.ran = true;
   stage_ = PipelineStage::kMorphing;
   setTimeStep(ms.time_step_s);
-  if (sliding_ && !sliding_attached_) attachSliding();  // e.g. the gravity stage was skipped
+  if (hasSliding() && !sliding_attached_) attachSliding();  // e.g. the gravity stage was skipped
   const RunStats before = stiff_->stats();
   long calls = 0;
   int quiet = 0, stuck = 0;
@@ -349,6 +383,7 @@ Points ProneToSupinePipeline::positions() const { return model_.mesh.nodes() + s
 Points ProneToSupinePipeline::lesionPositions() const { return model_.lesion_embedding.positions(positions()); }
 
 Points ProneToSupinePipeline::slidingVectors() const {
+  if (slip_) return slip_->slidingVectors(simulator());
   return sliding_ ? sliding_->slidingVectors() : Points(Points::Zero(model_.mesh.numNodes(), 3));
 }
 
@@ -381,6 +416,7 @@ PipelineState ProneToSupinePipeline::state() const {
   s.modulus_factors = modulusFactors();
   s.alpha = stiff_->controller().state();
   if (sliding_) s.sliding_targets_m = sliding_->targets();
+  if (slip_ && sliding_attached_) s.sliding_targets_m = slip_->stickPoints();  // positions, not displacements
   if (morphing_forces_) s.morphing_forces_n = morphing_forces_->accumulatedForces();
   s.stage = stage_;
   return s;
@@ -393,15 +429,20 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
     throw std::invalid_argument("pipeline state of another model: " + std::to_string(s.simulation.displacement_m.size() / 3) +
                                 " nodes and " + std::to_string(s.modulus_factors.size()) + " elements, this model has " +
                                 std::to_string(model_.mesh.numNodes()) + " and " + std::to_string(model_.mesh.numTets()));
-  if (s.sliding_targets_m.rows() > 0 &&
-      (!sliding_ || s.sliding_targets_m.rows() != static_cast<Eigen::Index>(sliding_->nodes().size())))
+  const size_t sliding_nodes = slip_ ? slip_->nodes().size() : sliding_ ? sliding_->nodes().size() : 0;
+  if (s.sliding_targets_m.rows() > 0 && (!hasSliding() || s.sliding_targets_m.rows() != static_cast<Eigen::Index>(sliding_nodes)))
     throw std::invalid_argument("pipeline state has sliding targets for " + std::to_string(s.sliding_targets_m.rows()) +
-                                " nodes, but sliding is " + (sliding_ ? "on for " + std::to_string(sliding_->nodes().size()) + " nodes" : "off"));
+                                " nodes, but sliding is " + (hasSliding() ? "on for " + std::to_string(sliding_nodes) + " nodes" : "off"));
   if (s.morphing_forces_n.rows() > 0 && !field_)
     throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
   simulator().restore(s.simulation);
   simulator().elements().setModulusFactors(s.modulus_factors);
   stiff_->controller().setState(s.alpha);
+  if (slip_ && s.sliding_targets_m.rows() > 0) {
+    slip_->setStickPoints(s.sliding_targets_m);
+    slip_->attach(simulator());
+    sliding_attached_ = true;
+  }
   if (sliding_ && s.sliding_targets_m.rows() > 0) {
     attachSliding();
     sliding_->setTargets(simulator(), s.sliding_targets_m);

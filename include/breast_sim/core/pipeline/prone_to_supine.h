@@ -37,6 +37,7 @@
 #include "breast_sim/core/morphing/surface_morphing.h"
 #include "breast_sim/core/morphing/target_surface.h"
 #include "breast_sim/core/sliding/chest_wall_sliding.h"
+#include "breast_sim/core/sliding/wall_slip.h"
 
 namespace breast_sim::core {
 
@@ -64,7 +65,13 @@ struct MorphingStageSettings {
 struct PipelineSettings {
   SimulationSettings simulation;   ///< `simulation:`: material, solver, gravity stage, stiffening, sliding on/off
   StiffeningParams stiffening;     ///< α control (defaults: the robust preset of the stability map)
-  SlidingSettings sliding;         ///< `sliding:`
+  SlidingSettings sliding;         ///< `sliding:` (node set, limiting factors, friction; the explicit update)
+  /// How the wall nodes slide: implicit (wall_slip.h: springs solved with the tissue; default) or
+  /// explicit (chest_wall_sliding.h: moving constraints updated after each step, seed 2.4).
+  enum class SlidingMethod { kImplicit, kExplicit } sliding_method = SlidingMethod::kImplicit;
+  /// The implicit method's springs (`sliding:`); its friction coefficients and threshold are taken
+  /// from `sliding` (static_friction, kinetic_friction, static_threshold_pa).
+  WallSlipSettings wall_slip;
   MorphingStageSettings morphing;  ///< `morphing:`
   void validate() const;
 };
@@ -138,7 +145,9 @@ struct PipelineState {
   SimulationState simulation;
   Eigen::VectorXd modulus_factors;
   AlphaController::State alpha;
-  Points sliding_targets_m;     ///< #sliding nodes × 3 (empty when sliding is not attached)
+  /// #sliding nodes × 3 (empty when sliding is not attached): the explicit method's constraint
+  /// targets (displacements [m]), the implicit method's stick points (positions [m]).
+  Points sliding_targets_m;
   Points morphing_forces_n;     ///< accumulated per pulled vertex (empty without morphing)
   PipelineStage stage = PipelineStage::kIdle;
 };
@@ -206,7 +215,10 @@ class ProneToSupinePipeline {
   DynamicSimulator& simulator() { return *build_.simulator; }
   const DynamicSimulator& simulator() const { return *build_.simulator; }
   StiffeningSimulation& stiffening() { return *stiff_; }
-  const ChestWallSliding* sliding() const { return sliding_.get(); }
+  /// The chest-wall sliding geometry and limiting weights when sliding is on (for the implicit
+  /// method: its geometry, whose targets are unused), else null.
+  const ChestWallSliding* sliding() const { return slip_ ? &slip_->geometry() : sliding_.get(); }
+  const WallSlip* wallSlip() const { return slip_.get(); }  ///< the implicit sliding, or null
   const SurfaceMorphing* morphing() const { return morphing_forces_.get(); }
   const PipelineSettings& settings() const { return settings_; }
   const SimulationModel& model() const { return model_; }
@@ -217,6 +229,12 @@ class ProneToSupinePipeline {
   /// Reversal counts since `before`, the final α and the wall time of a stage.
   void closeReport(StageReport& r, const RunStats& before, double seconds) const;
   bool slideAfter(const StiffeningStepResult& r, int* stalls);
+  // One stiffening call with the sliding around it: the implicit springs set from the current
+  // state before, the explicit constraint update or the friction update after. *moving: the wall
+  // still moves (explicit: by more than the increment tolerance).
+  StiffeningStepResult stepWithSliding(int* stalls, bool* moving);
+  bool hasSliding() const { return sliding_ || slip_; }
+  WallSlipSettings wallSlipSettings() const;
   void setTimeStep(double dt_s);
   double increment(Eigen::VectorXd& previous) const;
 
@@ -226,6 +244,7 @@ class ProneToSupinePipeline {
   SimulatorBuild build_;
   std::unique_ptr<StiffeningSimulation> stiff_;
   std::unique_ptr<ChestWallSliding> sliding_;
+  std::unique_ptr<WallSlip> slip_;
   TargetSurface target_;
   std::shared_ptr<SurfaceVectorField> field_;  // rebuilt in place for a new target
   std::unique_ptr<SurfaceMorphing> morphing_forces_;
