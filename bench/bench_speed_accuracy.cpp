@@ -90,7 +90,9 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
                                 "': formulation must be linear, corotated, corotated+stiffening, corotated-det or "
                                 "corotated-det+stiffening");
   // "-det": the fixed co-rotated J − 1 volume term (docs/corotated) instead of the seed's trace term.
-  if (form.rfind("corotated-det", 0) == 0) s.volume_term = CorotatedTetFem::VolumeTerm::kDeterminant;
+  // The method, not the case file, decides the volume term.
+  s.volume_term = form.rfind("corotated-det", 0) == 0 ? CorotatedTetFem::VolumeTerm::kDeterminant
+                                                      : CorotatedTetFem::VolumeTerm::kTrace;
   const bool stiffening = form.size() > 11 && form.substr(form.size() - 11) == "+stiffening";
   s.solver.kind = SolverSettings::kindFromName(solver);
   s.dynamics.gravity_mps2 = g;

@@ -416,7 +416,10 @@ PipelineState ProneToSupinePipeline::state() const {
   s.modulus_factors = modulusFactors();
   s.alpha = stiff_->controller().state();
   if (sliding_) s.sliding_targets_m = sliding_->targets();
-  if (slip_ && sliding_attached_) s.sliding_targets_m = slip_->stickPoints();  // positions, not displacements
+  if (slip_ && sliding_attached_) {
+    s.sliding_targets_m = slip_->stickPoints();  // positions, not displacements
+    s.sliding_slip_directions = slip_->slipDirections();
+  }
   if (morphing_forces_) s.morphing_forces_n = morphing_forces_->accumulatedForces();
   s.stage = stage_;
   return s;
@@ -439,7 +442,7 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
   simulator().elements().setModulusFactors(s.modulus_factors);
   stiff_->controller().setState(s.alpha);
   if (slip_ && s.sliding_targets_m.rows() > 0) {
-    slip_->setStickPoints(s.sliding_targets_m);
+    slip_->setStickPoints(s.sliding_targets_m, s.sliding_slip_directions);
     slip_->attach(simulator());
     sliding_attached_ = true;
   }
@@ -502,6 +505,9 @@ void ProneToSupinePipeline::saveState(const std::string& path) const {
   const Eigen::VectorXd st = flatten(s.sliding_targets_m), mf = flatten(s.morphing_forces_n);
   writeVector(out, st.data(), st.size());
   writeVector(out, mf.data(), mf.size());
+  // Appended after the first format (a file without it loads with every wall node sticking).
+  const Eigen::VectorXd sd = flatten(s.sliding_slip_directions);
+  writeVector(out, sd.data(), sd.size());
   if (!out) throw std::runtime_error(path + ": writing the state file failed (disk full?)");
 }
 
@@ -534,6 +540,7 @@ void ProneToSupinePipeline::loadState(const std::string& path) {
   s.modulus_factors = readVector(in, path);
   s.sliding_targets_m = toPoints(readVector(in, path));
   s.morphing_forces_n = toPoints(readVector(in, path));
+  if (in.peek() != std::char_traits<char>::eof()) s.sliding_slip_directions = toPoints(readVector(in, path));
   try {
     restore(s);
   } catch (const std::invalid_argument& e) {

@@ -81,15 +81,26 @@ void WallSlip::attach(DynamicSimulator& sim) {
   beforeStep(sim);
 }
 
-void WallSlip::setStickPoints(const Points& stick_m, const std::vector<char>& slipping) {
+Points WallSlip::slipDirections() const {
+  Points d = Points::Zero(slip_dir_.rows(), 3);
+  for (Eigen::Index i = 0; i < d.rows(); ++i)
+    if (slipping_[static_cast<size_t>(i)]) d.row(i) = slip_dir_.row(i);
+  return d;
+}
+
+void WallSlip::setStickPoints(const Points& stick_m, const Points& slip_directions) {
   if (stick_m.rows() != stick_.rows() || stick_m.cols() != 3 ||
-      (!slipping.empty() && static_cast<Eigen::Index>(slipping.size()) != stick_.rows()))
+      (slip_directions.size() > 0 && (slip_directions.rows() != stick_.rows() || slip_directions.cols() != 3)))
     throw std::invalid_argument("WallSlip::setStickPoints: " + std::to_string(stick_m.rows()) + " stick points and " +
-                                std::to_string(slipping.size()) + " slip states for " + std::to_string(stick_.rows()) +
-                                " wall nodes");
+                                std::to_string(slip_directions.rows()) + " slip directions for " +
+                                std::to_string(stick_.rows()) + " wall nodes");
   stick_ = stick_m;
-  slipping_ = slipping.empty() ? std::vector<char>(static_cast<size_t>(stick_.rows()), 0) : slipping;
   slip_dir_.setZero();
+  for (Eigen::Index i = 0; i < stick_.rows(); ++i) {
+    const bool slipping = slip_directions.size() > 0 && slip_directions.row(i).squaredNorm() > 0;
+    slipping_[static_cast<size_t>(i)] = slipping ? 1 : 0;
+    if (slipping) slip_dir_.row(i) = slip_directions.row(i);
+  }
 }
 
 void WallSlip::beforeStep(DynamicSimulator& sim) {

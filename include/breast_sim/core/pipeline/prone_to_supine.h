@@ -148,6 +148,8 @@ struct PipelineState {
   /// #sliding nodes × 3 (empty when sliding is not attached): the explicit method's constraint
   /// targets (displacements [m]), the implicit method's stick points (positions [m]).
   Points sliding_targets_m;
+  /// Implicit method: slip direction per wall node (unit; a zero row while it sticks); else empty.
+  Points sliding_slip_directions;
   Points morphing_forces_n;     ///< accumulated per pulled vertex (empty without morphing)
   PipelineStage stage = PipelineStage::kIdle;
 };
