@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <stdexcept>
 #include <string>
 
@@ -113,6 +114,7 @@ void WallSlip::beforeStep(DynamicSimulator& sim) {
   std::vector<Eigen::Matrix3d> k(nodes_.size());
   Points anchors(static_cast<Eigen::Index>(nodes_.size()), 3);
   Points forces = Points::Zero(static_cast<Eigen::Index>(nodes_.size()), 3);
+#pragma omp parallel for schedule(static)
   for (size_t i = 0; i < nodes_.size(); ++i) {
     const int v = nodes_[i];
     const Eigen::Index r = static_cast<Eigen::Index>(i);
@@ -144,12 +146,25 @@ void WallSlip::beforeStep(DynamicSimulator& sim) {
   }
   // Contact: skin nodes at (or, by their velocity, within a step of) the gap level.
   last_contacts_ = 0;
-  for (int v : contact_candidates_) {
+  const int num_candidates = static_cast<int>(contact_candidates_.size());
+  std::vector<double> contact_h(contact_candidates_.size());
+  Points contact_grad(num_candidates, 3);
+#pragma omp parallel for schedule(static)
+  for (int q = 0; q < num_candidates; ++q) {
+    const int v = contact_candidates_[static_cast<size_t>(q)];
     const Eigen::Vector3d x = mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v);
     Eigen::Vector3d grad;
     const double h = wall.signedDistance(x, grad);
     const double h_ahead = wall.signedDistance(Eigen::Vector3d(x + dt * vel.segment<3>(3 * v)));
-    if (std::min(h, h_ahead) >= settings_.contact_gap_m) continue;
+    contact_h[static_cast<size_t>(q)] = std::min(h, h_ahead) < settings_.contact_gap_m ? h : std::numeric_limits<double>::quiet_NaN();
+    contact_grad.row(q) = grad.transpose();
+  }
+  for (int q = 0; q < num_candidates; ++q) {
+    const double h = contact_h[static_cast<size_t>(q)];
+    if (std::isnan(h)) continue;
+    const int v = contact_candidates_[static_cast<size_t>(q)];
+    const Eigen::Vector3d x = mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v);
+    const Eigen::Vector3d grad = contact_grad.row(q).transpose();
     const double gn = grad.norm();
     if (gn <= 0) continue;
     const Eigen::Vector3d n = grad / gn;
@@ -170,6 +185,9 @@ WallSlipStats WallSlip::afterStep(const DynamicSimulator& sim) {
   const ChestWallSurface& wall = geometry_->surface();
   const Eigen::VectorXd& u = sim.state().displacement_m;
   const double kn = settings_.normal_stiffness_pa_per_m, kf = settings_.friction_stiffness_pa_per_m;
+  double max_normal_error = 0, max_slide = 0;
+  int slipping = 0;
+#pragma omp parallel for schedule(static) reduction(max : max_normal_error, max_slide) reduction(+ : slipping)
   for (size_t i = 0; i < nodes_.size(); ++i) {
     const int v = nodes_[i];
     const Eigen::Index r = static_cast<Eigen::Index>(i);
@@ -178,9 +196,9 @@ WallSlipStats WallSlip::afterStep(const DynamicSimulator& sim) {
     const double h = wall.signedDistance(x, grad);
     const double gn = grad.norm();
     const Eigen::Vector3d n = gn > 0 ? Eigen::Vector3d(grad / gn) : Eigen::Vector3d::UnitZ();
-    st.max_normal_error_m = std::max(st.max_normal_error_m, std::abs(h - h0_[r]));
+    max_normal_error = std::max(max_normal_error, std::abs(h - h0_[r]));
     const Eigen::Vector3d rest = mesh_.nodes().row(v).transpose();
-    st.max_slide_m = std::max(st.max_slide_m, ((x - rest) - n * n.dot(x - rest)).norm());
+    max_slide = std::max(max_slide, ((x - rest) - n * n.dot(x - rest)).norm());
     const Eigen::Matrix3d p = Eigen::Matrix3d::Identity() - n * n.transpose();
     if (slipping_[i]) {
       // Slipping: on while it keeps moving the same way, else it sticks where it is.
@@ -188,7 +206,7 @@ WallSlipStats WallSlip::afterStep(const DynamicSimulator& sim) {
       const double speed = vt.norm();
       if (speed > settings_.stick_speed_mps && vt.dot(slip_dir_.row(r).transpose()) > 0) {
         slip_dir_.row(r) = (vt / speed).transpose();
-        ++st.slipping;
+        ++slipping;
         continue;
       }
       slipping_[i] = 0;
@@ -204,8 +222,11 @@ WallSlipStats WallSlip::afterStep(const DynamicSimulator& sim) {
     if (ft <= limit_static || ft <= 0) continue;
     slipping_[i] = 1;
     slip_dir_.row(r) = (t / t.norm()).transpose();
-    ++st.slipping;
+    ++slipping;
   }
+  st.max_normal_error_m = max_normal_error;
+  st.max_slide_m = max_slide;
+  st.slipping = slipping;
   return st;
 }
 

@@ -71,7 +71,7 @@ struct WallSlipSettings {
   bool contact = true;               ///< unilateral skin–wall contact
   double contact_gap_m = 0.2e-3;     ///< a free skin node is held at least this far off the wall [m], ≥ 0
   /// Skin nodes farther from the wall than this at rest are never contact candidates [m], > gap.
-  double contact_range_m = 20e-3;
+  double contact_range_m = 10e-3;
 
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
