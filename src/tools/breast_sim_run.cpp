@@ -44,6 +44,8 @@ config/phantom_default.yaml). Writes to DIR:
   supine.vtu            the final supine shape (after morphing), same fields
   series.pvd, series/   the run as a ParaView time series (a frame every N steps)
   lesions.csv/.json     lesion positions, prone, after gravity and supine [mm]
+  sliding.csv           with sliding: each chest-wall node's rest position and sliding vector after gravity
+                        and at the end [mm] (scripts/plot_sliding.py draws them)
   metrics.json          steps, reversals, alpha, timings, surface distances, volume change, inverted elements
   cross_sections.png    axial / coronal / sagittal cuts: prone, after gravity, after morphing (target in red)
   model_summary.json    counts, timings, quality and volumes of the model
@@ -293,6 +295,7 @@ int main(int argc, char** argv) {
       lesion_rows.push_back(pipe->lesionPositions());
       const PipelineMetrics gravity_metrics = pipe->metrics();
       const Points x_gravity = pipe->positions();
+      const Points slide_gravity = pipe->slidingVectors();
       const bool morph = settings.morphing.enabled && pipe->hasTarget();
       if (morph) {
         last_stage = PipelineStage::kIdle;
@@ -302,6 +305,17 @@ int main(int argc, char** argv) {
       }
       if (args.frame_interval > 0) writeFrame("final");
       writeDeformed(*pipe, m, (out / "supine.vtu").string());
+      if (pipe->sliding()) {
+        // The chest-wall nodes' sliding vectors (seed Figure 4 b, c), for plots (scripts/plot_sliding.py).
+        const Points slide_final = pipe->slidingVectors();
+        std::ofstream sc(out / "sliding.csv");
+        sc << "node,x_mm,y_mm,z_mm,gravity_dx_mm,gravity_dy_mm,gravity_dz_mm,final_dx_mm,final_dy_mm,final_dz_mm\n";
+        for (int v : m.mesh.nodeSet(node_sets::kChestWall)) {
+          const Eigen::RowVector3d r = 1e3 * m.mesh.nodes().row(v), a = 1e3 * slide_gravity.row(v), b = 1e3 * slide_final.row(v);
+          sc << v << ',' << r.x() << ',' << r.y() << ',' << r.z() << ',' << a.x() << ',' << a.y() << ',' << a.z() << ','
+             << b.x() << ',' << b.y() << ',' << b.z() << '\n';
+        }
+      }
       {
         std::ofstream pvd(out / "series.pvd");
         pvd << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n  <Collection>\n";
