@@ -13,6 +13,19 @@ namespace breast_sim::core {
 
 namespace {
 
+/// A point, its signed distance h from the wall [m] and the unit wall normal there.
+struct WallPoint {
+  Eigen::Vector3d x, n;
+  double h;
+};
+
+WallPoint wallPoint(const ChestWallSurface& wall, const Eigen::Vector3d& x) {
+  Eigen::Vector3d grad;
+  const double h = wall.signedDistance(x, grad);
+  const double gn = grad.norm();
+  return {x, gn > 0 ? Eigen::Vector3d(grad / gn) : Eigen::Vector3d::UnitZ(), h};
+}
+
 void require(bool ok, const std::string& field, double value, const std::string& range) {
   if (!ok) throw std::invalid_argument("WallSlipSettings::" + field + " = " + std::to_string(value) + ": must be " + range);
 }
@@ -118,11 +131,9 @@ void WallSlip::beforeStep(DynamicSimulator& sim) {
   for (size_t i = 0; i < nodes_.size(); ++i) {
     const int v = nodes_[i];
     const Eigen::Index r = static_cast<Eigen::Index>(i);
-    const Eigen::Vector3d x = mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v);
-    Eigen::Vector3d grad;
-    const double h = wall.signedDistance(x, grad);
-    const double gn = grad.norm();
-    const Eigen::Vector3d n = gn > 0 ? Eigen::Vector3d(grad / gn) : Eigen::Vector3d::UnitZ();
+    const WallPoint w = wallPoint(wall, mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v));
+    const Eigen::Vector3d &x = w.x, &n = w.n;
+    const double h = w.h;
     const Eigen::Matrix3d nn = n * n.transpose();
     const Eigen::Matrix3d p = Eigen::Matrix3d::Identity() - nn;
     const Eigen::Vector3d rest = mesh_.nodes().row(v).transpose();
@@ -191,11 +202,9 @@ WallSlipStats WallSlip::afterStep(const DynamicSimulator& sim) {
   for (size_t i = 0; i < nodes_.size(); ++i) {
     const int v = nodes_[i];
     const Eigen::Index r = static_cast<Eigen::Index>(i);
-    const Eigen::Vector3d x = mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v);
-    Eigen::Vector3d grad;
-    const double h = wall.signedDistance(x, grad);
-    const double gn = grad.norm();
-    const Eigen::Vector3d n = gn > 0 ? Eigen::Vector3d(grad / gn) : Eigen::Vector3d::UnitZ();
+    const WallPoint w = wallPoint(wall, mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v));
+    const Eigen::Vector3d &x = w.x, &n = w.n;
+    const double h = w.h;
     max_normal_error = std::max(max_normal_error, std::abs(h - h0_[r]));
     const Eigen::Vector3d rest = mesh_.nodes().row(v).transpose();
     max_slide = std::max(max_slide, ((x - rest) - n * n.dot(x - rest)).norm());
