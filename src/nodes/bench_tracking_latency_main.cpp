@@ -3,13 +3,17 @@
 // a ROS master:
 //   bench_tracking_latency [--case FILE] [--target-elements N] [--points N] [--frames N]
 //                          [--field-voxels-mm 1,2,3] [--loop-voxels-mm 0,2] [--iterations K] [--no-icp]
-//                          [--json FILE]
+//                          [--pcl-reference] [--json FILE]
 // Prints (1) the distance-field rebuild time per voxel size for one decimated cloud and (2) per loop
 // voxel size (0 = the case's setting) the median and 95th percentile of every stage and of the whole
-// frame, and the rate reached (1 / mean frame time).
+// frame, the rate reached (1 / mean frame time) and on how many frames the ICP correction was applied.
+// --pcl-reference adds, per loop voxel size, the same frames with PCL's outlier removal, ICP and
+// kd-tree (TrackerOptions::pcl_reference, the slow reference) from the same precomputed state, so the
+// two are compared in the same run.
 #include <fstream>
 #include <iomanip>
 #include <iostream>
+#include <sstream>
 
 #include <nlohmann/json.hpp>
 #include <ros/package.h>
@@ -42,7 +46,7 @@ int main(int argc, char** argv) {
   ros::Time::init();
   std::string case_file, json_path;
   int target = 20000, points = 10000, frames = 60, iterations = 1;
-  bool icp = true;
+  bool icp = true, pcl_reference = false;
   std::vector<double> field_voxels = {1, 2, 3}, loop_voxels = {0};
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -55,10 +59,12 @@ int main(int argc, char** argv) {
     else if (a == "--field-voxels-mm") field_voxels = bench::parseList(next());
     else if (a == "--loop-voxels-mm") loop_voxels = bench::parseList(next());
     else if (a == "--no-icp") icp = false;
+    else if (a == "--pcl-reference") pcl_reference = true;
     else if (a == "--json") json_path = next();
     else {
       std::cerr << "usage: bench_tracking_latency [--case FILE] [--target-elements N] [--points N] [--frames N]"
-                   " [--field-voxels-mm 1,2,3] [--loop-voxels-mm 0,2] [--iterations K] [--no-icp] [--json FILE]\n";
+                   " [--field-voxels-mm 1,2,3] [--loop-voxels-mm 0,2] [--iterations K] [--no-icp]"
+                   " [--pcl-reference] [--json FILE]\n";
       return a == "--help" ? 0 : 2;
     }
   }
@@ -124,8 +130,12 @@ int main(int argc, char** argv) {
     // (2) Whole frames.
     std::cout << "\n(2) frames: " << points << "-point cloud in -> mesh + lesions serialized; " << iterations
               << " iteration(s) per frame, ICP " << (icp ? "on" : "off") << ", " << frames << " frames (medians, p95) [ms]\n";
-    std::cout << "  voxel[mm]  convert  filter     icp   field iterate  publish |   total    p95 |  rate[Hz]  surf.mean[mm]\n";
-    for (double v : loop_voxels) {
+    std::cout << "  voxel[mm]  convert  filter     icp   field iterate  publish |   total    p95 |  rate[Hz]  surf.mean[mm]"
+                 "  ICP applied  search\n";
+    core::Points grid_final;  // final positions of the grid run, compared with the reference run
+    for (double v : loop_voxels) for (const bool reference : {false, true}) {
+      if (reference && !pcl_reference) continue;
+      to.pcl_reference = reference;
       core::PipelineSettings s = settings;
       if (v > 0) s.morphing.field.voxel_size_m = 1e-3 * v;
       core::ProneToSupinePipeline p(c, model, s);
@@ -134,6 +144,7 @@ int main(int argc, char** argv) {
       ros_interface::TrackerSimulation frame_sim(c, so);
       std::vector<double> conv, filt, icps, field, iter, pub, total;
       double last_mean = -1;
+      int icp_applied = 0;
       for (int k = 0; k < frames; ++k) {
         const double t = k / 30.0;
         const sensor_msgs::PointCloud2 msg =
@@ -161,6 +172,17 @@ int main(int argc, char** argv) {
         pub.push_back(pub_s);
         total.push_back(total_s);
         last_mean = r.last.surface_mean_m;
+        icp_applied += r.icp_applied ? 1 : 0;
+      }
+      std::string search = reference ? "PCL (reference)" : "grid";
+      double max_diff_mm = -1;
+      if (!reference) {
+        grid_final = p.positions();
+      } else if (grid_final.rows() == p.positions().rows()) {
+        max_diff_mm = 1e3 * (p.positions() - grid_final).rowwise().norm().maxCoeff();
+        std::ostringstream note;
+        note << ", final nodes " << max_diff_mm << " mm from the grid run's";
+        search += note.str();
       }
       (void)tracker_from_model0;
       const double rate = 1.0 / bench::mean(total);
@@ -169,13 +191,16 @@ int main(int argc, char** argv) {
                 << 1e3 * bench::median(filt) << std::setw(8) << 1e3 * bench::median(icps) << std::setw(8)
                 << 1e3 * bench::median(field) << std::setw(8) << 1e3 * bench::median(iter) << std::setw(9)
                 << 1e3 * bench::median(pub) << " |" << std::setw(8) << 1e3 * bench::median(total) << std::setw(7)
-                << 1e3 * p95(total) << " |" << std::setw(10) << rate << std::setw(15) << 1e3 * last_mean << "\n";
+                << 1e3 * p95(total) << " |" << std::setw(10) << rate << std::setw(15) << 1e3 * last_mean << std::setw(8)
+                << icp_applied << "/" << std::setw(3) << std::left << total.size() << std::right << "  " << search << "\n";
       out["frames"].push_back({{"voxel_mm", v > 0 ? v : 1e3 * settings.morphing.field.voxel_size_m},
                                {"convert_ms", 1e3 * bench::median(conv)}, {"filter_ms", 1e3 * bench::median(filt)},
                                {"icp_ms", 1e3 * bench::median(icps)}, {"field_ms", 1e3 * bench::median(field)},
                                {"iterate_ms", 1e3 * bench::median(iter)}, {"publish_ms", 1e3 * bench::median(pub)},
                                {"total_median_ms", 1e3 * bench::median(total)}, {"total_p95_ms", 1e3 * p95(total)},
-                               {"rate_hz", rate}, {"surface_mean_mm", 1e3 * last_mean}});
+                               {"rate_hz", rate}, {"surface_mean_mm", 1e3 * last_mean},
+                               {"icp_applied", icp_applied}, {"frames_timed", total.size()},
+                               {"search", reference ? "pcl" : "grid"}, {"max_diff_from_grid_mm", max_diff_mm}});
     }
   } catch (const std::exception& e) {
     std::cerr << "bench_tracking_latency: " << e.what() << "\n";

@@ -1,18 +1,25 @@
-// One tracker frame: PCL decimation, outlier removal and ICP pre-alignment, then the pipeline's
-// target and Figure-2 iterations (see surface_tracker.h).
+// One tracker frame: decimation (PCL voxel grid), outlier removal and ICP pre-alignment with PCL's
+// rules on a grid neighbour search, then the pipeline's target and Figure-2 iterations (see
+// surface_tracker.h). The PCL versions of outlier removal and ICP are kept as the slow reference.
 #include "breast_sim/ros_interface/surface_tracker.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <limits>
+#include <memory>
 
+#include <Eigen/Geometry>
 #include <pcl/filters/statistical_outlier_removal.h>
 #include <pcl/filters/voxel_grid.h>
 #include <pcl/kdtree/kdtree_flann.h>
 #include <pcl/point_cloud.h>
 #include <pcl/point_types.h>
 #include <pcl/registration/icp.h>
+#include <pcl/search/kdtree.h>
 
 #include "breast_sim/ros_interface/conversions.h"
+#include "breast_sim/ros_interface/point_grid.h"
 
 namespace breast_sim::ros_interface {
 
@@ -40,20 +47,139 @@ core::Points fromPcl(const pcl::PointCloud<pcl::PointXYZ>& c) {
   return p;
 }
 
+std::vector<Eigen::Vector3f> toFloat(const pcl::PointCloud<pcl::PointXYZ>& c) {
+  std::vector<Eigen::Vector3f> p(c.size());
+  for (size_t i = 0; i < c.size(); ++i) p[i] = Eigen::Vector3f(c[i].x, c[i].y, c[i].z);
+  return p;
+}
+
+std::vector<Eigen::Vector3f> toFloat(const core::Points& p) {
+  std::vector<Eigen::Vector3f> out(static_cast<size_t>(p.rows()));
+  for (Eigen::Index i = 0; i < p.rows(); ++i)
+    out[static_cast<size_t>(i)] = Eigen::Vector3f(static_cast<float>(p(i, 0)), static_cast<float>(p(i, 1)),
+                                                  static_cast<float>(p(i, 2)));
+  return out;
+}
+
+/// PCL's voxel grid of a cloud [m] (`leaf_m` > 0).
+pcl::PointCloud<pcl::PointXYZ>::Ptr voxelGrid(const pcl::PointCloud<pcl::PointXYZ>::Ptr& cloud, double leaf_m) {
+  pcl::VoxelGrid<pcl::PointXYZ> grid;
+  grid.setInputCloud(cloud);
+  const float leaf = static_cast<float>(leaf_m);
+  grid.setLeafSize(leaf, leaf, leaf);
+  pcl::PointCloud<pcl::PointXYZ>::Ptr out(new pcl::PointCloud<pcl::PointXYZ>);
+  grid.filter(*out);
+  return out;
+}
+
+/// Grid cell for k-neighbour queries on `p`: twice the median distance to the k-th neighbour of up to
+/// 16 evenly spaced sample points (brute force), so the 27 cells around a point nearly always hold its
+/// k neighbours (a smaller cell needs farther rings, a larger one examines more points; 2× measured
+/// fastest on the tracker's clouds).
+double neighbourCell(const std::vector<Eigen::Vector3f>& p, int k) {
+  const size_t n = p.size();
+  const size_t samples = std::min<size_t>(16, n);
+  std::vector<double> kth;
+  std::vector<float> d;
+  for (size_t s = 0; s < samples; ++s) {
+    const Eigen::Vector3f& q = p[s * n / samples];
+    if (!q.allFinite()) continue;
+    d.clear();
+    for (const auto& x : p)
+      if (x.allFinite()) d.push_back(squaredDistanceF(q, x));
+    if (d.size() <= static_cast<size_t>(k)) continue;
+    std::nth_element(d.begin(), d.begin() + k, d.end());
+    kth.push_back(std::sqrt(static_cast<double>(d[static_cast<size_t>(k)])));
+  }
+  double cell = 0;
+  if (!kth.empty()) {
+    std::nth_element(kth.begin(), kth.begin() + kth.size() / 2, kth.end());
+    cell = 2 * kth[kth.size() / 2];
+  }
+  return cell > 0 && std::isfinite(cell) ? cell : 1e-3;
+}
+
+/// PCL's statistical outlier rule (StatisticalOutlierRemoval::applyFilterIndices, PCL 1.13) with the
+/// same arithmetic: float squared distances, sorted, square roots summed in double, the mean distance
+/// rounded to float; mean and σ in double over the valid points; `p` has more than k + 1 points.
+std::vector<int> statisticalInliersF(const std::vector<Eigen::Vector3f>& p, int k, double stddev_mul) {
+  const size_t n = p.size();
+  std::vector<int> kept;
+  if (k < 1 || n <= static_cast<size_t>(k) + 1) {
+    kept.resize(n);
+    for (size_t i = 0; i < n; ++i) kept[i] = static_cast<int>(i);
+    return kept;
+  }
+  const PointGrid grid(p, neighbourCell(p, k));
+  // k + 1: each point is among its own neighbours (distance 0); the nearest one is skipped.
+  const size_t k1 = static_cast<size_t>(k) + 1;
+  std::vector<float> d2(n * k1);
+  std::vector<int> found(n);
+  grid.selfNearestK(k + 1, d2.data(), found.data());
+  std::vector<float> distances(n, 0.0f);
+  int valid = 0;
+  for (size_t i = 0; i < n; ++i) {
+    // Fewer than k + 1: a non-finite point (or fewer than k + 1 finite points); PCL: distance 0.
+    if (found[i] < k + 1) continue;
+    double sum = 0.0;
+    for (size_t j = 1; j < k1; ++j) sum += std::sqrt(static_cast<double>(d2[i * k1 + j]));
+    distances[i] = static_cast<float>(sum / k);
+    ++valid;
+  }
+  double sum = 0, sq_sum = 0;
+  for (const float d : distances) {
+    sum += d;
+    sq_sum += d * d;  // float product, as PCL
+  }
+  const double mean = sum / static_cast<double>(valid);
+  const double variance = (sq_sum - sum * sum / static_cast<double>(valid)) / (static_cast<double>(valid) - 1);
+  const double threshold = mean + stddev_mul * std::sqrt(variance);
+  kept.reserve(n);
+  for (size_t i = 0; i < n; ++i)
+    if (!(distances[i] > threshold)) kept.push_back(static_cast<int>(i));
+  return kept;
+}
+
 }  // namespace
+
+std::vector<int> statisticalInliers(const core::Points& cloud_m, int neighbours, double stddev_mul) {
+  return statisticalInliersF(toFloat(cloud_m), neighbours, stddev_mul);
+}
+
+std::vector<int> statisticalInliersPcl(const core::Points& cloud_m, int neighbours, double stddev_mul) {
+  auto cloud = toPcl(cloud_m);
+  pcl::Indices kept;
+  if (neighbours < 1 || cloud->size() <= static_cast<size_t>(neighbours) + 1) {
+    kept.resize(cloud->size());
+    for (size_t i = 0; i < kept.size(); ++i) kept[i] = static_cast<int>(i);
+  } else {
+    pcl::StatisticalOutlierRemoval<pcl::PointXYZ> sor;
+    sor.setInputCloud(cloud);
+    sor.setMeanK(neighbours);
+    sor.setStddevMulThresh(stddev_mul);
+    sor.filter(kept);
+  }
+  return std::vector<int>(kept.begin(), kept.end());
+}
 
 core::Points filterCloud(const core::Points& cloud_m, const CloudFilterOptions& options) {
   if (cloud_m.rows() == 0) return cloud_m;
   auto cloud = toPcl(cloud_m);
-  if (options.voxel_leaf_m > 0) {
-    pcl::VoxelGrid<pcl::PointXYZ> grid;
-    grid.setInputCloud(cloud);
-    const float leaf = static_cast<float>(options.voxel_leaf_m);
-    grid.setLeafSize(leaf, leaf, leaf);
-    pcl::PointCloud<pcl::PointXYZ>::Ptr out(new pcl::PointCloud<pcl::PointXYZ>);
-    grid.filter(*out);
-    cloud = out;
+  if (options.voxel_leaf_m > 0) cloud = voxelGrid(cloud, options.voxel_leaf_m);
+  if (options.remove_outliers && cloud->size() > static_cast<size_t>(options.outlier_neighbours) + 1) {
+    const std::vector<Eigen::Vector3f> p = toFloat(*cloud);
+    const std::vector<int> kept = statisticalInliersF(p, options.outlier_neighbours, options.outlier_stddev);
+    core::Points out(static_cast<Eigen::Index>(kept.size()), 3);
+    for (size_t i = 0; i < kept.size(); ++i) out.row(static_cast<Eigen::Index>(i)) = p[static_cast<size_t>(kept[i])].cast<double>();
+    return out;
   }
+  return fromPcl(*cloud);
+}
+
+core::Points filterCloudPcl(const core::Points& cloud_m, const CloudFilterOptions& options) {
+  if (cloud_m.rows() == 0) return cloud_m;
+  auto cloud = toPcl(cloud_m);
+  if (options.voxel_leaf_m > 0) cloud = voxelGrid(cloud, options.voxel_leaf_m);
   if (options.remove_outliers && cloud->size() > static_cast<size_t>(options.outlier_neighbours) + 1) {
     pcl::StatisticalOutlierRemoval<pcl::PointXYZ> sor;
     sor.setInputCloud(cloud);
@@ -66,26 +192,13 @@ core::Points filterCloud(const core::Points& cloud_m, const CloudFilterOptions& 
   return fromPcl(*cloud);
 }
 
-IcpResult rigidAlign(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
-                     const IcpOptions& options) {
+namespace {
+
+/// The acceptance rules of a finished ICP run: `t` maps the cloud onto the reference.
+IcpResult judge(bool converged, double fitness_m2, const Eigen::Isometry3d& t, const IcpOptions& options) {
   IcpResult r;
-  if (cloud_m.rows() < 10 || reference_m.rows() < 10) {
-    r.note = "too few points for ICP";
-    return r;
-  }
-  pcl::IterativeClosestPoint<pcl::PointXYZ, pcl::PointXYZ> icp;
-  icp.setInputSource(toPcl(cloud_m));
-  icp.setInputTarget(toPcl(reference_m));
-  icp.setMaximumIterations(options.max_iterations);
-  icp.setMaxCorrespondenceDistance(options.max_correspondence_m);
-  icp.setTransformationEpsilon(1e-10);
-  icp.setEuclideanFitnessEpsilon(1e-12);
-  pcl::PointCloud<pcl::PointXYZ> aligned;
-  icp.align(aligned, guess.matrix().cast<float>());
-  r.converged = icp.hasConverged();
-  const double fitness = icp.getFitnessScore(options.max_correspondence_m);  // mean squared distance [m²]
-  r.rms_m = std::sqrt(std::max(0.0, fitness));
-  Eigen::Isometry3d t(icp.getFinalTransformation().cast<double>());
+  r.converged = converged;
+  r.rms_m = std::sqrt(std::max(0.0, fitness_m2));
   const double translation = t.translation().norm();
   const double rotation = Eigen::AngleAxisd(t.linear()).angle() * 180.0 / M_PI;
   r.transform = t;
@@ -104,11 +217,115 @@ IcpResult rigidAlign(const core::Points& cloud_m, const core::Points& reference_
   return r;
 }
 
+/// PCL's search interface for ICP (a pcl::search::KdTree, which is what Registration accepts as the
+/// target's search method) answered by a PointGrid instead of FLANN. ICP asks only nearestKSearch with
+/// k = 1 (correspondences and fitness score); the squared distances are FLANN's, so PCL's ICP runs
+/// exactly as with its own tree (up to which of two exactly equidistant points is returned).
+class GridSearch : public pcl::search::KdTree<pcl::PointXYZ> {
+ public:
+  using Ptr = pcl::shared_ptr<GridSearch>;
+  /// `cell_m`: the grid cell [m], about the distance of the queries (the correspondence distance).
+  explicit GridSearch(double cell_m) : cell_(cell_m) {}
+
+  void setInputCloud(const PointCloudConstPtr& cloud, const IndicesConstPtr& indices = IndicesConstPtr()) override {
+    input_ = cloud;
+    indices_ = indices;
+    std::vector<Eigen::Vector3f> p;
+    map_.clear();
+    if (indices) {
+      for (const auto i : *indices) {
+        p.emplace_back((*cloud)[static_cast<size_t>(i)].x, (*cloud)[static_cast<size_t>(i)].y, (*cloud)[static_cast<size_t>(i)].z);
+        map_.push_back(static_cast<int>(i));
+      }
+    } else {
+      p = toFloat(*cloud);
+    }
+    grid_ = std::make_unique<PointGrid>(std::move(p), cell_);
+  }
+
+  int nearestKSearch(const pcl::PointXYZ& point, int k, pcl::Indices& k_indices,
+                     std::vector<float>& k_sqr_distances) const override {
+    return search(point, k, std::numeric_limits<double>::infinity(), k_indices, k_sqr_distances);
+  }
+
+  /// Points strictly closer than `radius` (FLANN's rule), nearest first, at most max_nn (0 = all).
+  int radiusSearch(const pcl::PointXYZ& point, double radius, pcl::Indices& k_indices,
+                   std::vector<float>& k_sqr_distances, unsigned int max_nn = 0) const override {
+    const int k = max_nn > 0 ? static_cast<int>(max_nn) : static_cast<int>(grid_ ? grid_->size() : 0);
+    const int n = search(point, k, std::nextafter(radius * radius, 0.0), k_indices, k_sqr_distances);
+    return n;
+  }
+
+ private:
+  int search(const pcl::PointXYZ& point, int k, double max_d2, pcl::Indices& k_indices,
+             std::vector<float>& k_sqr_distances) const {
+    if (!grid_ || k <= 0) {
+      k_indices.clear();
+      k_sqr_distances.clear();
+      return 0;
+    }
+    k = std::min(k, static_cast<int>(grid_->size()));
+    std::vector<int> index(static_cast<size_t>(k));
+    k_sqr_distances.resize(static_cast<size_t>(k));
+    const int n = grid_->nearestK(Eigen::Vector3f(point.x, point.y, point.z), k, index.data(), k_sqr_distances.data(), max_d2);
+    k_sqr_distances.resize(static_cast<size_t>(n));
+    k_indices.resize(static_cast<size_t>(n));
+    for (int i = 0; i < n; ++i) k_indices[static_cast<size_t>(i)] = map_.empty() ? index[static_cast<size_t>(i)] : map_[static_cast<size_t>(index[static_cast<size_t>(i)])];
+    return n;
+  }
+
+  double cell_;
+  std::unique_ptr<PointGrid> grid_;
+  std::vector<int> map_;  ///< grid index → cloud index when indices were given
+};
+
+/// PCL's ICP with the given target search (null: PCL's own kd-tree).
+IcpResult pclIcp(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
+                 const IcpOptions& options, bool grid_search) {
+  if (cloud_m.rows() < 10 || reference_m.rows() < 10) {
+    IcpResult r;
+    r.note = "too few points for ICP";
+    return r;
+  }
+  pcl::IterativeClosestPoint<pcl::PointXYZ, pcl::PointXYZ> icp;
+  icp.setInputSource(toPcl(cloud_m));
+  const auto target = toPcl(reference_m);
+  icp.setInputTarget(target);
+  if (grid_search) {
+    // Cell = the correspondence distance (PCL squares it and takes the root: |max_correspondence_m|).
+    const double radius = std::abs(options.max_correspondence_m);
+    GridSearch::Ptr search(new GridSearch(radius > 0 ? radius : 0.01));
+    search->setInputCloud(target);
+    icp.setSearchMethodTarget(search, true);  // built here, once
+  }
+  icp.setMaximumIterations(options.max_iterations);
+  icp.setMaxCorrespondenceDistance(options.max_correspondence_m);
+  icp.setTransformationEpsilon(1e-10);
+  icp.setEuclideanFitnessEpsilon(1e-12);
+  pcl::PointCloud<pcl::PointXYZ> aligned;
+  icp.align(aligned, guess.matrix().cast<float>());
+  const double fitness = icp.getFitnessScore(options.max_correspondence_m);  // mean squared distance [m²]
+  return judge(icp.hasConverged(), fitness, Eigen::Isometry3d(icp.getFinalTransformation().cast<double>()), options);
+}
+
+}  // namespace
+
+IcpResult rigidAlign(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
+                     const IcpOptions& options) {
+  return pclIcp(cloud_m, reference_m, guess, options, true);
+}
+
+IcpResult rigidAlignPcl(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
+                        const IcpOptions& options) {
+  return pclIcp(cloud_m, reference_m, guess, options, false);
+}
+
 TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const core::Points& cloud_m) {
   TrackResult res;
   res.points_in = static_cast<size_t>(cloud_m.rows());
   auto t0 = std::chrono::steady_clock::now();
-  core::Points cloud = filterCloud(cloud_m, options_.filter);
+  core::Points cloud =
+      options_.pcl_reference ? filterCloudPcl(cloud_m, options_.filter) : filterCloud(cloud_m, options_.filter);
   res.points_decimated = static_cast<size_t>(cloud.rows());
   res.filter_s = since(t0);
   if (cloud.rows() < options_.min_points) {
@@ -116,23 +333,24 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
                  std::to_string(options_.min_points);
     return res;
   }
+  // The model does not move before iterate(): one copy of its positions serves ICP and the unseen skin.
+  const core::Points x = pipeline.positions();
+  const std::vector<int>& skin = pipeline.model().mesh.nodeSet(core::node_sets::kSkin);
+  const auto align = options_.pcl_reference ? rigidAlignPcl : rigidAlign;
   if (options_.icp.enabled) {
     t0 = std::chrono::steady_clock::now();
-    const core::Points x = pipeline.positions();
-    const std::vector<int>& skin = pipeline.model().mesh.nodeSet(core::node_sets::kSkin);
     core::Points reference(static_cast<Eigen::Index>(skin.size()), 3);
     for (size_t i = 0; i < skin.size(); ++i) reference.row(static_cast<Eigen::Index>(i)) = x.row(skin[i]);
     // ICP needs far fewer points than the morphing: an even sub-sample.
-    core::Points sample = cloud;
-    if (options_.icp.max_points > 0 && cloud.rows() > options_.icp.max_points) {
-      const Eigen::Index stride = (cloud.rows() + options_.icp.max_points - 1) / options_.icp.max_points;
-      sample.resize((cloud.rows() + stride - 1) / stride, 3);
-      for (Eigen::Index i = 0; i < sample.rows(); ++i) sample.row(i) = cloud.row(i * stride);
-    }
-    IcpResult icp = rigidAlign(sample, reference, guess_, options_.icp);
+    Eigen::Index stride = 1;
+    if (options_.icp.max_points > 0 && cloud.rows() > options_.icp.max_points)
+      stride = (cloud.rows() + options_.icp.max_points - 1) / options_.icp.max_points;
+    core::Points sample((cloud.rows() + stride - 1) / stride, 3);
+    for (Eigen::Index i = 0; i < sample.rows(); ++i) sample.row(i) = cloud.row(i * stride);
+    IcpResult icp = align(sample, reference, guess_, options_.icp);
     if (!icp.applied && !guess_.matrix().isIdentity(0)) {
       // The previous correction may be what is wrong now: try once from identity.
-      IcpResult again = rigidAlign(sample, reference, Eigen::Isometry3d::Identity(), options_.icp);
+      IcpResult again = align(sample, reference, Eigen::Isometry3d::Identity(), options_.icp);
       if (again.applied) icp = again;
     }
     res.icp_rms_m = icp.rms_m;
@@ -152,18 +370,25 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
   t0 = std::chrono::steady_clock::now();
   core::TargetSurface target;
   if (options_.hold_unseen_skin_m > 0) {
-    // Skin vertices the scanner did not see keep their current positions as their target.
-    const core::Points x = pipeline.positions();
-    const std::vector<int>& skin = pipeline.model().mesh.nodeSet(core::node_sets::kSkin);
-    pcl::KdTreeFLANN<pcl::PointXYZ> tree;
-    tree.setInputCloud(toPcl(cloud));
-    std::vector<int> index(1);
-    std::vector<float> d2(1);
-    const double limit2 = options_.hold_unseen_skin_m * options_.hold_unseen_skin_m;
+    // Skin vertices the scanner did not see (no cloud point within hold_unseen_skin_m, float squared
+    // distances as PCL computes them) keep their current positions as their target.
     std::vector<int> held;
-    for (int n : skin) {
-      const pcl::PointXYZ p(static_cast<float>(x(n, 0)), static_cast<float>(x(n, 1)), static_cast<float>(x(n, 2)));
-      if (tree.nearestKSearch(p, 1, index, d2) < 1 || d2[0] > limit2) held.push_back(n);
+    if (options_.pcl_reference) {
+      pcl::KdTreeFLANN<pcl::PointXYZ> tree;
+      tree.setInputCloud(toPcl(cloud));
+      std::vector<int> index(1);
+      std::vector<float> d2(1);
+      const double limit2 = options_.hold_unseen_skin_m * options_.hold_unseen_skin_m;
+      for (int n : skin) {
+        const pcl::PointXYZ p(static_cast<float>(x(n, 0)), static_cast<float>(x(n, 1)), static_cast<float>(x(n, 2)));
+        if (tree.nearestKSearch(p, 1, index, d2) < 1 || d2[0] > limit2) held.push_back(n);
+      }
+    } else {
+      const PointGrid grid(cloud, options_.hold_unseen_skin_m);
+      for (int n : skin) {
+        const Eigen::Vector3f p(static_cast<float>(x(n, 0)), static_cast<float>(x(n, 1)), static_cast<float>(x(n, 2)));
+        if (!grid.anyWithin(p, options_.hold_unseen_skin_m)) held.push_back(n);
+      }
     }
     res.skin_held = static_cast<int>(held.size());
     res.skin_seen = static_cast<int>(skin.size() - held.size());

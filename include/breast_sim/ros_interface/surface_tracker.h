@@ -2,17 +2,24 @@
 /// @file surface_tracker.h
 /// One tracker frame, from a cloud in the model frame to an updated model, without ROS transport:
 ///   1. PCL voxel-grid decimation (the scanner delivers far more points than the skin has vertices),
-///   2. statistical outlier removal (drapes, instruments, stray returns),
-///   3. rigid pre-alignment with PCL ICP against the current model skin (small residual registration
-///      errors of the tracker; a large or poorly fitting correction is refused and the cloud used as
-///      it is),
+///   2. statistical outlier removal (drapes, instruments, stray returns), PCL's rule,
+///   3. rigid pre-alignment by point-to-point ICP (PCL's algorithm) against the current model skin
+///      (small residual registration errors of the tracker; a large or poorly fitting correction is
+///      refused and the cloud used as it is),
 ///   4. unseen skin (farther than hold_unseen_skin_m from the cloud) is added to the target at its
 ///      current position, so only what the scanner sees pulls the model,
 ///   5. ProneToSupinePipeline::setTarget (the distance field of the cloud) and a few Figure-2
 ///      iterations (iterate()).
 /// The node and the latency benchmark both call this, so the benchmark measures what the node does.
+///
+/// Steps 2–4 compute what PCL's StatisticalOutlierRemoval, IterativeClosestPoint and KdTreeFLANN
+/// compute, but their neighbour searches use a hashed uniform grid (point_grid.h) instead of PCL's
+/// FLANN kd-tree, which is slow on voxel-decimated (lattice-like) clouds. The PCL versions are kept
+/// (`*Pcl`, TrackerOptions::pcl_reference) as the slow reference the tests and the benchmark compare
+/// with.
 
 #include <string>
+#include <vector>
 
 #include <Eigen/Geometry>
 
@@ -48,6 +55,9 @@ struct TrackerOptions {
   /// pulled to the cloud).
   double hold_unseen_skin_m = 0.005;
   int min_points = 50;           ///< fewer points after filtering: the frame is refused
+  /// Outlier removal, ICP and the unseen-skin test with PCL's own classes (StatisticalOutlierRemoval,
+  /// IterativeClosestPoint, KdTreeFLANN): the slow reference, for tests and benchmarks only.
+  bool pcl_reference = false;
 };
 
 /// Timings [s] and outcome of one frame.
@@ -67,6 +77,17 @@ struct TrackResult {
 
 /// Voxel-grid decimation and outlier removal of a cloud [m].
 core::Points filterCloud(const core::Points& cloud_m, const CloudFilterOptions& options);
+/// The same with PCL's StatisticalOutlierRemoval (the slow reference).
+core::Points filterCloudPcl(const core::Points& cloud_m, const CloudFilterOptions& options);
+
+/// Indices (increasing) of the points of `cloud_m` (#×3 [m], used in single precision as PCL does) kept
+/// by PCL's statistical outlier rule: a point's distance is the mean distance to its `neighbours`
+/// nearest other points; points whose distance is above mean + stddev_mul × σ of all distances are
+/// removed. Non-finite points are kept (distance 0, not counted in mean and σ), as PCL does. With
+/// `neighbours` + 1 or fewer points every point is kept.
+std::vector<int> statisticalInliers(const core::Points& cloud_m, int neighbours, double stddev_mul);
+/// The same with PCL's StatisticalOutlierRemoval (the slow reference).
+std::vector<int> statisticalInliersPcl(const core::Points& cloud_m, int neighbours, double stddev_mul);
 
 /// ICP result: `transform` maps the cloud onto the reference (identity when refused).
 struct IcpResult {
@@ -77,9 +98,19 @@ struct IcpResult {
   std::string note;
 };
 
-/// Rigid alignment of `cloud_m` onto `reference_m` (both #×3 [m]) starting from `guess`.
+/// Rigid alignment of `cloud_m` onto `reference_m` (both #×3 [m]) starting from `guess`: PCL's
+/// IterativeClosestPoint (point-to-point, pairs within max_correspondence_m, PCL's default convergence
+/// criteria with 1e-10 transformation and 1e-12 fitness epsilons), its nearest-neighbour queries
+/// answered by a PointGrid (point_grid.h) instead of FLANN — the same pairs, so the same transform.
+/// The residual is PCL's getFitnessScore(max_correspondence_m): the mean squared nearest distance of
+/// the cloud points whose SQUARED distance [m²] is at most that value (PCL compares the squared
+/// distance with it: 0.01 counts every point within 0.1 m). The correction is applied when ICP
+/// converged, its RMS is at most max_rms_m and it is within max_translation_m / max_rotation_deg.
 IcpResult rigidAlign(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
                      const IcpOptions& options);
+/// The same with PCL's IterativeClosestPoint (the slow reference).
+IcpResult rigidAlignPcl(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
+                        const IcpOptions& options);
 
 class SurfaceTracker {
  public:

@@ -1,0 +1,314 @@
+// The tracker's fast neighbour searches against slow references: PointGrid against brute force, the
+// grid-based outlier removal, ICP and unseen-skin test against PCL's own classes (the `*Pcl`
+// functions and TrackerOptions::pcl_reference), on random clouds and on lattice-like (voxel-decimated)
+// clouds, where PCL's kd-tree is slow and ties between equal distances are common.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "breast_sim/ros_interface/conversions.h"
+#include "breast_sim/ros_interface/point_grid.h"
+#include "breast_sim/ros_interface/surface_tracker.h"
+#include "breast_sim/ros_interface/tracker_simulation.h"
+
+using namespace breast_sim;
+using ros_interface::PointGrid;
+
+namespace {
+
+/// Uniform random points in a box [m].
+core::Points randomCloud(int n, unsigned seed, double size_m = 0.1) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(0.0, size_m);
+  core::Points p(n, 3);
+  for (int i = 0; i < n; ++i) p.row(i) << u(rng), u(rng), 0.3 * u(rng);
+  return p;
+}
+
+/// A bumpy surface sampled densely with noise, then voxel-decimated (3 mm): lattice-like, as the tracker
+/// sees it. With `strays`, far points are added after decimation.
+core::Points latticeCloud(int n, unsigned seed, int strays = 0) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(-0.06, 0.06);
+  std::normal_distribution<double> noise(0, 3e-4);
+  core::Points p(n, 3);
+  for (int i = 0; i < n; ++i) {
+    const double x = u(rng), z = u(rng);
+    p.row(i) << x, -0.035 * std::max(0.0, 1 - (x * x + z * z) / 0.0036) + noise(rng), z;
+  }
+  ros_interface::CloudFilterOptions o;
+  o.remove_outliers = false;
+  core::Points d = ros_interface::filterCloud(p, o);
+  core::Points out(d.rows() + strays, 3);
+  out.topRows(d.rows()) = d;
+  for (int i = 0; i < strays; ++i) out.row(d.rows() + i) << u(rng), 0.02 + 0.01 * i, u(rng);
+  return out;
+}
+
+/// An exact 3 mm lattice on a plane (every neighbour distance is tied with several others).
+core::Points exactLattice(int side) {
+  core::Points p(side * side, 3);
+  for (int i = 0; i < side; ++i)
+    for (int j = 0; j < side; ++j) p.row(i * side + j) << 0.003 * i, 0.01, 0.003 * j;
+  return p;
+}
+
+Eigen::Vector3f rowF(const core::Points& p, Eigen::Index i) { return p.row(i).transpose().cast<float>(); }
+
+/// The k smallest float squared distances ≤ max_d2 from q to the finite points of p, ascending.
+std::vector<float> bruteK(const core::Points& p, const Eigen::Vector3f& q, int k,
+                          double max_d2 = std::numeric_limits<double>::infinity()) {
+  std::vector<float> d;
+  for (Eigen::Index i = 0; i < p.rows(); ++i) {
+    const Eigen::Vector3f x = rowF(p, i);
+    if (!x.allFinite()) continue;
+    const float v = ros_interface::squaredDistanceF(q, x);
+    if (static_cast<double>(v) <= max_d2) d.push_back(v);
+  }
+  std::sort(d.begin(), d.end());
+  d.resize(std::min(d.size(), static_cast<size_t>(k)));
+  return d;
+}
+
+/// Queries on and around a cloud: its own points, random points in and beyond its box, far points.
+std::vector<Eigen::Vector3f> queries(const core::Points& p, unsigned seed) {
+  std::vector<Eigen::Vector3f> q;
+  for (Eigen::Index i = 0; i < p.rows(); i += 7) q.push_back(rowF(p, i));
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<float> u(-0.15f, 0.25f);
+  for (int i = 0; i < 150; ++i) q.emplace_back(u(rng), u(rng), u(rng));
+  q.emplace_back(5.f, -3.f, 2.f);
+  q.emplace_back(-40.f, 0.f, 0.f);
+  return q;
+}
+
+/// Checks every grid query against brute force on p for a grid of cell `cell_m`.
+void expectGridMatchesBruteForce(const core::Points& p, double cell_m, unsigned seed) {
+  const PointGrid grid(p, cell_m);
+  ASSERT_EQ(grid.size(), static_cast<size_t>(p.rows()));
+  for (const int k : {1, 4, 9, 25}) {
+    std::vector<int> index(static_cast<size_t>(k));
+    std::vector<float> d2(static_cast<size_t>(k));
+    for (const double max_d2 : {std::numeric_limits<double>::infinity(), 1e-4}) {
+      for (const Eigen::Vector3f& q : queries(p, seed)) {
+        const std::vector<float> expected = bruteK(p, q, k, max_d2);
+        const int n = grid.nearestK(q, k, index.data(), d2.data(), max_d2);
+        ASSERT_EQ(n, static_cast<int>(expected.size())) << "k " << k << " query " << q.transpose();
+        for (int j = 0; j < n; ++j) {
+          ASSERT_EQ(d2[static_cast<size_t>(j)], expected[static_cast<size_t>(j)]) << "k " << k << " rank " << j;
+          // The index names a point at that distance (which of several tied points is free).
+          EXPECT_EQ(ros_interface::squaredDistanceF(q, grid.point(index[static_cast<size_t>(j)])), d2[static_cast<size_t>(j)]);
+        }
+      }
+    }
+  }
+  for (const double radius : {0.002, 0.003, 0.0075, 0.02}) {
+    for (const Eigen::Vector3f& q : queries(p, seed + 1)) {
+      const std::vector<float> expected = bruteK(p, q, 1, radius * radius);
+      float d2 = -1;
+      const int i = grid.nearestWithin(q, radius, &d2);
+      ASSERT_EQ(i >= 0, !expected.empty()) << "radius " << radius << " query " << q.transpose();
+      EXPECT_EQ(grid.anyWithin(q, radius), !expected.empty());
+      if (i >= 0) {
+        EXPECT_EQ(d2, expected[0]);
+        EXPECT_EQ(ros_interface::squaredDistanceF(q, grid.point(i)), d2);
+      }
+    }
+  }
+  // Every point's own neighbours at once.
+  for (const int k : {1, 9, 20}) {
+    std::vector<float> all(p.rows() * static_cast<size_t>(k));
+    std::vector<int> found(static_cast<size_t>(p.rows()));
+    grid.selfNearestK(k, all.data(), found.data());
+    for (Eigen::Index i = 0; i < p.rows(); ++i) {
+      const Eigen::Vector3f q = rowF(p, i);
+      if (!q.allFinite()) {
+        EXPECT_EQ(found[static_cast<size_t>(i)], 0);
+        continue;
+      }
+      const std::vector<float> expected = bruteK(p, q, k);
+      ASSERT_EQ(found[static_cast<size_t>(i)], static_cast<int>(expected.size())) << "point " << i;
+      for (size_t j = 0; j < expected.size(); ++j) ASSERT_EQ(all[static_cast<size_t>(i) * k + j], expected[j]) << "point " << i;
+    }
+  }
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------------
+// PointGrid against brute force.
+
+TEST(PointGrid, RandomCloudMatchesBruteForceForAnyCell) {
+  const core::Points p = randomCloud(1500, 1);
+  for (const double cell : {0.001, 0.006, 0.03, 1.0}) {
+    SCOPED_TRACE("cell " + std::to_string(cell));
+    expectGridMatchesBruteForce(p, cell, 2);
+  }
+}
+
+TEST(PointGrid, LatticeCloudsWithTiesAndStraysMatchBruteForce) {
+  {
+    SCOPED_TRACE("voxel-decimated surface with strays");
+    expectGridMatchesBruteForce(latticeCloud(6000, 3, 5), 0.006, 4);
+  }
+  {
+    SCOPED_TRACE("exact lattice, cell = spacing (points on cell borders)");
+    expectGridMatchesBruteForce(exactLattice(30), 0.003, 5);
+  }
+  {
+    SCOPED_TRACE("exact lattice, cell = 2 spacings");
+    expectGridMatchesBruteForce(exactLattice(30), 0.006, 6);
+  }
+}
+
+TEST(PointGrid, FarPointsHugeExtentsAndNonFinitePointsAreHandled) {
+  core::Points p = randomCloud(400, 7);
+  p.row(10) << 300.0, -200.0, 5000.0;  // 5 km away: the 1 mm cell is enlarged to fit the key range
+  p.row(20) << std::nan(""), 0.0, 0.0;
+  p.row(30) << 0.0, std::numeric_limits<double>::infinity(), 0.0;
+  const PointGrid grid(p, 1e-3);
+  EXPECT_GT(grid.cellSize(), 1e-3);
+  expectGridMatchesBruteForce(p, 1e-3, 8);
+  // Never a non-finite point, never a NaN query's neighbour.
+  std::vector<int> index(500);
+  std::vector<float> d2(500);
+  EXPECT_EQ(grid.nearestK(Eigen::Vector3f(0.05f, 0.05f, 0.01f), 500, index.data(), d2.data()), 398);
+  EXPECT_EQ(grid.nearestK(Eigen::Vector3f(std::nanf(""), 0.f, 0.f), 3, index.data(), d2.data()), 0);
+  EXPECT_FALSE(grid.anyWithin(Eigen::Vector3f(std::nanf(""), 0.f, 0.f), 1.0));
+  EXPECT_THROW(PointGrid(p, 0.0), std::invalid_argument);
+  EXPECT_THROW(PointGrid(p, -1.0), std::invalid_argument);
+  const PointGrid empty(core::Points(0, 3), 0.01);
+  EXPECT_EQ(empty.nearestK(Eigen::Vector3f::Zero(), 3, index.data(), d2.data()), 0);
+  EXPECT_EQ(empty.nearestWithin(Eigen::Vector3f::Zero(), 1.0, d2.data()), -1);
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Outlier removal, ICP and the whole frame against PCL.
+
+TEST(SurfaceTrackerSearch, OutlierRemovalKeepsExactlyWhatPclKeeps) {
+  struct Case {
+    std::string name;
+    core::Points p;
+  };
+  std::vector<Case> cases = {{"random", randomCloud(3000, 11)},
+                             {"random with a far cluster", randomCloud(2000, 12)},
+                             {"voxel-decimated surface with strays", latticeCloud(10000, 13, 12)},
+                             {"exact lattice", exactLattice(40)},
+                             {"tiny", randomCloud(9, 14)}};
+  cases[1].p.bottomRows(30).array() += 0.5;
+  for (const Case& c : cases) {
+    for (const int k : {1, 8, 20}) {
+      for (const double m : {0.5, 1.0, 2.0}) {
+        SCOPED_TRACE(c.name + ", k " + std::to_string(k) + ", m " + std::to_string(m));
+        const std::vector<int> fast = ros_interface::statisticalInliers(c.p, k, m);
+        const std::vector<int> reference = ros_interface::statisticalInliersPcl(c.p, k, m);
+        EXPECT_EQ(fast, reference);
+        if (c.p.rows() > 100 && k > 1 && m <= 1.0) EXPECT_LT(fast.size(), static_cast<size_t>(c.p.rows()));  // the rule bites
+      }
+    }
+  }
+  // The whole filter (voxel grid + outlier removal) on a simulated tracker cloud.
+  const core::ModelCase mc = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
+  ros_interface::TrackerSimulationOptions so;
+  so.points = 10000;
+  ros_interface::TrackerSimulation sim(mc, so);
+  for (const double t : {0.0, 0.4}) {
+    const core::Points cloud = sim.cloudInModel(t);
+    ros_interface::CloudFilterOptions o;
+    const core::Points fast = ros_interface::filterCloud(cloud, o);
+    EXPECT_EQ(fast, ros_interface::filterCloudPcl(cloud, o));
+    o.voxel_leaf_m = 0;  // raw cloud: not lattice-like
+    EXPECT_EQ(ros_interface::filterCloud(cloud, o), ros_interface::filterCloudPcl(cloud, o));
+  }
+}
+
+TEST(SurfaceTrackerSearch, IcpGivesPclsTransformAndDecision) {
+  const core::Points reference = latticeCloud(20000, 21);
+  Eigen::Isometry3d mis = Eigen::Isometry3d::Identity();
+  mis.linear() = Eigen::AngleAxisd(1.0 * M_PI / 180.0, Eigen::Vector3d(0.3, 1, 0.2).normalized()).toRotationMatrix();
+  mis.translation() << 0.0015, -0.001, 0.001;
+  std::mt19937 rng(22);
+  std::normal_distribution<double> noise(0, 2e-4);
+  core::Points cloud = ros_interface::transformPoints(mis, reference.topRows(reference.rows() / 2));
+  for (Eigen::Index i = 0; i < cloud.rows(); ++i) cloud.row(i) += Eigen::RowVector3d(noise(rng), noise(rng), noise(rng));
+  Eigen::Isometry3d guess = Eigen::Isometry3d::Identity();
+  guess.translation() << -0.001, 0.0005, 0.0;
+  const core::Points strays = randomCloud(40, 23, 0.3);  // also points beyond the correspondence distance
+  core::Points with_strays(cloud.rows() + strays.rows(), 3);
+  with_strays << cloud, strays;
+
+  int applied = 0;
+  for (const auto& [name, c] : {std::pair<std::string, core::Points>{"clean", cloud}, {"with strays", with_strays}}) {
+    for (const Eigen::Isometry3d& g : {Eigen::Isometry3d::Identity(), guess}) {
+      for (const double max_translation : {0.01, 0.0005}) {
+        for (const int iterations : {3, 10, 50}) {
+          SCOPED_TRACE(name + ", " + std::to_string(iterations) + " iterations, limit " + std::to_string(max_translation));
+          ros_interface::IcpOptions o;
+          o.max_iterations = iterations;
+          o.max_translation_m = max_translation;
+          const auto fast = ros_interface::rigidAlign(c, reference, g, o);
+          const auto slow = ros_interface::rigidAlignPcl(c, reference, g, o);
+          EXPECT_EQ(fast.applied, slow.applied);
+          EXPECT_EQ(fast.converged, slow.converged);
+          EXPECT_EQ(fast.note, slow.note);
+          EXPECT_EQ(fast.rms_m, slow.rms_m);
+          EXPECT_EQ(fast.transform.matrix(), slow.transform.matrix());
+          applied += fast.applied ? 1 : 0;
+        }
+      }
+    }
+  }
+  EXPECT_GT(applied, 4);   // both outcomes are exercised
+  EXPECT_LT(applied, 24);
+  // Too few points, and no correspondences at all (did not converge).
+  ros_interface::IcpOptions o;
+  EXPECT_EQ(ros_interface::rigidAlign(cloud.topRows(5), reference, guess, o).note, "too few points for ICP");
+  const core::Points far = (cloud.rowwise() + Eigen::RowVector3d(1.0, 0, 0)).eval();
+  const auto none = ros_interface::rigidAlign(far, reference, Eigen::Isometry3d::Identity(), o);
+  const auto none_pcl = ros_interface::rigidAlignPcl(far, reference, Eigen::Isometry3d::Identity(), o);
+  EXPECT_FALSE(none.applied);
+  EXPECT_EQ(none.note, none_pcl.note);
+}
+
+TEST(SurfaceTrackerSearch, TrackedFramesAreThoseOfThePclReference) {
+  // A small phantom at rest, followed through simulated tracker frames by two trackers: the grid
+  // searches and PCL's (the reference). Every frame's decisions and the model agree.
+  core::ModelCase c = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
+  c.meshing.target_elements = 2000;
+  const core::SimulationModel model = core::buildSimulationModel(c);
+  core::PipelineSettings s;
+  s.morphing.target = "";
+  s.morphing.field.voxel_size_m = 0.003;
+  core::ProneToSupinePipeline fast_pipe(c, model, s), slow_pipe(c, model, s);
+  ros_interface::TrackerOptions to;
+  ros_interface::SurfaceTracker fast(to);
+  to.pcl_reference = true;
+  ros_interface::SurfaceTracker slow(to);
+  ros_interface::TrackerSimulationOptions so;
+  so.points = 4000;
+  ros_interface::TrackerSimulation sim(c, so);
+  int held = 0;
+  for (int k = 0; k < 4; ++k) {
+    SCOPED_TRACE("frame " + std::to_string(k));
+    const core::Points cloud = sim.cloudInModel(k / 30.0);
+    const ros_interface::TrackResult a = fast.track(fast_pipe, cloud);
+    const ros_interface::TrackResult b = slow.track(slow_pipe, cloud);
+    ASSERT_TRUE(a.tracked) << a.reason;
+    ASSERT_TRUE(b.tracked) << b.reason;
+    EXPECT_EQ(a.points_decimated, b.points_decimated);
+    EXPECT_EQ(a.points_used, b.points_used);
+    EXPECT_EQ(a.icp_applied, b.icp_applied);
+    EXPECT_EQ(a.icp_rms_m, b.icp_rms_m);
+    EXPECT_EQ(a.icp_note, b.icp_note);
+    EXPECT_EQ(a.skin_held, b.skin_held);
+    EXPECT_EQ(a.skin_seen, b.skin_seen);
+    held += a.skin_held;
+    EXPECT_LT((fast_pipe.positions() - slow_pipe.positions()).cwiseAbs().maxCoeff(), 1e-9);
+  }
+  EXPECT_GT(held, 0);  // the unseen-skin test had something to decide
+}
