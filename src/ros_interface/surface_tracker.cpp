@@ -248,12 +248,13 @@ class GridSearch : public pcl::search::KdTree<pcl::PointXYZ> {
     return search(point, k, std::numeric_limits<double>::infinity(), k_indices, k_sqr_distances);
   }
 
-  /// Points strictly closer than `radius` (FLANN's rule), nearest first, at most max_nn (0 = all).
+  /// Points whose squared distance is below (float) radius² (FLANN's rule), nearest first, at most
+  /// max_nn (0 = all). Not used by ICP; answered so that no FLANN call on an empty tree is inherited.
   int radiusSearch(const pcl::PointXYZ& point, double radius, pcl::Indices& k_indices,
                    std::vector<float>& k_sqr_distances, unsigned int max_nn = 0) const override {
     const int k = max_nn > 0 ? static_cast<int>(max_nn) : static_cast<int>(grid_ ? grid_->size() : 0);
-    const int n = search(point, k, std::nextafter(radius * radius, 0.0), k_indices, k_sqr_distances);
-    return n;
+    const double below = std::nextafter(static_cast<double>(static_cast<float>(radius * radius)), 0.0);
+    return search(point, k, below, k_indices, k_sqr_distances);
   }
 
  private:

@@ -6,7 +6,9 @@
 /// per 3 mm voxel); many points then sit at equal distances from a query and from the tree's splitting
 /// planes, so the kd-tree cannot prune and a 9-neighbour query costs ~4 µs (measured ~1 µs on random
 /// points). A grid whose cell is about the queried distance answers the same queries by looking at the
-/// 27 cells around the query (and further rings only when needed), a few tenths of a µs.
+/// 27 cells around the query (and further rings only when needed): the 9 neighbours of each of the
+/// 3.7k points of a decimated 10k-point tracker cloud take 1.8 ms with selfNearestK (0.5 µs a point;
+/// PCL's StatisticalOutlierRemoval spends 12-15 ms on the same cloud).
 ///
 /// The points are stored in single precision and squared distances are computed in single precision
 /// in the order x, y, z, exactly as PCL's clouds and FLANN's L2_Simple<float> do, so a query returns the
