@@ -315,8 +315,10 @@ StiffeningStepResult StiffeningSimulation::step() {
     const std::vector<char>& dofs = sim_.constrainedDofs();
     for (int n = 0; n < mesh_.numNodes(); ++n) fixed_node_[n] = dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2];
     // Node springs (implicit sliding, wall_slip.h) are loads on their nodes like external forces.
-    const Eigen::VectorXd loads =
-        sim_.springNodes().empty() ? sim_.externalForces() : Eigen::VectorXd(sim_.externalForces() + sim_.currentSpringForces());
+    // (No copy of the external forces on the path without springs.)
+    Eigen::VectorXd with_springs;
+    if (!sim_.springNodes().empty()) with_springs = sim_.externalForces() + sim_.currentSpringForces();
+    const Eigen::VectorXd& loads = sim_.springNodes().empty() ? sim_.externalForces() : with_springs;
     r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, loads, sim_.lumpedMass(),
                               sim_.params().gravity_mps2, fixed_node_);
     settle_run_ = r.settle.below ? settle_run_ + 1 : 0;
