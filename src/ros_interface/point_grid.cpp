@@ -27,6 +27,8 @@ uint64_t packKey(int64_t i, int64_t j, int64_t k) {
   return static_cast<uint64_t>(i) | (static_cast<uint64_t>(j) << 21) | (static_cast<uint64_t>(k) << 42);
 }
 
+}  // namespace
+
 std::vector<Eigen::Vector3f> toFloat(const core::Points& p) {
   std::vector<Eigen::Vector3f> out(static_cast<size_t>(p.rows()));
   for (Eigen::Index i = 0; i < p.rows(); ++i)
@@ -34,8 +36,6 @@ std::vector<Eigen::Vector3f> toFloat(const core::Points& p) {
                                                   static_cast<float>(p(i, 2)));
   return out;
 }
-
-}  // namespace
 
 PointGrid::PointGrid(const core::Points& points_m, double cell_m) : points_(toFloat(points_m)) { build(cell_m); }
 

@@ -52,14 +52,7 @@ std::vector<Eigen::Vector3f> toFloat(const pcl::PointCloud<pcl::PointXYZ>& c) {
   for (size_t i = 0; i < c.size(); ++i) p[i] = Eigen::Vector3f(c[i].x, c[i].y, c[i].z);
   return p;
 }
-
-std::vector<Eigen::Vector3f> toFloat(const core::Points& p) {
-  std::vector<Eigen::Vector3f> out(static_cast<size_t>(p.rows()));
-  for (Eigen::Index i = 0; i < p.rows(); ++i)
-    out[static_cast<size_t>(i)] = Eigen::Vector3f(static_cast<float>(p(i, 0)), static_cast<float>(p(i, 1)),
-                                                  static_cast<float>(p(i, 2)));
-  return out;
-}
+using ros_interface::toFloat;  // the core::Points overload (point_grid.h)
 
 /// PCL's voxel grid of a cloud [m] (`leaf_m` > 0).
 pcl::PointCloud<pcl::PointXYZ>::Ptr voxelGrid(const pcl::PointCloud<pcl::PointXYZ>::Ptr& cloud, double leaf_m) {

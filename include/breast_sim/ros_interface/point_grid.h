@@ -26,6 +26,9 @@
 
 namespace breast_sim::ros_interface {
 
+/// #×3 points [m] as single-precision vectors (what the grid and PCL search in).
+std::vector<Eigen::Vector3f> toFloat(const core::Points& p);
+
 /// Squared distance [m²] of two single-precision points, computed as FLANN's L2_Simple<float> does
 /// (differences and their squares in float, summed x, y, z).
 inline float squaredDistanceF(const Eigen::Vector3f& a, const Eigen::Vector3f& b) {
