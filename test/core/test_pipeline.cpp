@@ -188,6 +188,21 @@ TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
     EXPECT_NE(std::string(e.what()).find("load the same case with the same meshing"), std::string::npos) << e.what();
   }
   EXPECT_EQ(pipe2.simulator().state().displacement_m.norm(), 0.0);
+  // So is one of a mesh of the same size whose nodes differ (here one node moved by 1 µm; in practice
+  // another numbering of the nodes).
+  SimulationModel moved = p.m;
+  Points x = p.m.mesh.nodes();
+  x(0, 0) += 1e-6;
+  moved.mesh = TetMesh(x, p.m.mesh.tets(), p.m.mesh.regionLabels());
+  for (const auto& [name, set] : p.m.mesh.nodeSets()) moved.mesh.setNodeSet(name, set);
+  ProneToSupinePipeline pipe3(p.c, moved, so);
+  try {
+    pipe3.loadState(file.string());
+    FAIL();
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("same size but other nodes"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(pipe3.simulator().state().displacement_m.norm(), 0.0);
   std::ofstream(file) << "not a state";
   EXPECT_THROW(pipe.loadState(file.string()), std::runtime_error);
 }

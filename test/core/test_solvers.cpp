@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <numeric>
 #include <cmath>
 #include <memory>
 #include <random>
@@ -473,8 +474,23 @@ TEST(MortonOrder, RenumbersNodesWithoutChangingTheMesh) {
         for (int b = a + 1; b < 4; ++b) sum += std::abs(t.tets()(e, a) - t.tets()(e, b));
     return sum / (6.0 * t.numTets());
   };
+  // The mesher's output is Morton-ordered already (ordering again changes nothing); a shuffled copy
+  // of it, like CGAL's refinement order, spreads at least twice as far.
   const TetMesh& fine = f.model.mesh;
-  EXPECT_LT(spread(mortonOrdered(fine)), 0.5 * spread(fine));
+  std::vector<int> again;
+  mortonOrdered(fine, &again);
+  for (int v = 0; v < fine.numNodes(); ++v) ASSERT_EQ(again[v], v);
+  std::vector<int> shuffle(static_cast<size_t>(fine.numNodes()));
+  for (int v = 0; v < fine.numNodes(); ++v) shuffle[v] = static_cast<int>((7919LL * v) % fine.numNodes());
+  ASSERT_EQ(std::gcd(7919, fine.numNodes()), 1);
+  Points x(fine.numNodes(), 3);
+  for (int v = 0; v < fine.numNodes(); ++v) x.row(shuffle[v]) = fine.nodes().row(v);
+  Tets t = fine.tets();
+  for (Eigen::Index e = 0; e < t.rows(); ++e)
+    for (int a = 0; a < 4; ++a) t(e, a) = shuffle[t(e, a)];
+  const TetMesh shuffled(x, t, fine.regionLabels());
+  EXPECT_LT(spread(fine), 0.5 * spread(shuffled));
+  EXPECT_EQ(spread(mortonOrdered(shuffled)), spread(fine));
 }
 
 TEST(MultigridPcg, WithoutCoarseLevelsIsCholeskyPreconditionedCg) {

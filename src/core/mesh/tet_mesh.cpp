@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdint>
 #include <sstream>
 #include <string>
 #include <stdexcept>
@@ -201,6 +202,74 @@ bool isClosedManifold(const Triangles& triangles) {
     if (directed.find(key(b, a)) == directed.end()) return false;
   }
   return !directed.empty();
+}
+
+namespace {
+
+// Interleaves the low 21 bits of x, y, z.
+uint64_t mortonCode(uint64_t x, uint64_t y, uint64_t z) {
+  auto spread = [](uint64_t v) {
+    v &= 0x1fffff;
+    v = (v | v << 32) & 0x1f00000000ffffULL;
+    v = (v | v << 16) & 0x1f0000ff0000ffULL;
+    v = (v | v << 8) & 0x100f00f00f00f00fULL;
+    v = (v | v << 4) & 0x10c30c30c30c30c3ULL;
+    v = (v | v << 2) & 0x1249249249249249ULL;
+    return v;
+  };
+  return spread(x) | spread(y) << 1 | spread(z) << 2;
+}
+
+// Permutation sorting points along the Morton curve of their bounding box.
+std::vector<int> mortonOrder(const Points& p) {
+  const Eigen::RowVector3d lo = p.colwise().minCoeff(), hi = p.colwise().maxCoeff();
+  const double extent = std::max((hi - lo).maxCoeff(), 1e-30);
+  std::vector<std::pair<uint64_t, int>> keys(static_cast<size_t>(p.rows()));
+  for (Eigen::Index i = 0; i < p.rows(); ++i) {
+    const Eigen::RowVector3d q = (p.row(i) - lo) / extent * 2097151.0;
+    keys[i] = {mortonCode(static_cast<uint64_t>(q.x()), static_cast<uint64_t>(q.y()), static_cast<uint64_t>(q.z())),
+               static_cast<int>(i)};
+  }
+  std::sort(keys.begin(), keys.end());
+  std::vector<int> order(keys.size());
+  for (size_t k = 0; k < keys.size(); ++k) order[k] = keys[k].second;
+  return order;
+}
+
+}  // namespace
+
+TetMesh mortonOrdered(const TetMesh& mesh, std::vector<int>* old_to_new) {
+  const int n = mesh.numNodes(), nt = mesh.numTets();
+  const std::vector<int> node_order = mortonOrder(mesh.nodes());
+  std::vector<int> new_index(static_cast<size_t>(n));
+  Points nodes(n, 3);
+  for (int k = 0; k < n; ++k) {
+    new_index[node_order[k]] = k;
+    nodes.row(k) = mesh.nodes().row(node_order[k]);
+  }
+  Points centroids(nt, 3);
+  for (int t = 0; t < nt; ++t) {
+    Eigen::RowVector3d c = Eigen::RowVector3d::Zero();
+    for (int v = 0; v < 4; ++v) c += mesh.nodes().row(mesh.tets()(t, v));
+    centroids.row(t) = c / 4.0;
+  }
+  const std::vector<int> tet_order = nt > 0 ? mortonOrder(centroids) : std::vector<int>();
+  Tets tets(nt, 4);
+  std::vector<int> labels(static_cast<size_t>(nt));
+  for (int k = 0; k < nt; ++k) {
+    for (int v = 0; v < 4; ++v) tets(k, v) = new_index[mesh.tets()(tet_order[k], v)];
+    labels[k] = mesh.regionLabels()[tet_order[k]];
+  }
+  TetMesh out(std::move(nodes), std::move(tets), std::move(labels));
+  for (const auto& [name, set] : mesh.nodeSets()) {
+    std::vector<int> renumbered;
+    renumbered.reserve(set.size());
+    for (int v : set) renumbered.push_back(new_index[v]);
+    std::sort(renumbered.begin(), renumbered.end());
+    out.setNodeSet(name, std::move(renumbered));
+  }
+  if (old_to_new) *old_to_new = std::move(new_index);
+  return out;
 }
 
 }  // namespace breast_sim::core

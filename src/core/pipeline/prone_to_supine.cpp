@@ -480,6 +480,19 @@ Points toPoints(const Eigen::VectorXd& v) {
   return p;
 }
 
+// FNV-1a hash of the rest mesh (node coordinates and connectivity), cut to 52 bits so that a double
+// holds it exactly: a state fits a model only if its nodes are numbered the same way.
+double meshFingerprint(const TetMesh& mesh) {
+  std::uint64_t h = 1469598103934665603ULL;
+  auto mix = [&](const void* data, size_t bytes) {
+    const auto* c = static_cast<const unsigned char*>(data);
+    for (size_t k = 0; k < bytes; ++k) h = (h ^ c[k]) * 1099511628211ULL;
+  };
+  mix(mesh.nodes().data(), sizeof(double) * static_cast<size_t>(mesh.nodes().size()));
+  mix(mesh.tets().data(), sizeof(int) * static_cast<size_t>(mesh.tets().size()));
+  return static_cast<double>(h & ((std::uint64_t{1} << 52) - 1)) + 1.0;  // never 0 (0: older files)
+}
+
 Eigen::VectorXd flatten(const Points& p) {
   Eigen::VectorXd v(3 * p.rows());
   for (Eigen::Index i = 0; i < p.rows(); ++i) v.segment<3>(3 * i) = p.row(i).transpose();
@@ -495,7 +508,8 @@ void ProneToSupinePipeline::saveState(const std::string& path) const {
   const double header[10] = {static_cast<double>(model_.mesh.numNodes()), static_cast<double>(model_.mesh.numTets()),
                              s.simulation.time_s, static_cast<double>(s.simulation.step), s.alpha.alpha_per_pa,
                              static_cast<double>(s.alpha.phase == AlphaController::Phase::kSettling), s.alpha.rate,
-                             static_cast<double>(s.alpha.oscillations), static_cast<double>(s.stage), 0.0};
+                             static_cast<double>(s.alpha.oscillations), static_cast<double>(s.stage),
+                             meshFingerprint(model_.mesh)};
   writeVector(out, header, 10);
   const double runs[3] = {static_cast<double>(s.alpha.runs[0]), static_cast<double>(s.alpha.runs[1]), static_cast<double>(s.alpha.runs[2])};
   writeVector(out, runs, 3);
@@ -526,6 +540,12 @@ void ProneToSupinePipeline::loadState(const std::string& path) {
                              std::to_string(static_cast<long>(h[1])) + " elements; this model has " +
                              std::to_string(model_.mesh.numNodes()) + " and " + std::to_string(model_.mesh.numTets()) +
                              " (load the same case with the same meshing first)");
+  if (h[9] != meshFingerprint(model_.mesh))
+    throw std::runtime_error(path + (h[9] == 0.0 ? ": the state file was written by an older breast_sim, whose mesh "
+                                                    "nodes were numbered differently; precompute the state again"
+                                                  : ": the state is of a mesh with the same size but other nodes (another "
+                                                    "case, meshing option or breast_sim version); load the case it was "
+                                                    "saved with, or precompute again"));
   PipelineState s;
   s.simulation.time_s = h[2];
   s.simulation.step = static_cast<long>(h[3]);

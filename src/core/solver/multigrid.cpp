@@ -121,74 +121,6 @@ SparseMatrix expandToDofs(const NodeProlongation& P) {
   return out;
 }
 
-namespace {
-
-// Interleaves the low 21 bits of x, y, z.
-uint64_t mortonCode(uint64_t x, uint64_t y, uint64_t z) {
-  auto spread = [](uint64_t v) {
-    v &= 0x1fffff;
-    v = (v | v << 32) & 0x1f00000000ffffULL;
-    v = (v | v << 16) & 0x1f0000ff0000ffULL;
-    v = (v | v << 8) & 0x100f00f00f00f00fULL;
-    v = (v | v << 4) & 0x10c30c30c30c30c3ULL;
-    v = (v | v << 2) & 0x1249249249249249ULL;
-    return v;
-  };
-  return spread(x) | spread(y) << 1 | spread(z) << 2;
-}
-
-// Permutation sorting points along the Morton curve of their bounding box.
-std::vector<int> mortonOrder(const Points& p) {
-  const Eigen::RowVector3d lo = p.colwise().minCoeff(), hi = p.colwise().maxCoeff();
-  const double extent = std::max((hi - lo).maxCoeff(), 1e-30);
-  std::vector<std::pair<uint64_t, int>> keys(static_cast<size_t>(p.rows()));
-  for (Eigen::Index i = 0; i < p.rows(); ++i) {
-    const Eigen::RowVector3d q = (p.row(i) - lo) / extent * 2097151.0;
-    keys[i] = {mortonCode(static_cast<uint64_t>(q.x()), static_cast<uint64_t>(q.y()), static_cast<uint64_t>(q.z())),
-               static_cast<int>(i)};
-  }
-  std::sort(keys.begin(), keys.end());
-  std::vector<int> order(keys.size());
-  for (size_t k = 0; k < keys.size(); ++k) order[k] = keys[k].second;
-  return order;
-}
-
-}  // namespace
-
-TetMesh mortonOrdered(const TetMesh& mesh, std::vector<int>* old_to_new) {
-  const int n = mesh.numNodes(), nt = mesh.numTets();
-  const std::vector<int> node_order = mortonOrder(mesh.nodes());
-  std::vector<int> new_index(static_cast<size_t>(n));
-  Points nodes(n, 3);
-  for (int k = 0; k < n; ++k) {
-    new_index[node_order[k]] = k;
-    nodes.row(k) = mesh.nodes().row(node_order[k]);
-  }
-  Points centroids(nt, 3);
-  for (int t = 0; t < nt; ++t) {
-    Eigen::RowVector3d c = Eigen::RowVector3d::Zero();
-    for (int v = 0; v < 4; ++v) c += mesh.nodes().row(mesh.tets()(t, v));
-    centroids.row(t) = c / 4.0;
-  }
-  const std::vector<int> tet_order = nt > 0 ? mortonOrder(centroids) : std::vector<int>();
-  Tets tets(nt, 4);
-  std::vector<int> labels(static_cast<size_t>(nt));
-  for (int k = 0; k < nt; ++k) {
-    for (int v = 0; v < 4; ++v) tets(k, v) = new_index[mesh.tets()(tet_order[k], v)];
-    labels[k] = mesh.regionLabels()[tet_order[k]];
-  }
-  TetMesh out(std::move(nodes), std::move(tets), std::move(labels));
-  for (const auto& [name, set] : mesh.nodeSets()) {
-    std::vector<int> renumbered;
-    renumbered.reserve(set.size());
-    for (int v : set) renumbered.push_back(new_index[v]);
-    std::sort(renumbered.begin(), renumbered.end());
-    out.setNodeSet(name, std::move(renumbered));
-  }
-  if (old_to_new) *old_to_new = std::move(new_index);
-  return out;
-}
-
 MeshHierarchy::MeshHierarchy(std::vector<TetMesh> meshes, double snap_factor) : meshes_(std::move(meshes)) {
   if (meshes_.empty()) throw std::invalid_argument("MeshHierarchy: no mesh given (the fine mesh comes first)");
   for (size_t l = 1; l < meshes_.size(); ++l) meshes_[l] = mortonOrdered(meshes_[l]);
@@ -480,6 +412,11 @@ struct MultigridPreconditioner::Level {
   std::vector<double> dinv;     // per node: inverse of its 3×3 diagonal block, row-major
   std::vector<double> free;     // per DOF: 1 free, 0 decoupled (fixed)
   std::vector<int> colour_start, colour_node;
+  // The operator in 3×3 blocks of floats for the V-cycle's sweeps (residuals and smoothing): one
+  // column index per block instead of nine and 4-byte values move 2.7× fewer bytes than the CSR
+  // matrix, and the sweeps are bound by memory bandwidth. Refreshed from A whenever A changes.
+  std::vector<int> block_start, block_col;  // per node: its blocks; per block: its column node
+  std::vector<float> block_val;             // per block: 9 values, row-major
   // Transfer to the next coarser level: children (Pᵀ) of each coarse node.
   std::vector<int> child_start, child;
   std::vector<double> child_weight;
@@ -575,6 +512,9 @@ void MultigridPreconditioner::analyzePattern(const SparseMatrix& A) {
     lv->colour_node.resize(static_cast<size_t>(n));
     std::vector<int> fill(lv->colour_start.begin(), lv->colour_start.end() - 1);
     for (int i = 0; i < n; ++i) lv->colour_node[fill[colour[i]]++] = i;
+    lv->block_start = std::move(start);
+    lv->block_col = std::move(nbr);
+    lv->block_val.assign(9 * lv->block_col.size(), 0.0f);
     if (l + 1 < L) {
       const NodeProlongation& P = prolongations_[l];
       const int nc = static_cast<int>(P.cols());
@@ -736,6 +676,7 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
     }
     // The coarsest level needs no smoother, only the unit diagonals of empty rows.
     scanLevel(l);
+    if (l + 1 < numLevels()) toBlocks(l);
     timings_.scan_s += since(t0);
     if (coarse && options_.smoother == MultigridOptions::Smoother::kJacobi && (l + 1 < numLevels() || l == 0)) {
       t0 = Clock::now();
@@ -766,30 +707,50 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
   factorized_ = true;
 }
 
-void MultigridPreconditioner::residual(int l, const double* b, const double* x, double* t) {
-  const Level& lv = *levels_[l];
+void MultigridPreconditioner::toBlocks(int l) {
+  Level& lv = *levels_[l];
   const SparseMatrix& M = *lv.A;
   const int* outer = M.outerIndexPtr();
-  const int* inner = M.innerIndexPtr();
   const double* val = M.valuePtr();
-  // By node: the three rows share their column indices, and x_J is three adjacent values.
+  float* out = lv.block_val.data();
 #pragma omp parallel for schedule(static) if (lv.nodes > kParallelMinNodes)
   for (int i = 0; i < lv.nodes; ++i) {
-    const int s0 = outer[3 * i], len = outer[3 * i + 1] - s0;
-    const double* v0 = val + s0;
-    const double* v1 = val + outer[3 * i + 1];
-    const double* v2 = val + outer[3 * i + 2];
-    const int* col = inner + s0;
-    double r0 = b[3 * i], r1 = b[3 * i + 1], r2 = b[3 * i + 2];
-    for (int k = 0; k < len; k += 3) {
-      const double* xj = x + col[k];
-      const double x0 = xj[0], x1 = xj[1], x2 = xj[2];
-      r0 -= v0[k] * x0 + v0[k + 1] * x1 + v0[k + 2] * x2;
-      r1 -= v1[k] * x0 + v1[k + 1] * x1 + v1[k + 2] * x2;
-      r2 -= v2[k] * x0 + v2[k + 1] * x1 + v2[k + 2] * x2;
+    const int b0 = lv.block_start[i], nb = lv.block_start[i + 1] - b0;
+    for (int r = 0; r < 3; ++r) {
+      const double* v = val + outer[3 * i + r];
+      float* o = out + 9 * static_cast<size_t>(b0) + 3 * r;
+      for (int k = 0; k < nb; ++k)
+        for (int c = 0; c < 3; ++c) o[9 * k + c] = static_cast<float>(v[3 * k + c]);
     }
-    t[3 * i] = r0, t[3 * i + 1] = r1, t[3 * i + 2] = r2;
   }
+}
+
+namespace {
+
+// b_i − Σ_j A_ij x_j over the blocks [k0, k1) of a row in float block storage, into r.
+inline void blockRowResidual(const float* val, const int* col, int k0, int k1, const double* b, const double* x,
+                             double r[3]) {
+  double r0 = b[0], r1 = b[1], r2 = b[2];
+  for (int k = k0; k < k1; ++k) {
+    const float* a = val + 9 * static_cast<size_t>(k);
+    const double* xj = x + 3 * static_cast<size_t>(col[k]);
+    const double x0 = xj[0], x1 = xj[1], x2 = xj[2];
+    r0 -= a[0] * x0 + a[1] * x1 + a[2] * x2;
+    r1 -= a[3] * x0 + a[4] * x1 + a[5] * x2;
+    r2 -= a[6] * x0 + a[7] * x1 + a[8] * x2;
+  }
+  r[0] = r0, r[1] = r1, r[2] = r2;
+}
+
+}  // namespace
+
+void MultigridPreconditioner::residual(int l, const double* b, const double* x, double* t) {
+  const Level& lv = *levels_[l];
+  const float* val = lv.block_val.data();
+  const int* col = lv.block_col.data();
+  const int* start = lv.block_start.data();
+#pragma omp parallel for schedule(static) if (lv.nodes > kParallelMinNodes)
+  for (int i = 0; i < lv.nodes; ++i) blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, x, t + 3 * i);
 }
 
 void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool forward, bool from_zero) {
@@ -817,35 +778,23 @@ void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool for
     return;
   }
   if (from_zero) std::fill(x, x + 3 * n, 0.0);
-  const SparseMatrix& M = *lv.A;
-  const int* outer = M.outerIndexPtr();
-  const int* inner = M.innerIndexPtr();
-  const double* val = M.valuePtr();
+  const float* val = lv.block_val.data();
+  const int* col = lv.block_col.data();
+  const int* start = lv.block_start.data();
+  auto relax = [&](int i, const double* xs) {
+    double r[3];
+    blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, xs, r);
+    const double* d = dinv + 9 * i;
+    x[3 * i] += d[0] * r[0] + d[1] * r[1] + d[2] * r[2];
+    x[3 * i + 1] += d[3] * r[0] + d[4] * r[1] + d[5] * r[2];
+    x[3 * i + 2] += d[6] * r[0] + d[7] * r[1] + d[8] * r[2];
+  };
   const int colours = static_cast<int>(lv.colour_start.size()) - 1;
 #pragma omp parallel if (n > kParallelMinNodes)
   for (int cc = 0; cc < colours; ++cc) {
     const int c = forward ? cc : colours - 1 - cc;
 #pragma omp for schedule(static)
-    for (int p = lv.colour_start[c]; p < lv.colour_start[c + 1]; ++p) {
-      const int i = lv.colour_node[p];
-      const int s0 = outer[3 * i], len = outer[3 * i + 1] - s0;
-      const double* v0 = val + s0;
-      const double* v1 = val + outer[3 * i + 1];
-      const double* v2 = val + outer[3 * i + 2];
-      const int* col = inner + s0;
-      double r0 = b[3 * i], r1 = b[3 * i + 1], r2 = b[3 * i + 2];
-      for (int k = 0; k < len; k += 3) {
-        const double* xj = x + col[k];
-        const double x0 = xj[0], x1 = xj[1], x2 = xj[2];
-        r0 -= v0[k] * x0 + v0[k + 1] * x1 + v0[k + 2] * x2;
-        r1 -= v1[k] * x0 + v1[k + 1] * x1 + v1[k + 2] * x2;
-        r2 -= v2[k] * x0 + v2[k + 1] * x1 + v2[k + 2] * x2;
-      }
-      const double* d = dinv + 9 * i;
-      x[3 * i] += d[0] * r0 + d[1] * r1 + d[2] * r2;
-      x[3 * i + 1] += d[3] * r0 + d[4] * r1 + d[5] * r2;
-      x[3 * i + 2] += d[6] * r0 + d[7] * r1 + d[8] * r2;
-    }
+    for (int p = lv.colour_start[c]; p < lv.colour_start[c + 1]; ++p) relax(lv.colour_node[p], x);
   }
 }
 

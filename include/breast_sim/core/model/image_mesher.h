@@ -80,7 +80,8 @@ struct MeshingReport {
 /// a face with neither (tissue cut by the image border) counts as chest wall and as undecided.
 /// Element region labels are the TissueClass (as int) of the image at the element, sampled at the
 /// centroid and four inner points (majority); internal tissue interfaces are not meshed conformingly,
-/// so that fibroglandular strands finer than the elements do not force tiny elements.
+/// so that fibroglandular strands finer than the elements do not force tiny elements. Nodes and
+/// tetrahedra come out in Morton order (mesh/tet_mesh.h, mortonOrdered).
 /// @param image   label image (patient space, metres)
 /// @param labels  which label values are which tissue
 /// @param refine_at  lesion points to refine around (may be empty)

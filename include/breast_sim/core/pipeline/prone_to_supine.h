@@ -208,8 +208,9 @@ class ProneToSupinePipeline {
   PipelineState state() const;
   /// @throws std::invalid_argument when the snapshot does not fit this model (sizes).
   void restore(const PipelineState& s);
-  /// Binary snapshot file (magic, version, sizes, then the vectors).
-  /// @throws std::runtime_error naming the file on an I/O error or a snapshot of another model.
+  /// Binary snapshot file (magic, version, sizes, a fingerprint of the rest mesh, then the vectors).
+  /// @throws std::runtime_error naming the file on an I/O error or a snapshot of another model
+  ///         (other sizes, or the same sizes with other node positions or numbering).
   void saveState(const std::string& path) const;
   void loadState(const std::string& path);
 
