@@ -1,30 +1,38 @@
-// Co-rotated FEM assembly benchmark: per-step cost of rotations + forces (update) and of the
-// stiffness assembly, on phantom meshes of the seed paper's Table-1 sizes, and the whole assembly of
-// a DynamicSimulator step (update + stiffness + mass diagonal, right-hand side and the elimination
-// of the constrained DOFs: chest wall fixed, nipple targets) with a solver that does nothing, so
-// the pose stays the same every step. "step overhead" is step assembly − update − assemble: what
-// step() itself adds. Figures are minima over the repetitions: the least disturbed by other load
-// on a shared machine (an OpenMP region whose second thread is descheduled waits for it).
+// Co-rotated FEM assembly benchmark: per-step cost of the element rotations, the elastic forces and
+// the stiffness assembly, on phantom meshes of the seed paper's Table-1 sizes, for both volume terms
+// (trace: tr S − 3, determinant: J − 1, the pipeline's default), and the whole assembly of a
+// DynamicSimulator step (update + stiffness + mass diagonal, right-hand side and the elimination of
+// the constrained DOFs: chest wall fixed, nipple targets) with a solver that does nothing, so the pose
+// stays the same every step.
+//   update     = rotations + forces: CorotatedTetFem::update() (F, polar rotation, stress, forces,
+//                the per-node gather of the forces)
+//   forces     = update() with setCorotated(false) (identity rotations, trace term): the same work
+//                without the polar decomposition, so rotations ≈ update(trace) − forces
+//   stiffness  = zeroing A + addStiffness()
+//   step asm   = DynamicSimulator::step()'s assembly_seconds; overhead = step asm − update − stiffness
+// Figures are medians over the repetitions (the minima go to the JSON too): on a shared machine an
+// OpenMP region whose second thread is descheduled waits for it, so single runs scatter widely.
 // Prints a table; --json FILE writes the same figures. The linear solve is measured by bench_solvers.
 //   bench_fem_assembly [--targets 47895,99390,...] [--reps 25] [--json FILE]
 #include <algorithm>
-#include <chrono>
 #include <cstdio>
 #include <fstream>
 #include <memory>
-#include <sstream>
 #include <string>
 #include <vector>
 
 #include <nlohmann/json.hpp>
 #include <omp.h>
 
+#include "bench_util.h"
 #include "breast_sim/core/fem/corotated_tet_fem.h"
 #include "breast_sim/core/fem/dynamic_simulator.h"
 #include "breast_sim/core/model/model_case.h"
 
 using namespace breast_sim::core;
-using Clock = std::chrono::steady_clock;
+using breast_sim::bench::Clock;
+using breast_sim::bench::median;
+using breast_sim::bench::since;
 
 namespace {
 /// Leaves the velocity at zero: every step re-assembles the same pose.
@@ -40,6 +48,13 @@ class NullSolver : public LinearSolver {
 };
 
 double minimum(const std::vector<double>& v) { return v.empty() ? 0.0 : *std::min_element(v.begin(), v.end()); }
+
+/// Milliseconds: median and minimum of repeated runs.
+struct Timing {
+  std::vector<double> s;
+  double med() const { return 1e3 * median(s); }
+  double min() const { return 1e3 * minimum(s); }
+};
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -50,8 +65,7 @@ int main(int argc, char** argv) {
     const std::string k = argv[i], v = argv[i + 1];
     if (k == "--targets") {
       targets.clear();
-      std::stringstream ss(v);
-      for (std::string t; std::getline(ss, t, ',');) targets.push_back(std::stoi(t));
+      for (double t : breast_sim::bench::parseList(v)) targets.push_back(static_cast<int>(t));
     } else if (k == "--reps") reps = std::stoi(v);
     else if (k == "--json") json_path = v;
     else {
@@ -60,61 +74,88 @@ int main(int argc, char** argv) {
     }
   }
   const ModelCase base = loadModelCase(std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml");
-  std::printf("threads %d, %d repetitions per size\n", omp_get_max_threads(), reps);
-  std::printf("%9s %9s %12s %12s %12s %14s %14s %14s\n", "tets", "nodes", "update[ms]", "assemble[ms]", "sum[ms]",
-              "ns/element", "step asm[ms]", "overhead[ms]");
+  std::printf("threads %d, %d repetitions per size, medians [ms]\n", omp_get_max_threads(), reps);
+  std::printf("%8s %7s %6s %9s %9s %9s %9s %9s %9s %9s\n", "tets", "nodes", "volume", "rotations", "forces", "update",
+              "stiffness", "sum", "step asm", "overhead");
   nlohmann::json rows = nlohmann::json::array();
   for (int target : targets) {
     ModelCase c = base;
     c.meshing.target_elements = target;
     const SimulationModel model = buildSimulationModel(c);
-    CorotatedTetFem fem(model.mesh, ElasticMaterial{});
     // A deformed pose (sag under gravity-like shear) so rotations are not trivial.
     Points x = model.mesh.nodes();
     for (int n = 0; n < x.rows(); ++n) x(n, 0) += 0.05 * x(n, 1) * x(n, 1);
-    SparseMatrix A = fem.pattern().matrix();
     Eigen::VectorXd f;
-    fem.update(x, f);  // warm-up
-    std::vector<double> t_update, t_assemble, t_step;
-    for (int r = 0; r < reps; ++r) {
-      auto t0 = Clock::now();
-      fem.update(x, f);
-      auto t1 = Clock::now();
-      std::fill(A.valuePtr(), A.valuePtr() + A.nonZeros(), 0.0);
-      fem.addStiffness(1.0, A);
-      auto t2 = Clock::now();
-      t_update.push_back(std::chrono::duration<double>(t1 - t0).count());
-      t_assemble.push_back(std::chrono::duration<double>(t2 - t1).count());
+    // Forces alone: identity rotations.
+    Timing t_forces;
+    {
+      CorotatedTetFem plain(model.mesh, ElasticMaterial{});
+      plain.setCorotated(false);
+      plain.update(x, f);  // warm-up
+      for (int r = 0; r < reps; ++r) {
+        const auto t0 = Clock::now();
+        plain.update(x, f);
+        t_forces.s.push_back(since(t0));
+      }
     }
-    // The same pose through DynamicSimulator::step().
-    DynamicsParams params;
-    params.gravity_mps2 = {0, -9.81, 0};
-    DynamicSimulator sim(model.mesh, std::make_unique<CorotatedTetFem>(model.mesh, ElasticMaterial{}), ElasticMaterial{},
-                         params, std::make_unique<NullSolver>());
-    sim.fixNodes(model.mesh.nodeSet("chest_wall"));
-    if (model.mesh.nodeSets().count("nipple")) {
-      const auto& nip = model.mesh.nodeSet("nipple");
-      sim.setNodeTargets(nip, Points::Constant(static_cast<Eigen::Index>(nip.size()), 3, 1e-3));
-    }
-    SimulationState s0 = sim.state();
-    for (int n = 0; n < x.rows(); ++n) s0.displacement_m.segment<3>(3 * n) = (x.row(n) - model.mesh.nodes().row(n)).transpose();
-    sim.restore(s0);
-    sim.step();  // warm-up
-    for (int r = 0; r < reps; ++r) {
+    for (const auto volume : {CorotatedTetFem::VolumeTerm::kTrace, CorotatedTetFem::VolumeTerm::kDeterminant}) {
+      const char* volume_name = volume == CorotatedTetFem::VolumeTerm::kTrace ? "trace" : "det";
+      CorotatedTetFem fem(model.mesh, ElasticMaterial{});
+      fem.setVolumeTerm(volume);
+      SparseMatrix A = fem.pattern().matrix();
+      fem.update(x, f);  // warm-up
+      Timing t_update, t_assemble, t_step;
+      for (int r = 0; r < reps; ++r) {
+        const auto t0 = Clock::now();
+        fem.update(x, f);
+        t_update.s.push_back(since(t0));
+        const auto t1 = Clock::now();
+        std::fill(A.valuePtr(), A.valuePtr() + A.nonZeros(), 0.0);
+        fem.addStiffness(1.0, A);
+        t_assemble.s.push_back(since(t1));
+      }
+      // The same pose through DynamicSimulator::step().
+      DynamicsParams params;
+      params.gravity_mps2 = {0, -9.81, 0};
+      auto elements = std::make_unique<CorotatedTetFem>(model.mesh, ElasticMaterial{});
+      elements->setVolumeTerm(volume);
+      DynamicSimulator sim(model.mesh, std::move(elements), ElasticMaterial{}, params, std::make_unique<NullSolver>());
+      sim.fixNodes(model.mesh.nodeSet("chest_wall"));
+      if (model.mesh.nodeSets().count("nipple")) {
+        const auto& nip = model.mesh.nodeSet("nipple");
+        sim.setNodeTargets(nip, Points::Constant(static_cast<Eigen::Index>(nip.size()), 3, 1e-3));
+      }
+      SimulationState s0 = sim.state();
+      for (int n = 0; n < x.rows(); ++n)
+        s0.displacement_m.segment<3>(3 * n) = (x.row(n) - model.mesh.nodes().row(n)).transpose();
       sim.restore(s0);
-      t_step.push_back(sim.step().assembly_seconds);
+      sim.step();  // warm-up
+      for (int r = 0; r < reps; ++r) {
+        sim.restore(s0);
+        t_step.s.push_back(sim.step().assembly_seconds);
+      }
+      const double u = t_update.med(), a = t_assemble.med(), s = t_step.med(), fo = t_forces.med();
+      const bool trace = volume == CorotatedTetFem::VolumeTerm::kTrace;
+      std::printf("%8d %7d %6s %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f\n", model.mesh.numTets(),
+                  model.mesh.numNodes(), volume_name, u - fo, fo, u, a, u + a, s, s - u - a);
+      std::fflush(stdout);
+      rows.push_back({{"tets", model.mesh.numTets()},
+                      {"nodes", model.mesh.numNodes()},
+                      {"volume_term", trace ? "trace" : "determinant"},
+                      {"rotations_ms_median", u - fo},
+                      {"forces_ms_median", fo},
+                      {"update_ms_median", u},
+                      {"stiffness_ms_median", a},
+                      {"step_assembly_ms_median", s},
+                      {"step_overhead_ms_median", s - u - a},
+                      {"forces_ms_min", t_forces.min()},
+                      {"update_ms_min", t_update.min()},
+                      {"stiffness_ms_min", t_assemble.min()},
+                      {"step_assembly_ms_min", t_step.min()}});
     }
-    const double u_ms = 1e3 * minimum(t_update), a_ms = 1e3 * minimum(t_assemble), s_ms = 1e3 * minimum(t_step);
-    const double ns = 1e6 * (u_ms + a_ms) / model.mesh.numTets();
-    std::printf("%9d %9d %12.2f %12.2f %12.2f %14.1f %14.2f %14.2f\n", model.mesh.numTets(), model.mesh.numNodes(), u_ms,
-                a_ms, u_ms + a_ms, ns, s_ms, s_ms - u_ms - a_ms);
-    std::fflush(stdout);
-    rows.push_back({{"tets", model.mesh.numTets()}, {"nodes", model.mesh.numNodes()}, {"update_ms", u_ms},
-                    {"assemble_ms", a_ms}, {"ns_per_element", ns}, {"step_assembly_ms", s_ms},
-                    {"step_overhead_ms", s_ms - u_ms - a_ms}});
   }
   if (!json_path.empty())
     std::ofstream(json_path) << nlohmann::json{{"benchmark", "fem_assembly"}, {"threads", omp_get_max_threads()},
-                                               {"rows", rows}}.dump(2) << '\n';
+                                               {"statistic", "median"}, {"rows", rows}}.dump(2) << '\n';
   return 0;
 }

@@ -16,10 +16,12 @@ CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& mat
   lambda_ = material_.lameLambda();
   mu_ = material_.lameMu();
   const int nt = mesh.numTets();
+  const size_t num_batches = (static_cast<size_t>(nt) + kBatch - 1) / kBatch;
   grads_.resize(12 * static_cast<size_t>(nt));
+  batch_grads_.assign(12 * kBatch * num_batches, 0.0);
   volumes_.resize(nt);
-  rotations_.assign(9 * static_cast<size_t>(nt), 0.0);
-  records_raw_.assign(kRecord * static_cast<size_t>(nt) + 8, 0.0);
+  rotations_.assign(9 * kBatch * num_batches, 0.0);
+  records_raw_.assign(kRecordTrace * static_cast<size_t>(nt) + 8, 0.0);
   elem_forces_.assign(12 * static_cast<size_t>(nt), 0.0);
   modulus_factor_ = Eigen::VectorXd::Ones(nt);
   von_mises_ = Eigen::VectorXd::Zero(nt);
@@ -35,8 +37,10 @@ CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& mat
     for (int i = 1; i < 4; ++i)
       for (int c = 0; c < 3; ++c) g[3 * i + c] = Dinv(i - 1, c);
     for (int c = 0; c < 3; ++c) g[c] = -(g[3 + c] + g[6 + c] + g[9 + c]);
-    Eigen::Map<Eigen::Matrix3d>(&rotations_[9 * static_cast<size_t>(e)]).setIdentity();
-    double* rec = records() + kRecord * static_cast<size_t>(e);
+    const size_t b = static_cast<size_t>(e / kBatch), l = static_cast<size_t>(e % kBatch);
+    for (int k = 0; k < 12; ++k) batch_grads_[12 * kBatch * b + k * kBatch + l] = g[k];
+    for (int k = 0; k < 9; k += 4) rotations_[9 * kBatch * b + k * kBatch + l] = 1.0;
+    double* rec = records() + kRecordTrace * static_cast<size_t>(e);
     std::copy(g, g + 12, rec);
     rec[12] = volumes_[e];
   }
@@ -60,63 +64,136 @@ void CorotatedTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
                                   std::to_string(factors[e]) + "; factors must be positive and finite");
   modulus_factor_ = factors;
   double* rec = records();
-  for (Eigen::Index e = 0; e < factors.size(); ++e) rec[kRecord * static_cast<size_t>(e) + 12] = factors[e] * volumes_[e];
+  for (Eigen::Index e = 0; e < factors.size(); ++e) rec[record_ * static_cast<size_t>(e) + 12] = factors[e] * volumes_[e];
+}
+
+Eigen::Matrix3d CorotatedTetFem::rotation(int e) const {
+  Eigen::Matrix3d R;
+  const double* r = &rotations_[9 * kBatch * static_cast<size_t>(e / kBatch) + e % kBatch];
+  for (int k = 0; k < 9; ++k) R.data()[k] = r[k * kBatch];
+  return R;
+}
+
+template <bool kDeterminant>
+void CorotatedTetFem::updateBatches(const Points& x) {
+  constexpr int W = kBatch;
+  const int nt = static_cast<int>(tets_.rows());
+  const int num_batches = (nt + W - 1) / W;
+  const double lambda = lambda_, two_mu = 2.0 * mu_;
+  const bool corotated = corotated_;
+  double* const recs = records();
+  const int stride = record_;
+  // Per batch, component-major arrays v[k·W + l] (lane l = element e0 + l); every arithmetic loop
+  // below runs over l without a branch, so it vectorises (see rotationsOf for why: no conditional
+  // expressions, square roots in loops of their own). Lanes past the last element compute on zeros
+  // and the identity and are not written back.
+  // Measured (bench_fem_assembly, 48.8k tets, 1 thread, medians of 40, old and new binaries
+  // interleaved on a loaded machine): update (rotations + forces) trace 10.5–10.9 → 5.0 ms,
+  // determinant 11.9 → 6.0 ms; of which rotations 7.9–8.5 → 2.8 ms.
+#pragma omp parallel for schedule(static)
+  for (int b = 0; b < num_batches; ++b) {
+    const int e0 = b * W, m = std::min(W, nt - e0);
+    const double* const g = &batch_grads_[12 * W * static_cast<size_t>(b)];
+    double* const Rb = &rotations_[9 * W * static_cast<size_t>(b)];
+    alignas(64) double xs[12 * W], F[9 * W], f[12 * W], rg[12 * W], cg[12 * W], sf[W], vol[W], vm2[W];
+    for (int l = 0; l < W; ++l) {
+      const bool in = l < m;
+      vol[l] = in ? volumes_[e0 + l] : 0.0;
+      sf[l] = in ? modulus_factor_[e0 + l] : 0.0;
+      for (int i = 0; i < 4; ++i)
+        for (int c = 0; c < 3; ++c) xs[(3 * i + c) * W + l] = in ? x(tets_(e0 + l, i), c) : 0.0;
+    }
+    // F = Σ_i x_i ∇N_iᵀ, column-major: F[(r + 3c)·W + l].
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c)
+        for (int l = 0; l < W; ++l)
+          F[(r + 3 * c) * W + l] = xs[r * W + l] * g[c * W + l] + xs[(3 + r) * W + l] * g[(3 + c) * W + l] +
+                                   xs[(6 + r) * W + l] * g[(6 + c) * W + l] + xs[(9 + r) * W + l] * g[(9 + c) * W + l];
+    if (corotated) rotationsOf(F, Rb, m);
+    for (int l = corotated ? m : 0; l < W; ++l)
+      for (int k = 0; k < 9; ++k) Rb[k * W + l] = k % 4 == 0 ? 1.0 : 0.0;
+    for (int l = 0; l < W; ++l) {
+      double Fl[9], Rl[9];
+      for (int k = 0; k < 9; ++k) Fl[k] = F[k * W + l], Rl[k] = Rb[k * W + l];
+      // Fr = Rᵀ F; co-rotated strain ε = sym(Fr) − I.
+      double Fr[9];
+      for (int p = 0; p < 3; ++p)
+        for (int q = 0; q < 3; ++q) Fr[p + 3 * q] = Rl[3 * p] * Fl[3 * q] + Rl[3 * p + 1] * Fl[3 * q + 1] + Rl[3 * p + 2] * Fl[3 * q + 2];
+      const double e00 = Fr[0] - 1.0, e11 = Fr[4] - 1.0, e22 = Fr[8] - 1.0;
+      const double e01 = 0.5 * (Fr[3] + Fr[1]), e12 = 0.5 * (Fr[7] + Fr[5]), e02 = 0.5 * (Fr[6] + Fr[2]);
+      // Co-rotated stress σ with P = R σ (corotated_tet_fem.h, VolumeTerm); symmetric.
+      double s00, s11, s22, s01, s12, s02;
+      if constexpr (!kDeterminant) {
+        const double p = lambda * (e00 + e11 + e22);
+        s00 = p + two_mu * e00, s11 = p + two_mu * e11, s22 = p + two_mu * e22;
+        s01 = two_mu * e01, s12 = two_mu * e12, s02 = two_mu * e02;
+      } else {
+        // Rᵀ cof F = J S⁻¹ (symmetric for the polar R): λ (J − 1) sym(Rᵀ cof F); the columns of
+        // cof F are cross products of F's columns.
+        const double cof[9] = {Fl[4] * Fl[8] - Fl[5] * Fl[7], Fl[5] * Fl[6] - Fl[3] * Fl[8], Fl[3] * Fl[7] - Fl[4] * Fl[6],
+                               Fl[7] * Fl[2] - Fl[8] * Fl[1], Fl[8] * Fl[0] - Fl[6] * Fl[2], Fl[6] * Fl[1] - Fl[7] * Fl[0],
+                               Fl[1] * Fl[5] - Fl[2] * Fl[4], Fl[2] * Fl[3] - Fl[0] * Fl[5], Fl[0] * Fl[4] - Fl[1] * Fl[3]};
+        const double J = Fl[0] * cof[0] + Fl[1] * cof[1] + Fl[2] * cof[2];
+        double rc[9];
+        for (int p = 0; p < 3; ++p)
+          for (int q = 0; q < 3; ++q)
+            rc[p + 3 * q] = Rl[3 * p] * cof[3 * q] + Rl[3 * p + 1] * cof[3 * q + 1] + Rl[3 * p + 2] * cof[3 * q + 2];
+        const double h = lambda * (J - 1.0);
+        s00 = h * rc[0] + two_mu * e00, s11 = h * rc[4] + two_mu * e11, s22 = h * rc[8] + two_mu * e22;
+        s01 = h * (0.5 * (rc[3] + rc[1])) + two_mu * e01;
+        s12 = h * (0.5 * (rc[7] + rc[5])) + two_mu * e12;
+        s02 = h * (0.5 * (rc[6] + rc[2])) + two_mu * e02;
+        // ∂J/∂x_i = cof F ∇N_i, kept for the volumetric (Gauss–Newton) part of the stiffness.
+        for (int i = 0; i < 4; ++i)
+          for (int r = 0; r < 3; ++r)
+            cg[(3 * i + r) * W + l] = cof[r] * g[(3 * i) * W + l] + cof[r + 3] * g[(3 * i + 1) * W + l] +
+                                      cof[r + 6] * g[(3 * i + 2) * W + l];
+      }
+      // The modulus factor E_r scales σ.
+      const double s = sf[l];
+      s00 *= s, s11 *= s, s22 *= s, s01 *= s, s12 *= s, s02 *= s;
+      const double d01 = s00 - s11, d12 = s11 - s22, d20 = s22 - s00;
+      vm2[l] = 0.5 * (d01 * d01 + d12 * d12 + d20 * d20) + 3.0 * (s01 * s01 + s12 * s12 + s02 * s02);
+      // RS = −V R σ; element forces f_i = RS ∇N_i, and R ∇N_i for the stiffness.
+      const double sig[9] = {s00, s01, s02, s01, s11, s12, s02, s12, s22};
+      double RS[9];
+      for (int r = 0; r < 3; ++r)
+        for (int q = 0; q < 3; ++q)
+          RS[r + 3 * q] = -vol[l] * (Rl[r] * sig[3 * q] + Rl[r + 3] * sig[3 * q + 1] + Rl[r + 6] * sig[3 * q + 2]);
+      for (int i = 0; i < 4; ++i) {
+        const double g0 = g[(3 * i) * W + l], g1 = g[(3 * i + 1) * W + l], g2 = g[(3 * i + 2) * W + l];
+        for (int r = 0; r < 3; ++r) {
+          f[(3 * i + r) * W + l] = RS[r] * g0 + RS[r + 3] * g1 + RS[r + 6] * g2;
+          rg[(3 * i + r) * W + l] = Rl[r] * g0 + Rl[r + 3] * g1 + Rl[r + 6] * g2;
+        }
+      }
+    }
+    // Back to per-element storage.
+    for (int l = 0; l < m; ++l) {
+      const size_t e = static_cast<size_t>(e0 + l);
+      von_mises_[e0 + l] = std::sqrt(vm2[l]);
+      double* const fe = &elem_forces_[12 * e];
+      double* const rec = recs + stride * e;
+      for (int k = 0; k < 12; ++k) fe[k] = f[k * W + l];
+      for (int k = 0; k < 12; ++k) rec[k] = rg[k * W + l];
+      rec[12] = sf[l] * vol[l];  // V·E_r, as setModulusFactors writes it
+      if constexpr (kDeterminant)
+        for (int k = 0; k < 12; ++k) rec[kVolumeGrads + k] = cg[k * W + l];
+    }
+  }
 }
 
 void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
   const int nt = static_cast<int>(tets_.rows());
   const bool determinant = volume_term_ == VolumeTerm::kDeterminant && corotated_;
-  if (determinant) volume_grads_.resize(12 * static_cast<size_t>(nt));
   stiffness_is_determinant_ = determinant;
-  // Per element: rotation, co-rotated strain and stress, element forces −V R σ ∇N_i.
-#pragma omp parallel for schedule(static)
-  for (int e = 0; e < nt; ++e) {
-    const double* g = &grads_[12 * static_cast<size_t>(e)];
-    Eigen::Matrix3d F = Eigen::Matrix3d::Zero();  // Σ_i x_i ∇N_iᵀ
-    for (int i = 0; i < 4; ++i) {
-      const Eigen::Vector3d xi = x.row(tets_(e, i));
-      F.noalias() += xi * Eigen::RowVector3d(g[3 * i], g[3 * i + 1], g[3 * i + 2]);
-    }
-    Eigen::Map<Eigen::Matrix3d> R(&rotations_[9 * static_cast<size_t>(e)]);
-    if (corotated_) R = rotationOf(F);
-    const Eigen::Matrix3d Fr = R.transpose() * F;
-    const Eigen::Matrix3d eps = 0.5 * (Fr + Fr.transpose()) - Eigen::Matrix3d::Identity();
-    const double s = modulus_factor_[e];
-    // Co-rotated stress σ with P = R σ (corotated_tet_fem.h, VolumeTerm).
-    Eigen::Matrix3d sigma;
-    if (volume_term_ == VolumeTerm::kTrace || !corotated_) {
-      sigma = s * (lambda_ * eps.trace() * Eigen::Matrix3d::Identity() + 2.0 * mu_ * eps);
-    } else {
-      // Rᵀ cof F = J S⁻¹ (symmetric for the polar R): λ (J − 1) J S⁻¹; its columns are Rᵀ times
-      // the cross products of F's columns.
-      Eigen::Matrix3d cof;
-      cof.col(0) = F.col(1).cross(F.col(2));
-      cof.col(1) = F.col(2).cross(F.col(0));
-      cof.col(2) = F.col(0).cross(F.col(1));
-      const double J = F.col(0).dot(cof.col(0));
-      const Eigen::Matrix3d rc = R.transpose() * cof;
-      sigma = s * (lambda_ * (J - 1.0) * 0.5 * (rc + rc.transpose()) + 2.0 * mu_ * eps);
-      // ∂J/∂x_i = cof F ∇N_i, kept for the volumetric (Gauss–Newton) part of the stiffness.
-      double* cg = &volume_grads_[12 * static_cast<size_t>(e)];
-      for (int i = 0; i < 4; ++i)
-        Eigen::Map<Eigen::Vector3d>(cg + 3 * i) = cof * Eigen::Vector3d(g[3 * i], g[3 * i + 1], g[3 * i + 2]);
-    }
-    const double d01 = sigma(0, 0) - sigma(1, 1), d12 = sigma(1, 1) - sigma(2, 2), d20 = sigma(2, 2) - sigma(0, 0);
-    von_mises_[e] = std::sqrt(0.5 * (d01 * d01 + d12 * d12 + d20 * d20) +
-                              3.0 * (sigma(0, 1) * sigma(0, 1) + sigma(1, 2) * sigma(1, 2) + sigma(0, 2) * sigma(0, 2)));
-    const Eigen::Matrix3d RS = -volumes_[e] * (R * sigma);
-    double* fe = &elem_forces_[12 * static_cast<size_t>(e)];
-    double* rg = records() + kRecord * static_cast<size_t>(e);
-    for (int i = 0; i < 4; ++i) {
-      const Eigen::Vector3d gi(g[3 * i], g[3 * i + 1], g[3 * i + 2]);
-      const Eigen::Vector3d fi = RS * gi;
-      fe[3 * i] = fi.x();
-      fe[3 * i + 1] = fi.y();
-      fe[3 * i + 2] = fi.z();
-      // R ∇N_i, kept for the stiffness assembly (each element's blocks are gathered by 4 nodes).
-      Eigen::Map<Eigen::Vector3d>(rg + 3 * i) = R * gi;
-    }
+  const int stride = determinant ? kRecordDeterminant : kRecordTrace;
+  if (stride != record_) {
+    record_ = stride;
+    records_raw_.assign(static_cast<size_t>(stride) * nt + 8, 0.0);
   }
+  if (determinant) updateBatches<true>(x);
+  else updateBatches<false>(x);
   // Gather per node.
   const int nn = pattern_.numNodes();
   f.setZero(3 * nn);
@@ -136,16 +213,26 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
 }
 
 void CorotatedTetFem::addStiffness(double scale, SparseMatrix& A) const {
-  if (stiffness_is_determinant_) {
-    addDeterminantStiffness(scale, A);
-    return;
-  }
+  if (stiffness_is_determinant_) gatherStiffness<true>(scale, A);
+  else gatherStiffness<false>(scale, A);
+}
+
+template <bool kDeterminant>
+void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
+  // Block (i, j) of an element, with a = R ∇N (rotated shape gradients) and V including E_r:
+  //   kTrace, R K_e0 Rᵀ:  V(λ a_i a_jᵀ + μ a_j a_iᵀ + μ (a_i·a_j) I)
+  //   kDeterminant:       V(λ c_i c_jᵀ + μ a_j a_iᵀ + μ (a_i·a_j) I), c = cof F ∇N = ∂J/∂x: the μ part
+  //                       of R K_e0 Rᵀ and the Gauss–Newton part of λ (J − 1) cof F, whose dropped
+  //                       remainder λ (J − 1) ∂cof F/∂x is indefinite. SPD, and R K_e0 Rᵀ at rest.
+  // Both are u h_jᵀ + a_j vᵀ + (v·a_j) I with u = Vλ h_i, v = Vμ a_i, h = a or c.
   const int nn = pattern_.numNodes();
   double* const values = A.valuePtr();
   const int* const outer = A.outerIndexPtr();
   const double* const recs = records();
   const int* const islots = incident_slots_.data();
   const double sl = scale * lambda_, sm = scale * mu_;
+  constexpr int kStride = kDeterminant ? kRecordDeterminant : kRecordTrace;
+  constexpr int kH = kDeterminant ? kVolumeGrads : 0;  // where h starts in the record
   // Everything is read into locals before the writes to A: `values` could alias the gradients for
   // the compiler, which would otherwise reload them after every store. Node n's three rows are
   // contiguous (3·deg entries each), so its writes stay in one ~1 kB stretch of A (L1-resident).
@@ -153,9 +240,15 @@ void CorotatedTetFem::addStiffness(double scale, SparseMatrix& A) const {
   // Measured (bench_fem_assembly, 2 threads, minima over 40 or 20 runs, old and new binaries
   // interleaved, quiet machine): assemble (serial zeroing of A + this) 47.5k tets 8.4–9.9 → 3.9–4.0
   // ms, 308k tets 114.6 → 31.0 ms. Prefetching the element forces in update()'s node gather the
-  // same way did not pay (measured, dropped).
+  // same way did not pay (measured, dropped). The determinant term's c in the same record, read and
+  // prefetched with it, instead of a separate array: 48.8k tets, 1 thread, medians, 10.9–11.1 →
+  // 6.1–6.4 ms (trace 5.6–5.8, unchanged).
   constexpr int kAhead = 4;
   const int num_incidences = pattern_.incidentStart(nn);
+  auto prefetch = [&](int k) {
+    const double* r = recs + kStride * static_cast<size_t>(pattern_.incidentElement(k));
+    for (int line = 0; line < kStride; line += 8) __builtin_prefetch(r + line);
+  };
 #pragma omp parallel for schedule(dynamic, 64)
   for (int n = 0; n < nn; ++n) {
     double* const row0 = values + outer[3 * n];
@@ -163,77 +256,36 @@ void CorotatedTetFem::addStiffness(double scale, SparseMatrix& A) const {
     double* const row1 = row0 + len;
     double* const row2 = row1 + len;
     const int k_begin = pattern_.incidentStart(n), k_end = pattern_.incidentStart(n + 1);
-    for (int k = k_begin; k < std::min(k_begin + kAhead, num_incidences); ++k) {
-      const double* r = recs + kRecord * static_cast<size_t>(pattern_.incidentElement(k));
-      __builtin_prefetch(r);
-      __builtin_prefetch(r + 8);
-    }
+    for (int k = k_begin; k < std::min(k_begin + kAhead, num_incidences); ++k) prefetch(k);
     for (int k = k_begin; k < k_end; ++k) {
-      if (k + kAhead < num_incidences) {
-        const double* r = recs + kRecord * static_cast<size_t>(pattern_.incidentElement(k + kAhead));
-        __builtin_prefetch(r);
-        __builtin_prefetch(r + 8);
-      }
+      if (k + kAhead < num_incidences) prefetch(k + kAhead);
       const int i = pattern_.incidentLocal(k);
-      const double* const rg = recs + kRecord * static_cast<size_t>(pattern_.incidentElement(k));
-      // Block (i, j) of R K_e0 Rᵀ: V(λ gi gjᵀ + μ gj giᵀ + μ (gi·gj) I) = u gjᵀ + gj vᵀ + (v·gj) I
-      // with u = Vλ gi, v = Vμ gi (V including the modulus factor).
-      double g[12];
-      for (int q = 0; q < 12; ++q) g[q] = rg[q];
-      const double w = rg[12];
-      const double gi0 = g[3 * i], gi1 = g[3 * i + 1], gi2 = g[3 * i + 2];
+      const double* const rec = recs + kStride * static_cast<size_t>(pattern_.incidentElement(k));
+      double g[12], h[12];
+      for (int q = 0; q < 12; ++q) g[q] = rec[q];
+      for (int q = 0; q < 12; ++q) h[q] = rec[kH + q];
+      const double w = rec[12];
       const double wl = w * sl, wm = w * sm;
-      const double u0 = wl * gi0, u1 = wl * gi1, u2 = wl * gi2;
-      const double v0 = wm * gi0, v1 = wm * gi1, v2 = wm * gi2;
+      const double u0 = wl * h[3 * i], u1 = wl * h[3 * i + 1], u2 = wl * h[3 * i + 2];
+      const double v0 = wm * g[3 * i], v1 = wm * g[3 * i + 1], v2 = wm * g[3 * i + 2];
       int slot[4];
       for (int j = 0; j < 4; ++j) slot[j] = islots[4 * static_cast<size_t>(k) + j];
       for (int j = 0; j < 4; ++j) {
         const double gj0 = g[3 * j], gj1 = g[3 * j + 1], gj2 = g[3 * j + 2];
+        const double hj0 = h[3 * j], hj1 = h[3 * j + 1], hj2 = h[3 * j + 2];
         const double d = v0 * gj0 + v1 * gj1 + v2 * gj2;
         double* const p0 = row0 + slot[j];
         double* const p1 = row1 + slot[j];
         double* const p2 = row2 + slot[j];
-        p0[0] += u0 * gj0 + gj0 * v0 + d;
-        p0[1] += u0 * gj1 + gj0 * v1;
-        p0[2] += u0 * gj2 + gj0 * v2;
-        p1[0] += u1 * gj0 + gj1 * v0;
-        p1[1] += u1 * gj1 + gj1 * v1 + d;
-        p1[2] += u1 * gj2 + gj1 * v2;
-        p2[0] += u2 * gj0 + gj2 * v0;
-        p2[1] += u2 * gj1 + gj2 * v1;
-        p2[2] += u2 * gj2 + gj2 * v2 + d;
-      }
-    }
-  }
-}
-
-void CorotatedTetFem::addDeterminantStiffness(double scale, SparseMatrix& A) const {
-  // Block (i, j): V E_r (λ c_i c_jᵀ + μ a_j a_iᵀ + μ (a_i·a_j) I) with a = R ∇N and c = cof F ∇N
-  // (= ∂J/∂x): the μ part of R K_e0 Rᵀ and the Gauss–Newton part of λ (J − 1) cof F, whose
-  // dropped remainder λ (J − 1) ∂cof F/∂x is indefinite. SPD, and R K_e0 Rᵀ at rest.
-  const int nn = pattern_.numNodes();
-  double* const values = A.valuePtr();
-  const int* const outer = A.outerIndexPtr();
-  const double* const recs = records();
-  const int* const islots = incident_slots_.data();
-  const double sl = scale * lambda_, sm = scale * mu_;
-#pragma omp parallel for schedule(dynamic, 64)
-  for (int n = 0; n < nn; ++n) {
-    double* const row0 = values + outer[3 * n];
-    const int len = outer[3 * n + 1] - outer[3 * n];
-    double* const rows[3] = {row0, row0 + len, row0 + 2 * len};
-    for (int k = pattern_.incidentStart(n); k < pattern_.incidentStart(n + 1); ++k) {
-      const int i = pattern_.incidentLocal(k);
-      const size_t e = static_cast<size_t>(pattern_.incidentElement(k));
-      const double* const a = recs + kRecord * e;
-      const double* const c = &volume_grads_[12 * e];
-      const double w = a[12];
-      for (int j = 0; j < 4; ++j) {
-        const int slot = islots[4 * static_cast<size_t>(k) + j];
-        const double d = w * sm * (a[3 * i] * a[3 * j] + a[3 * i + 1] * a[3 * j + 1] + a[3 * i + 2] * a[3 * j + 2]);
-        for (int r = 0; r < 3; ++r)
-          for (int q = 0; q < 3; ++q)
-            rows[r][slot + q] += w * (sl * c[3 * i + r] * c[3 * j + q] + sm * a[3 * j + r] * a[3 * i + q]) + (r == q ? d : 0.0);
+        p0[0] += u0 * hj0 + gj0 * v0 + d;
+        p0[1] += u0 * hj1 + gj0 * v1;
+        p0[2] += u0 * hj2 + gj0 * v2;
+        p1[0] += u1 * hj0 + gj1 * v0;
+        p1[1] += u1 * hj1 + gj1 * v1 + d;
+        p1[2] += u1 * hj2 + gj1 * v2;
+        p2[0] += u2 * hj0 + gj2 * v0;
+        p2[1] += u2 * hj1 + gj2 * v1;
+        p2[2] += u2 * hj2 + gj2 * v2 + d;
       }
     }
   }
@@ -260,12 +312,12 @@ Eigen::MatrixXd CorotatedTetFem::denseStiffness() const {
     C.topLeftCorner<3, 3>().diagonal().array() += 2.0 * mu_;
     C.bottomRightCorner<3, 3>().diagonal().setConstant(mu_);
     const Eigen::Matrix<double, 12, 12> K0 = volumes_[e] * B.transpose() * C * B;
-    const Eigen::Map<const Eigen::Matrix3d> R(&rotations_[9 * static_cast<size_t>(e)]);
+    const Eigen::Matrix3d R = rotation(e);
     Eigen::Matrix<double, 12, 12> Rb = Eigen::Matrix<double, 12, 12>::Zero();
     for (int i = 0; i < 4; ++i) Rb.block<3, 3>(3 * i, 3 * i) = R;
     Eigen::Matrix<double, 12, 12> Ke = modulus_factor_[e] * Rb * K0 * Rb.transpose();
     if (stiffness_is_determinant_) {
-      const Eigen::Map<const Eigen::Matrix<double, 12, 1>> c(&volume_grads_[12 * static_cast<size_t>(e)]);
+      const Eigen::Map<const Eigen::Matrix<double, 12, 1>> c(records() + record_ * static_cast<size_t>(e) + kVolumeGrads);
       Ke += modulus_factor_[e] * volumes_[e] * lambda_ * c * c.transpose();
     }
     for (int i = 0; i < 4; ++i)

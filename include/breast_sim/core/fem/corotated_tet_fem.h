@@ -7,6 +7,7 @@
 
 #include "breast_sim/core/fem/elastic_material.h"
 #include "breast_sim/core/fem/element_formulation.h"
+#include "breast_sim/core/fem/polar_decomposition.h"
 
 namespace breast_sim::core {
 
@@ -17,6 +18,9 @@ namespace breast_sim::core {
 /// K_e0 is never stored: its 3×3 blocks V(λ a bᵀ + μ b aᵀ + μ (a·b) I), with a, b the shape-function
 /// gradients of the two nodes, are formed on the fly from the rotated gradients R_e ∇N_i, which
 /// costs fewer flops than streaming 144 stored values per element from memory.
+/// The per-element work of update() (deformation gradient, rotation, stress, forces) runs on
+/// batches of kRotationBatch elements in structure-of-arrays form, in loops over the batch the
+/// compiler vectorises; the rotations by rotationsOf() (polar_decomposition.h).
 /// Assembly and forces run in parallel over nodes (each node gathers from its elements), so no two
 /// threads write the same entry.
 class CorotatedTetFem : public ElementFormulation {
@@ -32,7 +36,7 @@ class CorotatedTetFem : public ElementFormulation {
   const Eigen::VectorXd& vonMisesStress() const override { return von_mises_; }
 
   /// Rotation of element e at the last update.
-  Eigen::Matrix3d rotation(int e) const { return Eigen::Map<const Eigen::Matrix3d>(&rotations_[9 * static_cast<size_t>(e)]); }
+  Eigen::Matrix3d rotation(int e) const;
   /// When false, rotations stay identity: plain (not co-rotated) linear FEM, for comparisons.
   void setCorotated(bool corotated) { corotated_ = corotated; }
 
@@ -63,20 +67,24 @@ class CorotatedTetFem : public ElementFormulation {
   Eigen::MatrixXd denseStiffness() const;
 
  private:
+  static constexpr int kBatch = kRotationBatch;  // elements per batch of update()
   const Tets tets_;
   const Points rest_;
   ElasticMaterial material_;
   double lambda_, mu_;
   BlockPattern pattern_;
-  std::vector<double> grads_;      // 12 per element: ∇N_0..∇N_3 [1/m]
-  std::vector<double> volumes_;    // [m³]
-  std::vector<double> rotations_;  // 9 per element, column-major
-  // What addStiffness reads per element, packed into one 128-byte (two cache line) record that
-  // starts on a 64-byte boundary: R ∇N_0..3 at the last update [1/m] (12), V·E_r [m³] (1), unused (3).
+  std::vector<double> grads_;       // 12 per element: ∇N_0..∇N_3 [1/m]
+  std::vector<double> batch_grads_; // the same per batch of kBatch elements, component-major: [12·kBatch·b + k·kBatch + l]
+  std::vector<double> volumes_;     // [m³]
+  std::vector<double> rotations_;   // per batch, component-major as batch_grads_: [9·kBatch·b + k·kBatch + l], column-major
+  // What addStiffness reads per element, packed into one record that starts on a 64-byte boundary:
+  // R ∇N_0..3 at the last update [1/m] (12), V·E_r [m³] (1), unused (3), and with the determinant
+  // volume term cof F ∇N_0..3 = ∂J/∂x_i [1/m] (12), unused (4): 16 or 32 doubles, 2 or 4 lines.
   // The stiffness gather visits each element from its 4 nodes in an order the hardware prefetcher
   // cannot follow, so it is latency-bound: fewer, aligned lines per visit pay directly.
-  static constexpr int kRecord = 16;
-  std::vector<double> records_raw_;  // kRecord per element + 8 for the alignment
+  static constexpr int kRecordTrace = 16, kRecordDeterminant = 32, kVolumeGrads = 16;
+  int record_ = kRecordTrace;        // the record length in use (that of the last update)
+  std::vector<double> records_raw_;  // record_ per element + 8 for the alignment
   double* records() { return alignedRecords(records_raw_.data()); }
   const double* records() const { return alignedRecords(records_raw_.data()); }
   static double* alignedRecords(const double* raw) {
@@ -90,8 +98,10 @@ class CorotatedTetFem : public ElementFormulation {
   bool corotated_ = true;
   VolumeTerm volume_term_ = VolumeTerm::kTrace;
   bool stiffness_is_determinant_ = false;  // the volume term at the last update()
-  std::vector<double> volume_grads_;       // kDeterminant: 12 per element, ∂J/∂x_i = cof F ∇N_i [1/m]
-  void addDeterminantStiffness(double scale, SparseMatrix& A) const;
+  template <bool kDeterminant>
+  void updateBatches(const Points& x);
+  template <bool kDeterminant>
+  void gatherStiffness(double scale, SparseMatrix& A) const;
 };
 
 }  // namespace breast_sim::core
