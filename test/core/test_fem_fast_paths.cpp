@@ -163,6 +163,13 @@ TEST(FemFastPaths, BatchedRotationsEqualRotationOfLaneByLane) {
   EXPECT_THROW(rotationsOf(nullptr, nullptr, W + 1), std::invalid_argument);
 }
 
+TEST(FemFastPaths, AssignStiffnessRejectsAMatrixOfAnotherPattern) {
+  const TetMesh m = makeBoxMesh({2, 1, 1}, {0.02, 0.01, 0.01});
+  CorotatedTetFem fem(m, ElasticMaterial{});
+  SparseMatrix other(3 * m.numNodes(), 3 * m.numNodes());
+  EXPECT_THROW(fem.assignStiffness(1.0, other), std::invalid_argument);
+}
+
 TEST(FemFastPaths, BatchedUpdateEqualsElementByElementReferenceWithInvertedElements) {
   // 3×2×2 cells: 72 tets (whole batches); 5×3×1: 90 (a partial batch of 2).
   for (const Eigen::Vector3i& cells : {Eigen::Vector3i(3, 2, 2), Eigen::Vector3i(5, 3, 1)}) {
@@ -190,6 +197,11 @@ TEST(FemFastPaths, BatchedUpdateEqualsElementByElementReferenceWithInvertedEleme
       fem.addStiffness(2.5, K);
       const Eigen::MatrixXd dense = 2.5 * fem.denseStiffness();
       EXPECT_LT((Eigen::MatrixXd(K) - dense).cwiseAbs().maxCoeff(), 1e-12 * dense.cwiseAbs().maxCoeff());
+      // assignStiffness overwrites whatever A held with the same values, bit for bit.
+      SparseMatrix Kassigned = fem.pattern().matrix();
+      for (Eigen::Index i = 0; i < Kassigned.nonZeros(); ++i) Kassigned.valuePtr()[i] = 1e9 + static_cast<double>(i);
+      fem.assignStiffness(2.5, Kassigned);
+      for (Eigen::Index i = 0; i < K.nonZeros(); ++i) ASSERT_EQ(Kassigned.valuePtr()[i], K.valuePtr()[i]) << "entry " << i;
     }
   }
 }

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <stdexcept>
+#include <string>
 
 #include <Eigen/Dense>
 
@@ -74,6 +75,92 @@ Eigen::Matrix3d CorotatedTetFem::rotation(int e) const {
   return R;
 }
 
+namespace {
+
+constexpr int W = kRotationBatch;
+
+/// The arithmetic of one batch of W elements of CorotatedTetFem::update(), on component-major
+/// arrays v[k·W + l] (see updateBatches): from the node positions xs (x_0..x_3, 12) and the shape
+/// gradients g (12), F and its rotation R (9; rotationsOf for the first m lanes when corotated, the
+/// identity otherwise), the element forces f = −V R σ ∇N_i (12), R ∇N_i (12), with kDeterminant
+/// cof F ∇N_i (12), and the squared von Mises stress vm2; sf is E_r and vol V [m³].
+/// \note Compiling it (and rotationsOf) for AVX2/FMA and AVX-512 as well (GCC target_clones) did
+/// not pay: 48.8k tets, 1 thread, medians, update 5.1–5.3 ms either way (the rotations ~0.4 ms
+/// faster, the rest as much slower): update() is bound by memory traffic, not arithmetic.
+template <bool kDeterminant>
+void batchKernel(const double* __restrict xs, const double* __restrict g, const double* __restrict sf,
+                 const double* __restrict vol, int m, bool corotated, double lambda, double two_mu, double* __restrict Rb,
+                 double* __restrict f, double* __restrict rg, double* __restrict cg, double* __restrict vm2) {
+  alignas(64) double F[9 * W];
+  // F = Σ_i x_i ∇N_iᵀ, column-major: F[(r + 3c)·W + l].
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c)
+      for (int l = 0; l < W; ++l)
+        F[(r + 3 * c) * W + l] = xs[r * W + l] * g[c * W + l] + xs[(3 + r) * W + l] * g[(3 + c) * W + l] +
+                                 xs[(6 + r) * W + l] * g[(6 + c) * W + l] + xs[(9 + r) * W + l] * g[(9 + c) * W + l];
+  if (corotated) rotationsOf(F, Rb, m);
+  for (int l = corotated ? m : 0; l < W; ++l)
+    for (int k = 0; k < 9; ++k) Rb[k * W + l] = k % 4 == 0 ? 1.0 : 0.0;
+  for (int l = 0; l < W; ++l) {
+    double Fl[9], Rl[9];
+    for (int k = 0; k < 9; ++k) Fl[k] = F[k * W + l], Rl[k] = Rb[k * W + l];
+    // Fr = Rᵀ F; co-rotated strain ε = sym(Fr) − I.
+    double Fr[9];
+    for (int p = 0; p < 3; ++p)
+      for (int q = 0; q < 3; ++q) Fr[p + 3 * q] = Rl[3 * p] * Fl[3 * q] + Rl[3 * p + 1] * Fl[3 * q + 1] + Rl[3 * p + 2] * Fl[3 * q + 2];
+    const double e00 = Fr[0] - 1.0, e11 = Fr[4] - 1.0, e22 = Fr[8] - 1.0;
+    const double e01 = 0.5 * (Fr[3] + Fr[1]), e12 = 0.5 * (Fr[7] + Fr[5]), e02 = 0.5 * (Fr[6] + Fr[2]);
+    // Co-rotated stress σ with P = R σ (corotated_tet_fem.h, VolumeTerm); symmetric.
+    double s00, s11, s22, s01, s12, s02;
+    if constexpr (!kDeterminant) {
+      const double p = lambda * (e00 + e11 + e22);
+      s00 = p + two_mu * e00, s11 = p + two_mu * e11, s22 = p + two_mu * e22;
+      s01 = two_mu * e01, s12 = two_mu * e12, s02 = two_mu * e02;
+    } else {
+      // Rᵀ cof F = J S⁻¹ (symmetric for the polar R): λ (J − 1) sym(Rᵀ cof F); the columns of
+      // cof F are cross products of F's columns.
+      const double cof[9] = {Fl[4] * Fl[8] - Fl[5] * Fl[7], Fl[5] * Fl[6] - Fl[3] * Fl[8], Fl[3] * Fl[7] - Fl[4] * Fl[6],
+                             Fl[7] * Fl[2] - Fl[8] * Fl[1], Fl[8] * Fl[0] - Fl[6] * Fl[2], Fl[6] * Fl[1] - Fl[7] * Fl[0],
+                             Fl[1] * Fl[5] - Fl[2] * Fl[4], Fl[2] * Fl[3] - Fl[0] * Fl[5], Fl[0] * Fl[4] - Fl[1] * Fl[3]};
+      const double J = Fl[0] * cof[0] + Fl[1] * cof[1] + Fl[2] * cof[2];
+      double rc[9];
+      for (int p = 0; p < 3; ++p)
+        for (int q = 0; q < 3; ++q)
+          rc[p + 3 * q] = Rl[3 * p] * cof[3 * q] + Rl[3 * p + 1] * cof[3 * q + 1] + Rl[3 * p + 2] * cof[3 * q + 2];
+      const double h = lambda * (J - 1.0);
+      s00 = h * rc[0] + two_mu * e00, s11 = h * rc[4] + two_mu * e11, s22 = h * rc[8] + two_mu * e22;
+      s01 = h * (0.5 * (rc[3] + rc[1])) + two_mu * e01;
+      s12 = h * (0.5 * (rc[7] + rc[5])) + two_mu * e12;
+      s02 = h * (0.5 * (rc[6] + rc[2])) + two_mu * e02;
+      // ∂J/∂x_i = cof F ∇N_i, kept for the volumetric (Gauss–Newton) part of the stiffness.
+      for (int i = 0; i < 4; ++i)
+        for (int r = 0; r < 3; ++r)
+          cg[(3 * i + r) * W + l] = cof[r] * g[(3 * i) * W + l] + cof[r + 3] * g[(3 * i + 1) * W + l] +
+                                    cof[r + 6] * g[(3 * i + 2) * W + l];
+    }
+    // The modulus factor E_r scales σ.
+    const double s = sf[l];
+    s00 *= s, s11 *= s, s22 *= s, s01 *= s, s12 *= s, s02 *= s;
+    const double d01 = s00 - s11, d12 = s11 - s22, d20 = s22 - s00;
+    vm2[l] = 0.5 * (d01 * d01 + d12 * d12 + d20 * d20) + 3.0 * (s01 * s01 + s12 * s12 + s02 * s02);
+    // RS = −V R σ; element forces f_i = RS ∇N_i, and R ∇N_i for the stiffness.
+    const double sig[9] = {s00, s01, s02, s01, s11, s12, s02, s12, s22};
+    double RS[9];
+    for (int r = 0; r < 3; ++r)
+      for (int q = 0; q < 3; ++q)
+        RS[r + 3 * q] = -vol[l] * (Rl[r] * sig[3 * q] + Rl[r + 3] * sig[3 * q + 1] + Rl[r + 6] * sig[3 * q + 2]);
+    for (int i = 0; i < 4; ++i) {
+      const double g0 = g[(3 * i) * W + l], g1 = g[(3 * i + 1) * W + l], g2 = g[(3 * i + 2) * W + l];
+      for (int r = 0; r < 3; ++r) {
+        f[(3 * i + r) * W + l] = RS[r] * g0 + RS[r + 3] * g1 + RS[r + 6] * g2;
+        rg[(3 * i + r) * W + l] = Rl[r] * g0 + Rl[r + 3] * g1 + Rl[r + 6] * g2;
+      }
+    }
+  }
+}
+
+}  // namespace
+
 template <bool kDeterminant>
 void CorotatedTetFem::updateBatches(const Points& x) {
   constexpr int W = kBatch;
@@ -95,7 +182,7 @@ void CorotatedTetFem::updateBatches(const Points& x) {
     const int e0 = b * W, m = std::min(W, nt - e0);
     const double* const g = &batch_grads_[12 * W * static_cast<size_t>(b)];
     double* const Rb = &rotations_[9 * W * static_cast<size_t>(b)];
-    alignas(64) double xs[12 * W], F[9 * W], f[12 * W], rg[12 * W], cg[12 * W], sf[W], vol[W], vm2[W];
+    alignas(64) double xs[12 * W], f[12 * W], rg[12 * W], cg[12 * W], sf[W], vol[W], vm2[W];
     for (int l = 0; l < W; ++l) {
       const bool in = l < m;
       vol[l] = in ? volumes_[e0 + l] : 0.0;
@@ -103,71 +190,7 @@ void CorotatedTetFem::updateBatches(const Points& x) {
       for (int i = 0; i < 4; ++i)
         for (int c = 0; c < 3; ++c) xs[(3 * i + c) * W + l] = in ? x(tets_(e0 + l, i), c) : 0.0;
     }
-    // F = Σ_i x_i ∇N_iᵀ, column-major: F[(r + 3c)·W + l].
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 3; ++c)
-        for (int l = 0; l < W; ++l)
-          F[(r + 3 * c) * W + l] = xs[r * W + l] * g[c * W + l] + xs[(3 + r) * W + l] * g[(3 + c) * W + l] +
-                                   xs[(6 + r) * W + l] * g[(6 + c) * W + l] + xs[(9 + r) * W + l] * g[(9 + c) * W + l];
-    if (corotated) rotationsOf(F, Rb, m);
-    for (int l = corotated ? m : 0; l < W; ++l)
-      for (int k = 0; k < 9; ++k) Rb[k * W + l] = k % 4 == 0 ? 1.0 : 0.0;
-    for (int l = 0; l < W; ++l) {
-      double Fl[9], Rl[9];
-      for (int k = 0; k < 9; ++k) Fl[k] = F[k * W + l], Rl[k] = Rb[k * W + l];
-      // Fr = Rᵀ F; co-rotated strain ε = sym(Fr) − I.
-      double Fr[9];
-      for (int p = 0; p < 3; ++p)
-        for (int q = 0; q < 3; ++q) Fr[p + 3 * q] = Rl[3 * p] * Fl[3 * q] + Rl[3 * p + 1] * Fl[3 * q + 1] + Rl[3 * p + 2] * Fl[3 * q + 2];
-      const double e00 = Fr[0] - 1.0, e11 = Fr[4] - 1.0, e22 = Fr[8] - 1.0;
-      const double e01 = 0.5 * (Fr[3] + Fr[1]), e12 = 0.5 * (Fr[7] + Fr[5]), e02 = 0.5 * (Fr[6] + Fr[2]);
-      // Co-rotated stress σ with P = R σ (corotated_tet_fem.h, VolumeTerm); symmetric.
-      double s00, s11, s22, s01, s12, s02;
-      if constexpr (!kDeterminant) {
-        const double p = lambda * (e00 + e11 + e22);
-        s00 = p + two_mu * e00, s11 = p + two_mu * e11, s22 = p + two_mu * e22;
-        s01 = two_mu * e01, s12 = two_mu * e12, s02 = two_mu * e02;
-      } else {
-        // Rᵀ cof F = J S⁻¹ (symmetric for the polar R): λ (J − 1) sym(Rᵀ cof F); the columns of
-        // cof F are cross products of F's columns.
-        const double cof[9] = {Fl[4] * Fl[8] - Fl[5] * Fl[7], Fl[5] * Fl[6] - Fl[3] * Fl[8], Fl[3] * Fl[7] - Fl[4] * Fl[6],
-                               Fl[7] * Fl[2] - Fl[8] * Fl[1], Fl[8] * Fl[0] - Fl[6] * Fl[2], Fl[6] * Fl[1] - Fl[7] * Fl[0],
-                               Fl[1] * Fl[5] - Fl[2] * Fl[4], Fl[2] * Fl[3] - Fl[0] * Fl[5], Fl[0] * Fl[4] - Fl[1] * Fl[3]};
-        const double J = Fl[0] * cof[0] + Fl[1] * cof[1] + Fl[2] * cof[2];
-        double rc[9];
-        for (int p = 0; p < 3; ++p)
-          for (int q = 0; q < 3; ++q)
-            rc[p + 3 * q] = Rl[3 * p] * cof[3 * q] + Rl[3 * p + 1] * cof[3 * q + 1] + Rl[3 * p + 2] * cof[3 * q + 2];
-        const double h = lambda * (J - 1.0);
-        s00 = h * rc[0] + two_mu * e00, s11 = h * rc[4] + two_mu * e11, s22 = h * rc[8] + two_mu * e22;
-        s01 = h * (0.5 * (rc[3] + rc[1])) + two_mu * e01;
-        s12 = h * (0.5 * (rc[7] + rc[5])) + two_mu * e12;
-        s02 = h * (0.5 * (rc[6] + rc[2])) + two_mu * e02;
-        // ∂J/∂x_i = cof F ∇N_i, kept for the volumetric (Gauss–Newton) part of the stiffness.
-        for (int i = 0; i < 4; ++i)
-          for (int r = 0; r < 3; ++r)
-            cg[(3 * i + r) * W + l] = cof[r] * g[(3 * i) * W + l] + cof[r + 3] * g[(3 * i + 1) * W + l] +
-                                      cof[r + 6] * g[(3 * i + 2) * W + l];
-      }
-      // The modulus factor E_r scales σ.
-      const double s = sf[l];
-      s00 *= s, s11 *= s, s22 *= s, s01 *= s, s12 *= s, s02 *= s;
-      const double d01 = s00 - s11, d12 = s11 - s22, d20 = s22 - s00;
-      vm2[l] = 0.5 * (d01 * d01 + d12 * d12 + d20 * d20) + 3.0 * (s01 * s01 + s12 * s12 + s02 * s02);
-      // RS = −V R σ; element forces f_i = RS ∇N_i, and R ∇N_i for the stiffness.
-      const double sig[9] = {s00, s01, s02, s01, s11, s12, s02, s12, s22};
-      double RS[9];
-      for (int r = 0; r < 3; ++r)
-        for (int q = 0; q < 3; ++q)
-          RS[r + 3 * q] = -vol[l] * (Rl[r] * sig[3 * q] + Rl[r + 3] * sig[3 * q + 1] + Rl[r + 6] * sig[3 * q + 2]);
-      for (int i = 0; i < 4; ++i) {
-        const double g0 = g[(3 * i) * W + l], g1 = g[(3 * i + 1) * W + l], g2 = g[(3 * i + 2) * W + l];
-        for (int r = 0; r < 3; ++r) {
-          f[(3 * i + r) * W + l] = RS[r] * g0 + RS[r + 3] * g1 + RS[r + 6] * g2;
-          rg[(3 * i + r) * W + l] = Rl[r] * g0 + Rl[r + 3] * g1 + Rl[r + 6] * g2;
-        }
-      }
-    }
+    batchKernel<kDeterminant>(xs, g, sf, vol, m, corotated, lambda, two_mu, Rb, f, rg, cg, vm2);
     // Back to per-element storage.
     for (int l = 0; l < m; ++l) {
       const size_t e = static_cast<size_t>(e0 + l);
@@ -213,11 +236,20 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
 }
 
 void CorotatedTetFem::addStiffness(double scale, SparseMatrix& A) const {
-  if (stiffness_is_determinant_) gatherStiffness<true>(scale, A);
-  else gatherStiffness<false>(scale, A);
+  if (stiffness_is_determinant_) gatherStiffness<true, false>(scale, A);
+  else gatherStiffness<false, false>(scale, A);
 }
 
-template <bool kDeterminant>
+void CorotatedTetFem::assignStiffness(double scale, SparseMatrix& A) const {
+  if (A.rows() != 3 * pattern_.numNodes() || A.nonZeros() != pattern_.matrix().nonZeros())
+    throw std::invalid_argument("assignStiffness: A is " + std::to_string(A.rows()) + " x " + std::to_string(A.cols()) +
+                                " with " + std::to_string(A.nonZeros()) + " entries; it must have pattern()'s " +
+                                std::to_string(pattern_.matrix().nonZeros()) + " entries");
+  if (stiffness_is_determinant_) gatherStiffness<true, true>(scale, A);
+  else gatherStiffness<false, true>(scale, A);
+}
+
+template <bool kDeterminant, bool kAssign>
 void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
   // Block (i, j) of an element, with a = R ∇N (rotated shape gradients) and V including E_r:
   //   kTrace, R K_e0 Rᵀ:  V(λ a_i a_jᵀ + μ a_j a_iᵀ + μ (a_i·a_j) I)
@@ -255,6 +287,7 @@ void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
     const int len = outer[3 * n + 1] - outer[3 * n];
     double* const row1 = row0 + len;
     double* const row2 = row1 + len;
+    if constexpr (kAssign) std::fill(row0, row0 + 3 * len, 0.0);
     const int k_begin = pattern_.incidentStart(n), k_end = pattern_.incidentStart(n + 1);
     for (int k = k_begin; k < std::min(k_begin + kAhead, num_incidences); ++k) prefetch(k);
     for (int k = k_begin; k < k_end; ++k) {
