@@ -202,6 +202,15 @@ TEST(FemFastPaths, BatchedUpdateEqualsElementByElementReferenceWithInvertedEleme
       for (Eigen::Index i = 0; i < Kassigned.nonZeros(); ++i) Kassigned.valuePtr()[i] = 1e9 + static_cast<double>(i);
       fem.assignStiffness(2.5, Kassigned);
       for (Eigen::Index i = 0; i < K.nonZeros(); ++i) ASSERT_EQ(Kassigned.valuePtr()[i], K.valuePtr()[i]) << "entry " << i;
+      // New modulus factors after the update rescale the stiffness records (no update in between).
+      const Eigen::VectorXd factors2 = Eigen::VectorXd::LinSpaced(d.mesh.numTets(), 3.0, 0.5);
+      fem.setModulusFactors(factors2);
+      fem.assignStiffness(1.0, Kassigned);
+      const Eigen::MatrixXd dense2 = fem.denseStiffness();
+      EXPECT_LT((Eigen::MatrixXd(Kassigned) - dense2).cwiseAbs().maxCoeff(), 1e-12 * dense2.cwiseAbs().maxCoeff());
+      fem.setModulusFactors(factors);
+      fem.assignStiffness(2.5, Kassigned);
+      EXPECT_LT((Eigen::MatrixXd(Kassigned) - dense).cwiseAbs().maxCoeff(), 1e-12 * dense.cwiseAbs().maxCoeff());
     }
   }
 }

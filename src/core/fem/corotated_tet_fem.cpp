@@ -42,8 +42,8 @@ CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& mat
     for (int k = 0; k < 12; ++k) batch_grads_[12 * kBatch * b + k * kBatch + l] = g[k];
     for (int k = 0; k < 9; k += 4) rotations_[9 * kBatch * b + k * kBatch + l] = 1.0;
     double* rec = records() + kRecordTrace * static_cast<size_t>(e);
-    std::copy(g, g + 12, rec);
-    rec[12] = volumes_[e];
+    const double root_w = std::sqrt(volumes_[e]);  // E_r = 1
+    for (int k = 0; k < 12; ++k) rec[k] = root_w * g[k];
   }
   const int nn = pattern_.numNodes();
   incident_slots_.resize(4 * static_cast<size_t>(pattern_.incidentStart(nn)));
@@ -63,9 +63,14 @@ void CorotatedTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
     if (!(factors[e] > 0) || !std::isfinite(factors[e]))
       throw std::invalid_argument("setModulusFactors: factor of element " + std::to_string(e) + " is " +
                                   std::to_string(factors[e]) + "; factors must be positive and finite");
+  // The stiffness records hold √(V E_r)-scaled gradients: rescale them to the new factors.
+  double* const recs = records();
+  for (Eigen::Index e = 0; e < factors.size(); ++e) {
+    const double rescale = std::sqrt(factors[e] / modulus_factor_[e]);
+    double* const rec = recs + record_ * static_cast<size_t>(e);
+    for (int k = 0; k < record_; ++k) rec[k] *= rescale;
+  }
   modulus_factor_ = factors;
-  double* rec = records();
-  for (Eigen::Index e = 0; e < factors.size(); ++e) rec[record_ * static_cast<size_t>(e) + 12] = factors[e] * volumes_[e];
 }
 
 Eigen::Matrix3d CorotatedTetFem::rotation(int e) const {
@@ -82,14 +87,16 @@ constexpr int W = kRotationBatch;
 /// The arithmetic of one batch of W elements of CorotatedTetFem::update(), on component-major
 /// arrays v[k·W + l] (see updateBatches): from the node positions xs (x_0..x_3, 12) and the shape
 /// gradients g (12), F and its rotation R (9; rotationsOf for the first m lanes when corotated, the
-/// identity otherwise), the element forces f = −V R σ ∇N_i (12), R ∇N_i (12), with kDeterminant
-/// cof F ∇N_i (12), and the squared von Mises stress vm2; sf is E_r and vol V [m³].
+/// identity otherwise), the element forces f = −V R σ ∇N_i (12), √(V E_r) R ∇N_i (12), with
+/// kDeterminant √(V E_r) cof F ∇N_i (12), and the squared von Mises stress vm2; sf is E_r, vol V
+/// [m³] and root_w √(V E_r).
 /// \note Compiling it (and rotationsOf) for AVX2/FMA and AVX-512 as well (GCC target_clones) did
 /// not pay: 48.8k tets, 1 thread, medians, update 5.1–5.3 ms either way (the rotations ~0.4 ms
 /// faster, the rest as much slower): update() is bound by memory traffic, not arithmetic.
 template <bool kDeterminant>
 void batchKernel(const double* __restrict xs, const double* __restrict g, const double* __restrict sf,
-                 const double* __restrict vol, int m, bool corotated, double lambda, double two_mu, double* __restrict Rb,
+                 const double* __restrict vol, const double* __restrict root_w, int m, bool corotated, double lambda,
+                 double two_mu, double* __restrict Rb,
                  double* __restrict f, double* __restrict rg, double* __restrict cg, double* __restrict vm2) {
   alignas(64) double F[9 * W];
   // F = Σ_i x_i ∇N_iᵀ, column-major: F[(r + 3c)·W + l].
@@ -135,8 +142,8 @@ void batchKernel(const double* __restrict xs, const double* __restrict g, const 
       // ∂J/∂x_i = cof F ∇N_i, kept for the volumetric (Gauss–Newton) part of the stiffness.
       for (int i = 0; i < 4; ++i)
         for (int r = 0; r < 3; ++r)
-          cg[(3 * i + r) * W + l] = cof[r] * g[(3 * i) * W + l] + cof[r + 3] * g[(3 * i + 1) * W + l] +
-                                    cof[r + 6] * g[(3 * i + 2) * W + l];
+          cg[(3 * i + r) * W + l] = root_w[l] * (cof[r] * g[(3 * i) * W + l] + cof[r + 3] * g[(3 * i + 1) * W + l] +
+                                                 cof[r + 6] * g[(3 * i + 2) * W + l]);
     }
     // The modulus factor E_r scales σ.
     const double s = sf[l];
@@ -153,7 +160,7 @@ void batchKernel(const double* __restrict xs, const double* __restrict g, const 
       const double g0 = g[(3 * i) * W + l], g1 = g[(3 * i + 1) * W + l], g2 = g[(3 * i + 2) * W + l];
       for (int r = 0; r < 3; ++r) {
         f[(3 * i + r) * W + l] = RS[r] * g0 + RS[r + 3] * g1 + RS[r + 6] * g2;
-        rg[(3 * i + r) * W + l] = Rl[r] * g0 + Rl[r + 3] * g1 + Rl[r + 6] * g2;
+        rg[(3 * i + r) * W + l] = root_w[l] * (Rl[r] * g0 + Rl[r + 3] * g1 + Rl[r + 6] * g2);
       }
     }
   }
@@ -182,7 +189,7 @@ void CorotatedTetFem::updateBatches(const Points& x) {
     const int e0 = b * W, m = std::min(W, nt - e0);
     const double* const g = &batch_grads_[12 * W * static_cast<size_t>(b)];
     double* const Rb = &rotations_[9 * W * static_cast<size_t>(b)];
-    alignas(64) double xs[12 * W], f[12 * W], rg[12 * W], cg[12 * W], sf[W], vol[W], vm2[W];
+    alignas(64) double xs[12 * W], f[12 * W], rg[12 * W], cg[12 * W], sf[W], vol[W], root_w[W], vm2[W];
     for (int l = 0; l < W; ++l) {
       const bool in = l < m;
       vol[l] = in ? volumes_[e0 + l] : 0.0;
@@ -190,7 +197,8 @@ void CorotatedTetFem::updateBatches(const Points& x) {
       for (int i = 0; i < 4; ++i)
         for (int c = 0; c < 3; ++c) xs[(3 * i + c) * W + l] = in ? x(tets_(e0 + l, i), c) : 0.0;
     }
-    batchKernel<kDeterminant>(xs, g, sf, vol, m, corotated, lambda, two_mu, Rb, f, rg, cg, vm2);
+    for (int l = 0; l < W; ++l) root_w[l] = std::sqrt(sf[l] * vol[l]);
+    batchKernel<kDeterminant>(xs, g, sf, vol, root_w, m, corotated, lambda, two_mu, Rb, f, rg, cg, vm2);
     // Back to per-element storage.
     for (int l = 0; l < m; ++l) {
       const size_t e = static_cast<size_t>(e0 + l);
@@ -199,7 +207,6 @@ void CorotatedTetFem::updateBatches(const Points& x) {
       double* const rec = recs + stride * e;
       for (int k = 0; k < 12; ++k) fe[k] = f[k * W + l];
       for (int k = 0; k < 12; ++k) rec[k] = rg[k * W + l];
-      rec[12] = sf[l] * vol[l];  // V·E_r, as setModulusFactors writes it
       if constexpr (kDeterminant)
         for (int k = 0; k < 12; ++k) rec[kVolumeGrads + k] = cg[k * W + l];
     }
@@ -256,7 +263,8 @@ void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
   //   kDeterminant:       V(λ c_i c_jᵀ + μ a_j a_iᵀ + μ (a_i·a_j) I), c = cof F ∇N = ∂J/∂x: the μ part
   //                       of R K_e0 Rᵀ and the Gauss–Newton part of λ (J − 1) cof F, whose dropped
   //                       remainder λ (J − 1) ∂cof F/∂x is indefinite. SPD, and R K_e0 Rᵀ at rest.
-  // Both are u h_jᵀ + a_j vᵀ + (v·a_j) I with u = Vλ h_i, v = Vμ a_i, h = a or c.
+  // Both are u h_jᵀ + a_j vᵀ + (v·a_j) I with u = λ h_i, v = μ a_i, h = a or c, the records holding
+  // √(V E_r) a and √(V E_r) c.
   const int nn = pattern_.numNodes();
   double* const values = A.valuePtr();
   const int* const outer = A.outerIndexPtr();
@@ -276,12 +284,15 @@ void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
   // prefetched with it, instead of a separate array: 48.8k tets, 1 thread, medians, 10.9–11.1 →
   // 6.1–6.4 ms (trace 5.6–5.8, unchanged). Prefetching 8 incidences ahead instead of 4: 1 thread,
   // process CPU time, medians, 3 interleaved runs: zero + add 5.1–5.8 → 5.1–5.4 ms (trace), 5.8–6.4
-  // → 5.6–5.9 ms (det); 16 ahead was not distinguishable from 8.
+  // → 5.6–5.9 ms (det); 16 ahead was not distinguishable from 8. Records scaled by √(V E_r) without
+  // the weight and padding (96 instead of 128 bytes, det 192 instead of 256), same measurement:
+  // trace 5.7–5.9 → 4.8–5.2 ms, det 6.0–6.1 → 5.7–6.1 ms.
   constexpr int kAhead = 8;
   const int num_incidences = pattern_.incidentStart(nn);
   auto prefetch = [&](int k) {
     const double* r = recs + kStride * static_cast<size_t>(pattern_.incidentElement(k));
     for (int line = 0; line < kStride; line += 8) __builtin_prefetch(r + line);
+    __builtin_prefetch(r + kStride - 1);  // records are not line-aligned
   };
 #pragma omp parallel for schedule(dynamic, 64)
   for (int n = 0; n < nn; ++n) {
@@ -299,8 +310,7 @@ void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
       double g[12], h[12];
       for (int q = 0; q < 12; ++q) g[q] = rec[q];
       for (int q = 0; q < 12; ++q) h[q] = rec[kH + q];
-      const double w = rec[12];
-      const double wl = w * sl, wm = w * sm;
+      const double wl = sl, wm = sm;
       const double u0 = wl * h[3 * i], u1 = wl * h[3 * i + 1], u2 = wl * h[3 * i + 2];
       const double v0 = wm * g[3 * i], v1 = wm * g[3 * i + 1], v2 = wm * g[3 * i + 2];
       int slot[4];
@@ -353,7 +363,7 @@ Eigen::MatrixXd CorotatedTetFem::denseStiffness() const {
     Eigen::Matrix<double, 12, 12> Ke = modulus_factor_[e] * Rb * K0 * Rb.transpose();
     if (stiffness_is_determinant_) {
       const Eigen::Map<const Eigen::Matrix<double, 12, 1>> c(records() + record_ * static_cast<size_t>(e) + kVolumeGrads);
-      Ke += modulus_factor_[e] * volumes_[e] * lambda_ * c * c.transpose();
+      Ke += lambda_ * c * c.transpose();  // c = √(V E_r) ∂J/∂x
     }
     for (int i = 0; i < 4; ++i)
       for (int j = 0; j < 4; ++j) K.block<3, 3>(3 * tets_(e, i), 3 * tets_(e, j)) += Ke.block<3, 3>(3 * i, 3 * j);

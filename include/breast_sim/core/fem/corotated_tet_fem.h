@@ -81,12 +81,13 @@ class CorotatedTetFem : public ElementFormulation {
   std::vector<double> batch_grads_; // the same per batch of kBatch elements, component-major: [12·kBatch·b + k·kBatch + l]
   std::vector<double> volumes_;     // [m³]
   std::vector<double> rotations_;   // per batch, component-major as batch_grads_: [9·kBatch·b + k·kBatch + l], column-major
-  // What addStiffness reads per element, packed into one record that starts on a 64-byte boundary:
-  // R ∇N_0..3 at the last update [1/m] (12), V·E_r [m³] (1), unused (3), and with the determinant
-  // volume term cof F ∇N_0..3 = ∂J/∂x_i [1/m] (12), unused (4): 16 or 32 doubles, 2 or 4 lines.
-  // The stiffness gather visits each element from its 4 nodes in an order the hardware prefetcher
-  // cannot follow, so it is latency-bound: fewer, aligned lines per visit pay directly.
-  static constexpr int kRecordTrace = 16, kRecordDeterminant = 32, kVolumeGrads = 16;
+  // What addStiffness reads per element, packed into one record (the array starts on a 64-byte
+  // boundary), scaled by √(V E_r) so that the blocks need no weight: √(V E_r) R ∇N_0..3 at the last
+  // update [m^½] (12), and with the determinant volume term √(V E_r) cof F ∇N_0..3 (∂J/∂x_i) (12):
+  // 12 or 24 doubles, 96 or 192 bytes (2 or 3 lines). The stiffness gather visits each element from
+  // its 4 nodes in an order the hardware prefetcher cannot follow, so it is latency- and
+  // bandwidth-bound: fewer lines per visit pay directly.
+  static constexpr int kRecordTrace = 12, kRecordDeterminant = 24, kVolumeGrads = 12;
   int record_ = kRecordTrace;        // the record length in use (that of the last update)
   std::vector<double> records_raw_;  // record_ per element + 8 for the alignment
   double* records() { return alignedRecords(records_raw_.data()); }
