@@ -132,9 +132,7 @@ StepStats DynamicSimulator::step() {
   double* values = A_.valuePtr();
   const int* outer = A_.outerIndexPtr();
   const int* inner = A_.innerIndexPtr();
-#pragma omp parallel for schedule(static)
-  for (int r = 0; r < n3; ++r) std::fill(values + outer[r], values + outer[r + 1], 0.0);
-  elements_->addStiffness(dt * (dt + params_.stiffness_damping_s), A_);
+  elements_->assignStiffness(dt * (dt + params_.stiffness_damping_s), A_);
   const double mass_scale = 1.0 + dt * params_.mass_damping_per_s;
   const double* mass = mass_.data();
   const double* vel = state_.velocity_mps.data();

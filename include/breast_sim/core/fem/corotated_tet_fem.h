@@ -33,7 +33,7 @@ class CorotatedTetFem : public ElementFormulation {
   /// Sets A = scale · K: as zeroing A and addStiffness(), in one pass (each node's rows are cleared
   /// when the gather reaches them, so they are written once, from cache, instead of streamed twice).
   /// @throws std::invalid_argument if A does not have pattern()'s size and entry count.
-  void assignStiffness(double scale, SparseMatrix& A) const;
+  void assignStiffness(double scale, SparseMatrix& A) const override;
   const BlockPattern& pattern() const override { return pattern_; }
   const Eigen::VectorXd& modulusFactors() const override { return modulus_factor_; }
   void setModulusFactors(const Eigen::VectorXd& factors) override;

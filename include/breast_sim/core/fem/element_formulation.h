@@ -4,6 +4,8 @@
 /// (corotated_tet_fem.h); a locking-free variant (average nodal pressure, quadratic tetrahedra) can
 /// be another without touching the solvers or the pipeline.
 
+#include <algorithm>
+
 #include <Eigen/Core>
 
 #include "breast_sim/core/fem/block_pattern.h"
@@ -25,6 +27,11 @@ class ElementFormulation {
   virtual void update(const Points& x, Eigen::VectorXd& f) = 0;
   /// Adds scale · K (from the last update) to A, whose pattern is pattern().matrix().
   virtual void addStiffness(double scale, SparseMatrix& A) const = 0;
+  /// Sets A = scale · K. This default zeroes A and adds; a formulation may do it in one pass.
+  virtual void assignStiffness(double scale, SparseMatrix& A) const {
+    std::fill(A.valuePtr(), A.valuePtr() + A.nonZeros(), 0.0);
+    addStiffness(scale, A);
+  }
   virtual const BlockPattern& pattern() const = 0;
 
   /// Per-element modulus factor E_r (E = E_r · E0), #T, all 1 initially.
