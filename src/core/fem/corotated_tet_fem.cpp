@@ -63,8 +63,10 @@ void CorotatedTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
     if (!(factors[e] > 0) || !std::isfinite(factors[e]))
       throw std::invalid_argument("setModulusFactors: factor of element " + std::to_string(e) + " is " +
                                   std::to_string(factors[e]) + "; factors must be positive and finite");
-  // The stiffness records hold √(V E_r)-scaled gradients: rescale them to the new factors.
+  // The stiffness records hold √(V E_r)-scaled gradients: rescale them to the new factors (the
+  // stiffening loop calls this every step: 1.2 M values at 48k elements, so on every thread).
   double* const recs = records();
+#pragma omp parallel for schedule(static)
   for (Eigen::Index e = 0; e < factors.size(); ++e) {
     const double rescale = std::sqrt(factors[e] / modulus_factor_[e]);
     double* const rec = recs + record_ * static_cast<size_t>(e);

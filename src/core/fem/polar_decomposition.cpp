@@ -59,7 +59,6 @@ Eigen::Matrix3d rotationOf(const Eigen::Matrix3d& F) {
   return rotationOfBySvd(F);
 }
 
-
 void rotationsOf(const double* F, double* R, int count) {
   constexpr int W = kRotationBatch;
   if (count < 0 || count > W)
