@@ -228,7 +228,7 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
   else updateBatches<false>(x);
   // Gather per node.
   const int nn = pattern_.numNodes();
-  f.setZero(3 * nn);
+  f.resize(3 * nn);  // every entry is written below
 #pragma omp parallel for schedule(static)
   for (int n = 0; n < nn; ++n) {
     double fx = 0, fy = 0, fz = 0;

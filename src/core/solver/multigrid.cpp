@@ -514,8 +514,8 @@ void MultigridPreconditioner::analyzePattern(const SparseMatrix& A) {
     for (int i = 0; i < n; ++i) lv->colour_node[fill[colour[i]]++] = i;
     lv->block_start = std::move(start);
     lv->block_col = std::move(nbr);
-    lv->block_val.assign(9 * lv->block_col.size(), 0.0f);
-    if (l + 1 < L) {
+    if (l + 1 < L) {  // a smoothed level (the coarsest goes to CHOLMOD as it is)
+      lv->block_val.assign(9 * lv->block_col.size(), 0.0f);
       const NodeProlongation& P = prolongations_[l];
       const int nc = static_cast<int>(P.cols());
       lv->child_start.assign(static_cast<size_t>(nc) + 1, 0);
@@ -781,9 +781,9 @@ void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool for
   const float* val = lv.block_val.data();
   const int* col = lv.block_col.data();
   const int* start = lv.block_start.data();
-  auto relax = [&](int i, const double* xs) {
+  auto relax = [&](int i) {
     double r[3];
-    blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, xs, r);
+    blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, x, r);
     const double* d = dinv + 9 * i;
     x[3 * i] += d[0] * r[0] + d[1] * r[1] + d[2] * r[2];
     x[3 * i + 1] += d[3] * r[0] + d[4] * r[1] + d[5] * r[2];
@@ -794,7 +794,7 @@ void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool for
   for (int cc = 0; cc < colours; ++cc) {
     const int c = forward ? cc : colours - 1 - cc;
 #pragma omp for schedule(static)
-    for (int p = lv.colour_start[c]; p < lv.colour_start[c + 1]; ++p) relax(lv.colour_node[p], x);
+    for (int p = lv.colour_start[c]; p < lv.colour_start[c + 1]; ++p) relax(lv.colour_node[p]);
   }
 }
 
