@@ -216,9 +216,17 @@ int main(int argc, char** argv) {
   out["ccx_threads"] = copt.threads;
   out["youngs_modulus_pa"] = settings.material.youngs_modulus_pa;
   out["poisson_ratio"] = settings.material.poisson_ratio;
-  std::printf("case %s, load %s: g = (%.3f, %.3f, %.3f) m/s^2, E = %.0f Pa, %d threads (ccx %d)\n", base.name.c_str(),
-              load_name.c_str(), g.x(), g.y(), g.z(), settings.material.youngs_modulus_pa, omp_get_max_threads(),
-              copt.threads);
+  std::string tissue_moduli;
+  nlohmann::json region_moduli = nlohmann::json::object();
+  for (const auto& [region, e] : settings.region_youngs_modulus_pa) {
+    const std::string name = tissueClassName(static_cast<TissueClass>(region));
+    tissue_moduli += ", " + name + " " + std::to_string(static_cast<long>(e)) + " Pa";
+    region_moduli[name] = e;
+  }
+  out["tissue_youngs_modulus_pa"] = region_moduli;
+  std::printf("case %s, load %s: g = (%.3f, %.3f, %.3f) m/s^2, E = %.0f Pa%s, nu = %.3f, %d threads (ccx %d)\n",
+              base.name.c_str(), load_name.c_str(), g.x(), g.y(), g.z(), settings.material.youngs_modulus_pa,
+              tissue_moduli.c_str(), settings.material.poisson_ratio, omp_get_max_threads(), copt.threads);
 
   // ---- locking ------------------------------------------------------------------------------------
   if (study == "locking" || study == "all") {
@@ -234,10 +242,10 @@ int main(int argc, char** argv) {
       SimulationSettings s = settings;
       s.material.poisson_ratio = nu;
       const OurRun ours = runOurs(c, m, s, g, "corotated/cholmod", /*tight=*/true);
-      const CalculixResult c4 = solveWithCalculix(m.mesh, referenceLoadCase(s, g, ReferenceElement::kC3D4), copt);
+      const CalculixResult c4 = solveWithCalculix(m.mesh, referenceLoadCase(s, m.mesh, g, ReferenceElement::kC3D4), copt);
       CalculixResult c10;
       try {
-        c10 = solveWithCalculix(m.mesh, referenceLoadCase(s, g, ReferenceElement::kC3D10), copt);
+        c10 = solveWithCalculix(m.mesh, referenceLoadCase(s, m.mesh, g, ReferenceElement::kC3D10), copt);
       } catch (const std::runtime_error& ex) {
         // C3D10 neo-Hookean runs can stall (increment below the minimum) on these meshes: reported.
         std::printf("%6.3f | C3D10 failed: %s\n", nu, ex.what());
@@ -283,7 +291,7 @@ int main(int argc, char** argv) {
     std::printf("\nReference: CalculiX %s neo-Hookean NLGEOM on %d elements (%d nodes) ...\n",
                 referenceElementName(rtype).c_str(), rm.mesh.numTets(), rm.mesh.numNodes());
     std::fflush(stdout);
-    const CalculixResult ref = solveWithCalculix(rm.mesh, referenceLoadCase(settings, g, rtype), copt);
+    const CalculixResult ref = solveWithCalculix(rm.mesh, referenceLoadCase(settings, rm.mesh, g, rtype), copt);
     const double ref_max = 1e3 * ref.displacement_m.rowwise().norm().maxCoeff();
     std::printf("  %s, ccx %.1f s, %d deck nodes, largest displacement %.3f mm (key %s)\n",
                 ref.from_cache ? "from the cache" : "computed", ref.solve_seconds, ref.deck_nodes, ref_max, ref.key.c_str());

@@ -601,3 +601,115 @@ TEST(DynamicSimulator, NearlyIncompressibleBlockPressedOntoItsClampKeepsItsVolum
   EXPECT_LT(std::abs(dv_det), 0.03);
   EXPECT_GT(std::abs(dv_trace), 2 * std::abs(dv_det));  // the flaw this guards against
 }
+
+// Per-element base moduli (setElementYoungsModuli, a stiff inclusion): they must act exactly as the
+// same numbers given as stiffening factors E_r would (stress, forces, stiffness scale with E_r b_e),
+// for both volume terms, while modulusFactors() keeps E_r alone; setting them after an update
+// rescales the stiffness records (no update in between).
+TEST(CorotatedTetFem, ElementModuliActAsBaseFactorsUnderTheStiffeningFactors) {
+  const TetMesh& m = smallBlock();
+  ElasticMaterial mat;
+  mat.poisson_ratio = 0.45;
+  std::mt19937 rng(17);
+  std::normal_distribution<double> d(0, 2e-3);
+  Points x = m.nodes();
+  for (int i = 0; i < x.size(); ++i) x.data()[i] += d(rng);
+  const Eigen::VectorXd factors = Eigen::VectorXd::LinSpaced(m.numTets(), 1.0, 2.5);  // E_r
+  Eigen::VectorXd moduli(m.numTets());                                             // E_e [Pa]
+  for (int e = 0; e < m.numTets(); ++e) moduli[e] = mat.youngs_modulus_pa * (e % 3 == 0 ? 10.0 : 1.0 + 0.1 * (e % 5));
+  const Eigen::VectorXd b = moduli / mat.youngs_modulus_pa;
+  for (const auto term : {CorotatedTetFem::VolumeTerm::kTrace, CorotatedTetFem::VolumeTerm::kDeterminant}) {
+    SCOPED_TRACE(term == CorotatedTetFem::VolumeTerm::kTrace ? "tr S - 3" : "J - 1");
+    CorotatedTetFem with(m, mat), folded(m, mat);
+    with.setVolumeTerm(term);
+    folded.setVolumeTerm(term);
+    with.setModulusFactors(factors);
+    Eigen::VectorXd f_with, f_folded;
+    with.update(x, f_with);
+    with.setElementYoungsModuli(moduli);  // after the update: the records are rescaled
+    with.update(x, f_with);
+    folded.setModulusFactors(factors.cwiseProduct(b));
+    const SparseMatrix K_folded = stiffnessAt(folded, x);
+    folded.update(x, f_folded);
+    EXPECT_LT((f_with - f_folded).cwiseAbs().maxCoeff(), 1e-12 * f_folded.cwiseAbs().maxCoeff());
+    EXPECT_LT((with.vonMisesStress() - folded.vonMisesStress()).cwiseAbs().maxCoeff(),
+              1e-12 * folded.vonMisesStress().maxCoeff());
+    EXPECT_EQ((with.modulusFactors() - factors).cwiseAbs().maxCoeff(), 0.0);
+    EXPECT_LT((with.baseModulusScales() - b).cwiseAbs().maxCoeff(), 1e-15 * b.maxCoeff());
+    // Rescaled records: new stiffening factors and new moduli without an update in between.
+    with.setModulusFactors(2.0 * factors);
+    with.setElementYoungsModuli(moduli);  // the same moduli again: no change
+    folded.setModulusFactors(2.0 * factors.cwiseProduct(b));
+    SparseMatrix K_with = with.pattern().matrix();
+    with.addStiffness(1.0, K_with);
+    SparseMatrix K_f2 = folded.pattern().matrix();
+    folded.addStiffness(1.0, K_f2);
+    const Eigen::MatrixXd dense = with.denseStiffness();
+    EXPECT_LT((Eigen::MatrixXd(K_with) - Eigen::MatrixXd(K_f2)).cwiseAbs().maxCoeff(), 1e-12 * dense.cwiseAbs().maxCoeff());
+    EXPECT_LT((Eigen::MatrixXd(K_with) - dense).cwiseAbs().maxCoeff(), 1e-12 * dense.cwiseAbs().maxCoeff());
+    // And back to E0 everywhere (empty): the same as no moduli at all.
+    with.setElementYoungsModuli(Eigen::VectorXd());
+    CorotatedTetFem plain(m, mat);
+    plain.setVolumeTerm(term);
+    plain.setModulusFactors(2.0 * factors);
+    Eigen::VectorXd f_plain;
+    plain.update(x, f_plain);
+    with.update(x, f_with);
+    EXPECT_LT((f_with - f_plain).cwiseAbs().maxCoeff(), 1e-12 * f_plain.cwiseAbs().maxCoeff());
+  }
+  CorotatedTetFem fem(m, mat);
+  EXPECT_THROW(fem.setElementYoungsModuli(Eigen::VectorXd::Ones(3)), std::invalid_argument);
+  Eigen::VectorXd bad = moduli;
+  bad[4] = -1.0;
+  EXPECT_THROW(fem.setElementYoungsModuli(bad), std::invalid_argument);
+}
+
+// A bar of two materials in series (ν = 0: no lateral contraction, so the 1-D answer is exact for
+// linear tetrahedra): clamped at x = 0, pulled to u = δ at x = L, with E1 on [0, L/2] and
+// E2 = 10 E1 on [L/2, L]. The stress σ = δ / (L1/E1 + L2/E2) is uniform and u(x) is piecewise
+// linear: u(L/2) = σ L1 / E1 = δ · 10/11. Uniform E would give δ/2.
+TEST(CorotatedTetFem, TwoMaterialBarInSeriesMatchesTheAnalyticStretch) {
+  const double L = 0.08, delta = 1e-4, E1 = 2000.0, E2 = 20000.0;
+  const TetMesh m = makeBoxMesh({8, 2, 2}, {L, 0.02, 0.02});
+  ElasticMaterial mat;
+  mat.youngs_modulus_pa = E1;
+  mat.poisson_ratio = 0.0;
+  Eigen::VectorXd moduli(m.numTets());
+  for (int e = 0; e < m.numTets(); ++e) {
+    double cx = 0;
+    for (int k = 0; k < 4; ++k) cx += 0.25 * m.nodes()(m.tets()(e, k), 0);
+    moduli[e] = cx < 0.5 * L ? E1 : E2;
+  }
+  for (const bool corotated : {false, true}) {
+    SCOPED_TRACE(corotated ? "corotated" : "linear");
+    CorotatedTetFem fem(m, mat);
+    fem.setCorotated(corotated);
+    fem.setElementYoungsModuli(moduli);
+    Eigen::VectorXd f;
+    fem.update(m.nodes(), f);
+    const Eigen::MatrixXd K = fem.denseStiffness();
+    std::vector<char> fixed(3 * m.numNodes(), 0);
+    Eigen::VectorXd u_fixed = Eigen::VectorXd::Zero(3 * m.numNodes());
+    for (int n : m.nodeSet("x_min")) fixed[3 * n] = fixed[3 * n + 1] = fixed[3 * n + 2] = 1;
+    for (int n : m.nodeSet("x_max")) fixed[3 * n] = 1, u_fixed[3 * n] = delta;
+    const Eigen::VectorXd u = staticSolve(K, Eigen::VectorXd::Zero(3 * m.numNodes()), fixed, u_fixed);
+    const double sigma = delta / (0.5 * L / E1 + 0.5 * L / E2);
+    double worst = 0;
+    for (int n = 0; n < m.numNodes(); ++n) {
+      const double x = m.nodes()(n, 0);
+      const double exact = x <= 0.5 * L ? sigma * x / E1 : sigma * (0.5 * L / E1 + (x - 0.5 * L) / E2);
+      worst = std::max({worst, std::abs(u[3 * n] - exact), std::abs(u[3 * n + 1]), std::abs(u[3 * n + 2])});
+    }
+    EXPECT_LT(worst, 1e-9 * delta);
+    EXPECT_NEAR(sigma * 0.5 * L / E1, delta * 10.0 / 11.0, 1e-15);
+    // At that state the element forces balance at every node off the two ends (the force path).
+    const Points x = positions(m, u);
+    const Eigen::VectorXd fx = forcesAt(fem, x);
+    const double reaction = sigma * 0.02 * 0.02;  // σ A [N]
+    for (int n = 0; n < m.numNodes(); ++n)
+      if (!fixed[3 * n]) EXPECT_LT(fx.segment<3>(3 * n).norm(), 1e-9 * reaction) << "node " << n;
+    double pull = 0;
+    for (int n : m.nodeSet("x_max")) pull -= fx[3 * n];
+    EXPECT_NEAR(pull, reaction, 1e-9 * reaction);
+  }
+}

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include "breast_sim/core/fem/simulation_settings.h"
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
@@ -159,4 +160,51 @@ TEST(ModelCase, BadCasesNameTheKeyAndTheFix) {
   expectErrorMentions(writeTemp("far_nipple.yaml", victre + ", nipples_mm: [[500, 0, 0]]}\nmeshing: {target_elements: 3000}\n"),
                       "nipple 1");
   expectErrorMentions("/nonexistent/case.yaml", "/nonexistent/case.yaml");
+}
+
+// The stiff-inclusion case (config/phantom_inclusion.yaml): the 9 mm lesion is meshed as elements of
+// tissue class lesion (region label 4), and simulation.tissue_youngs_modulus_pa gives them 20 kPa,
+// every other element E0 = 2 kPa.
+TEST(ModelCase, InclusionCaseGivesTheLesionElementsTheirOwnModulus) {
+  ModelCase c = loadModelCase(kConfig + "phantom_inclusion.yaml");
+  c.meshing.target_elements = 4000;
+  const SimulationSettings s = loadSimulationSettings(kConfig + "phantom_inclusion.yaml");
+  ASSERT_EQ(s.region_youngs_modulus_pa.size(), 1u);
+  EXPECT_EQ(s.region_youngs_modulus_pa.at(static_cast<int>(TissueClass::kLesion)), 20000.0);
+  const SimulationModel m = buildSimulationModel(c);
+  const Eigen::VectorXd e = elementYoungsModuli(m.mesh, s);
+  ASSERT_EQ(e.size(), m.mesh.numTets());
+  const Eigen::VectorXd vol = m.mesh.tetVolumes();
+  double lesion_volume = 0;
+  int lesion_elements = 0;
+  for (int t = 0; t < m.mesh.numTets(); ++t) {
+    const bool lesion = m.mesh.regionLabels()[t] == static_cast<int>(TissueClass::kLesion);
+    EXPECT_EQ(e[t], lesion ? 20000.0 : 2000.0) << "element " << t;
+    if (lesion) lesion_volume += vol[t], ++lesion_elements;
+  }
+  const double sphere = 4.0 / 3.0 * M_PI * std::pow(9e-3, 3);  // 3.05 cm^3
+  EXPECT_GT(lesion_elements, 50);
+  EXPECT_NEAR(lesion_volume / sphere, 1.0, 0.35) << lesion_elements << " lesion elements, " << lesion_volume * 1e6 << " cm3";
+  // Without the key every element takes E0.
+  EXPECT_EQ(elementYoungsModuli(m.mesh, SimulationSettings{}).size(), 0);
+}
+
+TEST(ModelCase, BadTissueModuliNameTheKey) {
+  auto expectSettingsError = [](const std::string& path, const std::string& needle) {
+    try {
+      loadSimulationSettings(path);
+      FAIL() << "expected an error mentioning '" << needle << "'";
+    } catch (const std::exception& e) {
+      EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+    }
+  };
+  expectSettingsError(writeTemp("bad_tissue.yaml", "phantom: {}\nsimulation: {tissue_youngs_modulus_pa: {bone: 1e9}}\n"), "bone");
+  expectSettingsError(writeTemp("negative_modulus.yaml", "phantom: {}\nsimulation: {tissue_youngs_modulus_pa: {lesion: -5}}\n"),
+                      "simulation.tissue_youngs_modulus_pa.lesion");
+  expectSettingsError(writeTemp("list_moduli.yaml", "phantom: {}\nsimulation: {tissue_youngs_modulus_pa: [1, 2]}\n"),
+                      "simulation.tissue_youngs_modulus_pa");
+  const SimulationSettings s =
+      loadSimulationSettings(writeTemp("two_moduli.yaml", "phantom: {}\nsimulation: {tissue_youngs_modulus_pa: {fat: 1500, lesion: 9000}}\n"));
+  EXPECT_EQ(s.region_youngs_modulus_pa.at(static_cast<int>(TissueClass::kFat)), 1500.0);
+  EXPECT_EQ(s.region_youngs_modulus_pa.at(static_cast<int>(TissueClass::kLesion)), 9000.0);
 }

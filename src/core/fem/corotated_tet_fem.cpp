@@ -25,6 +25,7 @@ CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& mat
   records_raw_.assign(kRecordTrace * static_cast<size_t>(nt) + 8, 0.0);
   elem_forces_.assign(12 * static_cast<size_t>(nt), 0.0);
   modulus_factor_ = Eigen::VectorXd::Ones(nt);
+  base_scale_ = Eigen::VectorXd::Ones(nt);
   von_mises_ = Eigen::VectorXd::Zero(nt);
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < nt; ++e) {
@@ -75,6 +76,31 @@ void CorotatedTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
   modulus_factor_ = factors;
 }
 
+void CorotatedTetFem::setElementYoungsModuli(const Eigen::VectorXd& youngs_modulus_pa) {
+  const Eigen::Index nt = base_scale_.size();
+  Eigen::VectorXd scale = Eigen::VectorXd::Ones(nt);
+  if (youngs_modulus_pa.size() != 0) {
+    if (youngs_modulus_pa.size() != nt)
+      throw std::invalid_argument("setElementYoungsModuli: " + std::to_string(youngs_modulus_pa.size()) +
+                                  " moduli for " + std::to_string(nt) + " elements (give one per element, or none)");
+    for (Eigen::Index e = 0; e < nt; ++e) {
+      if (!(youngs_modulus_pa[e] > 0) || !std::isfinite(youngs_modulus_pa[e]))
+        throw std::invalid_argument("setElementYoungsModuli: modulus of element " + std::to_string(e) + " is " +
+                                    std::to_string(youngs_modulus_pa[e]) + " Pa; moduli must be positive and finite");
+      scale[e] = youngs_modulus_pa[e] / material_.youngs_modulus_pa;
+    }
+  }
+  // The stiffness records hold √(V E_r b_e)-scaled gradients: rescale them to the new b_e.
+  double* const recs = records();
+#pragma omp parallel for schedule(static)
+  for (Eigen::Index e = 0; e < nt; ++e) {
+    const double rescale = std::sqrt(scale[e] / base_scale_[e]);
+    double* const rec = recs + record_ * static_cast<size_t>(e);
+    for (int k = 0; k < record_; ++k) rec[k] *= rescale;
+  }
+  base_scale_ = scale;
+}
+
 Eigen::Matrix3d CorotatedTetFem::rotation(int e) const {
   Eigen::Matrix3d R;
   const double* r = &rotations_[9 * kBatch * static_cast<size_t>(e / kBatch) + e % kBatch];
@@ -90,8 +116,8 @@ constexpr int W = kRotationBatch;
 /// arrays v[k·W + l] (see updateBatches): from the node positions xs (x_0..x_3, 12) and the shape
 /// gradients g (12), F and its rotation R (9; rotationsOf for the first m lanes when corotated, the
 /// identity otherwise), the element forces f = −V R σ ∇N_i (12), √(V E_r) R ∇N_i (12), with
-/// kDeterminant √(V E_r) cof F ∇N_i (12), and the squared von Mises stress vm2; sf is E_r, vol V
-/// [m³] and root_w √(V E_r).
+/// kDeterminant √(V E_r) cof F ∇N_i (12), and the squared von Mises stress vm2; sf is E_r (times the
+/// element's base modulus scale b_e, setElementYoungsModuli), vol V [m³] and root_w √(V E_r).
 /// \note Compiling it (and rotationsOf) for AVX2/FMA and AVX-512 as well (GCC target_clones) did
 /// not pay: 48.8k tets, 1 thread, medians, update 5.1–5.3 ms either way (the rotations ~0.4 ms
 /// faster, the rest as much slower): update() is bound by memory traffic, not arithmetic.
@@ -195,7 +221,7 @@ void CorotatedTetFem::updateBatches(const Points& x) {
     for (int l = 0; l < W; ++l) {
       const bool in = l < m;
       vol[l] = in ? volumes_[e0 + l] : 0.0;
-      sf[l] = in ? modulus_factor_[e0 + l] : 0.0;
+      sf[l] = in ? modulus_factor_[e0 + l] * base_scale_[e0 + l] : 0.0;  // E_r b_e
       for (int i = 0; i < 4; ++i)
         for (int c = 0; c < 3; ++c) xs[(3 * i + c) * W + l] = in ? x(tets_(e0 + l, i), c) : 0.0;
     }
@@ -362,10 +388,10 @@ Eigen::MatrixXd CorotatedTetFem::denseStiffness() const {
     const Eigen::Matrix3d R = rotation(e);
     Eigen::Matrix<double, 12, 12> Rb = Eigen::Matrix<double, 12, 12>::Zero();
     for (int i = 0; i < 4; ++i) Rb.block<3, 3>(3 * i, 3 * i) = R;
-    Eigen::Matrix<double, 12, 12> Ke = modulus_factor_[e] * Rb * K0 * Rb.transpose();
+    Eigen::Matrix<double, 12, 12> Ke = modulus_factor_[e] * base_scale_[e] * Rb * K0 * Rb.transpose();
     if (stiffness_is_determinant_) {
       const Eigen::Map<const Eigen::Matrix<double, 12, 1>> c(records() + record_ * static_cast<size_t>(e) + kVolumeGrads);
-      Ke += lambda_ * c * c.transpose();  // c = √(V E_r) ∂J/∂x
+      Ke += lambda_ * c * c.transpose();  // c = √(V E_r b_e) ∂J/∂x
     }
     for (int i = 0; i < 4; ++i)
       for (int j = 0; j < 4; ++j) K.block<3, 3>(3 * tets_(e, i), 3 * tets_(e, j)) += Ke.block<3, 3>(3 * i, 3 * j);

@@ -8,6 +8,7 @@
 
 #include "breast_sim/core/fem/corotated_tet_fem.h"
 #include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/model/tissue_labels.h"
 #include "breast_sim/core/solver/cholmod_solver.h"
 #include "breast_sim/core/solver/pcg_solver.h"
 #include "../util/yaml_fields.h"
@@ -63,6 +64,20 @@ void SimulationSettings::validate() const {
   if (!(gravity_mps2 >= 0) || !std::isfinite(gravity_mps2)) invalid("gravity_mps2", gravity_mps2, "≥ 0 m/s², e.g. 9.81");
   if (solver.coarsening.max_coarsest_elements < 10)
     invalid("solver.coarsening.max_coarsest_elements", solver.coarsening.max_coarsest_elements, "≥ 10");
+  for (const auto& [region, e] : region_youngs_modulus_pa)
+    if (!(e > 0) || !std::isfinite(e))
+      invalid(("region_youngs_modulus_pa[" + std::to_string(region) + "]").c_str(), e, "a positive modulus in Pa");
+}
+
+Eigen::VectorXd elementYoungsModuli(const TetMesh& mesh, const SimulationSettings& s) {
+  if (s.region_youngs_modulus_pa.empty()) return {};
+  const std::vector<int>& labels = mesh.regionLabels();
+  Eigen::VectorXd e = Eigen::VectorXd::Constant(mesh.numTets(), s.material.youngs_modulus_pa);
+  for (int t = 0; t < mesh.numTets() && t < static_cast<int>(labels.size()); ++t) {
+    const auto it = s.region_youngs_modulus_pa.find(labels[t]);
+    if (it != s.region_youngs_modulus_pa.end()) e[t] = it->second;
+  }
+  return e;
 }
 
 SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
@@ -78,7 +93,7 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
              "stiffness_damping_s", "solver", "solver_relative_tolerance", "solver_max_iterations",
              "multigrid_smoother", "multigrid_smoothing_steps", "multigrid_coarse_update_interval",
              "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "sliding", "settle_time_step_s",
-             "settle_increment_tolerance_mm", "settle_max_steps"},
+             "settle_increment_tolerance_mm", "settle_max_steps", "tissue_youngs_modulus_pa"},
             f, "simulation");
   const double inf = std::numeric_limits<double>::infinity();
   auto key = [](const char* k) { return std::string("simulation.") + k; };
@@ -113,6 +128,19 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
   if (m["settle_time_step_s"]) s.settle.time_step_s = numberIn(m["settle_time_step_s"], f, key("settle_time_step_s"), 0, 100, false, false, "s");
   if (m["settle_increment_tolerance_mm"]) s.settle.increment_tolerance_m = 1e-3 * numberIn(m["settle_increment_tolerance_mm"], f, key("settle_increment_tolerance_mm"), 0, 10, true, false, "mm");
   if (m["settle_max_steps"]) s.settle.max_steps = static_cast<int>(integer(m["settle_max_steps"], f, key("settle_max_steps"), 1, 1000000));
+  if (m["tissue_youngs_modulus_pa"]) {
+    // Tissue names (the classes of model/tissue_labels.h, which are the elements' region labels).
+    const YAML::Node t = m["tissue_youngs_modulus_pa"];
+    if (!t.IsMap())
+      throw std::runtime_error(f + ": simulation.tissue_youngs_modulus_pa: expected a map tissue -> Pa, e.g. {lesion: 20000}");
+    checkKeys(t, {"fat", "fibroglandular", "skin", "lesion"}, f, "simulation.tissue_youngs_modulus_pa");
+    for (const TissueClass c : {TissueClass::kFat, TissueClass::kFibroglandular, TissueClass::kSkin, TissueClass::kLesion}) {
+      const std::string name = tissueClassName(c);
+      if (t[name])
+        s.region_youngs_modulus_pa[static_cast<int>(c)] =
+            numberIn(t[name], f, key("tissue_youngs_modulus_pa.") + name, 0, inf, true, false, "Pa");
+    }
+  }
   try {
     s.validate();
   } catch (const std::invalid_argument& e) {
@@ -155,6 +183,7 @@ SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel
   const auto t1 = std::chrono::steady_clock::now();
   auto elements = std::make_unique<CorotatedTetFem>(model.mesh, settings.material);
   elements->setVolumeTerm(settings.volume_term);
+  elements->setElementYoungsModuli(elementYoungsModuli(model.mesh, settings));  // empty: E0 everywhere
   b.simulator = std::make_unique<DynamicSimulator>(model.mesh, std::move(elements), settings.material, settings.dynamics,
                                                    std::move(solver));
   if (!fixed.empty()) b.simulator->fixNodes(fixed);

@@ -76,11 +76,24 @@ SimulationModel cachedSimulationModel(const ModelCase& c, const std::string& cac
 }
 
 CalculixLoadCase referenceLoadCase(const SimulationSettings& s, const Eigen::Vector3d& g, ReferenceElement element) {
+  if (!s.region_youngs_modulus_pa.empty())
+    throw std::invalid_argument("referenceLoadCase: the settings give per-tissue Young's moduli "
+                                "(simulation.tissue_youngs_modulus_pa); pass the mesh so that they reach its elements");
   CalculixLoadCase l;
   l.material = s.material;
   l.gravity_mps2 = g;
   l.fixed_node_set = s.fixed_node_set;
   l.element = element;
+  return l;
+}
+
+CalculixLoadCase referenceLoadCase(const SimulationSettings& s, const TetMesh& mesh, const Eigen::Vector3d& g,
+                                   ReferenceElement element) {
+  SimulationSettings uniform = s;
+  uniform.region_youngs_modulus_pa.clear();
+  CalculixLoadCase l = referenceLoadCase(uniform, g, element);
+  const Eigen::VectorXd e = elementYoungsModuli(mesh, s);
+  if (e.size() != 0) l.modulus_factors = e / s.material.youngs_modulus_pa;
   return l;
 }
 

@@ -14,6 +14,8 @@ namespace breast_sim::core {
 /// Co-rotated linear tetrahedra: each element's rest stiffness K_e0 (for E0, ν) is rotated by the
 /// element's rotation R_e from the polar decomposition of its deformation gradient and scaled by
 /// its modulus factor E_r: K_e = E_r · R_e K_e0 R_eᵀ; the elastic force is −E_r R_e K_e0 (R_eᵀ x − X).
+/// An optional per-element base modulus (setElementYoungsModuli: tissues of different stiffness)
+/// multiplies E_r in both.
 ///
 /// K_e0 is never stored: its 3×3 blocks V(λ a bᵀ + μ b aᵀ + μ (a·b) I), with a, b the shape-function
 /// gradients of the two nodes, are formed on the fly from the rotated gradients R_e ∇N_i, which
@@ -38,6 +40,17 @@ class CorotatedTetFem : public ElementFormulation {
   const Eigen::VectorXd& modulusFactors() const override { return modulus_factor_; }
   void setModulusFactors(const Eigen::VectorXd& factors) override;
   const Eigen::VectorXd& vonMisesStress() const override { return von_mises_; }
+
+  /// Per-element base Young's moduli [Pa] (#T), e.g. a stiff inclusion in softer tissue: element e
+  /// takes E_e = b_e E0 with b_e = youngs_modulus_pa[e] / material.youngs_modulus_pa, and the
+  /// modulus factor E_r of the stiffening loop multiplies it (E = E_r b_e E0; ν is the same
+  /// everywhere). Stiffness, forces and the von Mises stress (the real stress [Pa]) scale with
+  /// E_r b_e; modulusFactors() stays E_r alone. Empty = E0 for every element (the default).
+  /// @throws std::invalid_argument for a wrong size or a non-positive or non-finite modulus (names
+  ///         the element).
+  void setElementYoungsModuli(const Eigen::VectorXd& youngs_modulus_pa);
+  /// b_e = E_e / E0 per element (ones unless setElementYoungsModuli() was called).
+  const Eigen::VectorXd& baseModulusScales() const { return base_scale_; }
 
   /// Rotation of element e at the last update.
   Eigen::Matrix3d rotation(int e) const;
@@ -98,7 +111,8 @@ class CorotatedTetFem : public ElementFormulation {
   }
   std::vector<int> incident_slots_;  // per incidence k of the pattern (node order), j = 0..3: 3·blockSlot(e)[4i + j]
   std::vector<double> elem_forces_;  // 12 per element [N]
-  Eigen::VectorXd modulus_factor_;
+  Eigen::VectorXd modulus_factor_;   // E_r (stiffening)
+  Eigen::VectorXd base_scale_;       // b_e = E_e / E0 (per-tissue moduli); the kernels use E_r b_e
   Eigen::VectorXd von_mises_;
   bool corotated_ = true;
   VolumeTerm volume_term_ = VolumeTerm::kTrace;

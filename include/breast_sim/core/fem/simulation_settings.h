@@ -5,6 +5,7 @@
 /// ready DynamicSimulator. The node, the command-line tools and the benchmarks share this.
 
 #include <functional>
+#include <map>
 #include <memory>
 #include <string>
 
@@ -86,16 +87,28 @@ struct SimulationSettings {
   /// beyond its prone footprint, the skin next to the rim falls onto the chest wall and the elements
   /// there collapse whatever α (measured with bench_sliding --diagnose); skin–wall contact is needed.
   bool sliding = false;
+  /// Young's modulus per tissue [Pa], keyed by the elements' region label (the tissue class of
+  /// model/tissue_labels.h: 1 fat, 2 fibroglandular, 3 skin, 4 lesion), e.g. {4: 20000}: a lesion
+  /// ten times stiffer than 2 kPa tissue. Regions not listed take material.youngs_modulus_pa (E0).
+  /// The stiffening factor E_r multiplies each element's base modulus (CorotatedTetFem::
+  /// setElementYoungsModuli); ν and ρ stay those of `material`. Empty (the default) = E0 everywhere.
+  std::map<int, double> region_youngs_modulus_pa;
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
 };
+
+/// Each element's base Young's modulus [Pa] (#T) from settings.region_youngs_modulus_pa and the
+/// mesh's region labels; empty when the map is empty (E0 everywhere).
+Eigen::VectorXd elementYoungsModuli(const TetMesh& mesh, const SimulationSettings& settings);
 
 /// Reads the `simulation:` map of a case file (absent = defaults). Keys, with units:
 ///   youngs_modulus_pa, poisson_ratio, density_kg_per_m3, time_step_s, mass_damping_per_s,
 ///   stiffness_damping_s, solver (multigrid | cholmod | jacobi-pcg), solver_relative_tolerance,
 ///   solver_max_iterations, multigrid_smoother (jacobi | gauss-seidel), multigrid_smoothing_steps,
 ///   multigrid_coarse_update_interval, multigrid_max_coarsest_elements, fixed_node_set, gravity_mps2, stiffening, sliding,
-///   settle_time_step_s, settle_increment_tolerance_mm, settle_max_steps.
+///   settle_time_step_s, settle_increment_tolerance_mm, settle_max_steps, tissue_youngs_modulus_pa
+///   (a map tissue name → Pa: {fat, fibroglandular, skin, lesion}, e.g. {lesion: 20000}; see
+///   SimulationSettings::region_youngs_modulus_pa).
 /// @throws std::runtime_error naming the file, the key and what is expected.
 SimulationSettings loadSimulationSettings(const std::string& yaml_path);
 
@@ -108,8 +121,9 @@ struct SimulatorBuild {
   double setup_seconds = 0.0;      ///< element set-up and the solver's pattern analysis [s]
 };
 
-/// Builds the element formulation (co-rotated linear tetrahedra), the solver (for multigrid: the
-/// coarse meshes of the case, CoarseningOptions) and the simulator, and fixes settings.fixed_node_set.
+/// Builds the element formulation (co-rotated linear tetrahedra, with the per-tissue moduli of
+/// settings.region_youngs_modulus_pa), the solver (for multigrid: the coarse meshes of the case,
+/// CoarseningOptions) and the simulator, and fixes settings.fixed_node_set.
 /// @throws std::invalid_argument for invalid settings or a missing node set (names it and the sets
 ///         the model has); std::runtime_error as meshing the coarse levels does.
 SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel& model,

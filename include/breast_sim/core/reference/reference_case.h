@@ -50,7 +50,16 @@ SimulationModel cachedSimulationModel(const ModelCase& model_case, const std::st
 
 /// The CalculiX problem matching a simulation's settings: its material, its fixed node set, the
 /// given gravity load, neo-Hookean with NLGEOM.
+/// @throws std::invalid_argument when the settings give per-tissue moduli
+///         (region_youngs_modulus_pa): they need the mesh, use the overload below.
 CalculixLoadCase referenceLoadCase(const SimulationSettings& settings, const Eigen::Vector3d& gravity_mps2,
+                                   ReferenceElement element = ReferenceElement::kC3D4);
+
+/// The same for a mesh: per-tissue moduli (settings.region_youngs_modulus_pa, by the mesh's region
+/// labels) become per-element modulus factors E_e / E0, which the deck writes as one element set
+/// and *MATERIAL per distinct modulus (same ν and density).
+CalculixLoadCase referenceLoadCase(const SimulationSettings& settings, const TetMesh& mesh,
+                                   const Eigen::Vector3d& gravity_mps2,
                                    ReferenceElement element = ReferenceElement::kC3D4);
 
 }  // namespace breast_sim::core
