@@ -15,13 +15,26 @@
 //             corotated+stiffening/cholmod    the same with CHOLMOD
 //             corotated-det[+stiffening]/...  with the fixed co-rotated J − 1 volume term (docs/corotated)
 //           Time = the settling steps (the simulator's set-up — multigrid hierarchy, CHOLMOD
-//           analysis — is listed beside it, not included; meshing is listed too).
+//           analysis — is listed beside it, not included; meshing is listed too). A run that throws
+//           (e.g. a solver returning non-finite velocities) is a row "FAILED" with the message; the
+//           sweep goes on. With per-tissue moduli in the case (simulation.tissue_youngs_modulus_pa,
+//           a stiff inclusion), --uniform-modulus-methods NAME,... also runs those methods with E0
+//           everywhere ("NAME uniform-E"): the error of a model that ignores the inclusion.
+//           --wall sliding: the chest wall slides instead of being fixed, in a form CalculiX can
+//           solve exactly: every method settles with the wall fixed, then the wall nodes are
+//           released onto implicit sliding (sliding/wall_slip.h) with friction off (μ = 0, no
+//           stick spring to speak of), skin–wall contact off and a tangential tether κ_0 / w_i
+//           (--tether-pa-per-mm, the case's limiting weights w_i) — an elastic, path-independent
+//           problem; methods are named "<formulation>+sliding/<solver>". The reference holds each
+//           wall node's normal DOF (the wall must be a plane y = const: checked) and puts grounded
+//           springs A_i κ_0 / w_i on x and z (CalculixNodeSupport). Errors then include the wall nodes.
 //
 //   bench_speed_accuracy [--study locking|sweep|all] [--case FILE] [--load supine|hanging]
 //        [--targets 5000,10000,20000,47895,99390] [--methods NAME,...] [--reference-target 99390]
 //        [--reference-element c3d10|c3d4] [--locking-target 10000] [--nus 0.3,0.4,0.45,0.48,0.49,0.495]
 //        [--ccx-threads 2] [--cache DIR] [--json FILE] [--csv FILE] [--curve-method NAME]
-//        [--lesion-target-mm 2]
+//        [--lesion-target-mm 2] [--uniform-modulus-methods NAME,...] [--wall fixed|sliding]
+//        [--tether-pa-per-mm 50]
 // The CalculiX results are cached (reference/calculix.h): a rerun only pays for our runs.
 #include <algorithm>
 #include <cstdio>
@@ -41,10 +54,12 @@
 #include "breast_sim/core/material/stiffening.h"
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/core/reference/calculix.h"
 #include "breast_sim/core/reference/error_metrics.h"
 #include "breast_sim/core/reference/model_choice.h"
 #include "breast_sim/core/reference/reference_case.h"
+#include "breast_sim/core/sliding/wall_slip.h"
 
 using namespace breast_sim::core;
 using namespace breast_sim::bench;
@@ -74,16 +89,85 @@ struct OurRun {
   int inverted = 0;
   long reversed = 0;
   double alpha = 0;
+  std::string failure;  ///< what a run that threw said ("" = it ran)
 };
+
+/// The sliding wall of --wall sliding: what WallSlip gets (friction and contact off, a tether).
+struct SlidingWall {
+  bool on = false;
+  SlidingSettings sliding;  ///< the case's node set and limiting factors
+  WallSlipSettings slip;
+};
+
+SlidingWall slidingWall(const std::string& case_file, double tether_pa_per_mm) {
+  const PipelineSettings ps = loadPipelineSettings(case_file);
+  SlidingWall w;
+  w.on = true;
+  w.sliding = ps.sliding;
+  w.slip = ps.wall_slip;
+  w.slip.static_friction = 0.0;
+  w.slip.kinetic_friction = 0.0;
+  w.slip.static_threshold_pa = 0.0;
+  // The stick spring must be positive: 1 Pa/m, 5e-5 of the tether at 50 Pa/mm (it follows a
+  // slipping node, so it pulls only between a stick and the next slip).
+  w.slip.friction_stiffness_pa_per_m = 1.0;
+  w.slip.contact = false;
+  w.slip.tether_stiffness_pa_per_m = 1e3 * tether_pa_per_mm;
+  return w;
+}
+
+/// The reference's supports for the sliding wall on a mesh: each WallSlip node has its normal (y)
+/// held and grounded springs A_i κ_g,i on x and z; chest-wall nodes WallSlip does not take stay
+/// fixed. Throws when the wall is not the plane y = const at the nodes (normal off y by > 2°).
+CalculixLoadCase slidingReference(CalculixLoadCase load, const ModelCase& c, const TetMesh& mesh, const SlidingWall& w,
+                                  double* max_normal_angle_deg) {
+  const WallSlip slip = WallSlip::fromCase(c, mesh, w.sliding, w.slip);
+  const Eigen::VectorXd& area = slip.geometry().nodeAreas();
+  double worst = 0;
+  std::vector<char> sliding(mesh.numNodes(), 0);
+  for (size_t i = 0; i < slip.nodes().size(); ++i) {
+    const int v = slip.nodes()[i];
+    Eigen::Vector3d grad;
+    slip.geometry().surface().signedDistance(mesh.nodes().row(v).transpose(), grad);
+    const double cosang = std::abs(grad.y()) / std::max(grad.norm(), 1e-300);
+    worst = std::max(worst, std::acos(std::min(1.0, cosang)) * 180.0 / M_PI);
+    CalculixNodeSupport sup;
+    sup.node = v;
+    sup.fixed = {{false, true, false}};
+    const double k = area[static_cast<Eigen::Index>(i)] * slip.tetherStiffness()[static_cast<Eigen::Index>(i)];
+    sup.spring_n_per_m = Eigen::Vector3d(k, 0.0, k);
+    load.node_supports.push_back(sup);
+    sliding[v] = 1;
+  }
+  if (max_normal_angle_deg) *max_normal_angle_deg = worst;
+  if (worst > 2.0)
+    throw std::invalid_argument("--wall sliding: the chest wall's normal is " + std::to_string(worst) +
+                                " degrees off y at a wall node; the reference needs a planar wall y = const");
+  for (int v : mesh.nodeSet(load.fixed_node_set))
+    if (!sliding[v]) {
+      CalculixNodeSupport sup;
+      sup.node = v;
+      sup.fixed = {{true, true, true}};
+      load.node_supports.push_back(sup);
+    }
+  load.fixed_node_set = "";
+  return load;
+}
 
 /// Settles the model under gravity g with a method named "<formulation>/<solver>": formulation
 /// linear | corotated | corotated+stiffening, solver multigrid | cholmod. tight = CHOLMOD-style
 /// reference settling (dt 1 s, increments below 1e-8 m).
 OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings s, const Eigen::Vector3d& g,
-               const std::string& method, bool tight = false) {
+               const std::string& method, bool tight = false, const SlidingWall& wall = SlidingWall()) {
   const std::size_t slash = method.find('/');
   if (slash == std::string::npos) throw std::invalid_argument("method '" + method + "': expected <formulation>/<solver>");
-  const std::string form = method.substr(0, slash), solver = method.substr(slash + 1);
+  std::string form = method.substr(0, slash);
+  const std::string solver = method.substr(slash + 1);
+  const std::size_t plus_sliding = form.find("+sliding");
+  if (plus_sliding != std::string::npos) {
+    if (!wall.on) throw std::invalid_argument("method '" + method + "': +sliding needs --wall sliding");
+    form.erase(plus_sliding, 8);
+  }
   if (form != "linear" && form != "corotated" && form != "corotated+stiffening" && form != "corotated-det" &&
       form != "corotated-det+stiffening")
     throw std::invalid_argument("method '" + method +
@@ -133,6 +217,46 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
     r.reversed = st.reversed_steps;
     r.alpha = st.final_alpha_per_pa;
   }
+  if (wall.on) {
+    // Release the wall onto implicit sliding and settle again (the pipeline's loop: springs before,
+    // friction after each accepted step), at the settling time step, until no node moves more than
+    // the settle tolerance in consecutive steps.
+    const auto t0 = Clock::now();
+    WallSlip slip = WallSlip::fromCase(c, m.mesh, wall.sliding, wall.slip);
+    slip.attach(sim);
+    std::unique_ptr<StiffeningSimulation> stiff;
+    if (stiffening) {
+      stiff = std::make_unique<StiffeningSimulation>(sim, m.mesh);
+      stiff->setGravity(g);
+    }
+    DynamicsParams p = sim.params();
+    if (s.settle.time_step_s > 0) p.time_step_s = s.settle.time_step_s;
+    sim.setParams(p);
+    int quiet = 0, steps = 0;
+    bool settled = false;
+    for (long calls = 0; steps < s.settle.max_steps && calls < 2L * s.settle.max_steps; ++calls) {
+      const Eigen::VectorXd before = sim.state().displacement_m;
+      slip.beforeStep(sim);
+      bool advanced = true;
+      if (stiff) advanced = stiff->step().advanced;
+      else sim.step();
+      if (!advanced) continue;
+      slip.afterStep(sim);
+      ++steps;
+      const Eigen::VectorXd du = sim.state().displacement_m - before;
+      double largest = 0;
+      for (Eigen::Index n = 0; n < du.size() / 3; ++n) largest = std::max(largest, du.segment<3>(3 * n).norm());
+      quiet = largest <= s.settle.increment_tolerance_m ? quiet + 1 : 0;
+      if (quiet >= s.settle.consecutive_steps) {
+        settled = true;
+        break;
+      }
+    }
+    r.settle_seconds += since(t0);
+    r.steps += steps;
+    r.settled = r.settled && settled;
+    if (stiff) r.reversed += stiff->stats().reversed_steps;
+  }
   r.u = sim.displacement();
   r.inverted = static_cast<int>(invertedTets(m.mesh.tets(), m.mesh.nodes() + r.u).size());
   return r;
@@ -167,6 +291,9 @@ int main(int argc, char** argv) {
   int reference_target = 99390, locking_target = 10000;
   std::vector<double> nus = {0.3, 0.4, 0.45, 0.48, 0.49, 0.495};
   double lesion_target_mm = 2.0;
+  std::vector<std::string> uniform_methods;
+  std::string wall_name = "fixed";
+  double tether_pa_per_mm = 50.0;
   CalculixOptions copt;
   copt.threads = 2;
   for (int i = 1; i < argc; ++i) {
@@ -190,12 +317,16 @@ int main(int argc, char** argv) {
     else if (k == "--csv") csv_path = value();
     else if (k == "--curve-method") curve_method = value();
     else if (k == "--lesion-target-mm") lesion_target_mm = std::stod(value());
+    else if (k == "--uniform-modulus-methods") uniform_methods = splitNames(value());
+    else if (k == "--wall") wall_name = value();
+    else if (k == "--tether-pa-per-mm") tether_pa_per_mm = std::stod(value());
     else {
       std::fprintf(stderr,
                    "usage: bench_speed_accuracy [--study locking|sweep|all] [--case FILE] [--load supine|hanging]\n"
                    "         [--targets N,...] [--methods NAME,...] [--reference-target N] [--reference-element c3d10|c3d4]\n"
                    "         [--locking-target N] [--nus 0.3,...] [--ccx-threads 2] [--cache DIR] [--json FILE] [--csv FILE]\n"
-                   "         [--curve-method NAME] [--lesion-target-mm 2]\n");
+                   "         [--curve-method NAME] [--lesion-target-mm 2] [--uniform-modulus-methods NAME,...]\n"
+                   "         [--wall fixed|sliding] [--tether-pa-per-mm 50]\n");
       return 2;
     }
   }
@@ -216,6 +347,17 @@ int main(int argc, char** argv) {
   out["ccx_threads"] = copt.threads;
   out["youngs_modulus_pa"] = settings.material.youngs_modulus_pa;
   out["poisson_ratio"] = settings.material.poisson_ratio;
+  if (wall_name != "fixed" && wall_name != "sliding")
+    throw std::invalid_argument("--wall " + wall_name + ": expected fixed or sliding");
+  SlidingWall wall;
+  if (wall_name == "sliding") wall = slidingWall(case_file, tether_pa_per_mm);
+  out["wall"] = wall_name;
+  if (wall.on)
+    out["sliding_wall"] = {{"tether_pa_per_mm", tether_pa_per_mm},
+                           {"friction", 0.0},
+                           {"contact", false},
+                           {"gaussian_limit", wall.sliding.gaussian_limit},
+                           {"thickness_limit", wall.sliding.thickness_limit}};
   std::string tissue_moduli;
   nlohmann::json region_moduli = nlohmann::json::object();
   for (const auto& [region, e] : settings.region_youngs_modulus_pa) {
@@ -291,10 +433,20 @@ int main(int argc, char** argv) {
     std::printf("\nReference: CalculiX %s neo-Hookean NLGEOM on %d elements (%d nodes) ...\n",
                 referenceElementName(rtype).c_str(), rm.mesh.numTets(), rm.mesh.numNodes());
     std::fflush(stdout);
-    const CalculixResult ref = solveWithCalculix(rm.mesh, referenceLoadCase(settings, rm.mesh, g, rtype), copt);
+    CalculixLoadCase rload = referenceLoadCase(settings, rm.mesh, g, rtype);
+    double wall_angle_deg = 0;
+    if (wall.on) {
+      rload = slidingReference(rload, base, rm.mesh, wall, &wall_angle_deg);
+      std::printf("  sliding wall: %zu supported nodes (normal y held; x, z on tethers of %.0f Pa/mm / w_i), "
+                  "wall normal within %.2f deg of y\n",
+                  rload.node_supports.size(), tether_pa_per_mm, wall_angle_deg);
+    }
+    const CalculixResult ref = solveWithCalculix(rm.mesh, rload, copt);
     const double ref_max = 1e3 * ref.displacement_m.rowwise().norm().maxCoeff();
-    std::printf("  %s, ccx %.1f s, %d deck nodes, largest displacement %.3f mm (key %s)\n",
-                ref.from_cache ? "from the cache" : "computed", ref.solve_seconds, ref.deck_nodes, ref_max, ref.key.c_str());
+    const double ref_dv = compareDisplacements(rm.mesh, ref.displacement_m, rm.mesh, ref.displacement_m).volume_change_percent;
+    std::printf("  %s, ccx %.1f s, %d deck nodes, largest displacement %.3f mm, volume change %.2f %% (key %s)\n",
+                ref.from_cache ? "from the cache" : "computed", ref.solve_seconds, ref.deck_nodes, ref_max, ref_dv,
+                ref.key.c_str());
     std::printf("%-32s %8s %7s | %8s %8s %6s %4s | %7s %7s %7s %7s %7s %6s | %4s\n", "method", "tets", "nodes", "settle[s]",
                 "setup[s]", "steps", "ok", "mean", "p95", "max", "lesion", "surf", "dV[%]", "inv");
     nlohmann::json rows = nlohmann::json::array();
@@ -311,18 +463,44 @@ int main(int argc, char** argv) {
       const auto tm = Clock::now();
       const SimulationModel m = buildSimulationModel(c);
       const double t_mesh = since(tm);
-      for (const std::string& method : methods) {
+      // The methods, and those of --uniform-modulus-methods again with E0 everywhere.
+      std::vector<std::pair<std::string, bool>> runs;
+      for (const std::string& method : methods) runs.push_back({method, false});
+      if (!settings.region_youngs_modulus_pa.empty())
+        for (const std::string& method : uniform_methods) runs.push_back({method, true});
+      for (const auto& [method, uniform] : runs) {
         // CHOLMOD refactorizes every step: past ~100k elements a settling takes minutes; skipped.
         if (method.find("cholmod") != std::string::npos && m.mesh.numTets() > 120000) continue;
-        const OurRun r = runOurs(c, m, settings, g, method);
-        const DisplacementErrors e = compareDisplacements(m.mesh, r.u, rm.mesh, ref.displacement_m, lesions);
-        std::printf("%-32s %8d %7d | %8.3f %8.3f %6d %4s | %7.3f %7.3f %7.3f %7.3f %7.3f %6.2f | %4d\n", method.c_str(),
+        std::string label = uniform ? method + " uniform-E" : method;
+        if (wall.on && label.find("+sliding") == std::string::npos) label.insert(label.find('/'), "+sliding");
+        SimulationSettings rs = settings;
+        if (uniform) rs.region_youngs_modulus_pa.clear();
+        OurRun r;
+        try {
+          r = runOurs(c, m, rs, g, method, /*tight=*/false, wall);
+        } catch (const std::exception& ex) {
+          r.failure = ex.what();
+        }
+        if (!r.failure.empty()) {
+          std::printf("%-32s %8d %7d | FAILED: %s\n", label.c_str(), m.mesh.numTets(), m.mesh.numNodes(), r.failure.c_str());
+          std::fflush(stdout);
+          rows.push_back({{"method", label},
+                          {"target_elements", static_cast<int>(tt)},
+                          {"elements", m.mesh.numTets()},
+                          {"nodes", m.mesh.numNodes()},
+                          {"failed", r.failure}});
+          continue;
+        }
+        // With a sliding wall the wall nodes move: they count.
+        const DisplacementErrors e =
+            compareDisplacements(m.mesh, r.u, rm.mesh, ref.displacement_m, lesions, wall.on ? "" : "chest_wall");
+        std::printf("%-32s %8d %7d | %8.3f %8.3f %6d %4s | %7.3f %7.3f %7.3f %7.3f %7.3f %6.2f | %4d\n", label.c_str(),
                     m.mesh.numTets(), m.mesh.numNodes(), r.settle_seconds, r.setup_seconds, r.steps,
                     r.settled ? "yes" : "NO", e.mean_mm, e.p95_mm, e.max_mm, e.lesion_max_mm, e.surface_distance_mean_mm,
                     e.volume_change_percent, r.inverted);
         std::fflush(stdout);
         nlohmann::json row = errorsJson(e);
-        row.update({{"method", method},
+        row.update({{"method", label},
                     {"target_elements", static_cast<int>(tt)},
                     {"elements", m.mesh.numTets()},
                     {"nodes", m.mesh.numNodes()},
@@ -336,7 +514,7 @@ int main(int argc, char** argv) {
                     {"final_alpha_per_pa", r.alpha}});
         rows.push_back(row);
         if (csv)
-          csv << method << ',' << static_cast<int>(tt) << ',' << m.mesh.numTets() << ',' << m.mesh.numNodes() << ','
+          csv << label << ',' << static_cast<int>(tt) << ',' << m.mesh.numTets() << ',' << m.mesh.numNodes() << ','
               << r.settle_seconds << ',' << r.setup_seconds << ',' << t_mesh << ',' << r.steps << ',' << (r.settled ? 1 : 0)
               << ',' << e.mean_mm << ',' << e.p95_mm << ',' << e.max_mm << ',' << e.lesion_max_mm << ','
               << e.surface_distance_mean_mm << ',' << e.volume_change_percent << ',' << e.max_displacement_mm << ','
@@ -354,6 +532,10 @@ int main(int argc, char** argv) {
                       {"deck_nodes", ref.deck_nodes},
                       {"ccx_seconds", ref.solve_seconds},
                       {"max_displacement_mm", ref_max},
+                      {"volume_change_percent", ref_dv},
+                      {"wall", wall_name},
+                      {"wall_normal_max_angle_deg", wall_angle_deg},
+                      {"supported_nodes", rload.node_supports.size()},
                       {"key", ref.key}}},
                     {"time", "settling steps only [s]; setup_seconds (multigrid hierarchy, solver analysis) and "
                              "meshing_seconds beside it"},
@@ -362,7 +544,7 @@ int main(int argc, char** argv) {
     // Model no more than a scene needs: the coarsest mesh meeting a lesion-error target.
     std::vector<ErrorCurvePoint> curve;
     for (const auto& r : rows)
-      if (r["method"] == curve_method)
+      if (r["method"] == curve_method && !r.contains("failed"))
         curve.push_back({r["target_elements"].get<int>(), r["elements"].get<int>(), r["lesion_error_max_mm"].get<double>(),
                          r["settle_seconds"].get<double>()});
     if (!curve.empty()) {

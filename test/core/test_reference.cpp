@@ -320,6 +320,74 @@ TEST(CalculixRun, TwoMaterialColumnMatchesOurLinearFemWithPerTissueModuli) {
   EXPECT_EQ(one_deck, calculixInputDeck(m, plain));
 }
 
+// Node supports (a wall the tissue slides on, reference for "+ sliding"): the column's free end
+// x = L hangs on grounded springs along y (SPRING1) with z held (a single-DOF *BOUNDARY). CalculiX's
+// linear answer equals our linear FEM with the same springs as DynamicSimulator node springs (z held
+// by a spring 1e6 times stiffer), and the springs carry load (the free column sags twice as far).
+TEST(CalculixRun, NodeSupportsGiveSpringsAndSingleDofsAsOurNodeSprings) {
+  if (!calculixAvailable()) GTEST_SKIP() << "ccx not installed (apt-get install calculix-ccx)";
+  const TetMesh m = column();
+  ElasticMaterial mat;
+  mat.youngs_modulus_pa = 3000;
+  mat.poisson_ratio = 0.3;
+  const Eigen::Vector3d g(0.0, -9.81, 2.0);
+  const double k = 0.5;  // [N/m] per node
+  CalculixLoadCase load;
+  load.material = mat;
+  load.gravity_mps2 = g;
+  load.hyperelastic = false;
+  load.nlgeom = false;
+  const std::vector<int> end = m.nodeSet("x_max");
+  for (int n : end) {
+    CalculixNodeSupport sup;
+    sup.node = n;
+    sup.fixed = {{false, false, true}};
+    sup.spring_n_per_m = Eigen::Vector3d(0, k, 0);
+    load.node_supports.push_back(sup);
+  }
+  const std::string deck = calculixInputDeck(m, load);
+  EXPECT_NE(deck.find("TYPE=SPRING1"), std::string::npos);
+  EXPECT_NE(deck.find(std::to_string(end[0] + 1) + ", 3, 3, 0."), std::string::npos);
+  CalculixOptions opt;
+  opt.cache_dir = "";
+  const CalculixResult ref = solveWithCalculix(m, load, opt);
+
+  DynamicsParams p;
+  p.gravity_mps2 = g;
+  auto fem = std::make_unique<CorotatedTetFem>(m, mat);
+  fem->setCorotated(false);
+  DynamicSimulator sim(m, std::move(fem), mat, p, std::make_unique<CholmodSolver>());
+  sim.fixNodes(m.nodeSet("chest_wall"));
+  std::vector<Eigen::Matrix3d> K(end.size(), Eigen::Vector3d(0, k, 1e6 * k).asDiagonal().toDenseMatrix());
+  Points anchors(static_cast<Eigen::Index>(end.size()), 3);
+  for (size_t i = 0; i < end.size(); ++i) anchors.row(static_cast<Eigen::Index>(i)) = m.nodes().row(end[i]);
+  sim.setNodeSprings(end, K, anchors);
+  SettleOptions o;
+  o.time_step_s = 10.0;
+  o.increment_tolerance_m = 1e-13;
+  o.max_steps = 400;
+  ASSERT_TRUE(settle(sim, o).settled);
+  const double scale = maxRowNorm(ref.displacement_m);
+  EXPECT_GT(scale, 1e-4);
+  EXPECT_LT(maxRowNorm(sim.displacement() - ref.displacement_m), 1e-4 * scale) << "max displacement " << scale;
+  double end_z = 0;
+  for (int n : end) end_z = std::max(end_z, std::abs(ref.displacement_m(n, 2)));
+  EXPECT_EQ(end_z, 0.0);
+  CalculixLoadCase free = load;
+  free.node_supports.clear();
+  EXPECT_GT(maxRowNorm(solveWithCalculix(m, free, opt).displacement_m), 2.0 * scale);
+
+  CalculixLoadCase bad = load;
+  bad.element = ReferenceElement::kC3D10;
+  EXPECT_THROW(calculixInputDeck(m, bad), std::invalid_argument);  // supports need C3D4
+  bad = load;
+  bad.node_supports[0].node = m.numNodes();
+  EXPECT_THROW(calculixInputDeck(m, bad), std::invalid_argument);
+  bad = load;
+  bad.node_supports[0].spring_n_per_m.y() = -1;
+  EXPECT_THROW(calculixInputDeck(m, bad), std::invalid_argument);
+}
+
 TEST(CalculixRun, ReportsAFailedRunWithItsFolder) {
   if (!calculixAvailable()) GTEST_SKIP() << "ccx not installed (apt-get install calculix-ccx)";
   CalculixOptions opt;

@@ -136,6 +136,18 @@ std::string calculixInputDeck(const TetMesh& mesh, const CalculixLoadCase& load)
     fixed = mesh.nodeSet(load.fixed_node_set);
   }
   const bool quadratic = load.element == ReferenceElement::kC3D10;
+  for (const CalculixNodeSupport& sup : load.node_supports) {
+    if (sup.node < 0 || sup.node >= N)
+      throw std::invalid_argument("CalculixLoadCase.node_supports: node " + std::to_string(sup.node) + " is not in [0, " +
+                                  std::to_string(N) + ")");
+    for (int a = 0; a < 3; ++a)
+      if (!(sup.spring_n_per_m[a] >= 0) || !std::isfinite(sup.spring_n_per_m[a]))
+        throw std::invalid_argument("CalculixLoadCase.node_supports: spring " + num(sup.spring_n_per_m[a]) +
+                                    " N/m of node " + std::to_string(sup.node) + ": expected a finite stiffness >= 0");
+  }
+  if (quadratic && !load.node_supports.empty())
+    throw std::invalid_argument("CalculixLoadCase.node_supports need C3D4 elements: with C3D10 the mid-edge nodes "
+                                "would need springs and conditions of their own");
 
   std::string s;
   s.reserve(static_cast<std::size_t>(N) * 70 + static_cast<std::size_t>(T) * (quadratic ? 90 : 40) + 4096);
@@ -218,7 +230,26 @@ std::string calculixInputDeck(const TetMesh& mesh, const CalculixLoadCase& load)
     s += "*DENSITY\n" + par(m.density_kg_per_m3) + "\n";
     s += "*SOLID SECTION, ELSET=" + set_names[g - 1] + ", MATERIAL=" + mat + "\n";
   }
+  // Node supports: grounded springs (SPRING1, numbered after the tetrahedra) and single DOFs.
+  long spring_id = T;
+  int spring_set = 0;
+  for (const CalculixNodeSupport& sup : load.node_supports)
+    for (int a = 0; a < 3; ++a) {
+      if (!(sup.spring_n_per_m[a] > 0)) continue;
+      const std::string set = "SPR" + std::to_string(++spring_set);
+      s += "*ELEMENT, TYPE=SPRING1, ELSET=" + set + "\n" + std::to_string(++spring_id) + ", " +
+           std::to_string(sup.node + 1) + "\n";
+      s += "*SPRING, ELSET=" + set + "\n" + std::to_string(a + 1) + "\n" + par(sup.spring_n_per_m[a]) + "\n";
+    }
   if (!fixed.empty()) s += "*BOUNDARY\nFIXED, 1, 3, 0.\n";
+  bool any_dof = false;
+  for (const CalculixNodeSupport& sup : load.node_supports)
+    for (int a = 0; a < 3; ++a)
+      if (sup.fixed[a]) {
+        if (!any_dof) s += "*BOUNDARY\n";
+        any_dof = true;
+        s += std::to_string(sup.node + 1) + ", " + std::to_string(a + 1) + ", " + std::to_string(a + 1) + ", 0.\n";
+      }
   s += std::string("*STEP") + (load.nlgeom ? ", NLGEOM" : "") + ", INC=10000\n";
   s += "*STATIC\n" + par(load.initial_increment) + ", 1., " + par(load.min_increment) + ", " + par(load.max_increment) + "\n";
   const double gn = load.gravity_mps2.norm();

@@ -25,7 +25,9 @@
 /// element, material constant, boundary condition and load, so any change to the mesh, material
 /// or load makes a new key.
 
+#include <array>
 #include <string>
+#include <vector>
 
 #include <Eigen/Core>
 
@@ -45,6 +47,16 @@ std::string referenceElementName(ReferenceElement e);
 /// "c3d4" or "c3d10" (case-insensitive). @throws std::invalid_argument naming the choices.
 ReferenceElement referenceElementFromName(const std::string& name);
 
+/// A node held by single-DOF conditions and grounded springs along the global axes: e.g. a
+/// chest-wall node sliding on the plane y = const, y fixed, the tangential x and z on springs to its
+/// rest point (a tether). Springs are CalculiX SPRING1 elements (one element set per spring, linear,
+/// along the global axis also under NLGEOM).
+struct CalculixNodeSupport {
+  int node = 0;                                             ///< mesh node (0-based)
+  std::array<bool, 3> fixed{{false, false, false}};         ///< x, y, z held at zero displacement
+  Eigen::Vector3d spring_n_per_m = Eigen::Vector3d::Zero(); ///< grounded spring per axis [N/m], ≥ 0
+};
+
 /// The reference problem: material, load, support and how CalculiX solves it.
 struct CalculixLoadCase {
   ElasticMaterial material;  ///< E0 [Pa], ν, ρ [kg/m³]
@@ -52,7 +64,10 @@ struct CalculixLoadCase {
   /// empty = 1 everywhere. Elements with equal factors share one CalculiX material.
   Eigen::VectorXd modulus_factors;
   Eigen::Vector3d gravity_mps2 = Eigen::Vector3d::Zero();  ///< body load g [m/s²]
-  std::string fixed_node_set = "chest_wall";  ///< held fixed (all three DOFs); must be a node set of the mesh
+  std::string fixed_node_set = "chest_wall";  ///< held fixed (all three DOFs); must be a node set of the mesh; "" = none
+  /// Further supports per node (single DOFs, grounded springs); linear elements (C3D4) only: the
+  /// mid-edge nodes of C3D10 would need springs of their own, consistent with the corners'.
+  std::vector<CalculixNodeSupport> node_supports;
   ReferenceElement element = ReferenceElement::kC3D4;
   /// true: neo-Hookean (*HYPERELASTIC, NEO HOOKE); false: linear isotropic (*ELASTIC).
   bool hyperelastic = true;
@@ -68,8 +83,11 @@ struct CalculixLoadCase {
 /// The complete CalculiX input deck (SI units) for a mesh and a load case. Nodes 1..N are the mesh's
 /// nodes in order; with C3D10 the mid-edge nodes follow as N+1, … (a mid-edge node is fixed when
 /// both its corners are: the edge of a linear mesh between two fixed nodes does not move either).
+/// Node supports: `*BOUNDARY` lines for their fixed DOFs, and SPRING1 elements numbered after the
+/// tetrahedra, each in its own element set with its `*SPRING` stiffness.
 /// @throws std::invalid_argument for an invalid load case, a missing fixed node set (naming the sets
-///         the mesh has) or modulus factors of the wrong size.
+///         the mesh has), modulus factors of the wrong size, a support naming a node out of range or
+///         a negative or non-finite spring, or supports with C3D10.
 std::string calculixInputDeck(const TetMesh& mesh, const CalculixLoadCase& load);
 
 /// Writes calculixInputDeck() to a file. @throws std::runtime_error naming a file that cannot be written.
