@@ -745,7 +745,9 @@ void AggregationMultigridPreconditioner::buildHierarchy() {
     buildTransfer(l, B, &Bc);
     timings_.hierarchy_s += since(t0);
     B = std::move(Bc);
-    if (levels_[l + 1]->nodes > 0.8 * lv.nodes) {  // no real coarsening left: level l is the coarsest
+    // No real coarsening (aggregates of one or two nodes carry more DOFs than they replace): level l
+    // is the coarsest.
+    if (kC * levels_[l + 1]->nodes > 0.5 * lv.bs * lv.nodes) {
       levels_.pop_back();
       break;
     }
