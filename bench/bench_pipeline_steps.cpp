@@ -1,0 +1,208 @@
+// bench_pipeline_steps: how many steps each stage of the prone-to-supine pipeline (gravity, sliding,
+// morphing; seed Figure 2) takes, and what the run ends at, for variants of the case file's settings
+// on ONE mesh per size (meshing is not repeatable run to run, so variants must share the model).
+// Step counts do not depend on the machine's load; the wall times are printed as ratios against the
+// first variant of the same size, measured in the same run.
+//
+//   bench_pipeline_steps [--case config/phantom_default.yaml] [--elements 10000,20000]
+//                        [--variant NAME:section.key=value,section.key=value ...] [--trace] [--json FILE]
+//
+// A variant overrides keys of the case file (any key of simulation:, sliding:, morphing:, with the
+// file's units), e.g. --variant base: --variant long:morphing.time_step_s=0.33,morphing.gain_pa_per_mm=40.
+// Without --variant one variant runs: the case as it is. --trace prints every accepted step
+// (stage, increment, pulled-vertex mean / p95 distance, α). --stretch F: the target is the model's own
+// skin stretched by F along y (reachable with the wall fixed; use with simulation.gravity_mps2=0).
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+#include <unistd.h>
+#include <yaml-cpp/yaml.h>
+
+#include "bench_util.h"
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+
+using namespace breast_sim::core;
+using namespace breast_sim::bench;
+namespace fs = std::filesystem;
+
+namespace {
+
+struct Variant {
+  std::string name;
+  std::vector<std::pair<std::string, std::string>> overrides;  // "section.key" → YAML scalar text
+};
+
+Variant parseVariant(const std::string& text) {
+  Variant v;
+  const size_t colon = text.find(':');
+  v.name = colon == std::string::npos ? text : text.substr(0, colon);
+  const std::string rest = colon == std::string::npos ? "" : text.substr(colon + 1);
+  std::stringstream ss(rest);
+  for (std::string item; std::getline(ss, item, ',');) {
+    if (item.empty()) continue;
+    const size_t eq = item.find('=');
+    if (eq == std::string::npos || item.find('.') == std::string::npos || item.find('.') > eq)
+      throw std::invalid_argument("variant '" + text + "': '" + item + "' is not section.key=value");
+    v.overrides.push_back({item.substr(0, eq), item.substr(eq + 1)});
+  }
+  return v;
+}
+
+/// The case file with the variant's keys replaced, written next to the case (relative paths in it
+/// keep working); returns its path.
+std::string variantFile(const std::string& case_file, const Variant& v) {
+  YAML::Node root = YAML::LoadFile(case_file);
+  for (const auto& [dotted, value] : v.overrides) {
+    const size_t dot = dotted.find('.');
+    const std::string section = dotted.substr(0, dot), key = dotted.substr(dot + 1);
+    root[section][key] = YAML::Load(value);
+  }
+  const fs::path out = fs::path(case_file).parent_path() /
+                       (".bench_pipeline_steps_" + std::to_string(::getpid()) + "_" + v.name + ".yaml");
+  std::ofstream f(out);
+  f << root << '\n';
+  return out.string();
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string case_file = std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml", json_path;
+  std::vector<double> sizes = {10000, 20000};
+  std::vector<Variant> variants;
+  bool trace = false;
+  double stretch = 0;  // > 0: the target is the model's own skin stretched by this factor along y (a reachable target)
+  try {
+    for (int i = 1; i < argc; ++i) {
+      const std::string a = argv[i];
+      auto next = [&] { return argValue(argc, argv, i); };
+      if (a == "--case") case_file = next();
+      else if (a == "--elements") sizes = parseList(next());
+      else if (a == "--variant") variants.push_back(parseVariant(next()));
+      else if (a == "--trace") trace = true;
+      else if (a == "--stretch") stretch = std::stod(next());
+      else if (a == "--json") json_path = next();
+      else {
+        std::fprintf(stderr, "usage: bench_pipeline_steps [--case FILE] [--elements LIST] [--variant NAME:sec.key=v,...]... "
+                             "[--trace] [--stretch F] [--json FILE]\n");
+        return 2;
+      }
+    }
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "bench_pipeline_steps: %s\n", e.what());
+    return 2;
+  }
+  if (variants.empty()) variants.push_back({"case", {}});
+  nlohmann::json rows = nlohmann::json::array();
+  for (double size : sizes) {
+    ModelCase c = loadModelCase(case_file);
+    c.meshing.target_elements = static_cast<int>(size);
+    const SimulationModel m = buildSimulationModel(c);
+    std::printf("\n%s, %d elements (one mesh for every variant)\n", c.name.c_str(), m.mesh.numTets());
+    std::printf("%-14s %-12s %-14s %-14s %-9s %-11s %-11s %-11s %-8s %-4s %-9s %-8s %-8s\n", "variant", "gravity",
+                "sliding", "morphing", "steps/solves", "skin mean", "skin p95", "pulled p95", "vol [%]", "inv", "lesion d",
+                "seconds", "ratio");
+    double base_seconds = -1;
+    Points base_lesions;
+    for (const Variant& v : variants) {
+      const std::string file = variantFile(case_file, v);
+      PipelineSettings s;
+      try {
+        s = loadPipelineSettings(file);
+      } catch (const std::exception& e) {
+        fs::remove(file);
+        std::fprintf(stderr, "variant %s: %s\n", v.name.c_str(), e.what());
+        return 2;
+      }
+      fs::remove(file);
+      ProneToSupinePipeline pipe(c, m, s);
+      if (stretch > 0) {
+        TargetSurface t;
+        t.vertices_m = m.mesh.nodes();
+        t.vertices_m.col(1) *= stretch;
+        t.triangles = skinTriangles(m.mesh, m.mesh.nodeSet(node_sets::kSkin));
+        pipe.setTarget(t);
+      }
+      PipelineProgressFn progress;
+      // The trace names the node that moved most in the step: on the chest wall (W), other skin (S) or
+      // inside (I), and its rest y [mm] (the phantom.s wall is the plane y = 0).
+      std::vector<char> kind(static_cast<size_t>(m.mesh.numNodes()), 'I');
+      for (int n : m.mesh.nodeSet(node_sets::kSkin)) kind[static_cast<size_t>(n)] = 'S';
+      for (int n : m.mesh.nodeSet(node_sets::kChestWall)) kind[static_cast<size_t>(n)] = 'W';
+      Eigen::VectorXd previous;
+      if (trace)
+        progress = [&](const PipelineProgress& p) {
+          const Eigen::VectorXd& u = pipe.simulator().state().displacement_m;
+          if (previous.size() != u.size()) previous = Eigen::VectorXd::Zero(u.size());
+          int worst = 0;
+          double w2 = -1;
+          for (int n = 0; n < m.mesh.numNodes(); ++n) {
+            const double d2 = (u.segment<3>(3 * n) - previous.segment<3>(3 * n)).squaredNorm();
+            if (d2 > w2) w2 = d2, worst = n;
+          }
+          previous = u;
+          std::printf("  %-8s %4d  inc %8.4f mm  mean %7.3f p95 %7.3f mm  alpha %.3g  node %d %c rest y %.1f mm\n",
+                      stageName(p.stage), p.step, p.increment_m * 1e3, p.surface_mean_m * 1e3, p.surface_p95_m * 1e3,
+                      p.alpha_per_pa, worst, kind[static_cast<size_t>(worst)], m.mesh.nodes()(worst, 1) * 1e3);
+        };
+      pipe.run(progress);
+      const StageReport &g = pipe.gravityReport(), &sl = pipe.slidingReport(), &mo = pipe.morphingReport();
+      const PipelineMetrics fm = pipe.metrics();
+      const double seconds = g.seconds + sl.seconds + mo.seconds;
+      if (base_seconds < 0) base_seconds = seconds;
+      const Points lesions = pipe.lesionPositions();
+      if (base_lesions.size() == 0) base_lesions = lesions;
+      double lesion_diff = 0;
+      for (Eigen::Index i = 0; i < lesions.rows(); ++i)
+        lesion_diff = std::max(lesion_diff, (lesions.row(i) - base_lesions.row(i)).norm());
+      auto stage = [](const StageReport& r) {
+        char b[64];
+        if (!r.ran) return std::string("-");
+        std::snprintf(b, sizeof b, "%d(%ld)%s", r.steps, r.reversed_steps, r.converged ? "" : r.stuck ? "S" : "X");
+        return std::string(b);
+      };
+      const int total = g.steps + sl.steps + mo.steps;
+      // Every trial step costs a solve, the reverted ones too.
+      const long solves = total + g.reversed_steps + sl.reversed_steps + mo.reversed_steps;
+      std::printf("%-14s %-12s %-14s %-14s %-4d/%-4ld %-11.3f %-11.3f %-11.3f %-8.2f %-4d %-9.3f %-8.2f %-8.2f\n",
+                  v.name.c_str(), stage(g).c_str(), stage(sl).c_str(), stage(mo).c_str(), total, solves,
+                  fm.surface.model_to_target.mean_m * 1e3, fm.surface.model_to_target.p95_m * 1e3, mo.surface_p95_m * 1e3,
+                  fm.volume_change_percent, fm.inverted_elements, lesion_diff * 1e3, seconds, seconds / base_seconds);
+      std::fflush(stdout);
+      nlohmann::json overrides = nlohmann::json::object();
+      for (const auto& [k, val] : v.overrides) overrides[k] = val;
+      auto stageJson = [](const StageReport& r) {
+        return nlohmann::json{{"ran", r.ran},       {"converged", r.converged},           {"stuck", r.stuck},
+                              {"steps", r.steps},   {"reversed", r.reversed_steps},       {"seconds", r.seconds},
+                              {"alpha_per_pa", r.final_alpha_per_pa}, {"max_slide_mm", r.max_slide_m * 1e3}};
+      };
+      rows.push_back({{"elements", m.mesh.numTets()},
+                      {"variant", v.name},
+                      {"overrides", overrides},
+                      {"gravity", stageJson(g)},
+                      {"sliding", stageJson(sl)},
+                      {"morphing", stageJson(mo)},
+                      {"total_steps", total},
+                      {"total_solves", solves},
+                      {"skin_to_target_mean_mm", fm.surface.model_to_target.mean_m * 1e3},
+                      {"skin_to_target_p95_mm", fm.surface.model_to_target.p95_m * 1e3},
+                      {"pulled_mean_mm", mo.surface_mean_m * 1e3},
+                      {"pulled_p95_mm", mo.surface_p95_m * 1e3},
+                      {"volume_change_percent", fm.volume_change_percent},
+                      {"inverted", fm.inverted_elements},
+                      {"lesion_shift_from_first_mm", lesion_diff * 1e3},
+                      {"seconds", seconds},
+                      {"ratio_to_first", seconds / base_seconds}});
+    }
+  }
+  std::printf("\nsteps(reversed), X = not converged, S = stuck; skin mean/p95: all skin -> target [mm]; pulled p95: the "
+              "morphing's vertices [mm]; lesion d: largest lesion position change from the first variant [mm]\n");
+  if (!json_path.empty()) std::ofstream(json_path) << rows.dump(2) << '\n';
+  return 0;
+}
