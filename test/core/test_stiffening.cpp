@@ -83,6 +83,14 @@ TEST(AlphaController, InvalidParametersThrowNamingTheField) {
   expectThrowsNaming([&] { AlphaController(with([](auto& p) { p.initial_alpha_per_pa = 1e9; })); }, "initial_alpha_per_pa");
   expectThrowsNaming([&] { AlphaController(with([](auto& p) { p.rate_halving = 1.0; })); }, "rate_halving");
   expectThrowsNaming([&] { AlphaController(with([](auto& p) { p.min_rate = 0.5; })); }, "min_rate");
+  expectThrowsNaming([&] { AlphaController(with([](auto& p) { p.reversal_growth = 0.5; })); }, "reversal_growth");
+  {
+    AlphaController c;
+    AlphaControllerParams bad;
+    bad.reversal_growth = 0.5;
+    expectThrowsNaming([&] { c.setParams(bad); }, "reversal_growth");
+    EXPECT_EQ(c.params().reversal_growth, 1.0);  // the old parameters stay
+  }
   StiffeningParams sp;
   sp.max_reversals_per_step = 0;
   expectThrowsNaming([&] { sp.validate(); }, "max_reversals_per_step");
@@ -122,6 +130,29 @@ TEST(AlphaController, DecreasesOnAcceptIncreasesOnReversalWithinBounds) {
   c.restart();
   EXPECT_DOUBLE_EQ(c.alpha(), p.initial_alpha_per_pa);
   EXPECT_EQ(c.phase(), AlphaController::Phase::kSearch);
+}
+
+TEST(AlphaController, RepeatedReversalsOfOneStepGrowGeometricallyWithReversalGrowth) {
+  // Without growth (the default) every repeated reversal doubles α; with growth 2 the k-th multiplies
+  // by 2 · 2^(k−1), so four reversals of one step raise α by 2·4·8·16 = 1024 (default: 16). The first
+  // reversal of a step and accepted steps are unchanged.
+  AlphaControllerParams p;
+  p.initial_alpha_per_pa = 1e-7;
+  AlphaController plain(p);
+  p.reversal_growth = 2.0;
+  AlphaController grown(p);
+  for (int attempt = 1; attempt <= 4; ++attempt) {
+    plain.onReversed(attempt);
+    grown.onReversed(attempt);
+  }
+  EXPECT_NEAR(plain.alpha(), 1e-7 * 16, 1e-18);
+  EXPECT_NEAR(grown.alpha(), 1e-7 * 1024, 1e-16);
+  grown.onAccepted();
+  EXPECT_NEAR(grown.alpha(), 1e-7 * 1024 * p.decrease_factor, 1e-16);
+  grown.onReversed(1);  // a new step's first reversal: × increase_factor only
+  EXPECT_NEAR(grown.alpha(), 1e-7 * 1024 * p.decrease_factor * 2, 1e-16);
+  for (int attempt = 2; attempt < 40; ++attempt) grown.onReversed(attempt);
+  EXPECT_DOUBLE_EQ(grown.alpha(), p.max_alpha_per_pa);  // still capped
 }
 
 // A step inverts whenever α < α*: the controller must oscillate first, detect it, and settle just

@@ -4,6 +4,7 @@
 // the Gaussian tether, moves far less.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 
@@ -114,6 +115,56 @@ TEST(WallSlip, BlockSlidesAboveTheFrictionAngleAndSticksBelowItOnThePlane) {
     EXPECT_LT(std::abs(b.meanBottom(2)), 0.01e-3);
     EXPECT_EQ(slipping, static_cast<int>(slip.nodes().size()));
   }
+}
+
+TEST(WallSlip, ExtraSpringsAreSetWithTheWallsAndSummedOnASharedNode) {
+  // The morphing's implicit pull goes to the simulator with the wall's springs (one set per
+  // simulator): on a wall node the two blocks are summed, elsewhere the extra spring is its own.
+  WallSlipSettings ws;
+  ws.contact = false;
+  Block b(Eigen::Vector3d(1.0, 0.0, -9.81), 0.033);
+  WallSlip slip(b.geometry, b.mesh, ws);
+  slip.attach(*b.sim);
+  for (int k = 0; k < 3; ++k) {  // a deformed state, so the wall springs carry force
+    slip.beforeStep(*b.sim);
+    b.sim->step();
+    slip.afterStep(*b.sim);
+  }
+  slip.beforeStep(*b.sim);
+  const Eigen::VectorXd wall_only = b.sim->currentSpringForces();
+  const int shared = slip.nodes().front();
+  int other = -1;  // a node off the wall
+  for (int v = 0; v < b.mesh.numNodes() && other < 0; ++v)
+    if (std::find(slip.nodes().begin(), slip.nodes().end(), v) == slip.nodes().end()) other = v;
+  ASSERT_GE(other, 0);
+  NodeSprings extra;
+  extra.nodes = {shared, other};
+  Eigen::Matrix3d k1 = Eigen::Matrix3d::Zero(), k2 = Eigen::Matrix3d::Identity() * 3.0;
+  k1(0, 0) = 50.0;
+  k1(0, 1) = k1(1, 0) = 10.0;
+  k1(1, 1) = 20.0;
+  extra.stiffness_n_per_m = {k1, k2};
+  extra.anchors_m.resize(2, 3);
+  extra.anchors_m.row(0) = b.mesh.nodes().row(shared) + Eigen::RowVector3d(1e-3, -2e-3, 0.5e-3);
+  extra.anchors_m.row(1) = b.mesh.nodes().row(other) + Eigen::RowVector3d(0, 0, 4e-3);
+  slip.beforeStep(*b.sim, &extra);
+  const Eigen::VectorXd both = b.sim->currentSpringForces();
+  const Eigen::VectorXd& u = b.sim->state().displacement_m;
+  for (int j = 0; j < 2; ++j) {
+    const int v = extra.nodes[static_cast<size_t>(j)];
+    const Eigen::Vector3d x = b.mesh.nodes().row(v).transpose() + u.segment<3>(3 * v);
+    const Eigen::Vector3d f_extra = -extra.stiffness_n_per_m[static_cast<size_t>(j)] * (x - extra.anchors_m.row(j).transpose());
+    EXPECT_LT((both.segment<3>(3 * v) - wall_only.segment<3>(3 * v) - f_extra).norm(), 1e-9 * (1 + f_extra.norm()))
+        << "node " << v;
+  }
+  // Every other node keeps its wall force, and the summed stiffness is on the shared node only once.
+  Eigen::VectorXd rest = both - wall_only;
+  for (int v : extra.nodes) rest.segment<3>(3 * v).setZero();
+  EXPECT_EQ(rest.cwiseAbs().maxCoeff(), 0.0);
+  EXPECT_EQ(b.sim->springNodes().size(), slip.nodes().size() + 1);
+  // A list whose sizes do not match is refused.
+  extra.anchors_m.conservativeResize(1, 3);
+  EXPECT_THROW(slip.beforeStep(*b.sim, &extra), std::invalid_argument);
 }
 
 TEST(WallSlip, BadSettingsAreNamed) {

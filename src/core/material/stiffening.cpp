@@ -39,6 +39,8 @@ void AlphaControllerParams::validate() const {
   if (!(increase_factor > 1) || !std::isfinite(increase_factor))
     bad(w, "increase_factor", increase_factor, "> 1 and finite, e.g. 2");
   if (!(rate_halving > 0 && rate_halving < 1)) bad(w, "rate_halving", rate_halving, "in (0, 1), e.g. 0.5");
+  if (!(reversal_growth >= 1) || !std::isfinite(reversal_growth))
+    bad(w, "reversal_growth", reversal_growth, ">= 1 and finite (1: no growth), e.g. 2");
   if (!(min_rate >= 0 && min_rate <= 1 - decrease_factor))
     bad(w, "min_rate", min_rate, "in [0, 1 − decrease_factor], e.g. 1e-3");
 }
@@ -81,6 +83,7 @@ void AlphaController::onAccepted() {
 
 void AlphaController::onReversed(int attempt) {
   double f = params_.increase_factor;
+  if (attempt > 1 && params_.reversal_growth > 1) f *= std::pow(params_.reversal_growth, attempt - 1);
   if (s_.phase == Phase::kSettling && attempt <= 1) {
     const double k = (params_.increase_factor - 1.0) / (1.0 - params_.decrease_factor);
     f = 1.0 + k * s_.rate;

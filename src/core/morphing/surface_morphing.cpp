@@ -17,6 +17,7 @@ void MorphingOptions::validate() const {
   if (!(gain_pa_per_m >= 0) || !std::isfinite(gain_pa_per_m)) bad("gain_pa_per_m", gain_pa_per_m, "≥ 0 Pa/m");
   if (!(max_distance_m >= 0) || !std::isfinite(max_distance_m)) bad("max_distance_m", max_distance_m, "≥ 0 m (0 = no limit)");
   if (!(max_traction_pa >= 0) || !std::isfinite(max_traction_pa)) bad("max_traction_pa", max_traction_pa, "≥ 0 Pa (0 = no cap)");
+  if (!(spring_pa_per_m >= 0) || !std::isfinite(spring_pa_per_m)) bad("spring_pa_per_m", spring_pa_per_m, "≥ 0 Pa/m (0 = no implicit pull)");
 }
 
 SurfaceMorphing::SurfaceMorphing(const TetMesh& mesh, std::shared_ptr<const SurfaceVectorField> field,
@@ -52,6 +53,27 @@ SurfaceMorphing::SurfaceMorphing(const TetMesh& mesh, std::shared_ptr<const Surf
   total_ = Points::Zero(static_cast<Eigen::Index>(vertices_.size()), 3);
   step_forces_ = total_;
   distance_ = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(vertices_.size()));
+  anchor_ = total_;
+  normal_ = total_;
+}
+
+void SurfaceMorphing::springs(std::vector<int>& nodes, std::vector<Eigen::Matrix3d>& k, Points& anchors) const {
+  nodes.clear();
+  k.clear();
+  anchors.resize(0, 3);
+  if (!(options_.spring_pa_per_m > 0)) return;
+  const Eigen::Index nv = static_cast<Eigen::Index>(vertices_.size());
+  anchors.resize(nv, 3);
+  for (Eigen::Index i = 0; i < nv; ++i) {
+    const Eigen::Vector3d n = normal_.row(i).transpose();
+    if (n.squaredNorm() == 0.0) continue;  // never off the target yet: no direction
+    // A vertex beyond max_distance_m gets no pull, as it gets no force.
+    if (options_.max_distance_m > 0 && distance_[i] > options_.max_distance_m) continue;
+    anchors.row(static_cast<Eigen::Index>(nodes.size())) = anchor_.row(i);
+    nodes.push_back(vertices_[static_cast<size_t>(i)]);
+    k.push_back(options_.spring_pa_per_m * area_[i] * n * n.transpose());
+  }
+  anchors.conservativeResize(static_cast<Eigen::Index>(nodes.size()), 3);
 }
 
 void SurfaceMorphing::setField(std::shared_ptr<const SurfaceVectorField> field) {
@@ -95,6 +117,9 @@ double SurfaceMorphing::addForces(DynamicSimulator& sim) {
     const Eigen::Vector3d v = field_->vectorToSurface(x);
     const double d = v.norm();
     distance_[i] = d;
+    anchor_.row(i) = (x + v).transpose();
+    // The direction of the implicit pull; on the target (d ≈ 0) the last one is kept.
+    if (d > 1e-9) normal_.row(i) = (v / d).transpose();
     sum += d;
     const bool pull = options_.max_distance_m == 0.0 || d <= options_.max_distance_m;
     Eigen::RowVector3d f = pull ? Eigen::RowVector3d(options_.gain_pa_per_m * area_[i] * v.transpose()) : Eigen::RowVector3d::Zero();

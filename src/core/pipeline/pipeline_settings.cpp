@@ -24,6 +24,21 @@ void MorphingStageSettings::validate() const {
   if (!(tolerance_p95_m > 0) || !std::isfinite(tolerance_p95_m)) bad("tolerance_p95_m", tolerance_p95_m, "> 0 m");
   if (!(increment_tolerance_m > 0) || !std::isfinite(increment_tolerance_m)) bad("increment_tolerance_m", increment_tolerance_m, "> 0 m");
   if (max_steps < 1) bad("max_steps", max_steps, "≥ 1");
+  if (!(alpha_reversal_growth >= 1) || !std::isfinite(alpha_reversal_growth))
+    bad("alpha_reversal_growth", alpha_reversal_growth, "≥ 1 (1: α doubles per repeated reversal)");
+}
+
+void SlidingStageSettings::validate() const {
+  if (!(time_step_s >= 0) || time_step_s > 10) {
+    std::ostringstream s;
+    s << "sliding 'time_step_s' = " << time_step_s << " is invalid: expected in [0, 10] s (0 = the dynamics time step)";
+    throw std::invalid_argument(s.str());
+  }
+  if (!(increment_tolerance_m >= 0) || !std::isfinite(increment_tolerance_m)) {
+    std::ostringstream s;
+    s << "sliding 'increment_tolerance_m' = " << increment_tolerance_m << " is invalid: expected >= 0 m (0 = the settle tolerance)";
+    throw std::invalid_argument(s.str());
+  }
 }
 
 void PipelineSettings::validate() const {
@@ -37,6 +52,7 @@ void PipelineSettings::validate() const {
     w.static_threshold_pa = sliding.static_threshold_pa;
     w.validate();
   }
+  sliding_stage.validate();
   morphing.validate();
   if (simulation.sliding && (!simulation.stiffening || simulation.fixed_node_set.empty()))
     throw std::invalid_argument(
@@ -58,7 +74,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
                "inertia", "max_step_mm", "max_slide_mm", "thickness_limit", "gaussian_limit", "gaussian_amplitude",
                "gaussian_sigma_mm", "gaussian_sigma_fraction", "method", "normal_stiffness_pa_per_mm",
                "friction_stiffness_pa_per_mm", "tether_stiffness_pa_per_mm", "stick_speed_mm_per_s", "contact",
-               "contact_gap_mm"},
+               "contact_gap_mm", "time_step_s", "alpha_restart", "settle_increment_tolerance_mm"},
               f, "sliding");
     auto key = [](const char* k) { return std::string("sliding.") + k; };
     SlidingSettings& d = s.sliding;
@@ -87,6 +103,14 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     if (m["tether_stiffness_pa_per_mm"]) w.tether_stiffness_pa_per_m = 1e3 * numberIn(m["tether_stiffness_pa_per_mm"], f, key("tether_stiffness_pa_per_mm"), 0, inf, false, false, "Pa/mm");
     if (m["stick_speed_mm_per_s"]) w.stick_speed_mps = 1e-3 * numberIn(m["stick_speed_mm_per_s"], f, key("stick_speed_mm_per_s"), 0, inf, false, false, "mm/s");
     if (m["contact"]) w.contact = boolean(m["contact"], f, key("contact"));
+    if (m["time_step_s"]) s.sliding_stage.time_step_s = numberIn(m["time_step_s"], f, key("time_step_s"), 0, 10, false, false, "s");
+    if (m["settle_increment_tolerance_mm"]) s.sliding_stage.increment_tolerance_m = 1e-3 * numberIn(m["settle_increment_tolerance_mm"], f, key("settle_increment_tolerance_mm"), 0, 10, false, false, "mm");
+    if (m["alpha_restart"]) {
+      const std::string restart = text(m["alpha_restart"], f, key("alpha_restart"));
+      if (restart == "initial") s.sliding_stage.alpha_restart = SlidingStageSettings::AlphaRestart::kInitial;
+      else if (restart == "current") s.sliding_stage.alpha_restart = SlidingStageSettings::AlphaRestart::kCurrent;
+      else throw std::runtime_error(f + ": sliding.alpha_restart is '" + restart + "'; expected initial or current");
+    }
     if (m["contact_gap_mm"]) w.contact_gap_m = 1e-3 * numberIn(m["contact_gap_mm"], f, key("contact_gap_mm"), 0, 10, false, false, "mm");
   }
   if (root.IsMap() && root["morphing"] && !root["morphing"].IsNull()) {
@@ -94,7 +118,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     checkKeys(m,
               {"enabled", "target", "target_unit_mm", "gain_pa_per_mm", "max_traction_pa", "max_distance_mm", "skip_constrained",
                "voxel_size_mm", "max_voxels_per_axis", "time_step_s", "tolerance_mean_mm", "tolerance_p95_mm",
-               "increment_tolerance_mm", "max_steps"},
+               "increment_tolerance_mm", "increment_measure", "max_steps", "alpha_reversal_growth", "spring_pa_per_mm"},
               f, "morphing");
     auto key = [](const char* k) { return std::string("morphing.") + k; };
     MorphingStageSettings& d = s.morphing;
@@ -108,6 +132,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     if (m["gain_pa_per_mm"]) d.forces.gain_pa_per_m = 1e3 * numberIn(m["gain_pa_per_mm"], f, key("gain_pa_per_mm"), 0, inf, false, false, "Pa/mm");
     if (m["max_traction_pa"]) d.forces.max_traction_pa = numberIn(m["max_traction_pa"], f, key("max_traction_pa"), 0, inf, false, false, "Pa");
     if (m["max_distance_mm"]) d.forces.max_distance_m = 1e-3 * numberIn(m["max_distance_mm"], f, key("max_distance_mm"), 0, inf, false, false, "mm");
+    if (m["spring_pa_per_mm"]) d.forces.spring_pa_per_m = 1e3 * numberIn(m["spring_pa_per_mm"], f, key("spring_pa_per_mm"), 0, inf, false, false, "Pa/mm");
     if (m["skip_constrained"]) d.forces.skip_constrained = boolean(m["skip_constrained"], f, key("skip_constrained"));
     if (m["voxel_size_mm"]) d.field.voxel_size_m = 1e-3 * numberIn(m["voxel_size_mm"], f, key("voxel_size_mm"), 0, 100, true, false, "mm");
     if (m["max_voxels_per_axis"]) d.field.max_voxels_per_axis = static_cast<int>(integer(m["max_voxels_per_axis"], f, key("max_voxels_per_axis"), 8, 2048));
@@ -115,6 +140,13 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     if (m["tolerance_mean_mm"]) d.tolerance_mean_m = 1e-3 * numberIn(m["tolerance_mean_mm"], f, key("tolerance_mean_mm"), 0, 1000, true, false, "mm");
     if (m["tolerance_p95_mm"]) d.tolerance_p95_m = 1e-3 * numberIn(m["tolerance_p95_mm"], f, key("tolerance_p95_mm"), 0, 1000, true, false, "mm");
     if (m["increment_tolerance_mm"]) d.increment_tolerance_m = 1e-3 * numberIn(m["increment_tolerance_mm"], f, key("increment_tolerance_mm"), 0, 10, true, false, "mm");
+    if (m["increment_measure"]) {
+      const std::string measure = text(m["increment_measure"], f, key("increment_measure"));
+      if (measure == "all_max") d.increment_measure = MorphingStageSettings::IncrementMeasure::kAllMax;
+      else if (measure == "pulled_p95") d.increment_measure = MorphingStageSettings::IncrementMeasure::kPulledP95;
+      else throw std::runtime_error(f + ": morphing.increment_measure is '" + measure + "'; expected all_max or pulled_p95");
+    }
+    if (m["alpha_reversal_growth"]) d.alpha_reversal_growth = numberIn(m["alpha_reversal_growth"], f, key("alpha_reversal_growth"), 1, 100);
     if (m["max_steps"]) d.max_steps = static_cast<int>(integer(m["max_steps"], f, key("max_steps"), 1, 1000000));
   }
   try {

@@ -140,9 +140,9 @@ WallSlipSettings ProneToSupinePipeline::wallSlipSettings() const {
   return w;
 }
 
-StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* moving) {
+StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* moving, const NodeSprings* extra) {
   if (slip_ && sliding_attached_) {
-    slip_->beforeStep(simulator());
+    slip_->beforeStep(simulator(), extra);
     const StiffeningStepResult r = stiff_->step();
     if (r.advanced) {
       const WallSlipStats ws = slip_->afterStep(simulator());
@@ -151,6 +151,7 @@ StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* m
     if (moving) *moving = false;  // the wall moves with the tissue: the tissue's increment says it
     return r;
   }
+  if (extra) simulator().setNodeSprings(extra->nodes, extra->stiffness_n_per_m, extra->anchors_m);
   const StiffeningStepResult r = stiff_->step();
   const bool m = slideAfter(r, stalls);
   if (moving) *moving = m;
@@ -158,16 +159,15 @@ StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* m
 }
 
 void ProneToSupinePipeline::attachSliding() {
-  if (slip_) {
-    slip_->attach(simulator());
-    sliding_attached_ = true;
-    stiff_->restartAlphaSearch();
-    return;
-  }
-  if (!sliding_) return;
-  sliding_->attach(simulator());
+  if (slip_) slip_->attach(simulator());
+  else if (sliding_) sliding_->attach(simulator());
+  else return;
   sliding_attached_ = true;
-  stiff_->restartAlphaSearch();
+  // A new α search (the boundary conditions changed), from the initial α or from where it is.
+  if (settings_.sliding_stage.alpha_restart == SlidingStageSettings::AlphaRestart::kCurrent)
+    stiff_->controller().restart(stiff_->controller().alpha());
+  else
+    stiff_->restartAlphaSearch();
 }
 
 bool ProneToSupinePipeline::slideAfter(const StiffeningStepResult& r, int* stalls) {
@@ -231,8 +231,10 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
     StageReport sr;
     sr.ran = true;
     stage_ = PipelineStage::kSliding;
-    setTimeStep(settings_.simulation.dynamics.time_step_s);
+    setTimeStep(settings_.sliding_stage.time_step_s > 0 ? settings_.sliding_stage.time_step_s
+                                                         : settings_.simulation.dynamics.time_step_s);
     attachSliding();
+    const double sliding_tol = settings_.sliding_stage.increment_tolerance_m > 0 ? settings_.sliding_stage.increment_tolerance_m : tol;
     const RunStats b2 = stiff_->stats();
     int stalls = 0, quiet_steps = 0, stuck_calls = 0;
     long sl_calls = 0;
@@ -256,10 +258,10 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
       ++sr.steps;
       sr.last_increment_m = increment(previous);
       if (first < 0) first = sr.last_increment_m;
-      quiet_steps = !moving && sr.last_increment_m <= tol ? quiet_steps + 1 : 0;
+      quiet_steps = !moving && sr.last_increment_m <= sliding_tol ? quiet_steps + 1 : 0;
       if (progress)
         progress({stage_, sr.steps, so.max_steps, sr.last_increment_m, -1, -1, r.alpha_per_pa,
-                  logFraction(first, sr.last_increment_m, tol)});
+                  logFraction(first, sr.last_increment_m, sliding_tol)});
       if (quiet_steps >= 3) {
         sr.converged = true;
         break;
@@ -308,11 +310,27 @@ IterationReport ProneToSupinePipeline::iterate() {
   stiff_->holdAlpha(met);
   it.alpha_held = met;
   int stalls = 0;
-  const StiffeningStepResult r = stepWithSliding(&stalls, nullptr);
+  // The implicit pull (augmented Lagrangian), anchored at the target points of the current positions
+  // (after a call that could not advance these are the positions the last forces were read at).
+  const bool pull = settings_.morphing.forces.spring_pa_per_m > 0;
+  if (pull)
+    morphing_forces_->springs(morph_springs_.nodes, morph_springs_.stiffness_n_per_m, morph_springs_.anchors_m);
+  const StiffeningStepResult r = stepWithSliding(&stalls, nullptr, pull ? &morph_springs_ : nullptr);
   last_advanced_ = r.advanced;
   it.advanced = r.advanced;
   it.reversals = r.reversals;
   it.alpha_per_pa = r.alpha_per_pa;
+  {
+    const Eigen::VectorXd& u = simulator().state().displacement_m;
+    const std::vector<int>& vs = morphing_forces_->vertices();
+    pulled_moves_.resize(vs.size());
+    for (size_t i = 0; i < vs.size(); ++i)
+      pulled_moves_[i] = (u.segment<3>(3 * vs[i]) - iterate_previous_.segment<3>(3 * vs[i])).squaredNorm();
+    // The ⌈0.95 n⌉-th smallest, as distanceStats' p95.
+    const size_t k = std::min(vs.size() - 1, static_cast<size_t>(std::ceil(0.95 * static_cast<double>(vs.size()))) - 1);
+    std::nth_element(pulled_moves_.begin(), pulled_moves_.begin() + static_cast<std::ptrdiff_t>(k), pulled_moves_.end());
+    it.pulled_increment_p95_m = std::sqrt(pulled_moves_[k]);
+  }
   it.increment_m = increment(iterate_previous_);
   it.seconds = since(t0);
   return it;
@@ -327,6 +345,12 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   stage_ = PipelineStage::kMorphing;
   setTimeStep(ms.time_step_s);
   if (hasSliding() && !sliding_attached_) attachSliding();  // e.g. the gravity stage was skipped
+  const AlphaControllerParams alpha_before = stiff_->controller().params();
+  {
+    AlphaControllerParams a = alpha_before;
+    a.reversal_growth = ms.alpha_reversal_growth;
+    stiff_->controller().setParams(a);
+  }
   const RunStats before = stiff_->stats();
   long calls = 0;
   int quiet = 0, stuck = 0;
@@ -349,7 +373,8 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
     rep.surface_mean_m = it.surface_mean_m;
     rep.surface_p95_m = it.surface_p95_m;
     if (first < 0) first = it.surface_mean_m;
-    quiet = it.alpha_held && it.increment_m <= ms.increment_tolerance_m ? quiet + 1 : 0;
+    const double moved = ms.increment_measure == MorphingStageSettings::IncrementMeasure::kPulledP95 ? it.pulled_increment_p95_m : it.increment_m;
+    quiet = it.alpha_held && moved <= ms.increment_tolerance_m ? quiet + 1 : 0;
     if (progress)
       progress({stage_, rep.steps, ms.max_steps, it.increment_m, it.surface_mean_m, it.surface_p95_m, it.alpha_per_pa,
                 logFraction(first, it.surface_mean_m, ms.tolerance_mean_m)});
@@ -364,6 +389,7 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   rep.surface_p95_m = d.p95_m;
   rep.converged = rep.converged && d.mean_m <= ms.tolerance_mean_m && d.p95_m <= ms.tolerance_p95_m;
   stiff_->holdAlpha(false);
+  stiff_->controller().setParams(alpha_before);
   closeReport(rep, before, since(t0));
   rep.max_slide_m = sliding_report_.max_slide_m;
   morphing_ = rep;

@@ -117,7 +117,7 @@ void WallSlip::setStickPoints(const Points& stick_m, const Points& slip_directio
   }
 }
 
-void WallSlip::beforeStep(DynamicSimulator& sim) {
+void WallSlip::beforeStep(DynamicSimulator& sim, const NodeSprings* extra) {
   const ChestWallSurface& wall = geometry_->surface();
   const Eigen::VectorXd& u = sim.state().displacement_m;
   const Eigen::VectorXd& vel = sim.state().velocity_mps;
@@ -186,6 +186,39 @@ void WallSlip::beforeStep(DynamicSimulator& sim) {
     forces.conservativeResize(forces.rows() + 1, 3);
     forces.row(forces.rows() - 1).setZero();
     ++last_contacts_;
+  }
+  if (extra && !extra->nodes.empty()) {
+    if (extra->stiffness_n_per_m.size() != extra->nodes.size() ||
+        extra->anchors_m.rows() != static_cast<Eigen::Index>(extra->nodes.size()))
+      throw std::invalid_argument("WallSlip::beforeStep: " + std::to_string(extra->nodes.size()) + " extra spring nodes, " +
+                                  std::to_string(extra->stiffness_n_per_m.size()) + " blocks and " +
+                                  std::to_string(extra->anchors_m.rows()) + " anchors; give one of each per node");
+    std::vector<int> slot(static_cast<size_t>(mesh_.numNodes()), -1);
+    for (size_t i = 0; i < nodes.size(); ++i) slot[static_cast<size_t>(nodes[i])] = static_cast<int>(i);
+    const Eigen::Index own = anchors.rows();
+    Eigen::Index added = 0;
+    for (size_t j = 0; j < extra->nodes.size(); ++j)
+      if (slot[static_cast<size_t>(extra->nodes[j])] < 0) ++added;
+    anchors.conservativeResize(own + added, 3);
+    forces.conservativeResize(own + added, 3);
+    for (size_t j = 0; j < extra->nodes.size(); ++j) {
+      const int v = extra->nodes[j];
+      const Eigen::Matrix3d& k2 = extra->stiffness_n_per_m[j];
+      const Eigen::Vector3d a2 = extra->anchors_m.row(static_cast<Eigen::Index>(j)).transpose();
+      const int s = slot[static_cast<size_t>(v)];
+      if (s >= 0) {
+        // −K1 (x − a1) − K2 (x − a2) = −(K1 + K2)(x − a1) + K2 (a2 − a1)
+        const Eigen::Vector3d a1 = anchors.row(s).transpose();
+        k[static_cast<size_t>(s)] += k2;
+        forces.row(s) += (k2 * (a2 - a1)).transpose();
+      } else {
+        slot[static_cast<size_t>(v)] = static_cast<int>(nodes.size());
+        nodes.push_back(v);
+        k.push_back(k2);
+        anchors.row(static_cast<Eigen::Index>(nodes.size()) - 1) = a2.transpose();
+        forces.row(static_cast<Eigen::Index>(nodes.size()) - 1).setZero();
+      }
+    }
   }
   sim.setNodeSprings(nodes, k, anchors, forces);
 }

@@ -40,6 +40,12 @@ struct AlphaControllerParams {
   double decrease_factor = 0.8;     ///< search phase: α ← α · this after an accepted step, in (0, 1)
   double increase_factor = 2.0;     ///< α ← α · this on a reversal (search phase, and every repeated
                                     ///< reversal of the same step), > 1
+  /// Repeated reversals of the same step grow geometrically: the k-th (k ≥ 2) multiplies α by
+  /// increase_factor · reversal_growth^(k−1), ≥ 1 (1: by increase_factor each time, the seed's
+  /// doubling). With 2, α climbs by 2, 4, 8, 16, … (×1024 in 4 reversals instead of 10): a stage that
+  /// starts with α at the floor under a new load (the morphing forces) finds a working α in fewer
+  /// reverted solves; it may overshoot by up to that factor, and falls ×decrease_factor per good step.
+  double reversal_growth = 1.0;
   /// Settling phase (entered at the first oscillation: a decrease, an increase, a decrease): α changes
   /// by a rate ρ proportional to its magnitude, Δα = ρ α down after an accepted step and
   /// k ρ α up on the first reversal of a step, k = (increase_factor − 1) / (1 − decrease_factor) (the
@@ -78,8 +84,15 @@ class AlphaController {
   /// A step was accepted (no inversion): decrease α (never below min_alpha_per_pa).
   void onAccepted();
   /// A step was reverted. @param attempt 1 for the first reversal of this step, 2 for the next, …:
-  /// repeated reversals of the same step always multiply α by increase_factor (never above max).
+  /// repeated reversals of the same step multiply α by increase_factor · reversal_growth^(attempt−1)
+  /// (never above max).
   void onReversed(int attempt);
+  /// Replaces the parameters (a stage with its own reversal growth); α and the phase stay.
+  /// @throws std::invalid_argument as AlphaControllerParams::validate; the old ones stay then.
+  void setParams(const AlphaControllerParams& params) {
+    params.validate();
+    params_ = params;
+  }
   /// New search from the initial α (boundary conditions changed).
   void restart();
   /// Starts over from a given α [1/Pa] (clamped to [min, max]) in the search phase.

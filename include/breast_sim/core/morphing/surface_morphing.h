@@ -30,6 +30,15 @@ struct MorphingOptions {
   /// Which vertices: the skin node set without the nodes the simulator holds (fixed or moved by
   /// sliding), so the morphing never fights a constraint.
   bool skip_constrained = true;
+  /// Implicit pull (augmented Lagrangian): besides the accumulated forces, each pulled vertex gets a
+  /// spring k · A_i · n nᵀ towards its nearest target point (n: the unit vector to it), re-anchored
+  /// every step and solved with the tissue by the implicit step [Pa/m]; 0 = none (the seed's explicit
+  /// forces alone). The accumulated force is then the Lagrange multiplier of "vertex on the target"
+  /// and the gain its update: with gain = k every error mode shrinks per converged step by s / (s + k)
+  /// (s: the tissue's stiffness per area for that mode), instead of 1 − gain / s, which for the
+  /// explicit forces alone must stay > −1 for the softest mode and so is close to 1 for the stiff,
+  /// short-wavelength ones that make the last tenths of a millimetre.
+  double spring_pa_per_m = 0.0;
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
 };
@@ -66,6 +75,10 @@ class SurfaceMorphing {
   const Eigen::VectorXd& vertexAreas() const { return area_; }
   /// Forces added so far, summed per pulled vertex [N] (#vertices × 3).
   const Points& accumulatedForces() const { return total_; }
+  /// The implicit pull's springs (options().spring_pa_per_m) at the positions of the last
+  /// addForces(): per pulled vertex whose direction to the target is known, the block
+  /// k A_i n nᵀ [N/m] and its anchor, the nearest target point [m]. Empty lists when the spring is off.
+  void springs(std::vector<int>& nodes, std::vector<Eigen::Matrix3d>& stiffness_n_per_m, Points& anchors_m) const;
   const MorphingOptions& options() const { return options_; }
 
  private:
@@ -77,6 +90,8 @@ class SurfaceMorphing {
   Points total_;
   Points step_forces_;
   Eigen::VectorXd distance_;
+  Points anchor_;  // nearest target point per vertex at the last addForces() [m]
+  Points normal_;  // unit direction to it (the last known one while the vertex sits on the target)
 };
 
 }  // namespace breast_sim::core

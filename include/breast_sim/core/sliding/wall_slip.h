@@ -77,6 +77,15 @@ struct WallSlipSettings {
   void validate() const;
 };
 
+/// Linear node springs of another part (e.g. the morphing's implicit pull), given to
+/// WallSlip::beforeStep to be set together with the wall's (the simulator holds one set of springs,
+/// one block per node): f_i = −K_i (x_i − a_i).
+struct NodeSprings {
+  std::vector<int> nodes;
+  std::vector<Eigen::Matrix3d> stiffness_n_per_m;  ///< symmetric 3×3 [N/m] per node
+  Points anchors_m;                                ///< a position per node [m]
+};
+
 /// What the last afterStep() saw.
 struct WallSlipStats {
   int slipping = 0;              ///< wall nodes slipping after the step
@@ -97,8 +106,10 @@ class WallSlip {
   /// Frees the wall nodes in `sim` (their Dirichlet conditions) and sets the springs from its state.
   void attach(DynamicSimulator& sim);
   /// Before each step (and before each retry of a reversed step): the springs linearised at the
-  /// simulator's current state. Contacts are decided here.
-  void beforeStep(DynamicSimulator& sim);
+  /// simulator's current state. Contacts are decided here. `extra` springs are set with them (on a
+  /// node that has a wall or contact spring too, the two are summed: K = K1 + K2, anchor a1 and the
+  /// constant force K2 (a2 − a1), the same force at every position).
+  void beforeStep(DynamicSimulator& sim, const NodeSprings* extra = nullptr);
   /// After an accepted step: the friction return mapping (stick points follow slipping nodes).
   WallSlipStats afterStep(const DynamicSimulator& sim);
 
