@@ -5,7 +5,6 @@
 #include <algorithm>
 #include <numeric>
 #include <cmath>
-#include <functional>
 #include <memory>
 #include <random>
 #include <string>
@@ -13,8 +12,6 @@
 
 #include <Eigen/Dense>
 #include <Eigen/SparseCholesky>
-
-#include <omp.h>
 
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/solver/cholmod_solver.h"
@@ -524,112 +521,4 @@ TEST(PcgSolver, StopsAtTheIterationLimitAndSaysSo) {
   EXPECT_EQ(s.iterations, 3);
   EXPECT_NEAR(s.relative_residual, (f.b - f.A * x).norm() / f.b.norm(), 1e-12);
   EXPECT_GT(s.relative_residual, 1e-12);
-}
-
-namespace {
-
-/// Runs a test body with exactly `threads` OpenMP threads, restoring the previous count.
-struct ThreadCount {
-  explicit ThreadCount(int threads) : previous(omp_get_max_threads()) { omp_set_num_threads(threads); }
-  ~ThreadCount() { omp_set_num_threads(previous); }
-  int previous;
-};
-
-}  // namespace
-
-// The team solve (one parallel region per solve, fused direction update, team V-cycle) against the
-// reference path with one parallel loop per operation: the same iterations and, up to the order of
-// the partial sums, the same solution, for every preconditioner and with every multigrid level in
-// the team (team_min_nodes = 1) or only the fine one.
-TEST(PcgSolver, TeamSolveMatchesOneParallelLoopPerOperation) {
-  const Fixture& f = fixture();
-  ASSERT_GT(f.A.rows(), 4096) << "too small for the team path";
-  const ThreadCount two(2);
-  PcgOptions pcg;
-  pcg.relative_tolerance = 1e-10;
-  pcg.max_iterations = 5000;
-  struct Case {
-    std::string label;
-    std::function<std::unique_ptr<PcgSolver>()> make;
-  };
-  std::vector<Case> cases;
-  cases.push_back({"jacobi", [&] { return std::make_unique<PcgSolver>(pcg); }});
-  for (int team_min : {1, 1000})
-    for (auto smoother : {MultigridOptions::Smoother::kJacobi, MultigridOptions::Smoother::kGaussSeidel})
-      for (int sweeps : {1, 2}) {
-        MultigridOptions o;
-        o.team_min_nodes = team_min, o.smoother = smoother;
-        o.pre_smoothing_steps = o.post_smoothing_steps = sweeps;
-        cases.push_back({"multigrid " + std::string(smoother == MultigridOptions::Smoother::kJacobi ? "jacobi" : "gs") +
-                             std::to_string(sweeps) + " team_min " + std::to_string(team_min),
-                         [&, o] { return std::make_unique<MultigridPcgSolver>(f.hierarchy, pcg, o); }});
-      }
-  for (const Case& c : cases) {
-    SCOPED_TRACE(c.label);
-    SolveStats stats[2];
-    Eigen::VectorXd x[2];
-    for (int team = 0; team < 2; ++team) {
-      auto solver = c.make();
-      solver->setTeamSolve(team == 1);
-      solver->analyzePattern(f.A);
-      solver->factorize(f.A);
-      x[team] = Eigen::VectorXd::Zero(f.b.size());
-      try {
-        stats[team] = solver->solve(f.b, x[team]);
-      } catch (const std::exception& e) {
-        FAIL() << (team ? "team" : "reference") << ": " << e.what();
-      }
-      ASSERT_TRUE(stats[team].converged) << (team ? "team" : "reference") << ": " << stats[team].iterations
-                                         << " iterations, residual " << stats[team].relative_residual;
-      // A warm start at the solution returns at once on both paths.
-      Eigen::VectorXd again = x[team];
-      EXPECT_EQ(solver->solve(f.b, again).iterations, 0);
-    }
-    EXPECT_NEAR(stats[1].iterations, stats[0].iterations, 1);
-    EXPECT_LE(relativeDifference(x[1], x[0]), 1e-8);
-    EXPECT_LE(relativeDifference(x[1], f.reference), 1e-8);
-    EXPECT_NEAR(stats[1].relative_residual, (f.b - f.A * x[1]).norm() / f.b.norm(), 1e-14);
-  }
-}
-
-// Errors inside the team (all threads must leave the parallel region together) become the same
-// exceptions as on the reference path; the iteration limit is kept there too.
-TEST(PcgSolver, TeamSolveReportsIndefiniteMatricesAndTheIterationLimit) {
-  const ThreadCount two(2);
-  // 3000 copies of [1 2; 2 1] (eigenvalues 3 and −1); b = (1, −1, …) points at the negative ones.
-  const int blocks = 3000;
-  std::vector<Eigen::Triplet<double, int>> t;
-  for (int k = 0; k < blocks; ++k) {
-    t.emplace_back(2 * k, 2 * k, 1.0), t.emplace_back(2 * k, 2 * k + 1, 2.0);
-    t.emplace_back(2 * k + 1, 2 * k, 2.0), t.emplace_back(2 * k + 1, 2 * k + 1, 1.0);
-  }
-  SparseMatrix A(2 * blocks, 2 * blocks);
-  A.setFromTriplets(t.begin(), t.end());
-  Eigen::VectorXd b(2 * blocks);
-  for (int i = 0; i < b.size(); ++i) b[i] = i % 2 ? -1.0 : 1.0;
-  PcgSolver pcg;
-  ASSERT_TRUE(pcg.teamSolve());
-  pcg.analyzePattern(A);
-  pcg.factorize(A);
-  Eigen::VectorXd x;
-  try {
-    pcg.solve(b, x);
-    FAIL() << "expected an error";
-  } catch (const std::runtime_error& e) {
-    EXPECT_NE(std::string(e.what()).find("pcg-jacobi: the matrix is not positive definite (pᵀAp = "), std::string::npos)
-        << e.what();
-  }
-
-  const Fixture& f = fixture();
-  PcgOptions limited;
-  limited.relative_tolerance = 1e-12;
-  limited.max_iterations = 3;
-  MultigridPcgSolver solver(f.hierarchy, limited);
-  solver.analyzePattern(f.A);
-  solver.factorize(f.A);
-  Eigen::VectorXd y;
-  const SolveStats s = solver.solve(f.b, y);
-  EXPECT_FALSE(s.converged);
-  EXPECT_EQ(s.iterations, 3);
-  EXPECT_NEAR(s.relative_residual, (f.b - f.A * y).norm() / f.b.norm(), 1e-12);
 }

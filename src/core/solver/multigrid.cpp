@@ -13,7 +13,6 @@
 
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/point_embedding.h"
-#include "team.h"
 
 namespace breast_sim::core {
 
@@ -439,10 +438,10 @@ MultigridPreconditioner::MultigridPreconditioner(std::vector<NodeProlongation> p
   if (options_.pre_smoothing_steps < 0 || options_.post_smoothing_steps < 0 ||
       !(options_.jacobi_damping >= 0 && options_.jacobi_damping <= 1) || !(options_.coarsest_diagonal_shift >= 0) ||
       !(options_.fine_eigenvalue_bound >= 0) ||
-      options_.coarse_update_interval < 1 || options_.power_iterations < 1 || options_.team_min_nodes < 1)
+      options_.coarse_update_interval < 1 || options_.power_iterations < 1)
     throw std::invalid_argument(
         "multigrid: smoothing steps must be ≥ 0, the Jacobi damping in [0, 1], the coarsest shift and the "
-        "eigenvalue bound ≥ 0, the coarse update interval, the power iterations and team_min_nodes ≥ 1");
+        "eigenvalue bound ≥ 0, the coarse update interval and the power iterations ≥ 1");
 }
 
 MultigridPreconditioner::MultigridPreconditioner(const MeshHierarchy& hierarchy, MultigridOptions options)
@@ -869,218 +868,6 @@ void MultigridPreconditioner::apply(const Eigen::VectorXd& r, Eigen::VectorXd& z
     return;
   }
   vcycle(0, r.data(), z.data());
-}
-
-// ---- the V-cycle inside PcgSolver's team ------------------------------------------------------------
-// The same operations as vcycle(), smooth() and residual() above (which stay the reference), each
-// thread on its own contiguous range of nodes (team::split), separated by barriers only where a
-// thread reads what another one wrote: per smoothed level, Jacobi V(1,1) takes five barriers
-// (pre-smoothing, residual, restriction, prolongation, post-smoothing residual) plus one that ends
-// the post-smoothing; the pre-smoothing of a coarse level is fused into the restriction above it.
-
-template <typename F>
-bool MultigridPreconditioner::inSingle(F&& work) {
-#pragma omp single
-  {
-    try {
-      work();
-    } catch (...) {
-      team_error_ = std::current_exception();
-    }
-  }  // implicit barrier: every thread sees team_error_
-  return !team_error_;
-}
-
-std::exception_ptr MultigridPreconditioner::takeTeamError() {
-  std::exception_ptr e = team_error_;
-  team_error_ = nullptr;
-  return e;
-}
-
-bool MultigridPreconditioner::applyInTeam(const Eigen::VectorXd& r, Eigen::VectorXd& z, double* rz_partial) {
-  const int tid = omp_get_thread_num();
-  if (tid == 0) ++timings_.applications;
-  if (numLevels() == 1 || levels_[0]->nodes < options_.team_min_nodes) {
-    const auto t0 = Clock::now();
-    const bool ok = inSingle([&] {
-      if (numLevels() == 1) coarsest_.solve(r, z);
-      else vcycle(0, r.data(), z.data());
-    });
-    if (tid == 0 && numLevels() == 1) timings_.level_s[0] += since(t0);
-    int i0, i1;
-    team::split(static_cast<int>(r.size()), tid, omp_get_num_threads(), 1, i0, i1);
-    double rz = 0.0;
-    for (int i = i0; i < i1; ++i) rz += r[i] * z[i];
-    *rz_partial = rz;
-#pragma omp barrier
-    return ok;
-  }
-  return vcycleTeam(0, r.data(), z.data(), false, rz_partial);
-}
-
-void MultigridPreconditioner::smoothTeam(int l, const double* b, double* x, bool forward, bool from_zero,
-                                         double* dot) {
-  Level& lv = *levels_[l];
-  const int tid = omp_get_thread_num(), T = omp_get_num_threads();
-  int i0, i1;
-  team::split(lv.nodes, tid, T, 1, i0, i1);
-  const double* dinv = lv.dinv.data();
-  const float* val = lv.block_val.data();
-  const int* col = lv.block_col.data();
-  const int* start = lv.block_start.data();
-  auto own_dot = [&] {
-    double s = 0.0;
-    for (int k = 3 * i0; k < 3 * i1; ++k) s += b[k] * x[k];
-    *dot = s;
-  };
-  if (options_.smoother == MultigridOptions::Smoother::kJacobi) {
-    const double w = lv.omega;
-    const double* t = b;
-    if (!from_zero) {
-      double* tt = lv.t.data();
-      for (int i = i0; i < i1; ++i) blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, x, tt + 3 * i);
-      t = tt;
-#pragma omp barrier
-    }
-    for (int i = i0; i < i1; ++i) {
-      const double* d = dinv + 9 * i;
-      const double* s = t + 3 * i;
-      double* xi = x + 3 * i;
-      const double d0 = w * (d[0] * s[0] + d[1] * s[1] + d[2] * s[2]);
-      const double d1 = w * (d[3] * s[0] + d[4] * s[1] + d[5] * s[2]);
-      const double d2 = w * (d[6] * s[0] + d[7] * s[1] + d[8] * s[2]);
-      if (from_zero) xi[0] = d0, xi[1] = d1, xi[2] = d2;
-      else xi[0] += d0, xi[1] += d1, xi[2] += d2;
-    }
-    if (dot) own_dot();
-#pragma omp barrier
-    return;
-  }
-  if (from_zero) {
-    std::fill(x + 3 * i0, x + 3 * i1, 0.0);
-#pragma omp barrier
-  }
-  const int colours = static_cast<int>(lv.colour_start.size()) - 1;
-  for (int cc = 0; cc < colours; ++cc) {
-    const int c = forward ? cc : colours - 1 - cc;
-    int p0, p1;
-    team::split(lv.colour_start[c + 1] - lv.colour_start[c], tid, T, 1, p0, p1);
-    for (int p = lv.colour_start[c] + p0; p < lv.colour_start[c] + p1; ++p) {
-      const int i = lv.colour_node[p];
-      double r[3];
-      blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, x, r);
-      const double* d = dinv + 9 * i;
-      x[3 * i] += d[0] * r[0] + d[1] * r[1] + d[2] * r[2];
-      x[3 * i + 1] += d[3] * r[0] + d[4] * r[1] + d[5] * r[2];
-      x[3 * i + 2] += d[6] * r[0] + d[7] * r[1] + d[8] * r[2];
-    }
-#pragma omp barrier
-  }
-  if (dot) {
-    own_dot();
-#pragma omp barrier
-  }
-}
-
-bool MultigridPreconditioner::vcycleTeam(int l, const double* b, double* x, bool presmoothed, double* dot) {
-  const int tid = omp_get_thread_num(), T = omp_get_num_threads();
-  auto t0 = Clock::now();
-  Level& lv = *levels_[l];
-  Level& next = *levels_[l + 1];
-  int i0, i1;
-  team::split(lv.nodes, tid, T, 1, i0, i1);
-  const int pre = options_.pre_smoothing_steps, post = options_.post_smoothing_steps;
-  if (pre == 0) {
-    std::fill(x + 3 * i0, x + 3 * i1, 0.0);
-#pragma omp barrier
-  }
-  for (int s = presmoothed ? 1 : 0; s < pre; ++s) smoothTeam(l, b, x, true, s == 0, nullptr);
-  double* t = lv.t.data();
-  {
-    const float* val = lv.block_val.data();
-    const int* col = lv.block_col.data();
-    const int* start = lv.block_start.data();
-    for (int i = i0; i < i1; ++i) blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, x, t + 3 * i);
-  }
-#pragma omp barrier
-
-  // Restriction b_c = (D P)ᵀ t, and the next level's first Jacobi sweep from zero when it is
-  // smoothed in the team too.
-  const bool next_coarsest = l + 2 == numLevels();
-  const bool next_team = !next_coarsest && next.nodes >= options_.team_min_nodes;
-  const bool fuse = next_team && pre >= 1 && options_.smoother == MultigridOptions::Smoother::kJacobi;
-  {
-    const double* fr = lv.free.data();
-    double* bc = next.b.data();
-    double* xc = next.x.data();
-    const double* dinv = next.dinv.data();
-    const double w = next.omega;
-    int c0, c1;
-    team::split(next.nodes, tid, T, 1, c0, c1);
-    for (int I = c0; I < c1; ++I) {
-      double s0 = 0.0, s1 = 0.0, s2 = 0.0;
-      for (int k = lv.child_start[I]; k < lv.child_start[I + 1]; ++k) {
-        const int i = 3 * lv.child[k];
-        const double wk = lv.child_weight[k];
-        s0 += wk * fr[i] * t[i];
-        s1 += wk * fr[i + 1] * t[i + 1];
-        s2 += wk * fr[i + 2] * t[i + 2];
-      }
-      bc[3 * I] = s0, bc[3 * I + 1] = s1, bc[3 * I + 2] = s2;
-      if (fuse) {
-        const double* d = dinv + 9 * I;
-        xc[3 * I] = w * (d[0] * s0 + d[1] * s1 + d[2] * s2);
-        xc[3 * I + 1] = w * (d[3] * s0 + d[4] * s1 + d[5] * s2);
-        xc[3 * I + 2] = w * (d[6] * s0 + d[7] * s1 + d[8] * s2);
-      }
-    }
-  }
-#pragma omp barrier
-  if (tid == 0) timings_.level_s[l] += since(t0);
-
-  bool ok;
-  if (next_coarsest) {
-    const auto tc = Clock::now();
-    ok = inSingle([&] { coarsest_.solve(next.b, next.x); });
-    if (tid == 0) timings_.level_s[l + 1] += since(tc);
-  } else if (!next_team) {
-    ok = inSingle([&] { vcycle(l + 1, next.b.data(), next.x.data()); });
-  } else {
-    ok = vcycleTeam(l + 1, next.b.data(), next.x.data(), fuse, nullptr);
-  }
-  if (!ok) return false;
-  t0 = Clock::now();
-
-  // Prolongation x += (D P) x_c.
-  {
-    const NodeProlongation& P = prolongations_[l];
-    const int* pout = P.outerIndexPtr();
-    const int* pin = P.innerIndexPtr();
-    const double* pval = P.valuePtr();
-    const double* fr = lv.free.data();
-    const double* xc = next.x.data();
-    for (int i = i0; i < i1; ++i) {
-      double s0 = 0.0, s1 = 0.0, s2 = 0.0;
-      for (int k = pout[i]; k < pout[i + 1]; ++k) {
-        const int J = 3 * pin[k];
-        s0 += pval[k] * xc[J];
-        s1 += pval[k] * xc[J + 1];
-        s2 += pval[k] * xc[J + 2];
-      }
-      x[3 * i] += fr[3 * i] * s0;
-      x[3 * i + 1] += fr[3 * i + 1] * s1;
-      x[3 * i + 2] += fr[3 * i + 2] * s2;
-    }
-  }
-  if (post == 0 && dot) {
-    double s = 0.0;
-    for (int k = 3 * i0; k < 3 * i1; ++k) s += b[k] * x[k];
-    *dot = s;
-  }
-#pragma omp barrier
-  for (int s = 0; s < post; ++s) smoothTeam(l, b, x, false, false, s + 1 == post ? dot : nullptr);
-  if (tid == 0) timings_.level_s[l] += since(t0);
-  return true;
 }
 
 MultigridPcgSolver::MultigridPcgSolver(const MeshHierarchy& hierarchy, PcgOptions pcg_options,

@@ -172,10 +172,6 @@ struct MultigridOptions {
   /// SPD matrix); it converges somewhat slower when the matrix has changed much since (large
   /// rotations of the co-rotated elements).
   int coarse_update_interval = 1;
-  /// Inside PcgSolver's team (one parallel region per solve), a level with fewer nodes than this,
-  /// and every level below it, is done by one thread: a team barrier costs tens of microseconds
-  /// with sleeping (passive) threads, more than sharing a small level's work saves.
-  int team_min_nodes = 1000;
 };
 
 /// One symmetric V-cycle [GW08] as preconditioner: smoothing on each level, Galerkin coarse
@@ -210,12 +206,6 @@ class MultigridPreconditioner : public Preconditioner {
   void factorize(const SparseMatrix& A) override;
   void apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) override;
   std::string name() const override { return "multigrid"; }
-  /// After factorize(): the V-cycle can run inside PcgSolver's team (one parallel region per solve).
-  /// Levels with fewer than MultigridOptions::team_min_nodes nodes are then done by one thread
-  /// (the serial V-cycle below them), since a team barrier costs more than their work.
-  bool supportsTeam() const override { return factorized_; }
-  bool applyInTeam(const Eigen::VectorXd& r, Eigen::VectorXd& z, double* rz_partial) override;
-  std::exception_ptr takeTeamError() override;
 
   int numLevels() const { return static_cast<int>(levels_.size()); }
   /// Operator of a level after factorize(): 0 = the caller's matrix, ≥ 1 Galerkin operators
@@ -245,14 +235,6 @@ class MultigridPreconditioner : public Preconditioner {
   void scanLevel(int level);
   void estimateDamping(int level);
   void vcycle(int level, const double* b, double* x);
-  // The team V-cycle (called by every thread): false on every thread after an error (team_error_).
-  // `presmoothed`: x already holds the first pre-smoothing sweep from zero (fused into the
-  // restriction above). `dot`: when not null, the thread's share of bᵀx over its own nodes is
-  // stored there before the last barrier.
-  bool vcycleTeam(int level, const double* b, double* x, bool presmoothed, double* dot);
-  void smoothTeam(int level, const double* b, double* x, bool forward, bool from_zero, double* dot);
-  template <typename F>
-  bool inSingle(F&& work);
   void smooth(int level, const double* b, double* x, bool forward, bool from_zero);
   void residual(int level, const double* b, const double* x, double* t);
   void toBlocks(int level);
@@ -266,7 +248,6 @@ class MultigridPreconditioner : public Preconditioner {
   long factorizations_ = 0;
   bool factorized_ = false;
   Timings timings_;
-  std::exception_ptr team_error_;
 };
 
 /// PCG with the multigrid V-cycle as preconditioner: the LinearSolver "pcg-multigrid". The

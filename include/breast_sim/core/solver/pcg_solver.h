@@ -2,7 +2,6 @@
 /// @file pcg_solver.h
 /// Preconditioned conjugate gradients (parallel, warm-started) and the preconditioner interface.
 
-#include <exception>
 #include <memory>
 #include <string>
 #include <vector>
@@ -29,22 +28,6 @@ class Preconditioner {
   virtual void apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) = 0;
   /// Short name: "jacobi", "multigrid".
   virtual std::string name() const = 0;
-
-  /// Whether applyInTeam() is available (after a successful factorize()). PcgSolver then runs a
-  /// whole solve in one OpenMP parallel region (see PcgSolver).
-  virtual bool supportsTeam() const { return false; }
-  /// z = M⁻¹ r, called by every thread of an OpenMP team at once, from inside one parallel region;
-  /// the work is shared among the threads by their thread number (no nested parallel region).
-  /// Before returning, each thread stores in `*rz_partial` its share of rᵀz (over a set of rows
-  /// that, over all threads, covers each row once), and the call ends with a team barrier, so z and
-  /// all shares are complete when it returns. Must not throw: returns false on every thread after an
-  /// error, which takeTeamError() then hands over (outside the parallel region).
-  virtual bool applyInTeam(const Eigen::VectorXd& r, Eigen::VectorXd& z, double* rz_partial) {
-    (void)r, (void)z, (void)rz_partial;
-    return false;
-  }
-  /// The error that made applyInTeam() return false (and clears it); null if none.
-  virtual std::exception_ptr takeTeamError() { return nullptr; }
 };
 
 /// Point Jacobi: M = diag(A).
@@ -55,8 +38,6 @@ class JacobiPreconditioner : public Preconditioner {
   void factorize(const SparseMatrix& A) override;
   void apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) override;
   std::string name() const override { return "jacobi"; }
-  bool supportsTeam() const override { return true; }
-  bool applyInTeam(const Eigen::VectorXd& r, Eigen::VectorXd& z, double* rz_partial) override;
 
  private:
   std::vector<int> diagonal_position_;  // per row: index of (i, i) in A's value array
@@ -74,16 +55,6 @@ struct PcgOptions {
 /// Conjugate gradients with a preconditioner, for symmetric positive definite A [Saad, Iterative
 /// Methods for Sparse Linear Systems, alg. 9.1]. All vector work and the sparse matrix–vector
 /// product run in parallel over rows (OpenMP); solve() does not allocate once x has A's size.
-///
-/// Threads: with a preconditioner that supportsTeam() and more than a few thousand rows, a whole
-/// solve runs in ONE OpenMP parallel region: each thread owns a fixed range of rows, reductions go
-/// through per-thread partial sums that every thread adds up in the same order (so all threads
-/// take the same branches), and the direction update p = z + βp is fused into the next product
-/// A p. An iteration then costs three team barriers plus the preconditioner's, instead of a fork
-/// and a join for every vector operation: with OMP_WAIT_POLICY=passive (sleeping threads, what the
-/// node runs with) each of those wakes a thread, which costs tens of microseconds. Other
-/// preconditioners, and PcgSolver::setTeamSolve(false), use one parallel loop per operation (the
-/// slow reference the tests compare with).
 ///
 /// Decoupled rows (no nonzero off the diagonal: the Dirichlet rows of the LinearSolver contract)
 /// are solved exactly before iterating (x_i = b_i / A_ii) and stay at that value: every
@@ -112,10 +83,6 @@ class PcgSolver : public LinearSolver {
 
   const PcgOptions& options() const { return options_; }
   void setOptions(const PcgOptions& options) { options_ = options; }
-  /// Whether solve() may run in one parallel region (see the class comment); default true. False
-  /// forces one parallel loop per operation, for comparisons.
-  void setTeamSolve(bool enabled) { team_solve_ = enabled; }
-  bool teamSolve() const { return team_solve_; }
   Preconditioner& preconditioner() { return *preconditioner_; }
   const Preconditioner& preconditioner() const { return *preconditioner_; }
   /// Rows found decoupled (fixed) by the last factorize(), ascending.
@@ -130,11 +97,7 @@ class PcgSolver : public LinearSolver {
   std::vector<int> diagonal_position_;
   std::vector<unsigned char> decoupled_flag_;
   std::vector<int> decoupled_;
-  Eigen::VectorXd r_, z_, p_, q_, p_next_;
-  bool team_solve_ = true;
-  std::vector<double> partial_;  // team reductions: per thread one cache line of partial sums
-
-  SolveStats solveInTeam(const Eigen::VectorXd& b, Eigen::VectorXd& x, int threads);
+  Eigen::VectorXd r_, z_, p_, q_;
 };
 
 /// y = A x, in parallel over rows (OpenMP). y is resized if needed; x and y must not alias.
