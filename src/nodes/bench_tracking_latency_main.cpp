@@ -3,13 +3,14 @@
 // a ROS master:
 //   bench_tracking_latency [--case FILE] [--target-elements N] [--points N] [--frames N]
 //                          [--field-voxels-mm 1,2,3] [--loop-voxels-mm 0,2] [--iterations K] [--no-icp]
-//                          [--pcl-reference] [--json FILE]
+//                          [--pcl-reference] [--solver-tol T] [--json FILE]
 // Prints (1) the distance-field rebuild time per voxel size for one decimated cloud and (2) per loop
 // voxel size (0 = the case's setting) the median and 95th percentile of every stage and of the whole
 // frame, the rate reached (1 / mean frame time) and on how many frames the ICP correction was applied.
 // --pcl-reference adds, per loop voxel size, the same frames with PCL's outlier removal, ICP and
 // kd-tree (TrackerOptions::pcl_reference, the slow reference) from the same precomputed state, so the
-// two are compared in the same run.
+// two are compared in the same run. --solver-tol sets TrackerOptions::solver_relative_tolerance (the
+// per-frame PCG tolerance; default the node's, 0 = the case's own).
 #include <fstream>
 #include <iomanip>
 #include <iostream>
@@ -47,6 +48,7 @@ int main(int argc, char** argv) {
   std::string case_file, json_path;
   int target = 20000, points = 10000, frames = 60, iterations = 1;
   bool icp = true, pcl_reference = false;
+  double solver_tol = ros_interface::TrackerOptions{}.solver_relative_tolerance;
   std::vector<double> field_voxels = {1, 2, 3}, loop_voxels = {0};
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -60,11 +62,12 @@ int main(int argc, char** argv) {
     else if (a == "--loop-voxels-mm") loop_voxels = bench::parseList(next());
     else if (a == "--no-icp") icp = false;
     else if (a == "--pcl-reference") pcl_reference = true;
+    else if (a == "--solver-tol") solver_tol = std::stod(next());
     else if (a == "--json") json_path = next();
     else {
       std::cerr << "usage: bench_tracking_latency [--case FILE] [--target-elements N] [--points N] [--frames N]"
                    " [--field-voxels-mm 1,2,3] [--loop-voxels-mm 0,2] [--iterations K] [--no-icp]"
-                   " [--pcl-reference] [--json FILE]\n";
+                   " [--pcl-reference] [--solver-tol T] [--json FILE]\n";
       return a == "--help" ? 0 : 2;
     }
   }
@@ -95,6 +98,7 @@ int main(int argc, char** argv) {
     ros_interface::TrackerOptions to;
     to.icp.enabled = icp;
     to.iterations_per_frame = iterations;
+    to.solver_relative_tolerance = solver_tol;
 
     // (1) Field rebuild per voxel size, for one decimated cloud over the model's reach.
     const core::Points filtered = ros_interface::filterCloud(sim.cloudInModel(0.0), to.filter);
@@ -129,7 +133,9 @@ int main(int argc, char** argv) {
 
     // (2) Whole frames.
     std::cout << "\n(2) frames: " << points << "-point cloud in -> mesh + lesions serialized; " << iterations
-              << " iteration(s) per frame, ICP " << (icp ? "on" : "off") << ", " << frames << " frames (medians, p95) [ms]\n";
+              << " iteration(s) per frame, ICP " << (icp ? "on" : "off") << ", PCG tolerance per frame "
+              << (solver_tol > 0 ? std::to_string(solver_tol) : std::string("of the case")) << ", " << frames
+              << " frames (medians, p95) [ms]\n";
     std::cout << "  voxel[mm]  convert  filter     icp   field iterate  publish |   total    p95 |  rate[Hz]  surf.mean[mm]"
                  "  ICP applied  search\n";
     core::Points grid_final;  // final positions of the grid run, compared with the reference run
@@ -200,7 +206,8 @@ int main(int argc, char** argv) {
                                {"total_median_ms", 1e3 * bench::median(total)}, {"total_p95_ms", 1e3 * p95(total)},
                                {"rate_hz", rate}, {"surface_mean_mm", 1e3 * last_mean},
                                {"icp_applied", icp_applied}, {"frames_timed", total.size()},
-                               {"search", reference ? "pcl" : "grid"}, {"max_diff_from_grid_mm", max_diff_mm}});
+                               {"search", reference ? "pcl" : "grid"}, {"max_diff_from_grid_mm", max_diff_mm},
+                               {"solver_relative_tolerance", solver_tol}});
     }
   } catch (const std::exception& e) {
     std::cerr << "bench_tracking_latency: " << e.what() << "\n";

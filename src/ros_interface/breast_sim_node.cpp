@@ -75,6 +75,7 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   t.icp.max_rotation_deg = param(pnh, "tracking/icp/max_rotation_deg", t.icp.max_rotation_deg);
   t.icp.max_rms_m = param(pnh, "tracking/icp/max_rms_m", t.icp.max_rms_m);
   t.iterations_per_frame = param(pnh, "tracking/iterations_per_frame", t.iterations_per_frame);
+  t.solver_relative_tolerance = param(pnh, "tracking/solver_relative_tolerance", t.solver_relative_tolerance);
   t.min_points = param(pnh, "tracking/min_points", t.min_points);
   t.hold_unseen_skin_m = param(pnh, "tracking/hold_unseen_skin_m", t.hold_unseen_skin_m);
   p.max_cloud_points = static_cast<size_t>(param(pnh, "tracking/max_cloud_points", static_cast<int>(p.max_cloud_points)));
@@ -104,6 +105,8 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   require(t.icp.max_iterations >= 1, "tracking/icp/max_iterations", "must be ≥ 1");
   require(t.icp.max_correspondence_m > 0, "tracking/icp/max_correspondence_m", "must be > 0 m");
   require(t.iterations_per_frame >= 1 && t.iterations_per_frame <= 100, "tracking/iterations_per_frame", "must be in [1, 100]");
+  require(t.solver_relative_tolerance >= 0 && t.solver_relative_tolerance < 1, "tracking/solver_relative_tolerance",
+          "must be in [0, 1) (0 = the case's simulation.solver_relative_tolerance)");
   require(t.min_points >= 10, "tracking/min_points", "must be ≥ 10");
   require(t.hold_unseen_skin_m >= 0, "tracking/hold_unseen_skin_m", "must be ≥ 0 m (0 = off)");
   require(p.max_cloud_points >= 1000, "tracking/max_cloud_points", "must be ≥ 1000");

@@ -395,6 +395,17 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
   pipeline.setTarget(target);
   res.field_s = since(t0);
   t0 = std::chrono::steady_clock::now();
+  // The frame's solver tolerance, put back on every way out (iterate() may throw).
+  struct ToleranceScope {
+    core::LinearSolver& solver;
+    double saved;
+    ToleranceScope(core::LinearSolver& s, double tolerance) : solver(s), saved(s.relativeTolerance()) {
+      if (tolerance > 0 && saved > 0) solver.setRelativeTolerance(tolerance);
+    }
+    ~ToleranceScope() {
+      if (saved > 0) solver.setRelativeTolerance(saved);
+    }
+  } tolerance_scope(pipeline.simulator().solver(), options_.solver_relative_tolerance);
   for (int i = 0; i < options_.iterations_per_frame; ++i) {
     res.last = pipeline.iterate();
     ++res.iterations;

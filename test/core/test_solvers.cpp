@@ -522,3 +522,30 @@ TEST(PcgSolver, StopsAtTheIterationLimitAndSaysSo) {
   EXPECT_NEAR(s.relative_residual, (f.b - f.A * x).norm() / f.b.norm(), 1e-12);
   EXPECT_GT(s.relative_residual, 1e-12);
 }
+// The tolerance can be changed between solves (the node loosens it for tracking frames): a looser
+// one stops earlier, at a residual within it; direct solvers report 0 and ignore it; nonsense is
+// refused and leaves the old tolerance.
+TEST(LinearSolver, RelativeToleranceCanBeChangedBetweenSolves) {
+  const Fixture& f = fixture();
+  MultigridPcgSolver pcg(f.hierarchy);
+  pcg.analyzePattern(f.A);
+  pcg.factorize(f.A);
+  LinearSolver& solver = pcg;
+  EXPECT_EQ(solver.relativeTolerance(), 1e-8);
+  Eigen::VectorXd tight, loose;
+  const int tight_iterations = solver.solve(f.b, tight).iterations;
+  solver.setRelativeTolerance(1e-2);
+  EXPECT_EQ(solver.relativeTolerance(), 1e-2);
+  const SolveStats s = solver.solve(f.b, loose);
+  EXPECT_TRUE(s.converged);
+  EXPECT_LE(s.relative_residual, 1e-2);
+  EXPECT_LT(s.iterations, tight_iterations / 2);
+  for (double bad : {0.0, 1.0, -1e-3, std::nan("")}) EXPECT_THROW(solver.setRelativeTolerance(bad), std::invalid_argument);
+  EXPECT_EQ(solver.relativeTolerance(), 1e-2);
+
+  CholmodSolver cholmod;
+  LinearSolver& direct = cholmod;
+  EXPECT_EQ(direct.relativeTolerance(), 0.0);
+  EXPECT_NO_THROW(direct.setRelativeTolerance(0.1));
+  EXPECT_EQ(direct.relativeTolerance(), 0.0);
+}

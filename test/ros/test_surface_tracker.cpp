@@ -312,3 +312,38 @@ TEST(SurfaceTrackerSearch, TrackedFramesAreThoseOfThePclReference) {
   }
   EXPECT_GT(held, 0);  // the unseen-skin test had something to decide
 }
+
+TEST(SurfaceTracker, FramesSolveAtTheTrackingToleranceAndGiveTheCasesBack) {
+  // Two trackers follow the same frames, one at the case's own PCG tolerance (0) and one at a loose
+  // per-frame tolerance: the loose one changes the frames' results (so it was applied), stays close
+  // to the tight one (later frames correct it), and the solver has the case's tolerance again after
+  // every frame (a precomputation after tracking is not loosened).
+  core::ModelCase c = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
+  c.meshing.target_elements = 2000;
+  const core::SimulationModel model = core::buildSimulationModel(c);
+  core::PipelineSettings s;
+  s.morphing.target = "";
+  s.morphing.field.voxel_size_m = 0.003;
+  core::ProneToSupinePipeline case_pipe(c, model, s), loose_pipe(c, model, s);
+  const double case_tolerance = case_pipe.simulator().solver().relativeTolerance();
+  ASSERT_GT(case_tolerance, 0.0) << "needs an iterative solver";
+  ros_interface::TrackerOptions to;
+  to.solver_relative_tolerance = 0.0;
+  ros_interface::SurfaceTracker case_tracker(to);
+  to.solver_relative_tolerance = 0.5;
+  ros_interface::SurfaceTracker loose_tracker(to);
+  ros_interface::TrackerSimulationOptions so;
+  so.points = 4000;
+  ros_interface::TrackerSimulation sim(c, so);
+  double max_diff_m = 0;
+  for (int k = 0; k < 6; ++k) {
+    const core::Points cloud = sim.cloudInModel(k / 30.0);
+    ASSERT_TRUE(case_tracker.track(case_pipe, cloud).tracked);
+    ASSERT_TRUE(loose_tracker.track(loose_pipe, cloud).tracked);
+    EXPECT_EQ(case_pipe.simulator().solver().relativeTolerance(), case_tolerance);
+    EXPECT_EQ(loose_pipe.simulator().solver().relativeTolerance(), case_tolerance);
+    max_diff_m = std::max(max_diff_m, (case_pipe.positions() - loose_pipe.positions()).cwiseAbs().maxCoeff());
+  }
+  EXPECT_GT(max_diff_m, 1e-9);   // the loose tolerance was used
+  EXPECT_LT(max_diff_m, 1e-3);   // and costs well under a millimetre here
+}

@@ -165,6 +165,15 @@ PcgSolver::PcgSolver(PcgOptions options, std::unique_ptr<Preconditioner> precond
   if (!preconditioner_) preconditioner_ = std::make_unique<JacobiPreconditioner>();
 }
 
+void PcgSolver::setRelativeTolerance(double tolerance) {
+  if (!(tolerance > 0.0 && tolerance < 1.0)) {
+    std::ostringstream s;
+    s << name() << ": relative tolerance " << tolerance << " is not in (0, 1); e.g. 1e-2 per time step";
+    throw std::invalid_argument(s.str());
+  }
+  options_.relative_tolerance = tolerance;
+}
+
 void PcgSolver::analyzePattern(const SparseMatrix& A) {
   n_ = -1;
   diagonal_position_ = diagonalPositions(A, name());

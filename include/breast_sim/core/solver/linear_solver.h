@@ -38,6 +38,13 @@ class LinearSolver {
   virtual SolveStats solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) = 0;
   /// Short name for tables: "cholmod", "pcg-jacobi", "pcg-multigrid".
   virtual std::string name() const = 0;
+  /// Relative residual at which an iterative solve stops (‖b − A x‖ ≤ tol ‖b‖); 0 for a direct
+  /// solver (solved to round-off).
+  virtual double relativeTolerance() const { return 0.0; }
+  /// Sets that tolerance for the next solves, e.g. a looser one for a tracking frame than for a
+  /// precomputation; a direct solver ignores it.
+  /// @throws std::invalid_argument unless 0 < tolerance < 1 (iterative solvers).
+  virtual void setRelativeTolerance(double tolerance) { (void)tolerance; }
 };
 
 }  // namespace breast_sim::core

@@ -80,6 +80,8 @@ class PcgSolver : public LinearSolver {
   SolveStats solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) override;
   /// "pcg-" + the preconditioner's name.
   std::string name() const override { return "pcg-" + preconditioner_->name(); }
+  double relativeTolerance() const override { return options_.relative_tolerance; }
+  void setRelativeTolerance(double tolerance) override;
 
   const PcgOptions& options() const { return options_; }
   void setOptions(const PcgOptions& options) { options_ = options; }
