@@ -194,7 +194,7 @@ int main(int argc, char** argv) {
   rc.meshing.target_elements = reference_target;
   const SimulationModel rm = cachedSimulationModel(rc, copt.cache_dir);
   const CalculixResult ref =
-      solveWithCalculix(rm.mesh, referenceLoadCase(settings, g, referenceElementFromName(ref_element)), copt);
+      solveWithCalculix(rm.mesh, referenceLoadCase(settings, rm.mesh, g, referenceElementFromName(ref_element)), copt);
   std::printf("reference: CalculiX %s neo-Hookean NLGEOM, %d tets, largest displacement %.3f mm (%s)\n\n",
               ref_element.c_str(), rm.mesh.numTets(), 1e3 * ref.displacement_m.rowwise().norm().maxCoeff(),
               ref.from_cache ? "cached" : "computed");

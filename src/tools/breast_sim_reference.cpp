@@ -113,7 +113,7 @@ int main(int argc, char** argv) {
     bool mesh_cached = false;
     const SimulationModel m = cachedSimulationModel(c, opt.cache_dir, &mesh_cached);
     const Eigen::Vector3d g = gravityLoad(c, which, s.gravity_mps2);
-    const CalculixLoadCase load = referenceLoadCase(s, g, type);
+    const CalculixLoadCase load = referenceLoadCase(s, m.mesh, g, type);  // per-tissue moduli as element sets
 
     fs::create_directories(out_dir);
     const fs::path out(out_dir);

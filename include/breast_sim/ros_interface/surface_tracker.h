@@ -52,8 +52,8 @@ struct TrackerOptions {
   /// Relative residual at which the step's PCG solve stops during a tracking frame; 0 = the case's
   /// own (simulation.solver_relative_tolerance, 1e-2 in the shipped cases). Each frame is one step
   /// that starts from the last, so a looser solve here is corrected by the frames after it:
-  /// measured at 20.8k elements, 0.1 takes ~9 PCG iterations instead of ~14 for a skin residual
-  /// 0.05 mm larger (docs/ros/bench_tracking_latency_20k.txt). Restored after the frame, so a precomputation
+  /// measured at 20.8k elements, 0.1 takes ~9 PCG iterations instead of ~14 at the same skin residual
+  /// (1.47 vs 1.51 mm; docs/ros/bench_tracking_latency_20k.txt). Restored after the frame, so a precomputation
   /// keeps its tolerance. Ignored by a direct solver.
   double solver_relative_tolerance = 0.1;
   /// A scanner sees only part of the skin. Skin vertices farther than this from every cloud point are
