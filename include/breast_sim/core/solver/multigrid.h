@@ -138,8 +138,10 @@ struct MultigridOptions {
   /// 1e-8) but costs 2.7× as much per V-cycle on the fine level (1.65 against 0.61 ms: a barrier per
   /// colour), so Jacobi is faster overall. A hybrid (one part per thread, ℓ1) Gauss–Seidel in
   /// Cuthill–McKee order was tried too: 36 iterations at 1.78 ms, no better. More sweeps do not pay
-  /// either: Jacobi(8,8) still needs 18 iterations, and 16 with an exact coarse solve, so the
-  /// non-nested coarse spaces, not the smoother, bound the convergence.
+  /// either: Jacobi(8,8) still needs 18 iterations, and 16 with an exact coarse solve. The bound is
+  /// near-incompressibility, not the non-nested coarse meshes: at ν = 0.3 the same V-cycle needs 24
+  /// iterations (Jacobi(8,8): 9), and nested coarse spaces of smoothed aggregation with the six
+  /// rigid-body modes (aggregation_multigrid.h) need 52 at ν = 0.48 (bench_solvers --poisson, sa).
   enum class Smoother {
     kJacobi,      ///< damped 3×3-block Jacobi (parallel; 2 matrix passes per V(1,1) level visit)
     kGaussSeidel  ///< multicoloured 3×3-block Gauss–Seidel: forward before, backward after the
