@@ -39,6 +39,7 @@
 #include <nlohmann/json.hpp>
 
 #include "bench_util.h"
+#include "../test/core/reference_step_matrix.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/solver/aggregation_multigrid.h"
 #include "breast_sim/core/solver/cholmod_solver.h"
@@ -58,51 +59,20 @@ namespace {
 SparseMatrix implicitStepMatrix(const TetMesh& mesh, const std::vector<int>& fixed_nodes, double E_pa, double nu,
                                 double density, double dt, const Points* deformed = nullptr,
                                 const std::vector<double>* modulus = nullptr) {
-  const double lambda = E_pa * nu / ((1 + nu) * (1 - 2 * nu)), mu = E_pa / (2 * (1 + nu));
-  std::vector<Eigen::Triplet<double, int>> t;
-  t.reserve(static_cast<size_t>(mesh.numTets()) * 144 + 3 * mesh.numNodes());
-  for (int e = 0; e < mesh.numTets(); ++e) {
-    Eigen::Matrix3d Dm;
-    for (int k = 0; k < 3; ++k)
+  auto rotation = [&](int e) -> Eigen::Matrix3d {
+    if (!deformed) return Eigen::Matrix3d::Identity();
+    Eigen::Matrix3d Dm, Ds;
+    for (int k = 0; k < 3; ++k) {
       Dm.col(k) = (mesh.nodes().row(mesh.tets()(e, k + 1)) - mesh.nodes().row(mesh.tets()(e, 0))).transpose();
-    const double V = Dm.determinant() / 6.0;
-    const Eigen::Matrix3d Dinv = Dm.inverse();
-    Eigen::Matrix<double, 4, 3> G;
-    G.row(0) = -Dinv.colwise().sum();
-    G.bottomRows(3) = Dinv;
-    Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
-    if (deformed) {
-      Eigen::Matrix3d Ds;
-      for (int k = 0; k < 3; ++k)
-        Ds.col(k) = (deformed->row(mesh.tets()(e, k + 1)) - deformed->row(mesh.tets()(e, 0))).transpose();
-      const Eigen::JacobiSVD<Eigen::Matrix3d> svd(Ds * Dinv, Eigen::ComputeFullU | Eigen::ComputeFullV);
-      Eigen::Matrix3d U = svd.matrixU();
-      if ((U * svd.matrixV().transpose()).determinant() < 0) U.col(2) *= -1.0;
-      R = U * svd.matrixV().transpose();
+      Ds.col(k) = (deformed->row(mesh.tets()(e, k + 1)) - deformed->row(mesh.tets()(e, 0))).transpose();
     }
-    const double Er = modulus ? (*modulus)[e] : 1.0;
-    for (int a = 0; a < 4; ++a)
-      for (int b = 0; b < 4; ++b) {
-        const Eigen::Vector3d ga = G.row(a).transpose(), gb = G.row(b).transpose();
-        const Eigen::Matrix3d K0 = V * (lambda * ga * gb.transpose() + mu * gb * ga.transpose() +
-                                        mu * ga.dot(gb) * Eigen::Matrix3d::Identity());
-        const Eigen::Matrix3d K = Er * R * K0 * R.transpose();
-        for (int i = 0; i < 3; ++i)
-          for (int j = 0; j < 3; ++j) t.emplace_back(3 * mesh.tets()(e, a) + i, 3 * mesh.tets()(e, b) + j, K(i, j));
-      }
-    for (int a = 0; a < 4; ++a)
-      for (int i = 0; i < 3; ++i)
-        t.emplace_back(3 * mesh.tets()(e, a) + i, 3 * mesh.tets()(e, a) + i, density * V / 4 / (dt * dt));
-  }
-  SparseMatrix A(3 * mesh.numNodes(), 3 * mesh.numNodes());
-  A.setFromTriplets(t.begin(), t.end());
-  std::vector<bool> fixed(static_cast<size_t>(A.rows()), false);
-  for (int v : fixed_nodes)
-    for (int i = 0; i < 3; ++i) fixed[3 * v + i] = true;
-  for (int r = 0; r < A.outerSize(); ++r)
-    for (SparseMatrix::InnerIterator it(A, r); it; ++it)
-      if (fixed[it.row()] || fixed[it.col()]) it.valueRef() = it.row() == it.col() ? 1.0 : 0.0;
-  return A;
+    const Eigen::JacobiSVD<Eigen::Matrix3d> svd(Ds * Dm.inverse(), Eigen::ComputeFullU | Eigen::ComputeFullV);
+    Eigen::Matrix3d U = svd.matrixU();
+    if ((U * svd.matrixV().transpose()).determinant() < 0) U.col(2) *= -1.0;
+    return U * svd.matrixV().transpose();
+  };
+  return breast_sim::test_support::stepMatrix(
+      mesh, fixed_nodes, rotation, [&](int e) { return modulus ? (*modulus)[e] : 1.0; }, E_pa, nu, density, dt);
 }
 
 // A bent breast: node x rotated by θ(y) = θ_max · (−y / depth) about the z axis through (x_c, 0) (the

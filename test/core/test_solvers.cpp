@@ -17,6 +17,7 @@
 #include "breast_sim/core/solver/cholmod_solver.h"
 #include "breast_sim/core/solver/multigrid.h"
 #include "breast_sim/core/solver/pcg_solver.h"
+#include "reference_step_matrix.h"
 
 using namespace breast_sim::core;
 
@@ -25,42 +26,10 @@ namespace {
 // ---------------------------------------------------------------------------------------------------
 // Test-local assembly (the project's FEM lives in fem/; this one only has to be SPD and realistic).
 
-/// A = M/dt² + K of linear tetrahedra at rest [N/m], lumped mass, in the 3×3-block layout of
-/// fem/block_pattern.h; fixed nodes get zero rows and columns with a unit diagonal.
+/// A = M/dt² + K of linear tetrahedra at rest [N/m] (reference_step_matrix.h).
 SparseMatrix implicitStepMatrix(const TetMesh& mesh, const std::vector<int>& fixed_nodes, double E_pa = 2000.0,
                                 double nu = 0.48, double density = 1000.0, double dt = 0.033) {
-  const double lambda = E_pa * nu / ((1 + nu) * (1 - 2 * nu)), mu = E_pa / (2 * (1 + nu));
-  std::vector<Eigen::Triplet<double, int>> t;
-  t.reserve(static_cast<size_t>(mesh.numTets()) * 144 + 3 * mesh.numNodes());
-  for (int e = 0; e < mesh.numTets(); ++e) {
-    Eigen::Matrix3d Dm;
-    for (int k = 0; k < 3; ++k) Dm.col(k) = (mesh.nodes().row(mesh.tets()(e, k + 1)) - mesh.nodes().row(mesh.tets()(e, 0))).transpose();
-    const double V = Dm.determinant() / 6.0;
-    const Eigen::Matrix3d Dinv = Dm.inverse();
-    Eigen::Matrix<double, 4, 3> G;  // shape-function gradients [1/m]
-    G.row(0) = -Dinv.colwise().sum();
-    G.bottomRows(3) = Dinv;
-    for (int a = 0; a < 4; ++a)
-      for (int b = 0; b < 4; ++b) {
-        const Eigen::Vector3d ga = G.row(a).transpose(), gb = G.row(b).transpose();
-        const Eigen::Matrix3d K =
-            V * (lambda * ga * gb.transpose() + mu * gb * ga.transpose() + mu * ga.dot(gb) * Eigen::Matrix3d::Identity());
-        for (int i = 0; i < 3; ++i)
-          for (int j = 0; j < 3; ++j)
-            t.emplace_back(3 * mesh.tets()(e, a) + i, 3 * mesh.tets()(e, b) + j, K(i, j));
-      }
-    for (int a = 0; a < 4; ++a)
-      for (int i = 0; i < 3; ++i) t.emplace_back(3 * mesh.tets()(e, a) + i, 3 * mesh.tets()(e, a) + i, density * V / 4 / (dt * dt));
-  }
-  SparseMatrix A(3 * mesh.numNodes(), 3 * mesh.numNodes());
-  A.setFromTriplets(t.begin(), t.end());
-  std::vector<bool> fixed(static_cast<size_t>(A.rows()), false);
-  for (int v : fixed_nodes)
-    for (int i = 0; i < 3; ++i) fixed[3 * v + i] = true;
-  for (int r = 0; r < A.outerSize(); ++r)
-    for (SparseMatrix::InnerIterator it(A, r); it; ++it)
-      if (fixed[it.row()] || fixed[it.col()]) it.valueRef() = it.row() == it.col() ? 1.0 : 0.0;
-  return A;
+  return breast_sim::test_support::restStepMatrix(mesh, fixed_nodes, E_pa, nu, density, dt);
 }
 
 /// Gravity on the lumped masses plus a random load [N]; fixed DOFs get `fixed_value` [m].

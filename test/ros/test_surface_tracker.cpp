@@ -275,15 +275,28 @@ TEST(SurfaceTrackerSearch, IcpGivesPclsTransformAndDecision) {
   EXPECT_EQ(none.note, none_pcl.note);
 }
 
+/// A small phantom at rest (2000 elements) and pipeline settings for tracking it: no case target, a
+/// 3 mm distance field.
+struct SmallPhantom {
+  core::ModelCase model_case;
+  core::SimulationModel model;
+  core::PipelineSettings settings;
+  SmallPhantom() {
+    model_case = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
+    model_case.meshing.target_elements = 2000;
+    model = core::buildSimulationModel(model_case);
+    settings.morphing.target = "";
+    settings.morphing.field.voxel_size_m = 0.003;
+  }
+};
+
 TEST(SurfaceTrackerSearch, TrackedFramesAreThoseOfThePclReference) {
   // A small phantom at rest, followed through simulated tracker frames by two trackers: the grid
   // searches and PCL's (the reference). Every frame's decisions and the model agree.
-  core::ModelCase c = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
-  c.meshing.target_elements = 2000;
-  const core::SimulationModel model = core::buildSimulationModel(c);
-  core::PipelineSettings s;
-  s.morphing.target = "";
-  s.morphing.field.voxel_size_m = 0.003;
+  const SmallPhantom small;
+  const core::ModelCase& c = small.model_case;
+  const core::SimulationModel& model = small.model;
+  const core::PipelineSettings& s = small.settings;
   core::ProneToSupinePipeline fast_pipe(c, model, s), slow_pipe(c, model, s);
   ros_interface::TrackerOptions to;
   ros_interface::SurfaceTracker fast(to);
@@ -318,12 +331,10 @@ TEST(SurfaceTracker, FramesSolveAtTheTrackingToleranceAndGiveTheCasesBack) {
   // per-frame tolerance: the loose one changes the frames' results (so it was applied), stays close
   // to the tight one (later frames correct it), and the solver has the case's tolerance again after
   // every frame (a precomputation after tracking is not loosened).
-  core::ModelCase c = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
-  c.meshing.target_elements = 2000;
-  const core::SimulationModel model = core::buildSimulationModel(c);
-  core::PipelineSettings s;
-  s.morphing.target = "";
-  s.morphing.field.voxel_size_m = 0.003;
+  const SmallPhantom small;
+  const core::ModelCase& c = small.model_case;
+  const core::SimulationModel& model = small.model;
+  const core::PipelineSettings& s = small.settings;
   core::ProneToSupinePipeline case_pipe(c, model, s), loose_pipe(c, model, s);
   const double case_tolerance = case_pipe.simulator().solver().relativeTolerance();
   ASSERT_GT(case_tolerance, 0.0) << "needs an iterative solver";
