@@ -193,7 +193,9 @@ void WallSlip::beforeStep(DynamicSimulator& sim, const NodeSprings* extra) {
       throw std::invalid_argument("WallSlip::beforeStep: " + std::to_string(extra->nodes.size()) + " extra spring nodes, " +
                                   std::to_string(extra->stiffness_n_per_m.size()) + " blocks and " +
                                   std::to_string(extra->anchors_m.rows()) + " anchors; give one of each per node");
-    std::vector<int> slot(static_cast<size_t>(mesh_.numNodes()), -1);
+    // Node → spring row, in a buffer kept across steps (all −1 on entry and again on exit).
+    std::vector<int>& slot = spring_slot_;
+    if (slot.size() != static_cast<size_t>(mesh_.numNodes())) slot.assign(static_cast<size_t>(mesh_.numNodes()), -1);
     for (size_t i = 0; i < nodes.size(); ++i) slot[static_cast<size_t>(nodes[i])] = static_cast<int>(i);
     const Eigen::Index own = anchors.rows();
     Eigen::Index added = 0;
@@ -219,6 +221,7 @@ void WallSlip::beforeStep(DynamicSimulator& sim, const NodeSprings* extra) {
         forces.row(static_cast<Eigen::Index>(nodes.size()) - 1).setZero();
       }
     }
+    for (const int v : nodes) slot[static_cast<size_t>(v)] = -1;
   }
   sim.setNodeSprings(nodes, k, anchors, forces);
 }

@@ -144,6 +144,7 @@ class WallSlip {
   std::vector<int> contact_candidates_;
   double contact_area_m2_ = 0.0;      // nominal area of a skin node (the mean wall-node area)
   int last_contacts_ = 0;
+  std::vector<int> spring_slot_;      // per mesh node: its row in beforeStep's springs, −1 = none (kept at −1 between steps)
 };
 
 }  // namespace breast_sim::core
