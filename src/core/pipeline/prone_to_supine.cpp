@@ -320,7 +320,7 @@ IterationReport ProneToSupinePipeline::iterate() {
   it.advanced = r.advanced;
   it.reversals = r.reversals;
   it.alpha_per_pa = r.alpha_per_pa;
-  {
+  if (!morphing_forces_->vertices().empty()) {  // no pulled vertex (e.g. nothing within reach): no p95
     const Eigen::VectorXd& u = simulator().state().displacement_m;
     const std::vector<int>& vs = morphing_forces_->vertices();
     pulled_moves_.resize(vs.size());
@@ -345,12 +345,17 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   stage_ = PipelineStage::kMorphing;
   setTimeStep(ms.time_step_s);
   if (hasSliding() && !sliding_attached_) attachSliding();  // e.g. the gravity stage was skipped
-  const AlphaControllerParams alpha_before = stiff_->controller().params();
-  {
-    AlphaControllerParams a = alpha_before;
-    a.reversal_growth = ms.alpha_reversal_growth;
-    stiff_->controller().setParams(a);
-  }
+  // The stage's reversal growth, given back on every way out (iterate() may throw).
+  struct AlphaParamsScope {
+    AlphaController& controller;
+    const AlphaControllerParams saved;
+    AlphaParamsScope(AlphaController& c, double reversal_growth) : controller(c), saved(c.params()) {
+      AlphaControllerParams a = saved;
+      a.reversal_growth = reversal_growth;
+      controller.setParams(a);
+    }
+    ~AlphaParamsScope() { controller.setParams(saved); }
+  } alpha_scope(stiff_->controller(), ms.alpha_reversal_growth);
   const RunStats before = stiff_->stats();
   long calls = 0;
   int quiet = 0, stuck = 0;
@@ -389,7 +394,6 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   rep.surface_p95_m = d.p95_m;
   rep.converged = rep.converged && d.mean_m <= ms.tolerance_mean_m && d.p95_m <= ms.tolerance_p95_m;
   stiff_->holdAlpha(false);
-  stiff_->controller().setParams(alpha_before);
   closeReport(rep, before, since(t0));
   rep.max_slide_m = sliding_report_.max_slide_m;
   morphing_ = rep;
