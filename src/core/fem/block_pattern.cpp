@@ -1,10 +1,14 @@
 #include "breast_sim/core/fem/block_pattern.h"
 
 #include <algorithm>
+#include <stdexcept>
+#include <string>
 
 namespace breast_sim::core {
 
-BlockPattern::BlockPattern(const Tets& tets, int num_nodes) {
+BlockPattern::BlockPattern(const Tets& tets, int num_nodes, int rings) {
+  if (rings != 1 && rings != 2)
+    throw std::invalid_argument("BlockPattern: rings = " + std::to_string(rings) + "; use 1 (element neighbours) or 2");
   const int nt = static_cast<int>(tets.rows());
   // Node → incident elements (with the local index), by counting sort.
   incident_start_.assign(num_nodes + 1, 0);
@@ -31,7 +35,21 @@ BlockPattern::BlockPattern(const Tets& tets, int num_nodes) {
     std::sort(v.begin(), v.end());
     v.erase(std::unique(v.begin(), v.end()), v.end());
   }
+  if (rings == 2) {
+    // Neighbours of neighbours: the union of the 1-ring lists of I's 1-ring.
+    std::vector<std::vector<int>> wide(num_nodes);
+#pragma omp parallel for schedule(dynamic, 256)
+    for (int n = 0; n < num_nodes; ++n) {
+      auto& v = wide[n];
+      for (const int m : nbrs[n]) v.insert(v.end(), nbrs[m].begin(), nbrs[m].end());
+      std::sort(v.begin(), v.end());
+      v.erase(std::unique(v.begin(), v.end()), v.end());
+    }
+    nbrs.swap(wide);
+  }
   for (int n = 0; n < num_nodes; ++n) neighbour_start_[n + 1] = neighbour_start_[n] + static_cast<int>(nbrs[n].size());
+  neighbours_.resize(neighbour_start_[num_nodes]);
+  for (int n = 0; n < num_nodes; ++n) std::copy(nbrs[n].begin(), nbrs[n].end(), neighbours_.begin() + neighbour_start_[n]);
 
   // CSR arrays directly: row 3n + r holds 3 columns per neighbour.
   const long nnz = 9L * neighbour_start_[num_nodes];

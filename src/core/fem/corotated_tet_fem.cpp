@@ -11,11 +11,12 @@
 
 namespace breast_sim::core {
 
-CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& material)
-    : tets_(mesh.tets()), rest_(mesh.nodes()), material_(material), pattern_(mesh.tets(), mesh.numNodes()) {
+CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& material, int pattern_rings)
+    : tets_(mesh.tets()), rest_(mesh.nodes()), material_(material), pattern_(mesh.tets(), mesh.numNodes(), pattern_rings) {
   material_.validate();
   lambda_ = material_.lameLambda();
   mu_ = material_.lameMu();
+  trace_lambda_ = lambda_;
   const int nt = mesh.numTets();
   const size_t num_batches = (static_cast<size_t>(nt) + kBatch - 1) / kBatch;
   grads_.resize(12 * static_cast<size_t>(nt));
@@ -201,7 +202,7 @@ void CorotatedTetFem::updateBatches(const Points& x) {
   constexpr int W = kBatch;
   const int nt = static_cast<int>(tets_.rows());
   const int num_batches = (nt + W - 1) / W;
-  const double lambda = lambda_, two_mu = 2.0 * mu_;
+  const double lambda = volumeLambda(), two_mu = 2.0 * mu_;
   const bool corotated = corotated_;
   double* const recs = records();
   const int stride = record_;
@@ -245,6 +246,7 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
   const int nt = static_cast<int>(tets_.rows());
   const bool determinant = volume_term_ == VolumeTerm::kDeterminant && corotated_;
   stiffness_is_determinant_ = determinant;
+  trace_lambda_ = volume_term_ == VolumeTerm::kNone ? -2.0 * mu_ / 3.0 : lambda_;
   const int stride = determinant ? kRecordDeterminant : kRecordTrace;
   if (stride != record_) {
     record_ = stride;
@@ -298,7 +300,7 @@ void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
   const int* const outer = A.outerIndexPtr();
   const double* const recs = records();
   const int* const islots = incident_slots_.data();
-  const double sl = scale * lambda_, sm = scale * mu_;
+  const double sl = scale * (kDeterminant ? lambda_ : volumeLambda()), sm = scale * mu_;
   constexpr int kStride = kDeterminant ? kRecordDeterminant : kRecordTrace;
   constexpr int kH = kDeterminant ? kVolumeGrads : 0;  // where h starts in the record
   // Everything is read into locals before the writes to A: `values` could alias the gradients for
@@ -381,7 +383,7 @@ Eigen::MatrixXd CorotatedTetFem::denseStiffness() const {
       B(5, 3 * i) = gz, B(5, 3 * i + 2) = gx;
     }
     Eigen::Matrix<double, 6, 6> C = Eigen::Matrix<double, 6, 6>::Zero();
-    C.topLeftCorner<3, 3>().setConstant(stiffness_is_determinant_ ? 0.0 : lambda_);
+    C.topLeftCorner<3, 3>().setConstant(stiffness_is_determinant_ ? 0.0 : volumeLambda());
     C.topLeftCorner<3, 3>().diagonal().array() += 2.0 * mu_;
     C.bottomRightCorner<3, 3>().diagonal().setConstant(mu_);
     const Eigen::Matrix<double, 12, 12> K0 = volumes_[e] * B.transpose() * C * B;

@@ -10,16 +10,26 @@
 namespace breast_sim::core {
 
 /// CSR pattern of the 3N×3N matrix of a tetrahedral mesh: node I couples to node J when they share
-/// an element. Rows 3I..3I+2 all hold the columns of I's neighbours in ascending node order, three
-/// per neighbour, so the 3×3 block (I, J) starts in row 3I+r at rowStart(3I+r) + 3·k, where k is the
-/// position of J in I's neighbour list.
+/// an element (rings = 1), or when both share an element with a common node K (rings = 2: the
+/// pattern of a formulation whose terms span a node's star, e.g. average-nodal-pressure tetrahedra,
+/// fem/anp_tet_fem.h). Rows 3I..3I+2 all hold the columns of I's neighbours in ascending node order,
+/// three per neighbour, so the 3×3 block (I, J) starts in row 3I+r at rowStart(3I+r) + 3·k, where k
+/// is the position of J in I's neighbour list.
 class BlockPattern {
  public:
   BlockPattern() = default;
-  /// @param tets  #T×4 connectivity over `num_nodes` nodes
-  BlockPattern(const Tets& tets, int num_nodes);
+  /// @param tets   #T×4 connectivity over `num_nodes` nodes
+  /// @param rings  1: neighbours share an element; 2: neighbours of neighbours too
+  /// @throws std::invalid_argument for rings other than 1 or 2.
+  BlockPattern(const Tets& tets, int num_nodes, int rings = 1);
 
   int numNodes() const { return static_cast<int>(neighbour_start_.size()) - 1; }
+  /// Node I's neighbours (itself included), ascending: neighbour(k) for k in
+  /// [neighbourStart(I), neighbourStart(I+1)); k − neighbourStart(I) is the block slot.
+  int neighbourStart(int node) const { return neighbour_start_[node]; }
+  int neighbour(int k) const { return neighbours_[k]; }
+  /// All neighbour lists, concatenated (neighbour(k) = neighbourData()[k]).
+  const int* neighbourData() const { return neighbours_.data(); }
   /// A zero-valued matrix with this pattern (values to be filled by assembly).
   const SparseMatrix& matrix() const { return matrix_; }
   /// k of block (e's local node i, e's local node j), for element e: blockSlot(e)[4 i + j].
@@ -36,6 +46,7 @@ class BlockPattern {
  private:
   SparseMatrix matrix_;
   std::vector<int> neighbour_start_;
+  std::vector<int> neighbours_;      // node ids, neighbour_start_[I] .. neighbour_start_[I+1]
   std::vector<int> slots_;           // 16 per element
   std::vector<int> incident_start_;  // N + 1
   std::vector<int> incident_;        // element·4 + local index

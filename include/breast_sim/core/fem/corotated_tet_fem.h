@@ -27,8 +27,10 @@ namespace breast_sim::core {
 /// threads write the same entry.
 class CorotatedTetFem : public ElementFormulation {
  public:
+  /// @param pattern_rings  the reach of pattern() (BlockPattern): 1, or 2 for a formulation that
+  ///        adds terms spanning node stars to this one's matrix (AnpTetFem)
   /// @throws std::invalid_argument for an invalid material.
-  CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& material);
+  CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& material, int pattern_rings = 1);
 
   void update(const Points& x, Eigen::VectorXd& f) override;
   void addStiffness(double scale, SparseMatrix& A) const override;
@@ -61,6 +63,9 @@ class CorotatedTetFem : public ElementFormulation {
   /// J = det F, the first Piola stress is P = E_r (2μ R (S − I) + λ v) with
   ///   kTrace:       v = (tr S − 3) R        classic co-rotated linear elasticity [RB86, GW08]
   ///   kDeterminant: v = (J − 1) cof F       "fixed co-rotated" (Stomakhin et al. 2012), cof F = J F⁻ᵀ
+  ///   kNone:        no λ term, and the μ term made deviatoric: P = E_r 2μ R dev(S − I), i.e. λ
+  ///                 replaced by −2μ/3 (bulk modulus 0). The volume change is then left to another
+  ///                 part of the formulation (the nodal pressure of AnpTetFem).
   /// Both have the same linearisation at rest (J − 1 ≈ tr S − 3, cof F ≈ R), so small-strain results,
   /// the patch test and the stiffness R K_e0 Rᵀ are unchanged. They differ under large compression:
   /// tr S − 3 is only a linearised volume change, so with λ ≫ μ (ν = 0.48: λ/μ = 24) kTrace holds
@@ -74,7 +79,7 @@ class CorotatedTetFem : public ElementFormulation {
   /// λ (J − 1) ∂(cof F)/∂x: SPD, equal to R K_e0 Rᵀ at rest, and stiff enough under compression
   /// (cof F ∇N grows there) that the long settling steps do not overshoot. Both are exact at rest;
   /// elsewhere the implicit step is a quasi-Newton step converging to the same equilibrium.
-  enum class VolumeTerm { kTrace, kDeterminant };
+  enum class VolumeTerm { kTrace, kDeterminant, kNone };
   /// Selects the volumetric term (kTrace by default).
   void setVolumeTerm(VolumeTerm term) { volume_term_ = term; }
   VolumeTerm volumeTerm() const { return volume_term_; }
@@ -117,6 +122,8 @@ class CorotatedTetFem : public ElementFormulation {
   bool corotated_ = true;
   VolumeTerm volume_term_ = VolumeTerm::kTrace;
   bool stiffness_is_determinant_ = false;  // the volume term at the last update()
+  double trace_lambda_ = 0.0;              // λ of the trace kernels at the last update(): λ, or −2μ/3 for kNone
+  double volumeLambda() const { return trace_lambda_; }
   template <bool kDeterminant>
   void updateBatches(const Points& x);
   template <bool kDeterminant, bool kAssign>

@@ -1,0 +1,88 @@
+#pragma once
+/// @file anp_tet_fem.h
+/// Average-nodal-pressure (ANP) linear tetrahedra [Bonet & Burton 1998; Joldes, Wittek & Miller
+/// 2009, the element NiftySim uses for breast work]: linear tetrahedra without volumetric locking.
+
+#include <vector>
+
+#include "breast_sim/core/fem/block_pattern.h"
+#include "breast_sim/core/fem/corotated_tet_fem.h"
+#include "breast_sim/core/fem/elastic_material.h"
+#include "breast_sim/core/fem/element_formulation.h"
+
+namespace breast_sim::core {
+
+/// Why: a linear tetrahedron has one volume ratio J_e, and with ν → 0.5 (λ/μ = 24 at ν = 0.48) the
+/// mesh can only bend by keeping every element's volume, which a mesh of linear tetrahedra cannot
+/// do for most smooth deformations: it locks. Against quadratic tetrahedra (CalculiX C3D10) our
+/// phantom's C3D4 solution is 1.2 mm off at ν = 0.48 (docs/speed_accuracy/locking.txt).
+/// ANP penalises the volume change of each node's star instead: with V_e the rest volume and
+/// w_ne = V_e / Σ_{e'∋n} V_e' the share of element e in node n's star,
+///   J̄_n = Σ_{e∋n} w_ne J_e                      (the star's current over its rest volume)
+///   W   = Σ_e V_e Ψ_dev(F_e) + Σ_n κ_n/2 · V̂_n (J̄_n − 1)²,   V̂_n = Σ_{e∋n} V_e / 4,
+/// so there are about 5× fewer volume constraints (one per node, not per element) and the locking
+/// goes. Ψ_dev is the deviatoric co-rotated energy (CorotatedTetFem, VolumeTerm::kNone:
+/// P = 2μ R dev(S − I)), κ = λ + 2μ/3 the bulk modulus, κ_n = κ Σ_e w_ne E_r,e b_e (the stiffening
+/// factors and per-tissue moduli averaged over the star). The forces are −∂W/∂x: each element
+/// feels the average of its four nodal pressures p_n = κ_n (J̄_n − 1),
+///   f_e,i = −V_e p̄_e ∂J_e/∂x_i,   p̄_e = ¼ Σ_{n∈e} p_n,   ∂J_e/∂x_i = cof F_e ∇N_i,
+/// exactly the ANP element. The volumetric stiffness is the Gauss–Newton part
+///   K_vol = Σ_n κ_n V̂_n b_n b_nᵀ,   b_n = ∂J̄_n/∂x = Σ_{e∋n} w_ne ∂J_e/∂x,
+/// symmetric positive semi-definite, exact at rest (as CorotatedTetFem's kDeterminant term, it
+/// drops the indefinite Σ_e V_e p̄_e ∂²J_e/∂x²). b_n spans node n's star, so K couples nodes two
+/// element layers apart: pattern() is the two-ring BlockPattern, about 4× the entries of the
+/// linear tetrahedra's; the solvers take it unchanged (the multigrid must estimate its fine-level
+/// eigenvalue bound: the bound 4 holds only for four-node element matrices).
+/// \note The deviatoric part (rotations, von Mises stress, modulus factors, per-tissue moduli) is a
+/// CorotatedTetFem on the same two-ring pattern; vonMisesStress() is its (pressure does not enter
+/// a von Mises norm).
+class AnpTetFem : public ElementFormulation {
+ public:
+  /// @throws std::invalid_argument for an invalid material.
+  AnpTetFem(const TetMesh& mesh, const ElasticMaterial& material);
+
+  void update(const Points& x, Eigen::VectorXd& f) override;
+  void addStiffness(double scale, SparseMatrix& A) const override;
+  void assignStiffness(double scale, SparseMatrix& A) const override;
+  const BlockPattern& pattern() const override { return deviatoric_.pattern(); }
+  const Eigen::VectorXd& modulusFactors() const override { return deviatoric_.modulusFactors(); }
+  void setModulusFactors(const Eigen::VectorXd& factors) override;
+  const Eigen::VectorXd& vonMisesStress() const override { return deviatoric_.vonMisesStress(); }
+
+  /// Per-element base Young's moduli [Pa]; as CorotatedTetFem::setElementYoungsModuli.
+  void setElementYoungsModuli(const Eigen::VectorXd& youngs_modulus_pa);
+  /// When false, the deviatoric part is not co-rotated (plain linear; comparisons only).
+  void setCorotated(bool corotated) { deviatoric_.setCorotated(corotated); }
+
+  /// Bulk modulus κ = λ + 2μ/3 of the material [Pa].
+  double bulkModulus() const { return kappa_; }
+  /// Nodal volume ratios J̄_n at the last update (#N; 1 for a node in no element).
+  const Eigen::VectorXd& nodalVolumeRatios() const { return nodal_volume_ratio_; }
+  /// Nodal pressures p_n = κ_n (J̄_n − 1) at the last update [Pa] (#N; positive in expansion).
+  const Eigen::VectorXd& nodalPressures() const { return nodal_pressure_; }
+  /// Rest volume of node n's share of its star, V̂_n = Σ_{e∋n} V_e / 4 [m³] (#N).
+  const Eigen::VectorXd& nodalRestVolumes() const { return nodal_rest_volume_; }
+
+ private:
+  CorotatedTetFem deviatoric_;  // Ψ_dev on the two-ring pattern
+  BlockPattern star_;           // the one-ring pattern: node n's star is its neighbour list here
+  Tets tets_;
+  double kappa_;
+  std::vector<double> grads_;        // 12 per element: ∇N_0..∇N_3 [1/m]
+  std::vector<double> volumes_;      // V_e [m³]
+  std::vector<double> star_weight_;  // per incidence k of star_ (node n, element e): w_ne
+  Eigen::VectorXd nodal_rest_volume_, nodal_volume_ratio_, nodal_pressure_;
+  Eigen::VectorXd nodal_stiffness_;  // κ_n V̂_n [Pa m³]: K_vol = Σ_n nodal_stiffness_n b_n b_nᵀ
+  std::vector<double> volume_ratio_;  // J_e at the last update
+  std::vector<double> dJ_;            // 12 per element: ∂J_e/∂x_i = cof F ∇N_i [m²]
+  std::vector<double> elem_forces_;   // 12 per element: −V_e p̄_e ∂J_e/∂x_i [N]
+  std::vector<double> b_;             // 3 per star_ entry (n, slot q): the block q of b_n [1/m]
+  std::vector<int> own_slot_;         // per star_ entry (a, k): a's slot in the star of neighbour(k)
+  std::vector<int> wide_offset_;      // per star_ entry (a, k) + 1: start in wide_slot_
+  std::vector<int> wide_slot_;        // for entry (a, k), n = neighbour(k): the two-ring slots in
+                                      // a's rows of n's star nodes, in n's star order
+  void updateNodalStiffness();
+  void addVolumetricStiffness(double scale, SparseMatrix& A) const;
+};
+
+}  // namespace breast_sim::core

@@ -1,0 +1,215 @@
+#include "breast_sim/core/fem/anp_tet_fem.h"
+
+#include <algorithm>
+
+#include <Eigen/Dense>
+
+namespace breast_sim::core {
+
+AnpTetFem::AnpTetFem(const TetMesh& mesh, const ElasticMaterial& material)
+    : deviatoric_(mesh, material, /*pattern_rings=*/2), star_(mesh.tets(), mesh.numNodes(), 1), tets_(mesh.tets()) {
+  deviatoric_.setVolumeTerm(CorotatedTetFem::VolumeTerm::kNone);
+  kappa_ = material.lameLambda() + 2.0 * material.lameMu() / 3.0;
+  const int nt = mesh.numTets(), nn = mesh.numNodes();
+  const Points& rest = mesh.nodes();
+  grads_.resize(12 * static_cast<size_t>(nt));
+  volumes_.resize(nt);
+#pragma omp parallel for schedule(static)
+  for (int e = 0; e < nt; ++e) {
+    const Eigen::Vector3d a = rest.row(tets_(e, 0));
+    Eigen::Matrix3d Dm;
+    for (int k = 0; k < 3; ++k) Dm.col(k) = Eigen::Vector3d(rest.row(tets_(e, k + 1))) - a;
+    volumes_[e] = Dm.determinant() / 6.0;
+    const Eigen::Matrix3d Dinv = Dm.inverse();  // rows: ∇N_1..∇N_3
+    double* g = &grads_[12 * static_cast<size_t>(e)];
+    for (int i = 1; i < 4; ++i)
+      for (int c = 0; c < 3; ++c) g[3 * i + c] = Dinv(i - 1, c);
+    for (int c = 0; c < 3; ++c) g[c] = -(g[3 + c] + g[6 + c] + g[9 + c]);
+  }
+  // Star weights w_ne and nodal rest volumes V̂_n.
+  nodal_rest_volume_ = Eigen::VectorXd::Zero(nn);
+  star_weight_.resize(star_.incidentStart(nn));
+#pragma omp parallel for schedule(static)
+  for (int n = 0; n < nn; ++n) {
+    double sum = 0.0;
+    for (int k = star_.incidentStart(n); k < star_.incidentStart(n + 1); ++k) sum += volumes_[star_.incidentElement(k)];
+    for (int k = star_.incidentStart(n); k < star_.incidentStart(n + 1); ++k)
+      star_weight_[k] = volumes_[star_.incidentElement(k)] / sum;
+    nodal_rest_volume_[n] = sum / 4.0;
+  }
+  nodal_volume_ratio_ = Eigen::VectorXd::Ones(nn);
+  nodal_pressure_ = Eigen::VectorXd::Zero(nn);
+  nodal_stiffness_ = Eigen::VectorXd::Zero(nn);
+  volume_ratio_.assign(nt, 1.0);
+  dJ_.assign(12 * static_cast<size_t>(nt), 0.0);
+  elem_forces_.assign(12 * static_cast<size_t>(nt), 0.0);
+  const int num_star = star_.neighbourStart(nn);
+  b_.assign(3 * static_cast<size_t>(num_star), 0.0);
+  // For row node a and each n in a's star (entry k): a's slot in n's star, and the two-ring slots
+  // (in a's rows) of n's star nodes.
+  const BlockPattern& wide = deviatoric_.pattern();
+  own_slot_.resize(num_star);
+  wide_offset_.assign(num_star + 1, 0);
+  for (int a = 0; a < nn; ++a)
+    for (int k = star_.neighbourStart(a); k < star_.neighbourStart(a + 1); ++k) {
+      const int n = star_.neighbour(k);
+      wide_offset_[k + 1] = wide_offset_[k] + (star_.neighbourStart(n + 1) - star_.neighbourStart(n));
+    }
+  wide_slot_.resize(wide_offset_[num_star]);
+#pragma omp parallel for schedule(dynamic, 256)
+  for (int a = 0; a < nn; ++a) {
+    const int* const row_begin = wide.neighbourData() + wide.neighbourStart(a);
+    const int* const row_end = wide.neighbourData() + wide.neighbourStart(a + 1);
+    for (int k = star_.neighbourStart(a); k < star_.neighbourStart(a + 1); ++k) {
+      const int n = star_.neighbour(k);
+      const int* const s_begin = star_.neighbourData() + star_.neighbourStart(n);
+      const int* const s_end = star_.neighbourData() + star_.neighbourStart(n + 1);
+      own_slot_[k] = static_cast<int>(std::lower_bound(s_begin, s_end, a) - s_begin);
+      int* out = &wide_slot_[wide_offset_[k]];
+      for (const int* m = s_begin; m != s_end; ++m) *out++ = static_cast<int>(std::lower_bound(row_begin, row_end, *m) - row_begin);
+    }
+  }
+  updateNodalStiffness();
+}
+
+void AnpTetFem::updateNodalStiffness() {
+  const Eigen::VectorXd& er = deviatoric_.modulusFactors();
+  const Eigen::VectorXd& be = deviatoric_.baseModulusScales();
+  const int nn = star_.numNodes();
+#pragma omp parallel for schedule(static)
+  for (int n = 0; n < nn; ++n) {
+    double s = 0.0;
+    for (int k = star_.incidentStart(n); k < star_.incidentStart(n + 1); ++k) {
+      const int e = star_.incidentElement(k);
+      s += star_weight_[k] * er[e] * be[e];
+    }
+    nodal_stiffness_[n] = kappa_ * s * nodal_rest_volume_[n];
+  }
+}
+
+void AnpTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
+  deviatoric_.setModulusFactors(factors);
+  updateNodalStiffness();
+}
+
+void AnpTetFem::setElementYoungsModuli(const Eigen::VectorXd& youngs_modulus_pa) {
+  deviatoric_.setElementYoungsModuli(youngs_modulus_pa);
+  updateNodalStiffness();
+}
+
+void AnpTetFem::update(const Points& x, Eigen::VectorXd& f) {
+  deviatoric_.update(x, f);
+  const int nt = static_cast<int>(tets_.rows()), nn = star_.numNodes();
+  // J_e and ∂J_e/∂x_i = cof F ∇N_i per element.
+#pragma omp parallel for schedule(static)
+  for (int e = 0; e < nt; ++e) {
+    const double* g = &grads_[12 * static_cast<size_t>(e)];
+    double F[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};  // column-major: F(r, c) = F[r + 3c] = Σ_i x_i,r ∇N_i,c
+    for (int i = 0; i < 4; ++i) {
+      const int node = tets_(e, i);
+      for (int c = 0; c < 3; ++c)
+        for (int r = 0; r < 3; ++r) F[r + 3 * c] += x(node, r) * g[3 * i + c];
+    }
+    // cof F: columns are cross products of F's columns (cof(:,0) = F1 × F2, …).
+    const double cof[9] = {F[4] * F[8] - F[5] * F[7], F[5] * F[6] - F[3] * F[8], F[3] * F[7] - F[4] * F[6],
+                           F[7] * F[2] - F[8] * F[1], F[8] * F[0] - F[6] * F[2], F[6] * F[1] - F[7] * F[0],
+                           F[1] * F[5] - F[2] * F[4], F[2] * F[3] - F[0] * F[5], F[0] * F[4] - F[1] * F[3]};
+    volume_ratio_[e] = F[0] * cof[0] + F[1] * cof[1] + F[2] * cof[2];
+    double* d = &dJ_[12 * static_cast<size_t>(e)];
+    for (int i = 0; i < 4; ++i)
+      for (int r = 0; r < 3; ++r)
+        d[3 * i + r] = cof[r] * g[3 * i] + cof[r + 3] * g[3 * i + 1] + cof[r + 6] * g[3 * i + 2];
+  }
+  // Nodal volume ratios, pressures and the stiffness weights.
+  const Eigen::VectorXd& er = deviatoric_.modulusFactors();
+  const Eigen::VectorXd& be = deviatoric_.baseModulusScales();
+#pragma omp parallel for schedule(static)
+  for (int n = 0; n < nn; ++n) {
+    double j = 0.0, s = 0.0;
+    const int k0 = star_.incidentStart(n), k1 = star_.incidentStart(n + 1);
+    for (int k = k0; k < k1; ++k) {
+      const int e = star_.incidentElement(k);
+      j += star_weight_[k] * volume_ratio_[e];
+      s += star_weight_[k] * er[e] * be[e];
+    }
+    if (k0 == k1) j = 1.0;
+    nodal_volume_ratio_[n] = j;
+    nodal_pressure_[n] = kappa_ * s * (j - 1.0);
+    nodal_stiffness_[n] = kappa_ * s * nodal_rest_volume_[n];
+  }
+  // Element forces −V_e p̄_e ∂J_e/∂x_i.
+#pragma omp parallel for schedule(static)
+  for (int e = 0; e < nt; ++e) {
+    const double pbar = 0.25 * (nodal_pressure_[tets_(e, 0)] + nodal_pressure_[tets_(e, 1)] + nodal_pressure_[tets_(e, 2)] +
+                                nodal_pressure_[tets_(e, 3)]);
+    const double w = -volumes_[e] * pbar;
+    const double* d = &dJ_[12 * static_cast<size_t>(e)];
+    double* fe = &elem_forces_[12 * static_cast<size_t>(e)];
+    for (int k = 0; k < 12; ++k) fe[k] = w * d[k];
+  }
+  // Per node: add the volumetric forces to the deviatoric ones, and form b_n over its star.
+#pragma omp parallel for schedule(static)
+  for (int n = 0; n < nn; ++n) {
+    double fx = 0, fy = 0, fz = 0;
+    double* const bn = &b_[3 * static_cast<size_t>(star_.neighbourStart(n))];
+    std::fill(bn, bn + 3 * (star_.neighbourStart(n + 1) - star_.neighbourStart(n)), 0.0);
+    for (int k = star_.incidentStart(n); k < star_.incidentStart(n + 1); ++k) {
+      const int e = star_.incidentElement(k), i = star_.incidentLocal(k);
+      const double* fe = &elem_forces_[12 * static_cast<size_t>(e) + 3 * i];
+      fx += fe[0];
+      fy += fe[1];
+      fz += fe[2];
+      const double w = star_weight_[k];
+      const double* d = &dJ_[12 * static_cast<size_t>(e)];
+      const int* slot = star_.blockSlot(e) + 4 * i;  // slots of e's nodes in n's star
+      for (int j = 0; j < 4; ++j)
+        for (int c = 0; c < 3; ++c) bn[3 * slot[j] + c] += w * d[3 * j + c];
+    }
+    f[3 * n] += fx;
+    f[3 * n + 1] += fy;
+    f[3 * n + 2] += fz;
+  }
+}
+
+void AnpTetFem::addVolumetricStiffness(double scale, SparseMatrix& A) const {
+  // Row node a gathers κ_n V̂_n b_n[a] b_n[m]ᵀ over the nodes n of its star and the nodes m of n's
+  // star: each row is written by one thread.
+  const int nn = star_.numNodes();
+  double* const values = A.valuePtr();
+  const int* const outer = A.outerIndexPtr();
+#pragma omp parallel for schedule(dynamic, 64)
+  for (int a = 0; a < nn; ++a) {
+    double* const row0 = values + outer[3 * a];
+    const int len = outer[3 * a + 1] - outer[3 * a];
+    double* const row1 = row0 + len;
+    double* const row2 = row1 + len;
+    for (int k = star_.neighbourStart(a); k < star_.neighbourStart(a + 1); ++k) {
+      const int n = star_.neighbour(k);
+      const int s0 = star_.neighbourStart(n), deg = star_.neighbourStart(n + 1) - s0;
+      const double* const bn = &b_[3 * static_cast<size_t>(s0)];
+      const double w = scale * nodal_stiffness_[n];
+      const double* const ba = bn + 3 * own_slot_[k];
+      const double u0 = w * ba[0], u1 = w * ba[1], u2 = w * ba[2];
+      const int* const slots = &wide_slot_[wide_offset_[k]];
+      for (int q = 0; q < deg; ++q) {
+        const int col = 3 * slots[q];
+        const double b0 = bn[3 * q], b1 = bn[3 * q + 1], b2 = bn[3 * q + 2];
+        row0[col] += u0 * b0, row0[col + 1] += u0 * b1, row0[col + 2] += u0 * b2;
+        row1[col] += u1 * b0, row1[col + 1] += u1 * b1, row1[col + 2] += u1 * b2;
+        row2[col] += u2 * b0, row2[col + 1] += u2 * b1, row2[col + 2] += u2 * b2;
+      }
+    }
+  }
+}
+
+void AnpTetFem::addStiffness(double scale, SparseMatrix& A) const {
+  deviatoric_.addStiffness(scale, A);
+  addVolumetricStiffness(scale, A);
+}
+
+void AnpTetFem::assignStiffness(double scale, SparseMatrix& A) const {
+  deviatoric_.assignStiffness(scale, A);  // checks A's size and entry count
+  addVolumetricStiffness(scale, A);
+}
+
+}  // namespace breast_sim::core
