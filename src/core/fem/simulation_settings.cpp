@@ -6,6 +6,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "breast_sim/core/fem/anp_tet_fem.h"
 #include "breast_sim/core/fem/corotated_tet_fem.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/tissue_labels.h"
@@ -92,7 +93,7 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
             {"youngs_modulus_pa", "poisson_ratio", "density_kg_per_m3", "time_step_s", "mass_damping_per_s",
              "stiffness_damping_s", "solver", "solver_relative_tolerance", "solver_max_iterations",
              "multigrid_smoother", "multigrid_smoothing_steps", "multigrid_coarse_update_interval",
-             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "sliding", "settle_time_step_s",
+             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "element", "sliding", "settle_time_step_s",
              "settle_increment_tolerance_mm", "settle_max_steps", "tissue_youngs_modulus_pa"},
             f, "simulation");
   const double inf = std::numeric_limits<double>::infinity();
@@ -121,6 +122,10 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
   if (m["gravity_mps2"]) s.gravity_mps2 = numberIn(m["gravity_mps2"], f, key("gravity_mps2"), 0, 1000, false, false, "m/s^2");
   if (m["stiffening"]) s.stiffening = boolean(m["stiffening"], f, key("stiffening"));
   if (m["sliding"]) s.sliding = boolean(m["sliding"], f, key("sliding"));
+  if (m["element"])
+    s.element = choice(m["element"], f, key("element"), {"linear", "anp"}) == "linear"
+                    ? SimulationSettings::Element::kLinearTet
+                    : SimulationSettings::Element::kAnpTet;
   if (m["volume_term"])
     s.volume_term = choice(m["volume_term"], f, key("volume_term"), {"trace", "determinant"}) == "trace"
                         ? CorotatedTetFem::VolumeTerm::kTrace
@@ -175,15 +180,27 @@ SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel
       const MeshHierarchy h = buildMeshHierarchy(model_case, model, settings.solver.coarsening);
       b.multigrid_levels = h.numLevels();
       for (int l = 0; l < h.numLevels(); ++l) b.level_nodes.push_back(h.mesh(l).numNodes());
-      solver = std::make_unique<MultigridPcgSolver>(h, pcg, settings.solver.multigrid);
+      MultigridOptions mg = settings.solver.multigrid;
+      // The fine-level bound λ_max(D⁻¹A) ≤ 4 holds for four-node element matrices only; the ANP
+      // volumetric terms span node stars: estimate it like a coarse level's.
+      if (settings.element == SimulationSettings::Element::kAnpTet) mg.fine_eigenvalue_bound = 0.0;
+      solver = std::make_unique<MultigridPcgSolver>(h, pcg, mg);
       break;
     }
   }
   b.hierarchy_seconds = since(t0);
   const auto t1 = std::chrono::steady_clock::now();
-  auto elements = std::make_unique<CorotatedTetFem>(model.mesh, settings.material);
-  elements->setVolumeTerm(settings.volume_term);
-  elements->setElementYoungsModuli(elementYoungsModuli(model.mesh, settings));  // empty: E0 everywhere
+  std::unique_ptr<ElementFormulation> elements;
+  if (settings.element == SimulationSettings::Element::kAnpTet) {
+    auto anp = std::make_unique<AnpTetFem>(model.mesh, settings.material);
+    anp->setElementYoungsModuli(elementYoungsModuli(model.mesh, settings));  // empty: E0 everywhere
+    elements = std::move(anp);
+  } else {
+    auto tet = std::make_unique<CorotatedTetFem>(model.mesh, settings.material);
+    tet->setVolumeTerm(settings.volume_term);
+    tet->setElementYoungsModuli(elementYoungsModuli(model.mesh, settings));
+    elements = std::move(tet);
+  }
   b.simulator = std::make_unique<DynamicSimulator>(model.mesh, std::move(elements), settings.material, settings.dynamics,
                                                    std::move(solver));
   if (!fixed.empty()) b.simulator->fixNodes(fixed);

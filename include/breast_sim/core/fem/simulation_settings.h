@@ -82,6 +82,12 @@ struct SimulationSettings {
   /// et al. 2012), identical at small strain, measured 0.2–0.7 mm mean error against CalculiX
   /// instead of 3.6–5.8 mm without stiffening.
   CorotatedTetFem::VolumeTerm volume_term = CorotatedTetFem::VolumeTerm::kTrace;
+  /// The element formulation. kLinearTet: co-rotated linear tetrahedra with `volume_term`
+  /// (CorotatedTetFem). kAnpTet: average-nodal-pressure tetrahedra (AnpTetFem, fem/anp_tet_fem.h),
+  /// which do not lock as ν → 0.5 (volume_term is then not used: ANP has its own nodal J − 1
+  /// term); its matrix couples nodes two element layers apart (about 4× the entries).
+  enum class Element { kLinearTet, kAnpTet };
+  Element element = Element::kLinearTet;
   /// Sliding of the chest-wall nodes on the wall (sliding/chest_wall_sliding.h) after the fixed-wall
   /// settling; needs stiffening and a fixed node set. Off by default: as the supine breast spreads
   /// beyond its prone footprint, the skin next to the rim falls onto the chest wall and the elements
@@ -105,7 +111,8 @@ Eigen::VectorXd elementYoungsModuli(const TetMesh& mesh, const SimulationSetting
 ///   youngs_modulus_pa, poisson_ratio, density_kg_per_m3, time_step_s, mass_damping_per_s,
 ///   stiffness_damping_s, solver (multigrid | cholmod | jacobi-pcg), solver_relative_tolerance,
 ///   solver_max_iterations, multigrid_smoother (jacobi | gauss-seidel), multigrid_smoothing_steps,
-///   multigrid_coarse_update_interval, multigrid_max_coarsest_elements, fixed_node_set, gravity_mps2, stiffening, sliding,
+///   multigrid_coarse_update_interval, multigrid_max_coarsest_elements, fixed_node_set, gravity_mps2, stiffening,
+///   volume_term (trace | determinant), element (linear | anp), sliding,
 ///   settle_time_step_s, settle_increment_tolerance_mm, settle_max_steps, tissue_youngs_modulus_pa
 ///   (a map tissue name → Pa: {fat, fibroglandular, skin, lesion}, e.g. {lesion: 20000}; see
 ///   SimulationSettings::region_youngs_modulus_pa).
