@@ -7,9 +7,9 @@
 //   bench_pipeline_steps [--case config/phantom_default.yaml] [--elements 10000,20000]
 //                        [--variant NAME:section.key=value,section.key=value ...] [--trace] [--json FILE]
 //
-// A variant overrides keys of the case file (any key of simulation:, sliding:, morphing:, with the
-// file's units) and, as alpha.KEY, the α controller's preset (initial_alpha_per_pa, decrease_factor,
-// increase_factor, reversal_growth; no case-file keys yet), e.g. --variant base: --variant long:morphing.time_step_s=0.33,morphing.gain_pa_per_mm=40.
+// A variant overrides keys of the case file (any key of simulation:, stiffening:, sliding:, morphing:,
+// with the file's units; alpha.KEY is kept as another name of stiffening.KEY), e.g.
+// --variant base: --variant long:morphing.time_step_s=0.33,stiffening.decrease_factor=0.6.
 // Without --variant one variant runs: the case as it is. --trace prints every accepted step
 // (stage, increment, pulled-vertex mean / p95 distance, α). --stretch F: the target is the model's own
 // skin stretched by F along y (reachable with the wall fixed; use with simulation.gravity_mps2=0).
@@ -60,9 +60,10 @@ Variant parseVariant(const std::string& text) {
 std::string variantFile(const std::string& case_file, const Variant& v) {
   YAML::Node root = YAML::LoadFile(case_file);
   for (const auto& [dotted, value] : v.overrides) {
-    if (dotted.rfind("alpha.", 0) == 0) continue;  // not a case-file key (applyAlpha)
     const size_t dot = dotted.find('.');
-    const std::string section = dotted.substr(0, dot), key = dotted.substr(dot + 1);
+    std::string section = dotted.substr(0, dot);
+    const std::string key = dotted.substr(dot + 1);
+    if (section == "alpha") section = "stiffening";  // the older name of the map
     root[section][key] = YAML::Load(value);
   }
   const fs::path out = fs::path(case_file).parent_path() /
@@ -70,23 +71,6 @@ std::string variantFile(const std::string& case_file, const Variant& v) {
   std::ofstream f(out);
   f << root << '\n';
   return out.string();
-}
-
-/// The α controller's preset (StiffeningParams::alpha, no case-file keys) for every stage:
-/// alpha.initial_alpha_per_pa, alpha.decrease_factor, alpha.increase_factor, alpha.reversal_growth.
-void applyAlpha(const Variant& v, PipelineSettings& s) {
-  for (const auto& [dotted, value] : v.overrides) {
-    if (dotted.rfind("alpha.", 0) != 0) continue;
-    const std::string key = dotted.substr(6);
-    const double x = std::stod(value);
-    AlphaControllerParams& a = s.stiffening.alpha;
-    if (key == "initial_alpha_per_pa") a.initial_alpha_per_pa = x;
-    else if (key == "decrease_factor") a.decrease_factor = x;
-    else if (key == "increase_factor") a.increase_factor = x;
-    else if (key == "reversal_growth") a.reversal_growth = x;
-    else throw std::invalid_argument("variant '" + v.name + "': unknown " + dotted);
-  }
-  s.validate();
 }
 
 }  // namespace
@@ -134,7 +118,6 @@ int main(int argc, char** argv) {
       PipelineSettings s;
       try {
         s = loadPipelineSettings(file);
-        applyAlpha(v, s);
       } catch (const std::exception& e) {
         fs::remove(file);
         std::fprintf(stderr, "variant %s: %s\n", v.name.c_str(), e.what());

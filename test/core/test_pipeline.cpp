@@ -101,6 +101,67 @@ TEST(PipelineSettings, BadKeysAndValuesAreNamed) {
   EXPECT_NE(message("morphing: {increment_measure: some}\n").find("morphing.increment_measure"), std::string::npos);
 }
 
+TEST(PipelineSettings, ReadsTheAlphaControllerPresetOfTheStiffeningMap) {
+  const std::string f = writeTemp("breast_sim_pipeline_alpha.yaml",
+                                  "stiffening: {initial_alpha_per_pa: 3e-3, min_alpha_per_pa: 1e-8, max_alpha_per_pa: 100,\n"
+                                  "             decrease_factor: 0.6, increase_factor: 3, reversal_growth: 1.5, rate_halving: 0.25,\n"
+                                  "             min_rate: 0.01, max_reversals_per_step: 7, settle_max_speed_mm_per_s: 0.5,\n"
+                                  "             settle_max_relative_residual: 0.02, settle_consecutive_steps: 2}\n");
+  const PipelineSettings s = loadPipelineSettings(f);
+  const AlphaControllerParams& a = s.stiffening.alpha;
+  EXPECT_DOUBLE_EQ(a.initial_alpha_per_pa, 3e-3);
+  EXPECT_DOUBLE_EQ(a.min_alpha_per_pa, 1e-8);
+  EXPECT_DOUBLE_EQ(a.max_alpha_per_pa, 100);
+  EXPECT_DOUBLE_EQ(a.decrease_factor, 0.6);
+  EXPECT_DOUBLE_EQ(a.increase_factor, 3);
+  EXPECT_DOUBLE_EQ(a.reversal_growth, 1.5);
+  EXPECT_DOUBLE_EQ(a.rate_halving, 0.25);
+  EXPECT_DOUBLE_EQ(a.min_rate, 0.01);
+  EXPECT_EQ(s.stiffening.max_reversals_per_step, 7);
+  EXPECT_DOUBLE_EQ(s.stiffening.settle.max_speed_mps, 5e-4);
+  EXPECT_DOUBLE_EQ(s.stiffening.settle.max_relative_residual, 0.02);
+  EXPECT_EQ(s.stiffening.settle.consecutive_steps, 2);
+  // The pipeline's controller runs with the preset: α starts at the initial value and falls by the
+  // decrease factor after an accepted step.
+  const SmallPhantom& p = phantom();
+  PipelineSettings t = s;
+  t.morphing.enabled = false;
+  t.simulation.sliding = false;
+  ProneToSupinePipeline pipe(p.c, p.m, t);
+  EXPECT_DOUBLE_EQ(pipe.stiffening().controller().alpha(), 3e-3);
+  EXPECT_DOUBLE_EQ(pipe.stiffening().controller().params().decrease_factor, 0.6);
+  EXPECT_EQ(pipe.stiffening().params().max_reversals_per_step, 7);
+}
+
+TEST(PipelineSettings, BadAlphaControllerKeysNameTheKeyTheValueAndTheRange) {
+  auto message = [](const std::string& text) {
+    try {
+      loadPipelineSettings(writeTemp("breast_sim_pipeline_bad_alpha.yaml", text));
+    } catch (const std::runtime_error& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  auto expectNames = [&](const std::string& text, const std::vector<std::string>& parts) {
+    const std::string m = message(text);
+    for (const std::string& part : parts) EXPECT_NE(m.find(part), std::string::npos) << text << " -> " << m;
+  };
+  expectNames("stiffening: {decrease_factor: 1.2}\n", {"stiffening.decrease_factor", "1.2", "(0, 1)"});
+  expectNames("stiffening: {decrease_factor: 0}\n", {"stiffening.decrease_factor", "(0, 1)"});
+  expectNames("stiffening: {increase_factor: 1}\n", {"stiffening.increase_factor", "(1, "});
+  expectNames("stiffening: {rate_halving: 1}\n", {"stiffening.rate_halving", "(0, 1)"});
+  expectNames("stiffening: {reversal_growth: 0.5}\n", {"stiffening.reversal_growth", "0.5", "[1, 100]"});
+  expectNames("stiffening: {min_alpha_per_pa: -1}\n", {"stiffening.min_alpha_per_pa", "-1", "1/Pa"});
+  expectNames("stiffening: {decrease_factor: 0.9, min_rate: 0.2}\n", {"stiffening.min_rate", "0.2", "decrease_factor"});
+  expectNames("stiffening: {max_alpha_per_pa: 1, initial_alpha_per_pa: 5}\n", {"stiffening.initial_alpha_per_pa", "5"});
+  expectNames("stiffening: {max_reversals_per_step: 0}\n", {"stiffening.max_reversals_per_step"});
+  expectNames("stiffening: {settle_max_speed_mm_per_s: 0}\n", {"stiffening.settle_max_speed_mm_per_s", "mm/s"});
+  expectNames("stiffening: {decrease_factor: fast}\n", {"stiffening.decrease_factor", "fast"});
+  expectNames("stiffening: {decrease: 0.5}\n", {"decrease", "stiffening"});
+  // A key given against the default of another: the default initial α (1e-2 /Pa) below a raised floor.
+  expectNames("stiffening: {min_alpha_per_pa: 0.1}\n", {"stiffening", "initial_alpha_per_pa", "0.01"});
+}
+
 TEST(Pipeline, AnImageCaseCannotMorphToThePhantomTarget) {
   SmallPhantom p(1500);
   p.c.phantom.reset();  // the same model, as if it came from an image
@@ -420,6 +481,19 @@ TEST(PipelineSettings, TheDocumentedDefaultsOfTheCaseFileAreTheCodeDefaults) {
   EXPECT_DOUBLE_EQ(file.sliding_stage.time_step_s, code.sliding_stage.time_step_s);
   EXPECT_EQ(file.sliding_stage.alpha_restart, code.sliding_stage.alpha_restart);
   EXPECT_DOUBLE_EQ(file.sliding_stage.increment_tolerance_m, code.sliding_stage.increment_tolerance_m);
+  const AlphaControllerParams &fa = file.stiffening.alpha, &ca = code.stiffening.alpha;
+  EXPECT_DOUBLE_EQ(fa.initial_alpha_per_pa, ca.initial_alpha_per_pa);
+  EXPECT_DOUBLE_EQ(fa.min_alpha_per_pa, ca.min_alpha_per_pa);
+  EXPECT_DOUBLE_EQ(fa.max_alpha_per_pa, ca.max_alpha_per_pa);
+  EXPECT_DOUBLE_EQ(fa.decrease_factor, ca.decrease_factor);
+  EXPECT_DOUBLE_EQ(fa.increase_factor, ca.increase_factor);
+  EXPECT_DOUBLE_EQ(fa.reversal_growth, ca.reversal_growth);
+  EXPECT_DOUBLE_EQ(fa.rate_halving, ca.rate_halving);
+  EXPECT_DOUBLE_EQ(fa.min_rate, ca.min_rate);
+  EXPECT_EQ(file.stiffening.max_reversals_per_step, code.stiffening.max_reversals_per_step);
+  EXPECT_DOUBLE_EQ(file.stiffening.settle.max_speed_mps, code.stiffening.settle.max_speed_mps);
+  EXPECT_DOUBLE_EQ(file.stiffening.settle.max_relative_residual, code.stiffening.settle.max_relative_residual);
+  EXPECT_EQ(file.stiffening.settle.consecutive_steps, code.stiffening.settle.consecutive_steps);
 }
 
 // Issue 7's targets in a reduced size: the phantom (~4.8k elements) with the settings of its case

@@ -113,6 +113,50 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     }
     if (m["contact_gap_mm"]) w.contact_gap_m = 1e-3 * numberIn(m["contact_gap_mm"], f, key("contact_gap_mm"), 0, 10, false, false, "mm");
   }
+  if (root.IsMap() && root["stiffening"] && !root["stiffening"].IsNull()) {
+    // The α controller's preset and the fixed-wall settle criterion (StiffeningParams). Ranges that
+    // depend on another key (initial within [min, max], min_rate ≤ 1 − decrease_factor) are checked
+    // against that key's value as read here, so the error names both.
+    const YAML::Node m = root["stiffening"];
+    checkKeys(m,
+              {"initial_alpha_per_pa", "min_alpha_per_pa", "max_alpha_per_pa", "decrease_factor", "increase_factor",
+               "reversal_growth", "rate_halving", "min_rate", "max_reversals_per_step", "settle_max_speed_mm_per_s",
+               "settle_max_relative_residual", "settle_consecutive_steps"},
+              f, "stiffening");
+    auto key = [](const char* k) { return std::string("stiffening.") + k; };
+    AlphaControllerParams& a = s.stiffening.alpha;
+    if (m["min_alpha_per_pa"]) a.min_alpha_per_pa = numberIn(m["min_alpha_per_pa"], f, key("min_alpha_per_pa"), 0, 1e6, true, false, "1/Pa");
+    if (m["max_alpha_per_pa"])
+      a.max_alpha_per_pa = numberIn(m["max_alpha_per_pa"], f, key("max_alpha_per_pa") + " (>= stiffening.min_alpha_per_pa)",
+                                    a.min_alpha_per_pa, 1e12, false, false, "1/Pa");
+    if (m["initial_alpha_per_pa"])
+      a.initial_alpha_per_pa = numberIn(m["initial_alpha_per_pa"], f,
+                                        key("initial_alpha_per_pa") + " (within [min_alpha_per_pa, max_alpha_per_pa])",
+                                        a.min_alpha_per_pa, a.max_alpha_per_pa, false, false, "1/Pa");
+    if (m["decrease_factor"]) a.decrease_factor = numberIn(m["decrease_factor"], f, key("decrease_factor"), 0, 1, true, true);
+    if (m["increase_factor"]) a.increase_factor = numberIn(m["increase_factor"], f, key("increase_factor"), 1, 1e6, true, false);
+    if (m["reversal_growth"]) a.reversal_growth = numberIn(m["reversal_growth"], f, key("reversal_growth"), 1, 100);
+    if (m["rate_halving"]) a.rate_halving = numberIn(m["rate_halving"], f, key("rate_halving"), 0, 1, true, true);
+    if (m["min_rate"])
+      a.min_rate = numberIn(m["min_rate"], f, key("min_rate") + " (at most 1 - stiffening.decrease_factor)", 0,
+                            1 - a.decrease_factor);
+    if (m["max_reversals_per_step"])
+      s.stiffening.max_reversals_per_step = static_cast<int>(integer(m["max_reversals_per_step"], f, key("max_reversals_per_step"), 1, 1000));
+    SettleCriterion& c = s.stiffening.settle;
+    if (m["settle_max_speed_mm_per_s"])
+      c.max_speed_mps = 1e-3 * numberIn(m["settle_max_speed_mm_per_s"], f, key("settle_max_speed_mm_per_s"), 0, 1e6, true, false, "mm/s");
+    if (m["settle_max_relative_residual"])
+      c.max_relative_residual = numberIn(m["settle_max_relative_residual"], f, key("settle_max_relative_residual"), 0, 1, true, false);
+    if (m["settle_consecutive_steps"])
+      c.consecutive_steps = static_cast<int>(integer(m["settle_consecutive_steps"], f, key("settle_consecutive_steps"), 1, 1000));
+    // The defaults of the keys not given must fit the ones given (e.g. min_alpha_per_pa above the
+    // default initial α): named by the controller's field.
+    try {
+      s.stiffening.validate();
+    } catch (const std::invalid_argument& e) {
+      throw std::runtime_error(f + ": stiffening: " + e.what() + " (set the keys of 'stiffening:' consistently)");
+    }
+  }
   if (root.IsMap() && root["morphing"] && !root["morphing"].IsNull()) {
     const YAML::Node m = root["morphing"];
     checkKeys(m,

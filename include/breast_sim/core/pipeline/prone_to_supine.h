@@ -112,7 +112,9 @@ struct SlidingStageSettings {
 /// Everything the pipeline needs besides the case and the model.
 struct PipelineSettings {
   SimulationSettings simulation;   ///< `simulation:`: material, solver, gravity stage, stiffening, sliding on/off
-  StiffeningParams stiffening;     ///< α control (defaults: the robust preset of the stability map)
+  /// `stiffening:` α control and the fixed-wall settle criterion (defaults: the robust preset of the
+  /// stability map). The morphing stage replaces reversal_growth by morphing.alpha_reversal_growth.
+  StiffeningParams stiffening;
   SlidingSettings sliding;         ///< `sliding:` (node set, limiting factors, friction; the explicit update)
   /// How the wall nodes slide: implicit (wall_slip.h: springs solved with the tissue; default) or
   /// explicit (chest_wall_sliding.h: moving constraints updated after each step, seed 2.4).
@@ -125,9 +127,25 @@ struct PipelineSettings {
   void validate() const;
 };
 
-/// Reads `simulation:`, `sliding:` and `morphing:` of a case file (absent maps = defaults). The
-/// keys, their units and defaults are documented in config/phantom_default.yaml.
-/// @throws std::runtime_error naming the file, the key and what is expected.
+/// Reads `simulation:`, `stiffening:`, `sliding:` and `morphing:` of a case file (absent maps and keys =
+/// defaults). The keys, their units and defaults are documented in config/phantom_default.yaml.
+/// `stiffening:` (StiffeningParams; used when simulation.stiffening is true), with accepted ranges:
+///   initial_alpha_per_pa   α at the start and at every restart of the search [1/Pa], in
+///                          [min_alpha_per_pa, max_alpha_per_pa]; default 1e-2
+///   min_alpha_per_pa       floor of α [1/Pa], > 0; default 1e-7
+///   max_alpha_per_pa       ceiling of α [1/Pa], ≥ min_alpha_per_pa; default 1e4
+///   decrease_factor        α ← α · this after an accepted step (search phase), in (0, 1); default 0.8
+///   increase_factor        α ← α · this on a reversal, > 1; default 2
+///   reversal_growth        the k-th repeated reversal of one step multiplies α by increase_factor ·
+///                          this^(k−1), in [1, 100] (gravity and sliding stages; the morphing stage
+///                          uses morphing.alpha_reversal_growth); default 1
+///   rate_halving           settling phase: the rate is multiplied by this per oscillation, in (0, 1); default 0.5
+///   min_rate               settling phase: smallest rate, in [0, 1 − decrease_factor]; default 1e-3
+///   max_reversals_per_step a step still inverting after this many reversals is not taken, [1, 1000]; default 10
+///   settle_max_speed_mm_per_s     fixed-wall settle: every free node slower than this [mm/s], > 0; default 1
+///   settle_max_relative_residual  ... and the relative static residual below this, in (0, 1]; default 1e-2
+///   settle_consecutive_steps      ... for this many accepted steps in a row, [1, 1000]; default 3
+/// @throws std::runtime_error naming the file, the key, its value and the accepted range.
 PipelineSettings loadPipelineSettings(const std::string& yaml_path);
 
 enum class PipelineStage { kIdle, kGravity, kSliding, kMorphing, kDone };
