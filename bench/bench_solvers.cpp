@@ -3,10 +3,12 @@
 // (A = M/dt² + K at rest, E = 2 kPa, ν = 0.48, ρ = 1000 kg/m³, dt = 0.033 s, chest wall fixed),
 // with ratios against Jacobi-PCG of the same run. Prints a table; --json FILE writes the same figures.
 //   bench_solvers [--case FILE] [--targets 47895,...] [--tol 1e-8] [--repeats 7] [--max-coarsest 300]
-//                 [--size-factor 2] [--variants cholmod,pcg-jacobi,mg:gs1,mg:jacobi1,mg:jacobi1/4,...]
+//                 [--size-factor 2] [--variants cholmod,pcg-jacobi,mg:gs1,mg:jacobi1,mg:jacobi1/4,mg:cheb2,...]
 //                 [--damping 0.6] [--morton] [--rotate DEG] [--step-tol 1e-2] [--poisson 0.48] [--json FILE]
-// Variants "mg:<gs|jacobi><sweeps>[/<interval>]": multigrid-PCG with that smoother and sweeps before
-// and after the coarse correction, coarse operators recomputed every <interval> factorizations.
+// Variants "mg:<gs|jacobi|cheb><sweeps>[/<interval>][:ratio=R][:bound=B][:safety=S]": multigrid-PCG
+// with that smoother and sweeps (Chebyshev: polynomial degree) before and after the coarse correction,
+// coarse operators recomputed every <interval> factorizations; R = MultigridOptions::chebyshev_ratio,
+// B = fine_eigenvalue_bound (0: power iteration on the fine level too), S = chebyshev_eigenvalue_safety.
 // "sa[:theta=T][:nu=S][:coarse=N][:unsmoothed]": smoothed-aggregation multigrid-PCG
 // (solver/aggregation_multigrid.h) with strength threshold T, S block-Jacobi sweeps, at most N coarsest
 // DOFs; it gives two rows: "full" redoes the whole set-up in every factorize, "keep P" keeps the
@@ -144,7 +146,7 @@ std::vector<Variant> parseAggregation(const std::string& v, const Points& coordi
   return out;
 }
 
-// "cholmod", "pcg-jacobi" or "mg:<gs|jacobi><sweeps>[/<interval>]".
+// "cholmod", "pcg-jacobi" or "mg:<gs|jacobi|cheb><sweeps>[/<interval>][:key=value...]".
 Variant parseVariant(const std::string& v, const MeshHierarchy& hierarchy, const PcgOptions& pcg, double damping) {
   if (v == "cholmod") return {v, [] { return std::make_unique<CholmodSolver>(); }};
   if (v == "pcg-jacobi") return {v, [pcg] { return std::make_unique<PcgSolver>(pcg); }};
@@ -152,6 +154,27 @@ Variant parseVariant(const std::string& v, const MeshHierarchy& hierarchy, const
     std::string rest = v.substr(3);
     MultigridOptions o;
     if (damping > 0) o.jacobi_damping = damping;
+    // Options after the smoother: ":ratio=R" (Chebyshev interval), ":bound=B" (fine λ_max bound,
+    // 0 = estimate), ":safety=S" (factor on estimated λ_max).
+    std::string suffix;
+    const size_t colon = rest.find(':');
+    if (colon != std::string::npos) {
+      std::stringstream ss(rest.substr(colon + 1));
+      rest = rest.substr(0, colon);
+      for (std::string t; std::getline(ss, t, ':');) {
+        if (t.empty()) continue;
+        const size_t eq = t.find('=');
+        if (eq == std::string::npos)
+          throw std::invalid_argument("option '" + t + "' in variant '" + v + "' needs a value (ratio=, bound=, safety=)");
+        const std::string key = t.substr(0, eq);
+        const double value = std::stod(t.substr(eq + 1));
+        if (key == "ratio") o.chebyshev_ratio = value;
+        else if (key == "bound") o.fine_eigenvalue_bound = value;
+        else if (key == "safety") o.chebyshev_eigenvalue_safety = value;
+        else throw std::invalid_argument("unknown option '" + t + "' in variant '" + v + "' (ratio=, bound=, safety=)");
+        suffix += " " + t;
+      }
+    }
     const size_t slash = rest.find('/');
     if (slash != std::string::npos) {
       o.coarse_update_interval = std::stoi(rest.substr(slash + 1));
@@ -162,18 +185,20 @@ Variant parseVariant(const std::string& v, const MeshHierarchy& hierarchy, const
     const std::string sweeps = rest.substr(smoother.size());
     if (smoother == "gs") o.smoother = MultigridOptions::Smoother::kGaussSeidel;
     else if (smoother == "jacobi") o.smoother = MultigridOptions::Smoother::kJacobi;
-    else throw std::invalid_argument("unknown smoother in variant '" + v + "' (gs or jacobi)");
+    else if (smoother == "cheb") o.smoother = MultigridOptions::Smoother::kChebyshev;
+    else throw std::invalid_argument("unknown smoother in variant '" + v + "' (gs, jacobi or cheb)");
     o.pre_smoothing_steps = o.post_smoothing_steps = sweeps.empty() ? 1 : std::stoi(sweeps);
     const std::string label = "pcg-multigrid " + smoother + "(" + std::to_string(o.pre_smoothing_steps) + "," +
                               std::to_string(o.post_smoothing_steps) + ")" +
-                              (o.coarse_update_interval > 1 ? " /" + std::to_string(o.coarse_update_interval) : "");
+                              (o.coarse_update_interval > 1 ? " /" + std::to_string(o.coarse_update_interval) : "") +
+                              suffix;
     return {label,
             [&hierarchy, pcg, o]() -> std::unique_ptr<LinearSolver> {
               return std::make_unique<MultigridPcgSolver>(hierarchy, pcg, o);
             },
             o.coarse_update_interval};
   }
-  throw std::invalid_argument("unknown variant '" + v + "' (cholmod, pcg-jacobi, mg:gs1, mg:jacobi2/4, ...)");
+  throw std::invalid_argument("unknown variant '" + v + "' (cholmod, pcg-jacobi, mg:gs1, mg:jacobi2/4, mg:cheb2:ratio=10, ...)");
 }
 
 }  // namespace

@@ -421,7 +421,9 @@ struct MultigridPreconditioner::Level {
   std::vector<int> child_start, child;
   std::vector<double> child_weight;
   Eigen::VectorXd b, x, t;
+  Eigen::VectorXd d;           // Chebyshev: the last update direction
   double omega = 0.0;          // Jacobi damping
+  double lambda_max = 0.0;     // Chebyshev: upper end of the interval
   Eigen::VectorXd eigenvector;  // last power-iteration vector (warm start)
 };
 
@@ -442,6 +444,11 @@ MultigridPreconditioner::MultigridPreconditioner(std::vector<NodeProlongation> p
     throw std::invalid_argument(
         "multigrid: smoothing steps must be ≥ 0, the Jacobi damping in [0, 1], the coarsest shift and the "
         "eigenvalue bound ≥ 0, the coarse update interval and the power iterations ≥ 1");
+  if (!(options_.chebyshev_ratio > 1.0) || !std::isfinite(options_.chebyshev_ratio) ||
+      !(options_.chebyshev_eigenvalue_safety >= 1.0) || !std::isfinite(options_.chebyshev_eigenvalue_safety))
+    throw std::invalid_argument("multigrid: chebyshev_ratio = " + std::to_string(options_.chebyshev_ratio) +
+                                " must be > 1 (e.g. 10) and chebyshev_eigenvalue_safety = " +
+                                std::to_string(options_.chebyshev_eigenvalue_safety) + " ≥ 1 (e.g. 1.1)");
 }
 
 MultigridPreconditioner::MultigridPreconditioner(const MeshHierarchy& hierarchy, MultigridOptions options)
@@ -456,6 +463,28 @@ const SparseMatrix& MultigridPreconditioner::levelMatrix(int level) const {
 }
 
 double MultigridPreconditioner::jacobiDamping(int level) const { return levels_.at(level)->omega; }
+
+double MultigridPreconditioner::chebyshevEigenvalueBound(int level) const {
+  return options_.smoother == MultigridOptions::Smoother::kChebyshev ? levels_.at(level)->lambda_max : 0.0;
+}
+
+void MultigridPreconditioner::smoothOnly(int level, const Eigen::VectorXd& b, Eigen::VectorXd& x) {
+  if (!factorized_) throw std::logic_error("multigrid: smoothOnly() without a successful factorize()");
+  if (level < 0 || level + 1 >= numLevels())
+    throw std::out_of_range("multigrid: level " + std::to_string(level) + " has no smoother (levels 0 to " +
+                            std::to_string(numLevels() - 2) + " have)");
+  const Level& lv = *levels_[level];
+  if (b.size() != 3 * lv.nodes)
+    throw std::invalid_argument("multigrid: smoothOnly() on level " + std::to_string(level) + " with " +
+                                std::to_string(b.size()) + " values for " + std::to_string(3 * lv.nodes) + " DOFs");
+  x.setZero(b.size());
+  const int steps = options_.pre_smoothing_steps;
+  if (options_.smoother == MultigridOptions::Smoother::kChebyshev) {
+    if (steps > 0) chebyshev(level, b.data(), x.data(), steps, true);
+    return;
+  }
+  for (int s = 0; s < steps; ++s) smooth(level, b.data(), x.data(), true, s == 0);
+}
 
 int MultigridPreconditioner::numColours(int level) const {
   return static_cast<int>(levels_.at(level)->colour_start.size()) - 1;
@@ -493,6 +522,7 @@ void MultigridPreconditioner::analyzePattern(const SparseMatrix& A) {
     lv->b.setZero(3 * n);
     lv->x.setZero(3 * n);
     lv->t.setZero(3 * n);
+    if (options_.smoother == MultigridOptions::Smoother::kChebyshev && l + 1 < L) lv->d.setZero(3 * n);
     // Greedy colouring of the node graph: nodes of one colour share no block, so a Gauss–Seidel
     // sweep over one colour is a parallel Jacobi step over independent nodes.
     std::vector<int> colour(static_cast<size_t>(n), -1), seen;
@@ -591,12 +621,14 @@ void MultigridPreconditioner::scanLevel(int l) {
 
 void MultigridPreconditioner::estimateDamping(int l) {
   Level& lv = *levels_[l];
-  if (options_.jacobi_damping > 0.0) {
+  const bool chebyshev = options_.smoother == MultigridOptions::Smoother::kChebyshev;
+  if (!chebyshev && options_.jacobi_damping > 0.0) {
     lv.omega = options_.jacobi_damping;
     return;
   }
   if (l == 0 && options_.fine_eigenvalue_bound > 0.0) {
     lv.omega = std::min(1.0, 1.8 / options_.fine_eigenvalue_bound);
+    lv.lambda_max = options_.fine_eigenvalue_bound;  // a bound: no safety factor
     return;
   }
   // Power iteration on D⁻¹A: its largest eigenvalue bounds the damping (ω λ_max < 2).
@@ -653,6 +685,9 @@ void MultigridPreconditioner::estimateDamping(int l) {
   // Power iteration approaches λ_max from below; ω = 1.2 / λ keeps ω λ_max < 1.9 as long as the
   // estimate is within 37 % of λ_max.
   lv.omega = lambda > 0.0 ? std::min(1.0, 1.2 / lambda) : 0.5;
+  // Chebyshev: the polynomial stays below 1 in magnitude up to λ_max (1 + 1/ratio), so with the
+  // safety factor 1.1 and ratio 10 an estimate within 21 % of the true λ_max suffices.
+  lv.lambda_max = options_.chebyshev_eigenvalue_safety * (lambda > 0.0 ? lambda : 4.0);
 }
 
 void MultigridPreconditioner::factorize(const SparseMatrix& A) {
@@ -678,7 +713,7 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
     scanLevel(l);
     if (l + 1 < numLevels()) toBlocks(l);
     timings_.scan_s += since(t0);
-    if (coarse && options_.smoother == MultigridOptions::Smoother::kJacobi && (l + 1 < numLevels() || l == 0)) {
+    if (coarse && options_.smoother != MultigridOptions::Smoother::kGaussSeidel && (l + 1 < numLevels() || l == 0)) {
       t0 = Clock::now();
       estimateDamping(l);
       timings_.damping_s += since(t0);
@@ -798,13 +833,59 @@ void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool for
   }
 }
 
+// Chebyshev iteration for A x = b preconditioned by D [AB03; Saad, Iterative Methods, Alg. 12.1]:
+// with θ = (λ_max + λ_min)/2, δ = (λ_max − λ_min)/2, σ = θ/δ and ρ₀ = 1/σ,
+//   d₀ = D⁻¹ r₀ / θ,   d_k = ρ_k ρ_{k−1} d_{k−1} + (2 ρ_k / δ) D⁻¹ r_k,   ρ_k = 1/(2σ − ρ_{k−1}),
+//   x_{k+1} = x_k + d_k,   r_k = b − A x_k,
+// so the error after `degree` updates is T_k((θ − D⁻¹A)/δ) / T_k(σ) times the initial one.
+void MultigridPreconditioner::chebyshev(int l, const double* b, double* x, int degree, bool from_zero) {
+  Level& lv = *levels_[l];
+  const double* dinv = lv.dinv.data();
+  const int n = lv.nodes;
+  const double upper = lv.lambda_max, lower = upper / options_.chebyshev_ratio;
+  const double theta = 0.5 * (upper + lower), delta = 0.5 * (upper - lower), sigma = theta / delta;
+  const float* val = lv.block_val.data();
+  const int* col = lv.block_col.data();
+  const int* start = lv.block_start.data();
+  double* d = lv.d.data();
+  double rho = 1.0 / sigma;
+  // Step k: d = alpha d + beta D⁻¹ (b − A x), then x += d (a second pass: the residuals read x).
+  for (int k = 0; k < degree; ++k) {
+    const double rho_new = k == 0 ? rho : 1.0 / (2.0 * sigma - rho);
+    const double alpha = k == 0 ? 0.0 : rho_new * rho, beta = k == 0 ? 1.0 / theta : 2.0 * rho_new / delta;
+    const bool zero = from_zero && k == 0;
+#pragma omp parallel if (n > kParallelMinNodes)
+    {
+#pragma omp for schedule(static)
+      for (int i = 0; i < n; ++i) {
+        double r[3];
+        if (zero) r[0] = b[3 * i], r[1] = b[3 * i + 1], r[2] = b[3 * i + 2];
+        else blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, x, r);
+        const double* m = dinv + 9 * i;
+        double* di = d + 3 * i;
+        const double z0 = m[0] * r[0] + m[1] * r[1] + m[2] * r[2];
+        const double z1 = m[3] * r[0] + m[4] * r[1] + m[5] * r[2];
+        const double z2 = m[6] * r[0] + m[7] * r[1] + m[8] * r[2];
+        if (k == 0) di[0] = beta * z0, di[1] = beta * z1, di[2] = beta * z2;
+        else di[0] = alpha * di[0] + beta * z0, di[1] = alpha * di[1] + beta * z1, di[2] = alpha * di[2] + beta * z2;
+      }
+#pragma omp for schedule(static)
+      for (int j = 0; j < 3 * n; ++j) x[j] = zero ? d[j] : x[j] + d[j];
+    }
+    rho = rho_new;
+  }
+}
+
 void MultigridPreconditioner::vcycle(int l, const double* b, double* x) {
   auto t0 = Clock::now();
   Level& lv = *levels_[l];
   Level& next = *levels_[l + 1];
   const int pre = options_.pre_smoothing_steps, post = options_.post_smoothing_steps;
+  const bool chebyshev_smoother = options_.smoother == MultigridOptions::Smoother::kChebyshev;
   if (pre == 0) std::fill(x, x + 3 * lv.nodes, 0.0);
-  for (int s = 0; s < pre; ++s) smooth(l, b, x, true, s == 0);
+  if (chebyshev_smoother && pre > 0) chebyshev(l, b, x, pre, true);
+  else
+    for (int s = 0; s < pre; ++s) smooth(l, b, x, true, s == 0);
   residual(l, b, x, lv.t.data());
 
   // Restriction b_c = (D P)ᵀ t.
@@ -854,7 +935,9 @@ void MultigridPreconditioner::vcycle(int l, const double* b, double* x) {
     x[3 * i + 1] += fr[3 * i + 1] * s1;
     x[3 * i + 2] += fr[3 * i + 2] * s2;
   }
-  for (int s = 0; s < post; ++s) smooth(l, b, x, false, false);
+  if (chebyshev_smoother && post > 0) chebyshev(l, b, x, post, false);
+  else
+    for (int s = 0; s < post; ++s) smooth(l, b, x, false, false);
   timings_.level_s[l] += since(t0);
 }
 

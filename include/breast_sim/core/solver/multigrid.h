@@ -3,6 +3,9 @@
 /// Geometric multigrid over a hierarchy of tetrahedral meshes of the same domain [GW08]: barycentric
 /// prolongation, Galerkin coarse operators by a sparse triple product with a precomputed structure
 /// [GW10], a symmetric V-cycle as preconditioner for CG, CHOLMOD on the coarsest level.
+///
+/// [AB03] M. Adams, M. Brezina, J. Hu, R. Tuminaro: Parallel multigrid smoothing: polynomial versus
+///        Gauss–Seidel. J. Comput. Phys. 188 (2003) 593–610 (Chebyshev smoother).
 
 #include <memory>
 #include <string>
@@ -144,12 +147,28 @@ struct MultigridOptions {
   /// rigid-body modes (aggregation_multigrid.h) need 52 at ν = 0.48 (bench_solvers --poisson, sa).
   enum class Smoother {
     kJacobi,      ///< damped 3×3-block Jacobi (parallel; 2 matrix passes per V(1,1) level visit)
-    kGaussSeidel  ///< multicoloured 3×3-block Gauss–Seidel: forward before, backward after the
+    kGaussSeidel, ///< multicoloured 3×3-block Gauss–Seidel: forward before, backward after the
                   ///< coarse correction, so the V-cycle stays symmetric (3 matrix passes)
+    /// Chebyshev polynomial of D⁻¹A [AB03], D the 3×3 block diagonal, of degree = the smoothing
+    /// steps, on the interval [λ_max / chebyshev_ratio, λ_max]: the error e becomes
+    /// p(D⁻¹A) e with p(t) = T_k((θ − t)/δ) / T_k(θ/δ), θ and δ the interval's centre and half
+    /// width, the polynomial of degree k with p(0) = 1 that is smallest on the interval (at most
+    /// 1/T_k(θ/δ) there). The same polynomial before and after the coarse correction keeps the
+    /// V-cycle symmetric; |p| < 1 on the whole spectrum, so the V-cycle positive definite, as
+    /// long as λ_max(D⁻¹A) < λ_max (1 + 1/ratio). Parallel like Jacobi and as cheap per step
+    /// (degree k from zero: k − 1 matrix passes; from a guess: k).
+    kChebyshev
   };
   Smoother smoother = Smoother::kJacobi;
-  int pre_smoothing_steps = 1;   ///< sweeps before the coarse correction
+  int pre_smoothing_steps = 1;   ///< sweeps (Chebyshev: the degree) before the coarse correction
   int post_smoothing_steps = 1;  ///< sweeps after it (equal to pre for a symmetric preconditioner)
+  /// Chebyshev: λ_max / λ_min of the interval the polynomial damps (> 1). The modes of D⁻¹A below
+  /// λ_max / ratio are left to the coarse correction. Larger ratios damp a wider band less; the
+  /// error reduction on the band is 1/T_k((ratio + 1)/(ratio − 1)).
+  double chebyshev_ratio = 10.0;
+  /// Chebyshev on levels whose λ_max(D⁻¹A) is estimated by power iteration (which approaches it
+  /// from below): λ_max = this factor × the estimate (≥ 1).
+  double chebyshev_eigenvalue_safety = 1.1;
   /// ω of the Jacobi smoother; ω λ_max(D⁻¹A) < 2 keeps the smoother, and so the V-cycle,
   /// convergent. 0 = automatic: on the fine level 1.8 / fine_eigenvalue_bound; on Galerkin levels
   /// (λ_max near 5 here) 1.2 / λ, λ estimated by power iteration at every coarse update.
@@ -217,6 +236,15 @@ class MultigridPreconditioner : public Preconditioner {
   int numColours(int level) const;
   /// Jacobi damping ω in use on a level (after factorize(); 0 for the coarsest).
   double jacobiDamping(int level) const;
+  /// Upper end λ_max of the Chebyshev interval of a level (after factorize() with that smoother:
+  /// fine_eigenvalue_bound on the fine level, else the safety factor × the power-iteration
+  /// estimate; 0 for other smoothers and for the coarsest level).
+  double chebyshevEigenvalueBound(int level) const;
+  /// The pre-smoothing of one smoothed level alone, from x = 0 (pre_smoothing_steps sweeps, or the
+  /// Chebyshev polynomial of that degree), with the level's operator: for tests and diagnostics.
+  /// @param b  3#N_level right-hand side;  @param x  set to the smoothed approximation of A_level⁻¹ b
+  /// @throws std::logic_error before factorize(); std::out_of_range for the coarsest or a missing level.
+  void smoothOnly(int level, const Eigen::VectorXd& b, Eigen::VectorXd& x);
   const MultigridOptions& options() const { return options_; }
 
   /// Where the time goes [s]: the parts of the last factorize() and of the apply() calls since.
@@ -238,6 +266,7 @@ class MultigridPreconditioner : public Preconditioner {
   void estimateDamping(int level);
   void vcycle(int level, const double* b, double* x);
   void smooth(int level, const double* b, double* x, bool forward, bool from_zero);
+  void chebyshev(int level, const double* b, double* x, int degree, bool from_zero);
   void residual(int level, const double* b, const double* x, double* t);
   void toBlocks(int level);
 
