@@ -1,10 +1,10 @@
 // Speed against accuracy (issue 9): our settled gravity states against an independent CalculiX
 // reference (neo-Hookean, NLGEOM; reference/calculix.h), two studies:
 //
-//  locking  at one mesh, error against Poisson's ratio ν: our co-rotated linear tetrahedra (settled
-//           tightly with CHOLMOD: no solver error), CalculiX C3D4 (the same elements, neo-Hookean)
-//           and CalculiX C3D10 (quadratic tetrahedra on the same corners: the locking-free
-//           reference). Errors are against C3D10.
+//  locking  at one mesh, error against Poisson's ratio ν: our formulations (--locking-methods,
+//           settled tightly: no solver error), CalculiX C3D4 (the same elements, neo-Hookean) and
+//           CalculiX C3D10 (quadratic tetrahedra on the same corners: the locking-free reference).
+//           Errors are against C3D10.
 //  sweep    element counts × methods: compute time to a settled state [s] against the error of the
 //           settled displacement [mm] with respect to the reference on the finest mesh
 //           (--reference-target, --reference-element), interpolated at our nodes. Methods:
@@ -14,6 +14,7 @@
 //             corotated+stiffening/multigrid  von Mises stiffening with time-step reversal (the main job)
 //             corotated+stiffening/cholmod    the same with CHOLMOD
 //             corotated-det[+stiffening]/...  with the fixed co-rotated J − 1 volume term (docs/corotated)
+//             anp[+stiffening]/...            average-nodal-pressure tetrahedra (fem/anp_tet_fem.h)
 //           Time = the settling steps (the simulator's set-up — multigrid hierarchy, CHOLMOD
 //           analysis — is listed beside it, not included; meshing is listed too). A run that throws
 //           (e.g. a solver returning non-finite velocities) is a row "FAILED" with the message; the
@@ -32,6 +33,7 @@
 //   bench_speed_accuracy [--study locking|sweep|all] [--case FILE] [--load supine|hanging]
 //        [--targets 5000,10000,20000,47895,99390] [--methods NAME,...] [--reference-target 99390]
 //        [--reference-element c3d10|c3d4] [--locking-target 10000] [--nus 0.3,0.4,0.45,0.48,0.49,0.495]
+//        [--locking-methods corotated/cholmod,corotated-det/cholmod,anp/cholmod]
 //        [--ccx-threads 2] [--cache DIR] [--json FILE] [--csv FILE] [--curve-method NAME]
 //        [--lesion-target-mm 2] [--uniform-modulus-methods NAME,...] [--wall fixed|sliding]
 //        [--tether-pa-per-mm 50]
@@ -155,7 +157,8 @@ CalculixLoadCase slidingReference(CalculixLoadCase load, const ModelCase& c, con
 }
 
 /// Settles the model under gravity g with a method named "<formulation>/<solver>": formulation
-/// linear | corotated | corotated+stiffening, solver multigrid | cholmod. tight = CHOLMOD-style
+/// linear | corotated | corotated-det | anp, each but linear optionally +stiffening, solver
+/// multigrid | cholmod. tight = CHOLMOD-style
 /// reference settling (dt 1 s, increments below 1e-8 m).
 OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings s, const Eigen::Vector3d& g,
                const std::string& method, bool tight = false, const SlidingWall& wall = SlidingWall()) {
@@ -169,14 +172,15 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
     form.erase(plus_sliding, 8);
   }
   if (form != "linear" && form != "corotated" && form != "corotated+stiffening" && form != "corotated-det" &&
-      form != "corotated-det+stiffening")
+      form != "corotated-det+stiffening" && form != "anp" && form != "anp+stiffening")
     throw std::invalid_argument("method '" + method +
-                                "': formulation must be linear, corotated, corotated+stiffening, corotated-det or "
-                                "corotated-det+stiffening");
+                                "': formulation must be linear, corotated, corotated+stiffening, corotated-det, "
+                                "corotated-det+stiffening, anp or anp+stiffening");
   // "-det": the fixed co-rotated J − 1 volume term (docs/corotated) instead of the seed's trace term.
   // The method, not the case file, decides the volume term.
   s.volume_term = form.rfind("corotated-det", 0) == 0 ? CorotatedTetFem::VolumeTerm::kDeterminant
                                                       : CorotatedTetFem::VolumeTerm::kTrace;
+  s.element = form.rfind("anp", 0) == 0 ? SimulationSettings::Element::kAnpTet : SimulationSettings::Element::kLinearTet;
   const bool stiffening = form.size() > 11 && form.substr(form.size() - 11) == "+stiffening";
   s.solver.kind = SolverSettings::kindFromName(solver);
   s.dynamics.gravity_mps2 = g;
@@ -290,6 +294,7 @@ int main(int argc, char** argv) {
                                       "corotated-det/multigrid", "corotated-det/cholmod"};
   int reference_target = 99390, locking_target = 10000;
   std::vector<double> nus = {0.3, 0.4, 0.45, 0.48, 0.49, 0.495};
+  std::vector<std::string> locking_methods = {"corotated/cholmod", "corotated-det/cholmod", "anp/cholmod"};
   double lesion_target_mm = 2.0;
   std::vector<std::string> uniform_methods;
   std::string wall_name = "fixed";
@@ -311,6 +316,7 @@ int main(int argc, char** argv) {
     else if (k == "--reference-element") ref_element = value();
     else if (k == "--locking-target") locking_target = std::stoi(value());
     else if (k == "--nus") nus = parseList(value());
+    else if (k == "--locking-methods") locking_methods = splitNames(value());
     else if (k == "--ccx-threads") copt.threads = std::stoi(value());
     else if (k == "--cache") copt.cache_dir = value();
     else if (k == "--json") json_path = value();
@@ -324,7 +330,7 @@ int main(int argc, char** argv) {
       std::fprintf(stderr,
                    "usage: bench_speed_accuracy [--study locking|sweep|all] [--case FILE] [--load supine|hanging]\n"
                    "         [--targets N,...] [--methods NAME,...] [--reference-target N] [--reference-element c3d10|c3d4]\n"
-                   "         [--locking-target N] [--nus 0.3,...] [--ccx-threads 2] [--cache DIR] [--json FILE] [--csv FILE]\n"
+                   "         [--locking-target N] [--nus 0.3,...] [--locking-methods NAME,...] [--ccx-threads 2] [--cache DIR] [--json FILE] [--csv FILE]\n"
                    "         [--curve-method NAME] [--lesion-target-mm 2] [--uniform-modulus-methods NAME,...]\n"
                    "         [--wall fixed|sliding] [--tether-pa-per-mm 50]\n");
       return 2;
@@ -377,50 +383,65 @@ int main(int argc, char** argv) {
     const SimulationModel m = cachedSimulationModel(c, copt.cache_dir);  // the mesh the cached references belong to
     std::printf("\nLocking at %d elements (%d nodes): error against CalculiX C3D10 (neo-Hookean, NLGEOM) on the same corners\n",
                 m.mesh.numTets(), m.mesh.numNodes());
-    std::printf("%6s | %8s %8s %8s | %22s | %22s | %22s | %7s %7s\n", "nu", "ours max", "C3D4 max", "C3D10max",
-                "ours-C3D10 mean/p95/les", "C3D4-C3D10 mean/p95/les", "ours-C3D4 mean/p95/les", "ccx4[s]", "ccx10[s]");
+    std::printf("%6s | %-24s | %8s | %22s | %22s | %5s %4s | %7s\n", "nu", "method", "max[mm]",
+                "vs C3D10 mean/p95/les", "vs C3D4 mean/p95/les", "steps", "inv", "ccx[s]");
     nlohmann::json rows = nlohmann::json::array();
     for (double nu : nus) {
       SimulationSettings s = settings;
       s.material.poisson_ratio = nu;
-      const OurRun ours = runOurs(c, m, s, g, "corotated/cholmod", /*tight=*/true);
       const CalculixResult c4 = solveWithCalculix(m.mesh, referenceLoadCase(s, m.mesh, g, ReferenceElement::kC3D4), copt);
       CalculixResult c10;
+      bool have_c10 = true;
+      std::string c10_failure;
       try {
         c10 = solveWithCalculix(m.mesh, referenceLoadCase(s, m.mesh, g, ReferenceElement::kC3D10), copt);
       } catch (const std::runtime_error& ex) {
         // C3D10 neo-Hookean runs can stall (increment below the minimum) on these meshes: reported.
+        have_c10 = false;
+        c10_failure = ex.what();
         std::printf("%6.3f | C3D10 failed: %s\n", nu, ex.what());
-        std::fflush(stdout);
-        const DisplacementErrors e_oc4 = compareDisplacements(m.mesh, ours.u, m.mesh, c4.displacement_m, lesions);
-        rows.push_back({{"poisson_ratio", nu}, {"c3d10_failed", ex.what()}, {"ours_vs_c3d4", errorsJson(e_oc4)},
-                        {"ccx_c3d4_seconds", c4.solve_seconds}});
-        continue;
       }
-      const DisplacementErrors e_ours = compareDisplacements(m.mesh, ours.u, m.mesh, c10.displacement_m, lesions);
-      const DisplacementErrors e_c4 = compareDisplacements(m.mesh, c4.displacement_m, m.mesh, c10.displacement_m, lesions);
-      const DisplacementErrors e_oc4 = compareDisplacements(m.mesh, ours.u, m.mesh, c4.displacement_m, lesions);
-      std::printf("%6.3f | %8.3f %8.3f %8.3f | %6.3f %6.3f %6.3f mm | %6.3f %6.3f %6.3f mm | %6.3f %6.3f %6.3f mm | %7.1f %7.1f%s\n",
-                  nu, e_ours.max_displacement_mm, e_c4.max_displacement_mm, e_ours.reference_max_displacement_mm,
-                  e_ours.mean_mm, e_ours.p95_mm, e_ours.lesion_max_mm, e_c4.mean_mm, e_c4.p95_mm, e_c4.lesion_max_mm,
-                  e_oc4.mean_mm, e_oc4.p95_mm, e_oc4.lesion_max_mm, c4.solve_seconds, c10.solve_seconds,
-                  ours.settled ? "" : "  (ours not settled)");
-      std::fflush(stdout);
-      rows.push_back({{"poisson_ratio", nu},
-                      {"ours_vs_c3d10", errorsJson(e_ours)},
-                      {"c3d4_vs_c3d10", errorsJson(e_c4)},
-                      {"ours_vs_c3d4", errorsJson(e_oc4)},
-                      {"ours_settled", ours.settled},
-                      {"ours_steps", ours.steps},
-                      {"ccx_c3d4_seconds", c4.solve_seconds},
-                      {"ccx_c3d10_seconds", c10.solve_seconds},
-                      {"ccx_c3d10_deck_nodes", c10.deck_nodes}});
+      nlohmann::json row = {{"poisson_ratio", nu}, {"ccx_c3d4_seconds", c4.solve_seconds}};
+      if (have_c10) {
+        const DisplacementErrors e_c4 = compareDisplacements(m.mesh, c4.displacement_m, m.mesh, c10.displacement_m, lesions);
+        std::printf("%6.3f | %-24s | %8.3f | %6.3f %6.3f %6.3f mm | %22s | %5s %4s | %7.1f\n", nu, "CalculiX C3D4",
+                    e_c4.max_displacement_mm, e_c4.mean_mm, e_c4.p95_mm, e_c4.lesion_max_mm, "", "", "", c4.solve_seconds);
+        std::printf("%6.3f | %-24s | %8.3f | %22s | %22s | %5s %4s | %7.1f\n", nu, "CalculiX C3D10",
+                    e_c4.reference_max_displacement_mm, "(reference)", "", "", "", c10.solve_seconds);
+        row["c3d4_vs_c3d10"] = errorsJson(e_c4);
+        row["ccx_c3d10_seconds"] = c10.solve_seconds;
+        row["ccx_c3d10_deck_nodes"] = c10.deck_nodes;
+      } else {
+        row["c3d10_failed"] = c10_failure;
+      }
+      nlohmann::json ours_rows = nlohmann::json::object();
+      for (const std::string& method : locking_methods) {
+        const OurRun ours = runOurs(c, m, s, g, method, /*tight=*/true);
+        const DisplacementErrors e_oc4 = compareDisplacements(m.mesh, ours.u, m.mesh, c4.displacement_m, lesions);
+        nlohmann::json o = {{"vs_c3d4", errorsJson(e_oc4)}, {"settled", ours.settled}, {"steps", ours.steps},
+                            {"inverted", ours.inverted}, {"settle_seconds", ours.settle_seconds}};
+        if (have_c10) {
+          const DisplacementErrors e = compareDisplacements(m.mesh, ours.u, m.mesh, c10.displacement_m, lesions);
+          o["vs_c3d10"] = errorsJson(e);
+          std::printf("%6.3f | %-24s | %8.3f | %6.3f %6.3f %6.3f mm | %6.3f %6.3f %6.3f mm | %5d %4d |%s\n", nu,
+                      method.c_str(), e.max_displacement_mm, e.mean_mm, e.p95_mm, e.lesion_max_mm, e_oc4.mean_mm,
+                      e_oc4.p95_mm, e_oc4.lesion_max_mm, ours.steps, ours.inverted, ours.settled ? "" : " (not settled)");
+        } else {
+          std::printf("%6.3f | %-24s | %8.3f | %22s | %6.3f %6.3f %6.3f mm | %5d %4d |%s\n", nu, method.c_str(),
+                      e_oc4.max_displacement_mm, "", e_oc4.mean_mm, e_oc4.p95_mm, e_oc4.lesion_max_mm, ours.steps,
+                      ours.inverted, ours.settled ? "" : " (not settled)");
+        }
+        std::fflush(stdout);
+        ours_rows[method] = o;
+      }
+      row["ours"] = ours_rows;
+      rows.push_back(row);
     }
     out["locking"] = {{"target_elements", locking_target},
                       {"elements", m.mesh.numTets()},
                       {"nodes", m.mesh.numNodes()},
                       {"reference", "CalculiX C3D10 neo-Hookean NLGEOM on the same corner nodes"},
-                      {"ours", "corotated/cholmod settled to 1e-8 m increments"},
+                      {"ours", "each method settled to 1e-8 m increments (dt 1 s)"},
                       {"rows", rows}};
   }
 
