@@ -11,8 +11,11 @@
 // with the file's units; alpha.KEY is kept as another name of stiffening.KEY), e.g.
 // --variant base: --variant long:morphing.time_step_s=0.33,stiffening.decrease_factor=0.6.
 // Without --variant one variant runs: the case as it is. --trace prints every accepted step
-// (stage, increment, pulled-vertex mean / p95 distance, α). --stretch F: the target is the model's own
+// (stage, increment, pulled-vertex mean / p95 distance, α, the node that moved most, the largest move
+// off the wall, the 95th percentile of the wall nodes' moves, the volume change, the lesions [mm]). --stretch F: the target is the model's own
 // skin stretched by F along y (reachable with the wall fixed; use with simulation.gravity_mps2=0).
+#include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -144,15 +147,32 @@ int main(int argc, char** argv) {
           const Eigen::VectorXd& u = pipe.simulator().state().displacement_m;
           if (previous.size() != u.size()) previous = Eigen::VectorXd::Zero(u.size());
           int worst = 0;
-          double w2 = -1;
+          double w2 = -1, off_wall2 = 0;  // largest move of any node, of a node off the wall
+          std::vector<double> wall_moves;
           for (int n = 0; n < m.mesh.numNodes(); ++n) {
             const double d2 = (u.segment<3>(3 * n) - previous.segment<3>(3 * n)).squaredNorm();
             if (d2 > w2) w2 = d2, worst = n;
+            if (kind[static_cast<size_t>(n)] == 'W') wall_moves.push_back(std::sqrt(d2));
+            else off_wall2 = std::max(off_wall2, d2);
+          }
+          double wall_p95 = 0;
+          if (!wall_moves.empty()) {
+            const size_t k = std::min(wall_moves.size() - 1, static_cast<size_t>(std::ceil(0.95 * wall_moves.size())) - 1);
+            std::nth_element(wall_moves.begin(), wall_moves.begin() + static_cast<std::ptrdiff_t>(k), wall_moves.end());
+            wall_p95 = wall_moves[k];
           }
           previous = u;
-          std::printf("  %-8s %4d  inc %8.4f mm  mean %7.3f p95 %7.3f mm  alpha %.3g  node %d %c rest y %.1f mm\n",
+          double volume = 0, max_u = 0;
+          deformationMeasures(m.mesh, u, volume, max_u);
+          const Points lesions = m.lesion_embedding.positions(m.mesh.nodes() + pipe.displacement());
+          std::printf("  %-8s %4d  inc %8.4f mm  mean %7.3f p95 %7.3f mm  alpha %.3g  node %d %c rest y %.1f mm  off-wall %.4f "
+                      "wall p95 %.4f mm  vol %.3f %%  lesions",
                       stageName(p.stage), p.step, p.increment_m * 1e3, p.surface_mean_m * 1e3, p.surface_p95_m * 1e3,
-                      p.alpha_per_pa, worst, kind[static_cast<size_t>(worst)], m.mesh.nodes()(worst, 1) * 1e3);
+                      p.alpha_per_pa, worst, kind[static_cast<size_t>(worst)], m.mesh.nodes()(worst, 1) * 1e3,
+                      std::sqrt(off_wall2) * 1e3, wall_p95 * 1e3, volume);
+          for (Eigen::Index i = 0; i < lesions.rows(); ++i)
+            std::printf(" %.3f %.3f %.3f", lesions(i, 0) * 1e3, lesions(i, 1) * 1e3, lesions(i, 2) * 1e3);
+          std::printf("\n");
         };
       pipe.run(progress);
       const StageReport &g = pipe.gravityReport(), &sl = pipe.slidingReport(), &mo = pipe.morphingReport();

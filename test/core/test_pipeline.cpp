@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -65,8 +66,10 @@ TEST(PipelineSettings, ReadsSlidingAndMorphingMapsWithTheirUnits) {
 
 TEST(PipelineSettings, ReadsTheStageStepKeysWithTheirUnits) {
   const std::string f = writeTemp("breast_sim_pipeline_steps.yaml",
-                                  "sliding: {time_step_s: 0.5, alpha_restart: initial, settle_increment_tolerance_mm: 0.05}\n"
-                                  "morphing: {spring_pa_per_mm: 700, increment_measure: all_max, alpha_reversal_growth: 1.5}\n");
+                                  "sliding: {time_step_s: 0.5, alpha_restart: initial, settle_increment_tolerance_mm: 0.05,\n"
+                                  "          settle_increment_measure: off_wall}\n"
+                                  "morphing: {spring_pa_per_mm: 700, increment_measure: all_max, alpha_reversal_growth: 1.5,\n"
+                                  "           volume_tolerance_percent: 0.4}\n");
   const PipelineSettings s = loadPipelineSettings(f);
   EXPECT_DOUBLE_EQ(s.sliding_stage.time_step_s, 0.5);
   EXPECT_EQ(s.sliding_stage.alpha_restart, SlidingStageSettings::AlphaRestart::kInitial);
@@ -74,6 +77,11 @@ TEST(PipelineSettings, ReadsTheStageStepKeysWithTheirUnits) {
   EXPECT_DOUBLE_EQ(s.morphing.forces.spring_pa_per_m, 7e5);
   EXPECT_EQ(s.morphing.increment_measure, MorphingStageSettings::IncrementMeasure::kAllMax);
   EXPECT_DOUBLE_EQ(s.morphing.alpha_reversal_growth, 1.5);
+  EXPECT_EQ(s.sliding_stage.increment_measure, SlidingStageSettings::IncrementMeasure::kOffWall);
+  EXPECT_DOUBLE_EQ(s.morphing.volume_tolerance_percent, 0.4);
+  EXPECT_EQ(loadPipelineSettings(writeTemp("breast_sim_pipeline_steps3.yaml", "morphing: {increment_measure: off_wall}\n"))
+                .morphing.increment_measure,
+            MorphingStageSettings::IncrementMeasure::kOffWall);
   const PipelineSettings t = loadPipelineSettings(writeTemp("breast_sim_pipeline_steps2.yaml",
                                                             "sliding: {alpha_restart: current}\nmorphing: {increment_measure: pulled_p95}\n"));
   EXPECT_EQ(t.sliding_stage.alpha_restart, SlidingStageSettings::AlphaRestart::kCurrent);
@@ -99,6 +107,8 @@ TEST(PipelineSettings, BadKeysAndValuesAreNamed) {
   EXPECT_NE(message("morphing: {spring_pa_per_mm: -5}\n").find("morphing.spring_pa_per_mm"), std::string::npos);
   EXPECT_NE(message("morphing: {alpha_reversal_growth: 0.5}\n").find("morphing.alpha_reversal_growth"), std::string::npos);
   EXPECT_NE(message("morphing: {increment_measure: some}\n").find("morphing.increment_measure"), std::string::npos);
+  EXPECT_NE(message("morphing: {volume_tolerance_percent: -1}\n").find("morphing.volume_tolerance_percent"), std::string::npos);
+  EXPECT_NE(message("sliding: {settle_increment_measure: max}\n").find("sliding.settle_increment_measure"), std::string::npos);
 }
 
 TEST(PipelineSettings, ReadsTheAlphaControllerPresetOfTheStiffeningMap) {
@@ -324,6 +334,80 @@ TEST(Pipeline, ThePulledVerticesIncrementIsTheirNinetyFifthPercentileMove) {
   }
 }
 
+namespace {
+/// Largest move of a node off the wall and the ⌈0.95 n⌉-th smallest move of the wall nodes, brute force.
+void offWallMoves(const Eigen::VectorXd& before, const Eigen::VectorXd& after, const std::vector<int>& wall_nodes,
+                  double* off_wall_max, double* wall_p95) {
+  std::vector<char> wall(before.size() / 3, 0);
+  for (int n : wall_nodes) wall[static_cast<size_t>(n)] = 1;
+  std::vector<double> moves;
+  *off_wall_max = 0;
+  for (Eigen::Index n = 0; n < before.size() / 3; ++n) {
+    const double d = (after.segment<3>(3 * n) - before.segment<3>(3 * n)).norm();
+    if (wall[static_cast<size_t>(n)]) moves.push_back(d);
+    else *off_wall_max = std::max(*off_wall_max, d);
+  }
+  std::sort(moves.begin(), moves.end());
+  *wall_p95 = moves.empty() ? 0.0 : moves[static_cast<size_t>(std::ceil(0.95 * static_cast<double>(moves.size()))) - 1];
+}
+}  // namespace
+
+TEST(Pipeline, TheOffWallMeasuresAndTheVolumeConditionStopTheStagesAsStated) {
+  // sliding.settle_increment_measure off_wall: the sliding stage settles when the largest move off the
+  // wall and the wall nodes' 95th-percentile move are within the tolerance for 3 steps (checked by brute
+  // force on the last three steps; the largest move of all nodes may then be above it). morphing
+  // off_wall + volume_tolerance_percent: the stage ends within tolerance and within the volume bound,
+  // and each iteration reports the two moves as a brute-force count gives them.
+  const SmallPhantom& p = phantom();
+  PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  ASSERT_TRUE(s.simulation.sliding);
+  s.sliding_stage.increment_measure = SlidingStageSettings::IncrementMeasure::kOffWall;
+  s.sliding_stage.increment_tolerance_m = 0.05e-3;
+  s.morphing.increment_measure = MorphingStageSettings::IncrementMeasure::kOffWall;
+  s.morphing.volume_tolerance_percent = 0.5;
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  ASSERT_NE(pipe.wallSlip(), nullptr);
+  const std::vector<int>& wall = pipe.wallSlip()->nodes();
+  Eigen::VectorXd previous = pipe.simulator().state().displacement_m;
+  std::vector<std::array<double, 3>> sliding_moves;  // off-wall max, wall p95, all max
+  pipe.runGravity([&](const PipelineProgress& pr) {
+    const Eigen::VectorXd& u = pipe.simulator().state().displacement_m;
+    if (pr.stage == PipelineStage::kSliding) {
+      double off = 0, wp95 = 0;
+      offWallMoves(previous, u, wall, &off, &wp95);
+      sliding_moves.push_back({off, wp95, pr.increment_m});
+    }
+    previous = u;
+  });
+  const StageReport& sl = pipe.slidingReport();
+  ASSERT_TRUE(sl.converged);
+  ASSERT_GE(sliding_moves.size(), 3u);
+  for (size_t k = sliding_moves.size() - 3; k < sliding_moves.size(); ++k) {
+    EXPECT_LE(sliding_moves[k][0], 0.05e-3) << "step " << k + 1;
+    EXPECT_LE(sliding_moves[k][1], 0.05e-3) << "step " << k + 1;
+  }
+  const StageReport mo = pipe.runMorphing();
+  const PipelineMetrics m = pipe.metrics();
+  std::printf("[ measure  ] %d tets, off_wall measures: sliding %d steps, morphing %d steps (%ld reversed), volume %.3f %%, "
+              "pulled mean %.3f / p95 %.3f mm, inverted %d\n",
+              p.m.mesh.numTets(), sl.steps, mo.steps, mo.reversed_steps, m.volume_change_percent, 1e3 * mo.surface_mean_m,
+              1e3 * mo.surface_p95_m, m.inverted_elements);
+  EXPECT_TRUE(mo.converged);
+  EXPECT_LE(std::abs(mo.volume_change_percent), 0.5);
+  EXPECT_NEAR(mo.volume_change_percent, m.volume_change_percent, 1e-9);
+  EXPECT_EQ(m.inverted_elements, 0);
+  for (int k = 0; k < 3; ++k) {
+    const Eigen::VectorXd before = pipe.simulator().state().displacement_m;
+    const IterationReport it = pipe.iterate();
+    double off = 0, wp95 = 0;
+    offWallMoves(before, pipe.simulator().state().displacement_m, wall, &off, &wp95);
+    EXPECT_NEAR(it.off_wall_increment_m, off, 1e-15) << "iteration " << k;
+    EXPECT_NEAR(it.wall_increment_p95_m, wp95, 1e-15) << "iteration " << k;
+    EXPECT_LE(it.off_wall_increment_m, it.increment_m);
+    EXPECT_GT(it.wall_increment_p95_m, 0.0);  // the wall slides with the morphing
+  }
+}
+
 TEST(Pipeline, TheSlidingStageUsesItsOwnTimeStepAndSettleTolerance) {
   const SmallPhantom& p = phantom();
   PipelineSettings s = loadPipelineSettings(kPhantomCase);
@@ -481,6 +565,8 @@ TEST(PipelineSettings, TheDocumentedDefaultsOfTheCaseFileAreTheCodeDefaults) {
   EXPECT_DOUBLE_EQ(file.sliding_stage.time_step_s, code.sliding_stage.time_step_s);
   EXPECT_EQ(file.sliding_stage.alpha_restart, code.sliding_stage.alpha_restart);
   EXPECT_DOUBLE_EQ(file.sliding_stage.increment_tolerance_m, code.sliding_stage.increment_tolerance_m);
+  EXPECT_EQ(file.sliding_stage.increment_measure, code.sliding_stage.increment_measure);
+  EXPECT_DOUBLE_EQ(m.volume_tolerance_percent, n.volume_tolerance_percent);
   const AlphaControllerParams &fa = file.stiffening.alpha, &ca = code.stiffening.alpha;
   EXPECT_DOUBLE_EQ(fa.initial_alpha_per_pa, ca.initial_alpha_per_pa);
   EXPECT_DOUBLE_EQ(fa.min_alpha_per_pa, ca.min_alpha_per_pa);

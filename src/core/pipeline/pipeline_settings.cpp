@@ -24,6 +24,8 @@ void MorphingStageSettings::validate() const {
   if (!(tolerance_p95_m > 0) || !std::isfinite(tolerance_p95_m)) bad("tolerance_p95_m", tolerance_p95_m, "> 0 m");
   if (!(increment_tolerance_m > 0) || !std::isfinite(increment_tolerance_m)) bad("increment_tolerance_m", increment_tolerance_m, "> 0 m");
   if (max_steps < 1) bad("max_steps", max_steps, "≥ 1");
+  if (!(volume_tolerance_percent >= 0) || volume_tolerance_percent > 100)
+    bad("volume_tolerance_percent", volume_tolerance_percent, "in [0, 100] % (0 = no volume condition)");
   if (!(alpha_reversal_growth >= 1) || !std::isfinite(alpha_reversal_growth))
     bad("alpha_reversal_growth", alpha_reversal_growth, "≥ 1 (1: α doubles per repeated reversal)");
 }
@@ -74,7 +76,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
                "inertia", "max_step_mm", "max_slide_mm", "thickness_limit", "gaussian_limit", "gaussian_amplitude",
                "gaussian_sigma_mm", "gaussian_sigma_fraction", "method", "normal_stiffness_pa_per_mm",
                "friction_stiffness_pa_per_mm", "tether_stiffness_pa_per_mm", "stick_speed_mm_per_s", "contact",
-               "contact_gap_mm", "time_step_s", "alpha_restart", "settle_increment_tolerance_mm"},
+               "contact_gap_mm", "time_step_s", "alpha_restart", "settle_increment_tolerance_mm", "settle_increment_measure"},
               f, "sliding");
     auto key = [](const char* k) { return std::string("sliding.") + k; };
     SlidingSettings& d = s.sliding;
@@ -105,6 +107,12 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     if (m["contact"]) w.contact = boolean(m["contact"], f, key("contact"));
     if (m["time_step_s"]) s.sliding_stage.time_step_s = numberIn(m["time_step_s"], f, key("time_step_s"), 0, 10, false, false, "s");
     if (m["settle_increment_tolerance_mm"]) s.sliding_stage.increment_tolerance_m = 1e-3 * numberIn(m["settle_increment_tolerance_mm"], f, key("settle_increment_tolerance_mm"), 0, 10, false, false, "mm");
+    if (m["settle_increment_measure"]) {
+      const std::string measure = text(m["settle_increment_measure"], f, key("settle_increment_measure"));
+      if (measure == "all_max") s.sliding_stage.increment_measure = SlidingStageSettings::IncrementMeasure::kAllMax;
+      else if (measure == "off_wall") s.sliding_stage.increment_measure = SlidingStageSettings::IncrementMeasure::kOffWall;
+      else throw std::runtime_error(f + ": sliding.settle_increment_measure is '" + measure + "'; expected all_max or off_wall");
+    }
     if (m["alpha_restart"]) {
       const std::string restart = text(m["alpha_restart"], f, key("alpha_restart"));
       if (restart == "initial") s.sliding_stage.alpha_restart = SlidingStageSettings::AlphaRestart::kInitial;
@@ -162,7 +170,8 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     checkKeys(m,
               {"enabled", "target", "target_unit_mm", "gain_pa_per_mm", "max_traction_pa", "max_distance_mm", "skip_constrained",
                "voxel_size_mm", "max_voxels_per_axis", "time_step_s", "tolerance_mean_mm", "tolerance_p95_mm",
-               "increment_tolerance_mm", "increment_measure", "max_steps", "alpha_reversal_growth", "spring_pa_per_mm"},
+               "increment_tolerance_mm", "increment_measure", "max_steps", "alpha_reversal_growth", "spring_pa_per_mm",
+               "volume_tolerance_percent"},
               f, "morphing");
     auto key = [](const char* k) { return std::string("morphing.") + k; };
     MorphingStageSettings& d = s.morphing;
@@ -188,9 +197,11 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
       const std::string measure = text(m["increment_measure"], f, key("increment_measure"));
       if (measure == "all_max") d.increment_measure = MorphingStageSettings::IncrementMeasure::kAllMax;
       else if (measure == "pulled_p95") d.increment_measure = MorphingStageSettings::IncrementMeasure::kPulledP95;
-      else throw std::runtime_error(f + ": morphing.increment_measure is '" + measure + "'; expected all_max or pulled_p95");
+      else if (measure == "off_wall") d.increment_measure = MorphingStageSettings::IncrementMeasure::kOffWall;
+      else throw std::runtime_error(f + ": morphing.increment_measure is '" + measure + "'; expected all_max, pulled_p95 or off_wall");
     }
     if (m["alpha_reversal_growth"]) d.alpha_reversal_growth = numberIn(m["alpha_reversal_growth"], f, key("alpha_reversal_growth"), 1, 100);
+    if (m["volume_tolerance_percent"]) d.volume_tolerance_percent = numberIn(m["volume_tolerance_percent"], f, key("volume_tolerance_percent"), 0, 100, false, false, "%");
     if (m["max_steps"]) d.max_steps = static_cast<int>(integer(m["max_steps"], f, key("max_steps"), 1, 1000000));
   }
   try {

@@ -69,6 +69,8 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
       slip_ = std::make_unique<WallSlip>(WallSlip::fromCase(case_, model_.mesh, settings_.sliding, wallSlipSettings()));
     else
       sliding_ = std::make_unique<ChestWallSliding>(ChestWallSliding::fromCase(case_, model_.mesh, settings_.sliding));
+    wall_node_.assign(static_cast<size_t>(model_.mesh.numNodes()), 0);
+    for (int n : slip_ ? slip_->nodes() : sliding_->nodes()) wall_node_[static_cast<size_t>(n)] = 1;
   }
   const MorphingStageSettings& ms = settings_.morphing;
   if (ms.enabled && !ms.target.empty() && !(ms.target == "auto" && !case_.phantom)) {
@@ -110,6 +112,35 @@ double ProneToSupinePipeline::increment(Eigen::VectorXd& previous) const {
   for (Eigen::Index i = 0; i + 2 < u.size(); i += 3) worst = std::max(worst, (u.segment<3>(i) - previous.segment<3>(i)).squaredNorm());
   previous = u;  // same size: no allocation
   return std::sqrt(worst);
+}
+
+ProneToSupinePipeline::StepMoves ProneToSupinePipeline::stepMoves(Eigen::VectorXd& previous) {
+  const Eigen::VectorXd& u = simulator().state().displacement_m;
+  StepMoves m;
+  double all2 = 0.0, off2 = 0.0;
+  wall_moves_.clear();
+  for (Eigen::Index n = 0; 3 * n + 2 < u.size(); ++n) {
+    const double d2 = (u.segment<3>(3 * n) - previous.segment<3>(3 * n)).squaredNorm();
+    all2 = std::max(all2, d2);
+    if (!wall_node_.empty() && wall_node_[static_cast<size_t>(n)]) wall_moves_.push_back(d2);
+    else off2 = std::max(off2, d2);
+  }
+  if (!wall_moves_.empty()) {  // the ⌈0.95 n⌉-th smallest, as distanceStats' p95
+    const size_t k = std::min(wall_moves_.size() - 1,
+                              static_cast<size_t>(std::ceil(0.95 * static_cast<double>(wall_moves_.size()))) - 1);
+    std::nth_element(wall_moves_.begin(), wall_moves_.begin() + static_cast<std::ptrdiff_t>(k), wall_moves_.end());
+    m.wall_p95 = std::sqrt(wall_moves_[k]);
+  }
+  m.all_max = std::sqrt(all2);
+  m.off_wall_max = std::sqrt(off2);
+  previous = u;  // same size: no allocation
+  return m;
+}
+
+double ProneToSupinePipeline::volumeChangePercent() const {
+  double volume_percent = 0.0, max_u = 0.0;
+  deformationMeasures(model_.mesh, simulator().state().displacement_m, volume_percent, max_u);
+  return volume_percent;
 }
 
 void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
@@ -221,6 +252,7 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
     }
   }
   closeReport(rep, before, since(t0));
+  rep.volume_change_percent = volumeChangePercent();
   gravity_ = rep;
 
   // Sliding on the chest wall after the fixed-wall settling: the wall nodes become moving
@@ -256,9 +288,13 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
       }
       stuck_calls = 0;
       ++sr.steps;
-      sr.last_increment_m = increment(previous);
+      const StepMoves mv = stepMoves(previous);
+      sr.last_increment_m = mv.all_max;
       if (first < 0) first = sr.last_increment_m;
-      quiet_steps = !moving && sr.last_increment_m <= sliding_tol ? quiet_steps + 1 : 0;
+      const bool still = settings_.sliding_stage.increment_measure == SlidingStageSettings::IncrementMeasure::kOffWall
+                             ? mv.off_wall_max <= sliding_tol && mv.wall_p95 <= sliding_tol
+                             : mv.all_max <= sliding_tol;
+      quiet_steps = !moving && still ? quiet_steps + 1 : 0;
       if (progress)
         progress({stage_, sr.steps, so.max_steps, sr.last_increment_m, -1, -1, r.alpha_per_pa,
                   logFraction(first, sr.last_increment_m, sliding_tol)});
@@ -269,6 +305,7 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
     }
     closeReport(sr, b2, since(ts));
     sr.max_slide_m = sliding_report_.max_slide_m;
+    sr.volume_change_percent = volumeChangePercent();
     sliding_report_ = sr;
   }
   stage_ = PipelineStage::kIdle;
@@ -331,7 +368,10 @@ IterationReport ProneToSupinePipeline::iterate() {
     std::nth_element(pulled_moves_.begin(), pulled_moves_.begin() + static_cast<std::ptrdiff_t>(k), pulled_moves_.end());
     it.pulled_increment_p95_m = std::sqrt(pulled_moves_[k]);
   }
-  it.increment_m = increment(iterate_previous_);
+  const StepMoves mv = stepMoves(iterate_previous_);
+  it.increment_m = mv.all_max;
+  it.off_wall_increment_m = mv.off_wall_max;
+  it.wall_increment_p95_m = mv.wall_p95;
   it.seconds = since(t0);
   return it;
 }
@@ -378,8 +418,18 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
     rep.surface_mean_m = it.surface_mean_m;
     rep.surface_p95_m = it.surface_p95_m;
     if (first < 0) first = it.surface_mean_m;
-    const double moved = ms.increment_measure == MorphingStageSettings::IncrementMeasure::kPulledP95 ? it.pulled_increment_p95_m : it.increment_m;
-    quiet = it.alpha_held && moved <= ms.increment_tolerance_m ? quiet + 1 : 0;
+    bool still = false;
+    switch (ms.increment_measure) {
+      case MorphingStageSettings::IncrementMeasure::kAllMax: still = it.increment_m <= ms.increment_tolerance_m; break;
+      case MorphingStageSettings::IncrementMeasure::kPulledP95: still = it.pulled_increment_p95_m <= ms.increment_tolerance_m; break;
+      case MorphingStageSettings::IncrementMeasure::kOffWall:
+        still = it.off_wall_increment_m <= ms.increment_tolerance_m && it.wall_increment_p95_m <= ms.increment_tolerance_m;
+        break;
+    }
+    // The volume (an O(elements) sum) only when everything else holds.
+    if (still && it.alpha_held && ms.volume_tolerance_percent > 0)
+      still = std::abs(volumeChangePercent()) <= ms.volume_tolerance_percent;
+    quiet = it.alpha_held && still ? quiet + 1 : 0;
     if (progress)
       progress({stage_, rep.steps, ms.max_steps, it.increment_m, it.surface_mean_m, it.surface_p95_m, it.alpha_per_pa,
                 logFraction(first, it.surface_mean_m, ms.tolerance_mean_m)});
@@ -396,6 +446,7 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   stiff_->holdAlpha(false);
   closeReport(rep, before, since(t0));
   rep.max_slide_m = sliding_report_.max_slide_m;
+  rep.volume_change_percent = volumeChangePercent();
   morphing_ = rep;
   stage_ = PipelineStage::kIdle;
   return rep;
