@@ -7,7 +7,9 @@
 //   bench_simulation [--targets 47895,99390,158340,313335] [--steps 25] [--baseline-steps 3]
 //                    [--tol 1e-2] [--settle-target 47895] [--settle-dts 0.033,0.1,0.33,1]
 //                    [--tols 1e-1,1e-2,1e-3,1e-6] [--coarse-interval 4] [--no-baseline] [--no-settle]
-//                    [--json FILE]
+//                    [--element linear|anp] [--volume-term trace|determinant] [--json FILE]
+// --element / --volume-term choose the element formulation (simulation.element, .volume_term) of
+// every run; the defaults are the seed's co-rotated linear tetrahedra with the trace term.
 // --coarse-interval N recomputes the multigrid's Galerkin operators every N-th step in the Table-1 runs.
 // The tolerance study (--tols, at the first size): per-step PCG tolerance against step time and the
 // error of the dynamic path after 3 and after all steps, against CHOLMOD's exact solves.
@@ -79,6 +81,7 @@ int main(int argc, char** argv) {
   std::vector<double> tol_study = {1e-1, 1e-2, 1e-3, 1e-6};
   bool baseline = true, settle_study = true;
   std::string json_path;
+  SimulationSettings defaults;
   for (int i = 1; i < argc; ++i) {
     const std::string k = argv[i];
     auto value = [&]() -> std::string {
@@ -96,10 +99,19 @@ int main(int argc, char** argv) {
     else if (k == "--no-baseline") baseline = false;
     else if (k == "--no-settle") settle_study = false;
     else if (k == "--json") json_path = value();
-    else {
+    else if (k == "--element") {
+      const std::string e = value();
+      if (e != "linear" && e != "anp") throw std::invalid_argument("--element " + e + ": use linear or anp");
+      defaults.element = e == "anp" ? SimulationSettings::Element::kAnpTet : SimulationSettings::Element::kLinearTet;
+    } else if (k == "--volume-term") {
+      const std::string v = value();
+      if (v != "trace" && v != "determinant") throw std::invalid_argument("--volume-term " + v + ": use trace or determinant");
+      defaults.volume_term = v == "trace" ? CorotatedTetFem::VolumeTerm::kTrace : CorotatedTetFem::VolumeTerm::kDeterminant;
+    } else {
       std::fprintf(stderr,
                    "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-2] [--coarse-interval 4]\n"
-                   "         [--settle-target 47895] [--settle-dts 0.033,...] [--no-baseline] [--no-settle] [--json FILE]\n");
+                   "         [--settle-target 47895] [--settle-dts 0.033,...] [--no-baseline] [--no-settle]\n"
+                   "         [--element linear|anp] [--volume-term trace|determinant] [--json FILE]\n");
       return 2;
     }
   }
@@ -110,6 +122,8 @@ int main(int argc, char** argv) {
   out["steps"] = steps;
   out["relative_tolerance"] = tol;
   out["coarse_update_interval"] = coarse_interval;
+  out["element"] = defaults.element == SimulationSettings::Element::kAnpTet ? "anp" : "linear";
+  out["volume_term"] = defaults.volume_term == CorotatedTetFem::VolumeTerm::kDeterminant ? "determinant" : "trace";
 
   std::printf("Table 1 on this machine: %d threads, %d steps of dt 0.033 s, supine gravity, multigrid-PCG to %.0e\n",
               omp_get_max_threads(), steps, tol);
@@ -126,7 +140,7 @@ int main(int argc, char** argv) {
     const auto t0 = Clock::now();
     const SimulationModel model = buildSimulationModel(c);
     const double t_mesh = since(t0);
-    SimulationSettings settings;
+    SimulationSettings settings = defaults;
     settings.solver.relative_tolerance = tol;
     settings.solver.multigrid.coarse_update_interval = coarse_interval;
     settings.dynamics.gravity_mps2 = g_supine;
@@ -208,7 +222,7 @@ int main(int argc, char** argv) {
     ModelCase c = base;
     c.meshing.target_elements = static_cast<int>(targets[0]);
     const SimulationModel model = buildSimulationModel(c);
-    SimulationSettings settings;
+    SimulationSettings settings = defaults;
     settings.dynamics.gravity_mps2 = g_supine;
     SimulationSettings cs = settings;
     cs.solver.kind = SolverSettings::Kind::kCholmod;
@@ -245,7 +259,7 @@ int main(int argc, char** argv) {
     ModelCase c = base;
     c.meshing.target_elements = settle_target;
     const SimulationModel model = buildSimulationModel(c);
-    SimulationSettings settings;
+    SimulationSettings settings = defaults;
     settings.dynamics.gravity_mps2 = g_supine;
     // Reference: CHOLMOD, long steps, settled to 1e-8 m.
     SimulationSettings rs = settings;

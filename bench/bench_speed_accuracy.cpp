@@ -15,6 +15,7 @@
 //             corotated+stiffening/cholmod    the same with CHOLMOD
 //             corotated-det[+stiffening]/...  with the fixed co-rotated J − 1 volume term (docs/corotated)
 //             anp[+stiffening]/...            average-nodal-pressure tetrahedra (fem/anp_tet_fem.h)
+//             anp-b<β>[+stiffening]/...       ANP keeping the share β of the bulk modulus per element
 //           Time = the settling steps (the simulator's set-up — multigrid hierarchy, CHOLMOD
 //           analysis — is listed beside it, not included; meshing is listed too). A run that throws
 //           (e.g. a solver returning non-finite velocities) is a row "FAILED" with the message; the
@@ -171,6 +172,18 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
     if (!wall.on) throw std::invalid_argument("method '" + method + "': +sliding needs --wall sliding");
     form.erase(plus_sliding, 8);
   }
+  // "anp-b<β>": ANP with the element volume fraction β (AnpTetFem::setElementVolumeFraction).
+  double anp_beta = 0.0;
+  if (form.rfind("anp-b", 0) == 0) {
+    const std::size_t end = form.find('+');
+    const std::string num = form.substr(5, end == std::string::npos ? std::string::npos : end - 5);
+    try {
+      anp_beta = std::stod(num);
+    } catch (const std::exception&) {
+      throw std::invalid_argument("method '" + method + "': anp-b needs a number, e.g. anp-b0.1");
+    }
+    form = "anp" + (end == std::string::npos ? std::string() : form.substr(end));
+  }
   if (form != "linear" && form != "corotated" && form != "corotated+stiffening" && form != "corotated-det" &&
       form != "corotated-det+stiffening" && form != "anp" && form != "anp+stiffening")
     throw std::invalid_argument("method '" + method +
@@ -181,6 +194,7 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
   s.volume_term = form.rfind("corotated-det", 0) == 0 ? CorotatedTetFem::VolumeTerm::kDeterminant
                                                       : CorotatedTetFem::VolumeTerm::kTrace;
   s.element = form.rfind("anp", 0) == 0 ? SimulationSettings::Element::kAnpTet : SimulationSettings::Element::kLinearTet;
+  s.anp_element_volume_fraction = anp_beta;
   const bool stiffening = form.size() > 11 && form.substr(form.size() - 11) == "+stiffening";
   s.solver.kind = SolverSettings::kindFromName(solver);
   s.dynamics.gravity_mps2 = g;

@@ -71,8 +71,8 @@ Eigen::Matrix3d deformationGradient(const TetMesh& m, const RestElement& r, int 
 }
 
 /// The ANP energy W(x) [J], independently of AnpTetFem: deviatoric co-rotated energy per element
-/// (polar rotation by SVD) and the nodal volumetric energy.
-double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x) {
+/// (polar rotation by SVD), the nodal volumetric energy and, with β > 0, the element one.
+double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x, double beta = 0.0) {
   const double mu = mat.lameMu(), kappa = mat.lameLambda() + 2.0 * mu / 3.0;
   const auto rest = restElements(m);
   double w = 0.0;
@@ -86,6 +86,7 @@ double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x) 
     const Eigen::Matrix3d S = R.transpose() * F;
     const double tr = S.trace() - 3.0;
     w += rest[e].volume * (mu * (F - R).squaredNorm() - mu / 3.0 * tr * tr);
+    w += 0.5 * beta * kappa * rest[e].volume * (F.determinant() - 1.0) * (F.determinant() - 1.0);
     for (int i = 0; i < 4; ++i) {
       star_volume[m.tets()(e, i)] += rest[e].volume;
       star_current[m.tets()(e, i)] += rest[e].volume * F.determinant();
@@ -94,14 +95,15 @@ double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x) 
   for (int n = 0; n < m.numNodes(); ++n) {
     if (star_volume[n] == 0.0) continue;
     const double jbar = star_current[n] / star_volume[n];
-    w += 0.5 * kappa * star_volume[n] / 4.0 * (jbar - 1.0) * (jbar - 1.0);
+    w += 0.5 * (1.0 - beta) * kappa * star_volume[n] / 4.0 * (jbar - 1.0) * (jbar - 1.0);
   }
   return w;
 }
 
 /// The dense Gauss–Newton stiffness of the ANP energy, element by element: the deviatoric part as
-/// R K_dev Rᵀ with K_dev = V Bᵀ C_dev B, and Σ_n κ V̂_n b_n b_nᵀ with b_n assembled here.
-Eigen::MatrixXd denseAnpStiffness(const TetMesh& m, const ElasticMaterial& mat, const Points& x) {
+/// R K_dev Rᵀ with K_dev = V Bᵀ C_dev B, Σ_n (1 − β) κ V̂_n b_n b_nᵀ with b_n assembled here, and
+/// β κ V_e ∂J_e/∂x ∂J_e/∂xᵀ per element.
+Eigen::MatrixXd denseAnpStiffness(const TetMesh& m, const ElasticMaterial& mat, const Points& x, double beta = 0.0) {
   const double mu = mat.lameMu(), kappa = mat.lameLambda() + 2.0 * mu / 3.0;
   const int nn = m.numNodes();
   const auto rest = restElements(m);
@@ -135,13 +137,18 @@ Eigen::MatrixXd denseAnpStiffness(const TetMesh& m, const ElasticMaterial& mat, 
       for (int j = 0; j < 4; ++j) K.block<3, 3>(3 * m.tets()(e, i), 3 * m.tets()(e, j)) += Ke.block<3, 3>(3 * i, 3 * j);
     // ∂J/∂x_i = J F⁻ᵀ ∇N_i, weighted into each of the four stars.
     const Eigen::Matrix3d cof = F.determinant() * F.inverse().transpose();
+    Eigen::Matrix<double, 12, 1> dJ;
+    for (int i = 0; i < 4; ++i) dJ.segment<3>(3 * i) = cof * rest[e].grads.row(i).transpose();
+    const Eigen::Matrix<double, 12, 12> Kv = beta * kappa * rest[e].volume * dJ * dJ.transpose();
+    for (int i = 0; i < 4; ++i)
+      for (int j = 0; j < 4; ++j) K.block<3, 3>(3 * m.tets()(e, i), 3 * m.tets()(e, j)) += Kv.block<3, 3>(3 * i, 3 * j);
     for (int a = 0; a < 4; ++a) {
       const int n = m.tets()(e, a);
       for (int i = 0; i < 4; ++i)
         b[n].segment<3>(3 * m.tets()(e, i)) += rest[e].volume / star_volume[n] * cof * rest[e].grads.row(i).transpose();
     }
   }
-  for (int n = 0; n < nn; ++n) K += kappa * star_volume[n] / 4.0 * b[n] * b[n].transpose();
+  for (int n = 0; n < nn; ++n) K += (1.0 - beta) * kappa * star_volume[n] / 4.0 * b[n] * b[n].transpose();
   return K;
 }
 
@@ -217,18 +224,24 @@ TEST(AnpTetFem, ForcesAreTheNegativeGradientOfTheAnpEnergy) {
   const ElasticMaterial mat = tissue();
   AnpTetFem fem(m, mat);
   const Points x = randomlyDeformed(m, 4e-4, 3);
-  const Eigen::VectorXd f = forcesAt(fem, x);
-  // Central differences of the reference energy along every DOF.
-  const double h = 1e-7;
-  Eigen::VectorXd grad(f.size());
-  for (int i = 0; i < f.size(); ++i) {
-    Points xp = x, xm = x;
-    xp(i / 3, i % 3) += h;
-    xm(i / 3, i % 3) -= h;
-    grad[i] = (anpEnergy(m, mat, xp) - anpEnergy(m, mat, xm)) / (2 * h);
+  for (double beta : {0.0, 0.3}) {
+    SCOPED_TRACE(beta);
+    fem.setElementVolumeFraction(beta);
+    const Eigen::VectorXd f = forcesAt(fem, x);
+    // Central differences of the reference energy along every DOF.
+    const double h = 1e-7;
+    Eigen::VectorXd grad(f.size());
+    for (int i = 0; i < f.size(); ++i) {
+      Points xp = x, xm = x;
+      xp(i / 3, i % 3) += h;
+      xm(i / 3, i % 3) -= h;
+      grad[i] = (anpEnergy(m, mat, xp, beta) - anpEnergy(m, mat, xm, beta)) / (2 * h);
+    }
+    EXPECT_LT((f + grad).norm(), 1e-5 * f.norm()) << "|f| " << f.norm() << " |grad W| " << grad.norm();
+    EXPECT_GT(f.norm(), 0.0);
   }
-  EXPECT_LT((f + grad).norm(), 1e-5 * f.norm()) << "|f| " << f.norm() << " |grad W| " << grad.norm();
-  EXPECT_GT(f.norm(), 0.0);
+  EXPECT_THROW(fem.setElementVolumeFraction(1.5), std::invalid_argument);
+  EXPECT_THROW(fem.setElementVolumeFraction(std::nan("")), std::invalid_argument);
   // The nodal volume ratios are the stars' volume ratios.
   const auto rest = restElements(m);
   std::vector<double> sv(m.numNodes(), 0.0), sc(m.numNodes(), 0.0);
@@ -245,6 +258,10 @@ TEST(AnpTetFem, SparseTwoRingStiffnessEqualsTheDenseReference) {
   const ElasticMaterial mat = tissue();
   AnpTetFem fem(m, mat);
   const Points x = randomlyDeformed(m, 4e-4, 5);
+  fem.setElementVolumeFraction(0.25);
+  const Eigen::MatrixXd Kb = Eigen::MatrixXd(stiffnessAt(fem, x));
+  EXPECT_LT((Kb - denseAnpStiffness(m, mat, x, 0.25)).norm(), 1e-10 * Kb.norm());
+  fem.setElementVolumeFraction(0.0);
   const Eigen::MatrixXd K = Eigen::MatrixXd(stiffnessAt(fem, x));
   const Eigen::MatrixXd Kref = denseAnpStiffness(m, mat, x);
   EXPECT_LT((K - Kref).norm(), 1e-10 * Kref.norm());

@@ -1,6 +1,9 @@
 #include "breast_sim/core/fem/anp_tet_fem.h"
 
 #include <algorithm>
+#include <cmath>
+#include <stdexcept>
+#include <string>
 
 #include <Eigen/Dense>
 
@@ -83,8 +86,16 @@ void AnpTetFem::updateNodalStiffness() {
       const int e = star_.incidentElement(k);
       s += star_weight_[k] * er[e] * be[e];
     }
-    nodal_stiffness_[n] = kappa_ * s * nodal_rest_volume_[n];
+    nodal_stiffness_[n] = (1.0 - beta_) * kappa_ * s * nodal_rest_volume_[n];
   }
+}
+
+void AnpTetFem::setElementVolumeFraction(double beta) {
+  if (!(beta >= 0.0 && beta <= 1.0))
+    throw std::invalid_argument("AnpTetFem: element volume fraction " + std::to_string(beta) +
+                                " is outside [0, 1] (0 = pure average nodal pressure)");
+  beta_ = beta;
+  updateNodalStiffness();
 }
 
 void AnpTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
@@ -134,15 +145,16 @@ void AnpTetFem::update(const Points& x, Eigen::VectorXd& f) {
     }
     if (k0 == k1) j = 1.0;
     nodal_volume_ratio_[n] = j;
-    nodal_pressure_[n] = kappa_ * s * (j - 1.0);
-    nodal_stiffness_[n] = kappa_ * s * nodal_rest_volume_[n];
+    nodal_pressure_[n] = (1.0 - beta_) * kappa_ * s * (j - 1.0);
+    nodal_stiffness_[n] = (1.0 - beta_) * kappa_ * s * nodal_rest_volume_[n];
   }
-  // Element forces −V_e p̄_e ∂J_e/∂x_i.
+  // Element forces −V_e (p̄_e + β κ_e (J_e − 1)) ∂J_e/∂x_i.
+  const double beta_kappa = beta_ * kappa_;
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < nt; ++e) {
     const double pbar = 0.25 * (nodal_pressure_[tets_(e, 0)] + nodal_pressure_[tets_(e, 1)] + nodal_pressure_[tets_(e, 2)] +
                                 nodal_pressure_[tets_(e, 3)]);
-    const double w = -volumes_[e] * pbar;
+    const double w = -volumes_[e] * (pbar + beta_kappa * er[e] * be[e] * (volume_ratio_[e] - 1.0));
     const double* d = &dJ_[12 * static_cast<size_t>(e)];
     double* fe = &elem_forces_[12 * static_cast<size_t>(e)];
     for (int k = 0; k < 12; ++k) fe[k] = w * d[k];
@@ -202,14 +214,48 @@ void AnpTetFem::addVolumetricStiffness(double scale, SparseMatrix& A) const {
   }
 }
 
+void AnpTetFem::addElementVolumeStiffness(double scale, SparseMatrix& A) const {
+  // β κ_e V_e ∂J_e/∂x_i ∂J_e/∂x_jᵀ, gathered per row node from its elements.
+  const BlockPattern& wide = deviatoric_.pattern();
+  const Eigen::VectorXd& er = deviatoric_.modulusFactors();
+  const Eigen::VectorXd& be = deviatoric_.baseModulusScales();
+  const int nn = star_.numNodes();
+  double* const values = A.valuePtr();
+  const int* const outer = A.outerIndexPtr();
+  const double sk = scale * beta_ * kappa_;
+#pragma omp parallel for schedule(dynamic, 64)
+  for (int a = 0; a < nn; ++a) {
+    double* const row0 = values + outer[3 * a];
+    const int len = outer[3 * a + 1] - outer[3 * a];
+    double* const row1 = row0 + len;
+    double* const row2 = row1 + len;
+    for (int k = wide.incidentStart(a); k < wide.incidentStart(a + 1); ++k) {
+      const int e = wide.incidentElement(k), i = wide.incidentLocal(k);
+      const double* d = &dJ_[12 * static_cast<size_t>(e)];
+      const double w = sk * er[e] * be[e] * volumes_[e];
+      const double u0 = w * d[3 * i], u1 = w * d[3 * i + 1], u2 = w * d[3 * i + 2];
+      const int* slot = wide.blockSlot(e) + 4 * i;
+      for (int j = 0; j < 4; ++j) {
+        const int col = 3 * slot[j];
+        const double b0 = d[3 * j], b1 = d[3 * j + 1], b2 = d[3 * j + 2];
+        row0[col] += u0 * b0, row0[col + 1] += u0 * b1, row0[col + 2] += u0 * b2;
+        row1[col] += u1 * b0, row1[col + 1] += u1 * b1, row1[col + 2] += u1 * b2;
+        row2[col] += u2 * b0, row2[col + 1] += u2 * b1, row2[col + 2] += u2 * b2;
+      }
+    }
+  }
+}
+
 void AnpTetFem::addStiffness(double scale, SparseMatrix& A) const {
   deviatoric_.addStiffness(scale, A);
   addVolumetricStiffness(scale, A);
+  if (beta_ > 0.0) addElementVolumeStiffness(scale, A);
 }
 
 void AnpTetFem::assignStiffness(double scale, SparseMatrix& A) const {
   deviatoric_.assignStiffness(scale, A);  // checks A's size and entry count
   addVolumetricStiffness(scale, A);
+  if (beta_ > 0.0) addElementVolumeStiffness(scale, A);
 }
 
 }  // namespace breast_sim::core

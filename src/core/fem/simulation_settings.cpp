@@ -65,6 +65,8 @@ void SimulationSettings::validate() const {
   if (!(gravity_mps2 >= 0) || !std::isfinite(gravity_mps2)) invalid("gravity_mps2", gravity_mps2, "≥ 0 m/s², e.g. 9.81");
   if (solver.coarsening.max_coarsest_elements < 10)
     invalid("solver.coarsening.max_coarsest_elements", solver.coarsening.max_coarsest_elements, "≥ 10");
+  if (!(anp_element_volume_fraction >= 0 && anp_element_volume_fraction <= 1))
+    invalid("anp_element_volume_fraction", anp_element_volume_fraction, "a share in [0, 1], e.g. 0 (pure ANP)");
   for (const auto& [region, e] : region_youngs_modulus_pa)
     if (!(e > 0) || !std::isfinite(e))
       invalid(("region_youngs_modulus_pa[" + std::to_string(region) + "]").c_str(), e, "a positive modulus in Pa");
@@ -93,7 +95,7 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
             {"youngs_modulus_pa", "poisson_ratio", "density_kg_per_m3", "time_step_s", "mass_damping_per_s",
              "stiffness_damping_s", "solver", "solver_relative_tolerance", "solver_max_iterations",
              "multigrid_smoother", "multigrid_smoothing_steps", "multigrid_coarse_update_interval",
-             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "element", "sliding", "settle_time_step_s",
+             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "element", "anp_element_volume_fraction", "sliding", "settle_time_step_s",
              "settle_increment_tolerance_mm", "settle_max_steps", "tissue_youngs_modulus_pa"},
             f, "simulation");
   const double inf = std::numeric_limits<double>::infinity();
@@ -126,6 +128,9 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
     s.element = choice(m["element"], f, key("element"), {"linear", "anp"}) == "linear"
                     ? SimulationSettings::Element::kLinearTet
                     : SimulationSettings::Element::kAnpTet;
+  if (m["anp_element_volume_fraction"])
+    s.anp_element_volume_fraction =
+        numberIn(m["anp_element_volume_fraction"], f, key("anp_element_volume_fraction"), 0, 1);
   if (m["volume_term"])
     s.volume_term = choice(m["volume_term"], f, key("volume_term"), {"trace", "determinant"}) == "trace"
                         ? CorotatedTetFem::VolumeTerm::kTrace
@@ -194,6 +199,7 @@ SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel
   if (settings.element == SimulationSettings::Element::kAnpTet) {
     auto anp = std::make_unique<AnpTetFem>(model.mesh, settings.material);
     anp->setElementYoungsModuli(elementYoungsModuli(model.mesh, settings));  // empty: E0 everywhere
+    anp->setElementVolumeFraction(settings.anp_element_volume_fraction);
     elements = std::move(anp);
   } else {
     auto tet = std::make_unique<CorotatedTetFem>(model.mesh, settings.material);

@@ -33,6 +33,15 @@ namespace breast_sim::core {
 /// element layers apart: pattern() is the two-ring BlockPattern, about 4× the entries of the
 /// linear tetrahedra's; the solvers take it unchanged (the multigrid must estimate its fine-level
 /// eigenvalue bound: the bound 4 holds only for four-node element matrices).
+///
+/// Element volume fraction β (setElementVolumeFraction): ANP constrains volume per node star, not
+/// per element, so a single element can flatten or invert at the price of its shear energy alone
+/// (as the seed's trace term lets it: docs/corotated) while its star keeps its volume. With β > 0
+/// a share of the bulk modulus stays on each element's own J_e:
+///   W_vol = Σ_n (1 − β) κ_n/2 · V̂_n (J̄_n − 1)² + Σ_e β κ_e/2 · V_e (J_e − 1)²,
+/// forces f_e,i = −V_e ((1 − β) p̄_e + β κ_e (J_e − 1)) ∂J_e/∂x_i and the Gauss–Newton stiffness
+/// gains β κ_e V_e ∂J_e/∂x ∂J_e/∂xᵀ per element. β = 0 is pure ANP; β = 1 the deviatoric/volumetric
+/// split of linear tetrahedra (locking again). κ_e = κ E_r,e b_e.
 /// \note The deviatoric part (rotations, von Mises stress, modulus factors, per-tissue moduli) is a
 /// CorotatedTetFem on the same two-ring pattern; vonMisesStress() is its (pressure does not enter
 /// a von Mises norm).
@@ -51,6 +60,10 @@ class AnpTetFem : public ElementFormulation {
 
   /// Per-element base Young's moduli [Pa]; as CorotatedTetFem::setElementYoungsModuli.
   void setElementYoungsModuli(const Eigen::VectorXd& youngs_modulus_pa);
+  /// Share β ∈ [0, 1] of the bulk modulus kept on each element's own volume ratio (see above; 0 by
+  /// default). @throws std::invalid_argument outside [0, 1] (names the value).
+  void setElementVolumeFraction(double beta);
+  double elementVolumeFraction() const { return beta_; }
   /// When false, the deviatoric part is not co-rotated (plain linear; comparisons only).
   void setCorotated(bool corotated) { deviatoric_.setCorotated(corotated); }
 
@@ -58,7 +71,7 @@ class AnpTetFem : public ElementFormulation {
   double bulkModulus() const { return kappa_; }
   /// Nodal volume ratios J̄_n at the last update (#N; 1 for a node in no element).
   const Eigen::VectorXd& nodalVolumeRatios() const { return nodal_volume_ratio_; }
-  /// Nodal pressures p_n = κ_n (J̄_n − 1) at the last update [Pa] (#N; positive in expansion).
+  /// Nodal pressures p_n = (1 − β) κ_n (J̄_n − 1) at the last update [Pa] (#N; positive in expansion).
   const Eigen::VectorXd& nodalPressures() const { return nodal_pressure_; }
   /// Rest volume of node n's share of its star, V̂_n = Σ_{e∋n} V_e / 4 [m³] (#N).
   const Eigen::VectorXd& nodalRestVolumes() const { return nodal_rest_volume_; }
@@ -68,11 +81,12 @@ class AnpTetFem : public ElementFormulation {
   BlockPattern star_;           // the one-ring pattern: node n's star is its neighbour list here
   Tets tets_;
   double kappa_;
+  double beta_ = 0.0;                // element volume fraction
   std::vector<double> grads_;        // 12 per element: ∇N_0..∇N_3 [1/m]
   std::vector<double> volumes_;      // V_e [m³]
   std::vector<double> star_weight_;  // per incidence k of star_ (node n, element e): w_ne
   Eigen::VectorXd nodal_rest_volume_, nodal_volume_ratio_, nodal_pressure_;
-  Eigen::VectorXd nodal_stiffness_;  // κ_n V̂_n [Pa m³]: K_vol = Σ_n nodal_stiffness_n b_n b_nᵀ
+  Eigen::VectorXd nodal_stiffness_;  // (1 − β) κ_n V̂_n [Pa m³]: K_vol = Σ_n nodal_stiffness_n b_n b_nᵀ + …
   std::vector<double> volume_ratio_;  // J_e at the last update
   std::vector<double> dJ_;            // 12 per element: ∂J_e/∂x_i = cof F ∇N_i [m²]
   std::vector<double> elem_forces_;   // 12 per element: −V_e p̄_e ∂J_e/∂x_i [N]
@@ -83,6 +97,7 @@ class AnpTetFem : public ElementFormulation {
                                       // a's rows of n's star nodes, in n's star order
   void updateNodalStiffness();
   void addVolumetricStiffness(double scale, SparseMatrix& A) const;
+  void addElementVolumeStiffness(double scale, SparseMatrix& A) const;
 };
 
 }  // namespace breast_sim::core
