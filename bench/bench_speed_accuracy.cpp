@@ -15,7 +15,8 @@
 //             corotated+stiffening/cholmod    the same with CHOLMOD
 //             corotated-det[+stiffening]/...  with the fixed co-rotated J − 1 volume term (docs/corotated)
 //             anp[+stiffening]/...            average-nodal-pressure tetrahedra (fem/anp_tet_fem.h)
-//             anp-b<β>[+stiffening]/...       ANP keeping the share β of the bulk modulus per element
+//             anp-b<β>-j<J_b>[+stiffening]/... ANP keeping the share β of the bulk modulus per element,
+//                                             and an inversion barrier below J_b (each optional)
 //           Time = the settling steps (the simulator's set-up — multigrid hierarchy, CHOLMOD
 //           analysis — is listed beside it, not included; meshing is listed too). A run that throws
 //           (e.g. a solver returning non-finite velocities) is a row "FAILED" with the message; the
@@ -172,17 +173,27 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
     if (!wall.on) throw std::invalid_argument("method '" + method + "': +sliding needs --wall sliding");
     form.erase(plus_sliding, 8);
   }
-  // "anp-b<β>": ANP with the element volume fraction β (AnpTetFem::setElementVolumeFraction).
-  double anp_beta = 0.0;
-  if (form.rfind("anp-b", 0) == 0) {
-    const std::size_t end = form.find('+');
-    const std::string num = form.substr(5, end == std::string::npos ? std::string::npos : end - 5);
-    try {
-      anp_beta = std::stod(num);
-    } catch (const std::exception&) {
-      throw std::invalid_argument("method '" + method + "': anp-b needs a number, e.g. anp-b0.1");
+  // "anp-b<β>-j<J_b>": ANP with the element volume fraction β and the inversion barrier J_b
+  // (AnpTetFem::setElementVolumeFraction, setInversionBarrier), each optional.
+  double anp_beta = 0.0, anp_barrier = 0.0;
+  if (form.rfind("anp-", 0) == 0) {
+    const std::size_t end = std::min(form.find('+'), form.size());
+    std::size_t pos = 3;
+    while (pos < end && form[pos] == '-') {
+      const char which = pos + 1 < end ? form[pos + 1] : '?';
+      const std::size_t next = std::min(form.find('-', pos + 1), end);
+      double v = 0.0;
+      try {
+        v = std::stod(form.substr(pos + 2, next - pos - 2));
+      } catch (const std::exception&) {
+        throw std::invalid_argument("method '" + method + "': expected anp-b<share>-j<ratio>, e.g. anp-j0.5");
+      }
+      if (which == 'b') anp_beta = v;
+      else if (which == 'j') anp_barrier = v;
+      else throw std::invalid_argument("method '" + method + "': anp options are -b<share> and -j<ratio>");
+      pos = next;
     }
-    form = "anp" + (end == std::string::npos ? std::string() : form.substr(end));
+    form = "anp" + form.substr(end);
   }
   if (form != "linear" && form != "corotated" && form != "corotated+stiffening" && form != "corotated-det" &&
       form != "corotated-det+stiffening" && form != "anp" && form != "anp+stiffening")
@@ -195,6 +206,7 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
                                                       : CorotatedTetFem::VolumeTerm::kTrace;
   s.element = form.rfind("anp", 0) == 0 ? SimulationSettings::Element::kAnpTet : SimulationSettings::Element::kLinearTet;
   s.anp_element_volume_fraction = anp_beta;
+  s.anp_inversion_barrier = anp_barrier;
   const bool stiffening = form.size() > 11 && form.substr(form.size() - 11) == "+stiffening";
   s.solver.kind = SolverSettings::kindFromName(solver);
   s.dynamics.gravity_mps2 = g;

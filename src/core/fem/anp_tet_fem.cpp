@@ -46,6 +46,7 @@ AnpTetFem::AnpTetFem(const TetMesh& mesh, const ElasticMaterial& material)
   volume_ratio_.assign(nt, 1.0);
   dJ_.assign(12 * static_cast<size_t>(nt), 0.0);
   elem_forces_.assign(12 * static_cast<size_t>(nt), 0.0);
+  element_stiffness_.assign(nt, 0.0);
   const int num_star = star_.neighbourStart(nn);
   b_.assign(3 * static_cast<size_t>(num_star), 0.0);
   // For row node a and each n in a's star (entry k): a's slot in n's star, and the two-ring slots
@@ -72,10 +73,10 @@ AnpTetFem::AnpTetFem(const TetMesh& mesh, const ElasticMaterial& material)
       for (const int* m = s_begin; m != s_end; ++m) *out++ = static_cast<int>(std::lower_bound(row_begin, row_end, *m) - row_begin);
     }
   }
-  updateNodalStiffness();
+  updateStiffnessWeights();
 }
 
-void AnpTetFem::updateNodalStiffness() {
+void AnpTetFem::updateStiffnessWeights() {
   const Eigen::VectorXd& er = deviatoric_.modulusFactors();
   const Eigen::VectorXd& be = deviatoric_.baseModulusScales();
   const int nn = star_.numNodes();
@@ -88,6 +89,10 @@ void AnpTetFem::updateNodalStiffness() {
     }
     nodal_stiffness_[n] = (1.0 - beta_) * kappa_ * s * nodal_rest_volume_[n];
   }
+  const int nt = static_cast<int>(tets_.rows());
+#pragma omp parallel for schedule(static)
+  for (int e = 0; e < nt; ++e)
+    element_stiffness_[e] = kappa_ * er[e] * be[e] * volumes_[e] * (beta_ + (volume_ratio_[e] < barrier_j_ ? 1.0 : 0.0));
 }
 
 void AnpTetFem::setElementVolumeFraction(double beta) {
@@ -95,17 +100,25 @@ void AnpTetFem::setElementVolumeFraction(double beta) {
     throw std::invalid_argument("AnpTetFem: element volume fraction " + std::to_string(beta) +
                                 " is outside [0, 1] (0 = pure average nodal pressure)");
   beta_ = beta;
-  updateNodalStiffness();
+  updateStiffnessWeights();
+}
+
+void AnpTetFem::setInversionBarrier(double volume_ratio) {
+  if (!(volume_ratio >= 0.0 && volume_ratio < 1.0))
+    throw std::invalid_argument("AnpTetFem: inversion barrier at volume ratio " + std::to_string(volume_ratio) +
+                                " is outside [0, 1) (0 = off; e.g. 0.5: an element resists compression below half its volume)");
+  barrier_j_ = volume_ratio;
+  updateStiffnessWeights();
 }
 
 void AnpTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
   deviatoric_.setModulusFactors(factors);
-  updateNodalStiffness();
+  updateStiffnessWeights();
 }
 
 void AnpTetFem::setElementYoungsModuli(const Eigen::VectorXd& youngs_modulus_pa) {
   deviatoric_.setElementYoungsModuli(youngs_modulus_pa);
-  updateNodalStiffness();
+  updateStiffnessWeights();
 }
 
 void AnpTetFem::update(const Points& x, Eigen::VectorXd& f) {
@@ -148,17 +161,24 @@ void AnpTetFem::update(const Points& x, Eigen::VectorXd& f) {
     nodal_pressure_[n] = (1.0 - beta_) * kappa_ * s * (j - 1.0);
     nodal_stiffness_[n] = (1.0 - beta_) * kappa_ * s * nodal_rest_volume_[n];
   }
-  // Element forces −V_e (p̄_e + β κ_e (J_e − 1)) ∂J_e/∂x_i.
-  const double beta_kappa = beta_ * kappa_;
-#pragma omp parallel for schedule(static)
+  // Element forces −V_e (p̄_e + β κ_e (J_e − 1) − κ_e (J_b − J_e)₊) ∂J_e/∂x_i, and the weight
+  // of each element's own Gauss–Newton term, κ_e V_e (β + [J_e < J_b]).
+  const double jb = barrier_j_;
+  int barrier_active = 0;
+#pragma omp parallel for schedule(static) reduction(+ : barrier_active)
   for (int e = 0; e < nt; ++e) {
     const double pbar = 0.25 * (nodal_pressure_[tets_(e, 0)] + nodal_pressure_[tets_(e, 1)] + nodal_pressure_[tets_(e, 2)] +
                                 nodal_pressure_[tets_(e, 3)]);
-    const double w = -volumes_[e] * (pbar + beta_kappa * er[e] * be[e] * (volume_ratio_[e] - 1.0));
+    const double ke = kappa_ * er[e] * be[e], j = volume_ratio_[e];
+    const bool active = j < jb;
+    barrier_active += active;
+    element_stiffness_[e] = ke * volumes_[e] * (beta_ + (active ? 1.0 : 0.0));
+    const double w = -volumes_[e] * (pbar + beta_ * ke * (j - 1.0) - (active ? ke * (jb - j) : 0.0));
     const double* d = &dJ_[12 * static_cast<size_t>(e)];
     double* fe = &elem_forces_[12 * static_cast<size_t>(e)];
     for (int k = 0; k < 12; ++k) fe[k] = w * d[k];
   }
+  barrier_active_ = barrier_active;
   // Per node: add the volumetric forces to the deviatoric ones, and form b_n over its star.
 #pragma omp parallel for schedule(static)
   for (int n = 0; n < nn; ++n) {
@@ -215,14 +235,12 @@ void AnpTetFem::addVolumetricStiffness(double scale, SparseMatrix& A) const {
 }
 
 void AnpTetFem::addElementVolumeStiffness(double scale, SparseMatrix& A) const {
-  // β κ_e V_e ∂J_e/∂x_i ∂J_e/∂x_jᵀ, gathered per row node from its elements.
+  // κ_e V_e (β + [J_e < J_b]) ∂J_e/∂x_i ∂J_e/∂x_jᵀ, gathered per row node from its elements.
   const BlockPattern& wide = deviatoric_.pattern();
-  const Eigen::VectorXd& er = deviatoric_.modulusFactors();
-  const Eigen::VectorXd& be = deviatoric_.baseModulusScales();
   const int nn = star_.numNodes();
   double* const values = A.valuePtr();
   const int* const outer = A.outerIndexPtr();
-  const double sk = scale * beta_ * kappa_;
+
 #pragma omp parallel for schedule(dynamic, 64)
   for (int a = 0; a < nn; ++a) {
     double* const row0 = values + outer[3 * a];
@@ -232,7 +250,7 @@ void AnpTetFem::addElementVolumeStiffness(double scale, SparseMatrix& A) const {
     for (int k = wide.incidentStart(a); k < wide.incidentStart(a + 1); ++k) {
       const int e = wide.incidentElement(k), i = wide.incidentLocal(k);
       const double* d = &dJ_[12 * static_cast<size_t>(e)];
-      const double w = sk * er[e] * be[e] * volumes_[e];
+      const double w = scale * element_stiffness_[e];
       const double u0 = w * d[3 * i], u1 = w * d[3 * i + 1], u2 = w * d[3 * i + 2];
       const int* slot = wide.blockSlot(e) + 4 * i;
       for (int j = 0; j < 4; ++j) {
@@ -249,13 +267,13 @@ void AnpTetFem::addElementVolumeStiffness(double scale, SparseMatrix& A) const {
 void AnpTetFem::addStiffness(double scale, SparseMatrix& A) const {
   deviatoric_.addStiffness(scale, A);
   addVolumetricStiffness(scale, A);
-  if (beta_ > 0.0) addElementVolumeStiffness(scale, A);
+  if (beta_ > 0.0 || barrier_j_ > 0.0) addElementVolumeStiffness(scale, A);
 }
 
 void AnpTetFem::assignStiffness(double scale, SparseMatrix& A) const {
   deviatoric_.assignStiffness(scale, A);  // checks A's size and entry count
   addVolumetricStiffness(scale, A);
-  if (beta_ > 0.0) addElementVolumeStiffness(scale, A);
+  if (beta_ > 0.0 || barrier_j_ > 0.0) addElementVolumeStiffness(scale, A);
 }
 
 }  // namespace breast_sim::core

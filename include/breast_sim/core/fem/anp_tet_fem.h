@@ -42,6 +42,15 @@ namespace breast_sim::core {
 /// forces f_e,i = −V_e ((1 − β) p̄_e + β κ_e (J_e − 1)) ∂J_e/∂x_i and the Gauss–Newton stiffness
 /// gains β κ_e V_e ∂J_e/∂x ∂J_e/∂xᵀ per element. β = 0 is pure ANP; β = 1 the deviatoric/volumetric
 /// split of linear tetrahedra (locking again). κ_e = κ E_r,e b_e.
+///
+/// Inversion barrier J_b (setInversionBarrier): a one-sided element term κ_e/2 · V_e (J_b − J_e)₊²
+/// that is zero while an element keeps more than the fraction J_b of its volume and resists
+/// further compression with the bulk modulus below it, as the neo-Hookean energy's log J does.
+/// Under the supine load ANP alone leaves a few rim elements (one free node over a clamped face)
+/// inverted while their stars keep their volume (bench_speed_accuracy --study locking); the
+/// barrier stops them without touching the locking-free response of the rest. Its force is
+/// continuous (the energy is C¹), its Gauss–Newton stiffness κ_e V_e ∂J_e/∂x ∂J_e/∂xᵀ is added
+/// for the elements below J_b at the last update. 0 = off (the default).
 /// \note The deviatoric part (rotations, von Mises stress, modulus factors, per-tissue moduli) is a
 /// CorotatedTetFem on the same two-ring pattern; vonMisesStress() is its (pressure does not enter
 /// a von Mises norm).
@@ -64,6 +73,12 @@ class AnpTetFem : public ElementFormulation {
   /// default). @throws std::invalid_argument outside [0, 1] (names the value).
   void setElementVolumeFraction(double beta);
   double elementVolumeFraction() const { return beta_; }
+  /// Volume ratio J_b ∈ [0, 1) below which an element resists compression on its own (see above;
+  /// 0 = off). @throws std::invalid_argument outside [0, 1).
+  void setInversionBarrier(double volume_ratio);
+  double inversionBarrier() const { return barrier_j_; }
+  /// Elements below the barrier at the last update.
+  int barrierActiveElements() const { return barrier_active_; }
   /// When false, the deviatoric part is not co-rotated (plain linear; comparisons only).
   void setCorotated(bool corotated) { deviatoric_.setCorotated(corotated); }
 
@@ -82,6 +97,9 @@ class AnpTetFem : public ElementFormulation {
   Tets tets_;
   double kappa_;
   double beta_ = 0.0;                // element volume fraction
+  double barrier_j_ = 0.0;           // J_b of the inversion barrier (0 = off)
+  int barrier_active_ = 0;           // elements with J_e < J_b at the last update
+  std::vector<double> element_stiffness_;  // κ_e V_e (β + [J_e < J_b]) at the last update [Pa m³]
   std::vector<double> grads_;        // 12 per element: ∇N_0..∇N_3 [1/m]
   std::vector<double> volumes_;      // V_e [m³]
   std::vector<double> star_weight_;  // per incidence k of star_ (node n, element e): w_ne
@@ -95,7 +113,7 @@ class AnpTetFem : public ElementFormulation {
   std::vector<int> wide_offset_;      // per star_ entry (a, k) + 1: start in wide_slot_
   std::vector<int> wide_slot_;        // for entry (a, k), n = neighbour(k): the two-ring slots in
                                       // a's rows of n's star nodes, in n's star order
-  void updateNodalStiffness();
+  void updateStiffnessWeights();  // nodal_stiffness_ and element_stiffness_ for the current factors
   void addVolumetricStiffness(double scale, SparseMatrix& A) const;
   void addElementVolumeStiffness(double scale, SparseMatrix& A) const;
 };
