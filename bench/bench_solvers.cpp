@@ -9,6 +9,8 @@
 // with that smoother and sweeps (Chebyshev: polynomial degree) before and after the coarse correction,
 // coarse operators recomputed every <interval> factorizations; R = MultigridOptions::chebyshev_ratio,
 // B = fine_eigenvalue_bound (0: power iteration on the fine level too), S = chebyshev_eigenvalue_safety.
+// (The vertex-star Schwarz and coarse-degree prototypes measured in docs/benchmarks/multigrid_chebyshev.md
+// are in docs/benchmarks/multigrid_smoother_prototypes.patch, with their ":patches=1" and ":coarse=K".)
 // "sa[:theta=T][:nu=S][:coarse=N][:unsmoothed]": smoothed-aggregation multigrid-PCG
 // (solver/aggregation_multigrid.h) with strength threshold T, S block-Jacobi sweeps, at most N coarsest
 // DOFs; it gives two rows: "full" redoes the whole set-up in every factorize, "keep P" keeps the
@@ -18,7 +20,8 @@
 // rotations up to DEG about the chest-wall's z axis growing with the distance from the wall, moduli
 // E_r from 1 at the wall to 3 at the front), so that "keep P" is measured on a changed matrix.
 // "it 1e-2" is a cold solve to --step-tol; "V-cycle" the preconditioner's time per application.
-// "cold" solves start from x = 0; "warm" ones from the previous solution for a load changed by 1 %
+// The CPU-time table (process CPU time, all threads) is the more robust figure on a shared machine
+// when run with OMP_NUM_THREADS=1. "cold" solves start from x = 0; "warm" ones from the previous solution for a load changed by 1 %
 // (what a time step sees). Times are medians of the repeats (the machine is shared); "factorize" of an
 // interval variant is the mean (amortized). --morton renumbers the fine mesh along a Morton curve
 // first, to show what the mesher's node order costs.
@@ -36,6 +39,7 @@
 #include <vector>
 
 #include <omp.h>
+#include <time.h>
 
 #include <Eigen/Dense>
 #include <nlohmann/json.hpp>
@@ -52,6 +56,14 @@ using namespace breast_sim::core;
 using namespace breast_sim::bench;
 
 namespace {
+
+// CPU time of the process [s] (all threads): with OMP_NUM_THREADS=1 the work of a solve, which
+// other processes on a shared machine stretch less than the wall time.
+double cpuSeconds() {
+  timespec t{};
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
+  return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
+}
 
 
 // A = M/dt² + K of linear tetrahedra (lumped mass), 3×3-block layout, Dirichlet rows and
@@ -171,6 +183,7 @@ Variant parseVariant(const std::string& v, const MeshHierarchy& hierarchy, const
         if (key == "ratio") o.chebyshev_ratio = value;
         else if (key == "bound") o.fine_eigenvalue_bound = value;
         else if (key == "safety") o.chebyshev_eigenvalue_safety = value;
+
         else throw std::invalid_argument("unknown option '" + t + "' in variant '" + v + "' (ratio=, bound=, safety=)");
         suffix += " " + t;
       }
@@ -299,6 +312,7 @@ int main(int argc, char** argv) {
       double analyze_ms = 0, first_ms = 0, factorize_ms = 0, solve_ms = 0, warm_ms = 0, step_tol_ms = 0;
       int iterations = 0, warm_iterations = 0, step_tol_iterations = -1;
       double residual = 0, error = 0, vcycle_ms = 0;
+      double factorize_cpu_ms = 0, solve_cpu_ms = 0, step_tol_cpu_ms = 0;  // process CPU time, medians
       bool sa = false;
       MultigridPreconditioner::Timings mg;
       AggregationMultigridPreconditioner::Timings sa_parts;
@@ -330,18 +344,22 @@ int main(int argc, char** argv) {
       r.first_ms = 1e3 * since(t0);
       // A full set-up sees the current positions (its rigid modes); a kept P stays from the rest state.
       if (sa && !sa->multigrid().options().reuse_prolongators) sa->multigrid().setCoordinates(bent);
-      std::vector<double> tf, ts, tw, tv;
+      std::vector<double> tf, ts, tw, tv, cf, cs, cl;
       Eigen::VectorXd x;
       const int reps = v.label == "cholmod" ? std::min(repeats, 3) : std::max(repeats, 2 * v.interval);
       std::vector<double> level_sum;
       for (int k = 0; k < reps; ++k) {
         t0 = Clock::now();
+        double c0 = cpuSeconds();
         solver->factorize(A_step);
         tf.push_back(since(t0));
+        cf.push_back(cpuSeconds() - c0);
         if (m && m->multigrid().lastFactorizeTimings().galerkin_s > 0) r.mg = m->multigrid().lastFactorizeTimings();
         if (sa) r.sa_parts = sa->multigrid().lastFactorizeTimings();
         x.setZero(A.rows());
+        c0 = cpuSeconds();
         const SolveStats s = solver->solve(b, x);
+        cs.push_back(cpuSeconds() - c0);
         ts.push_back(s.seconds);
         r.iterations = s.iterations;
         r.residual = s.relative_residual;
@@ -370,17 +388,22 @@ int main(int argc, char** argv) {
         std::vector<double> tl;
         for (int k = 0; k < 3; ++k) {
           Eigen::VectorXd xl = Eigen::VectorXd::Zero(A.rows());
+          const double c0 = cpuSeconds();
           const SolveStats s = pcg_solver->solve(b, xl);
+          cl.push_back(cpuSeconds() - c0);
           tl.push_back(s.seconds);
           r.step_tol_iterations = s.iterations;
         }
         r.step_tol_ms = 1e3 * median(tl);
+        r.step_tol_cpu_ms = 1e3 * median(cl);
         pcg_solver->setOptions(pcg);
       }
       double mean = 0;
       for (double t : tf) mean += t / static_cast<double>(tf.size());
       r.factorize_ms = 1e3 * (v.interval > 1 ? mean : median(tf));
       r.solve_ms = 1e3 * median(ts);
+      r.factorize_cpu_ms = 1e3 * median(cf);
+      r.solve_cpu_ms = 1e3 * median(cs);
       r.warm_ms = 1e3 * median(tw);
       r.vcycle_ms = 1e3 * median(tv);
       for (double t : level_sum) r.level_ms.push_back(1e3 * t / reps);
@@ -440,6 +463,9 @@ int main(int argc, char** argv) {
                           {"step_tolerance_solve_ms", r.step_tol_ms},
                           {"step_tolerance_iterations", r.step_tol_iterations},
                           {"v_cycle_ms", r.vcycle_ms},
+                          {"factorize_cpu_ms", r.factorize_cpu_ms},
+                          {"solve_cpu_ms", r.solve_cpu_ms},
+                          {"step_tolerance_solve_cpu_ms", r.step_tol_cpu_ms},
                           {"relative_residual", r.residual},
                           {"relative_difference_to_first", r.error},
                           {"speedup_vs_jacobi_cold", ratio},
@@ -464,6 +490,11 @@ int main(int argc, char** argv) {
       }
       solvers.push_back(j);
     }
+    std::printf("process CPU time [ms] (all threads; the work when OMP_NUM_THREADS=1): factorize, cold solve, "
+                "cold solve to the step tolerance, their sum:\n");
+    for (const Result& r : results)
+      std::printf("  %-30s %8.2f %9.2f %8.2f %9.2f\n", r.label.c_str(), r.factorize_cpu_ms, r.solve_cpu_ms,
+                  r.step_tol_cpu_ms, r.factorize_cpu_ms + r.step_tol_cpu_ms);
     std::printf("multigrid: factorize parts [ms] (scan + smoother set-up, damping estimate, Galerkin products, "
                 "coarsest CHOLMOD) and time per V-cycle on each level [ms]:\n");
     for (const Result& r : results)

@@ -145,6 +145,9 @@ struct MultigridOptions {
   /// near-incompressibility, not the non-nested coarse meshes: at ν = 0.3 the same V-cycle needs 24
   /// iterations (Jacobi(8,8): 9), and nested coarse spaces of smoothed aggregation with the six
   /// rigid-body modes (aggregation_multigrid.h) need 52 at ν = 0.48 (bench_solvers --poisson, sa).
+  /// Chebyshev(2,2) needs 26 (8 instead of 14 to the step tolerance 1e-2) but its V-cycle costs
+  /// twice as much: the same CPU time per step within ±10 % at 20k and 48k; a vertex-star Schwarz
+  /// smoother was ten times slower (docs/benchmarks/multigrid_chebyshev.md).
   enum class Smoother {
     kJacobi,      ///< damped 3×3-block Jacobi (parallel; 2 matrix passes per V(1,1) level visit)
     kGaussSeidel, ///< multicoloured 3×3-block Gauss–Seidel: forward before, backward after the
