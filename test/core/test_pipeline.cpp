@@ -566,7 +566,10 @@ TEST(PipelineSettings, TheDocumentedDefaultsOfTheCaseFileAreTheCodeDefaults) {
   EXPECT_EQ(file.sliding_stage.alpha_restart, code.sliding_stage.alpha_restart);
   EXPECT_DOUBLE_EQ(file.sliding_stage.increment_tolerance_m, code.sliding_stage.increment_tolerance_m);
   EXPECT_EQ(file.sliding_stage.increment_measure, code.sliding_stage.increment_measure);
-  EXPECT_DOUBLE_EQ(m.volume_tolerance_percent, n.volume_tolerance_percent);
+  // The one documented exception ("Here: 0.5"): the phantom's target has the prone volume, so its case
+  // file adds the volume condition, which the code leaves off (a measured surface need not enclose it).
+  EXPECT_DOUBLE_EQ(m.volume_tolerance_percent, 0.5);
+  EXPECT_DOUBLE_EQ(n.volume_tolerance_percent, 0.0);
   const AlphaControllerParams &fa = file.stiffening.alpha, &ca = code.stiffening.alpha;
   EXPECT_DOUBLE_EQ(fa.initial_alpha_per_pa, ca.initial_alpha_per_pa);
   EXPECT_DOUBLE_EQ(fa.min_alpha_per_pa, ca.min_alpha_per_pa);
@@ -620,6 +623,7 @@ TEST(Pipeline, PhantomWithSlidingReachesItsSupineTargetAndItsStateRestores) {
   EXPECT_EQ(pipe.wallSlip()->stickPoints(), saved.sliding_targets_m);
   pipe.iterate();
   // Equal up to the iterative solve (the multigrid's coarse operators are renewed every 4th step,
-  // a phase the state does not carry): measured 3 nm; a lost slip state gave 50 µm.
-  EXPECT_LT((pipe.simulator().state().displacement_m - after_one).cwiseAbs().maxCoeff(), 1e-7);
+  // a phase the state does not carry): measured 3 nm, and 128 nm when the stage's stop fell so that
+  // the two steps sit on either side of a renewal; a lost slip state gave 50 µm.
+  EXPECT_LT((pipe.simulator().state().displacement_m - after_one).cwiseAbs().maxCoeff(), 1e-6);
 }
