@@ -43,6 +43,7 @@
 #include <algorithm>
 #include <cstdio>
 #include <fstream>
+#include <iomanip>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -91,6 +92,7 @@ struct OurRun {
   int steps = 0;
   bool settled = false;
   int inverted = 0;
+  std::vector<int> inverted_elements;
   long reversed = 0;
   double alpha = 0;
   std::string failure;  ///< what a run that threw said ("" = it ran)
@@ -288,8 +290,35 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
     if (stiff) r.reversed += stiff->stats().reversed_steps;
   }
   r.u = sim.displacement();
-  r.inverted = static_cast<int>(invertedTets(m.mesh.tets(), m.mesh.nodes() + r.u).size());
+  r.inverted_elements = invertedTets(m.mesh.tets(), m.mesh.nodes() + r.u);
+  r.inverted = static_cast<int>(r.inverted_elements.size());
   return r;
+}
+
+/// Where the inverted elements of a run are: how many have k = 0..4 nodes in the fixed node set and
+/// on the skin, and their rest volumes against the mesh's mean (the locking study prints it).
+std::string invertedSummary(const SimulationModel& m, const std::string& fixed_set, const std::vector<int>& inverted) {
+  if (inverted.empty()) return "";
+  std::vector<char> fixed(m.mesh.numNodes(), 0), skin(m.mesh.numNodes(), 0);
+  if (m.mesh.hasNodeSet(fixed_set))
+    for (int n : m.mesh.nodeSet(fixed_set)) fixed[n] = 1;
+  if (m.mesh.hasNodeSet("skin"))
+    for (int n : m.mesh.nodeSet("skin")) skin[n] = 1;
+  const Eigen::VectorXd vol = m.mesh.tetVolumes();
+  int on_wall[5] = {0, 0, 0, 0, 0}, touching_skin = 0;
+  double largest = 0.0;
+  for (int e : inverted) {
+    int f = 0, k = 0;
+    for (int i = 0; i < 4; ++i) f += fixed[m.mesh.tets()(e, i)], k += skin[m.mesh.tets()(e, i)];
+    ++on_wall[f];
+    touching_skin += k > 0;
+    largest = std::max(largest, vol[e] / vol.mean());
+  }
+  std::ostringstream o;
+  o << "inverted: wall nodes 0/1/2/3: " << on_wall[0] << "/" << on_wall[1] << "/" << on_wall[2] << "/" << on_wall[3]
+    << ", " << touching_skin << " touching the skin, largest rest volume " << std::fixed << std::setprecision(1)
+    << 100.0 * largest << " % of the mean";
+  return o.str();
 }
 
 nlohmann::json errorsJson(const DisplacementErrors& e) {
@@ -456,6 +485,11 @@ int main(int argc, char** argv) {
           std::printf("%6.3f | %-24s | %8.3f | %22s | %6.3f %6.3f %6.3f mm | %5d %4d |%s\n", nu, method.c_str(),
                       e_oc4.max_displacement_mm, "", e_oc4.mean_mm, e_oc4.p95_mm, e_oc4.lesion_max_mm, ours.steps,
                       ours.inverted, ours.settled ? "" : " (not settled)");
+        }
+        const std::string where = invertedSummary(m, s.fixed_node_set, ours.inverted_elements);
+        if (!where.empty()) {
+          std::printf("       |   %s\n", where.c_str());
+          o["inverted_where"] = where;
         }
         std::fflush(stdout);
         ours_rows[method] = o;

@@ -97,6 +97,29 @@ simulation:
   EXPECT_TRUE(s.sliding);
 }
 
+TEST(SimulationSettings, ReadsTheElementFormulationAndTheChebyshevSmoother) {
+  const SimulationSettings s = loadSimulationSettings(writeYaml("anp", R"(
+simulation:
+  element: anp
+  anp_element_volume_fraction: 0.1
+  anp_inversion_barrier: 0.5
+  multigrid_smoother: chebyshev
+  multigrid_chebyshev_ratio: 20
+)"));
+  EXPECT_EQ(s.element, SimulationSettings::Element::kAnpTet);
+  EXPECT_DOUBLE_EQ(s.anp_element_volume_fraction, 0.1);
+  EXPECT_DOUBLE_EQ(s.anp_inversion_barrier, 0.5);
+  EXPECT_EQ(s.solver.multigrid.smoother, MultigridOptions::Smoother::kChebyshev);
+  EXPECT_DOUBLE_EQ(s.solver.multigrid.chebyshev_ratio, 20);
+  EXPECT_EQ(SimulationSettings{}.element, SimulationSettings::Element::kLinearTet);
+  EXPECT_NE(errorOf("simulation: {element: c3d10}").find("expected one of anp, linear, got 'c3d10'"), std::string::npos)
+      << errorOf("simulation: {element: c3d10}");
+  EXPECT_NE(errorOf("simulation: {anp_inversion_barrier: 1}").find("anp_inversion_barrier"), std::string::npos);
+  EXPECT_NE(errorOf("simulation: {anp_element_volume_fraction: -0.1}").find("anp_element_volume_fraction"),
+            std::string::npos);
+  EXPECT_NE(errorOf("simulation: {multigrid_smoother: sor}").find("chebyshev"), std::string::npos);
+}
+
 TEST(SimulationSettings, BadValuesNameTheKeyAndTheAcceptedRange) {
   EXPECT_NE(errorOf("simulation: {poisson_ratio: 0.5}").find("'simulation.poisson_ratio': expected a value in (-1, 0.5)"),
             std::string::npos)

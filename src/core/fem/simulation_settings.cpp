@@ -96,7 +96,7 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
   checkKeys(m,
             {"youngs_modulus_pa", "poisson_ratio", "density_kg_per_m3", "time_step_s", "mass_damping_per_s",
              "stiffness_damping_s", "solver", "solver_relative_tolerance", "solver_max_iterations",
-             "multigrid_smoother", "multigrid_smoothing_steps", "multigrid_coarse_update_interval",
+             "multigrid_smoother", "multigrid_chebyshev_ratio", "multigrid_smoothing_steps", "multigrid_coarse_update_interval",
              "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "element", "anp_element_volume_fraction", "anp_inversion_barrier", "sliding", "settle_time_step_s",
              "settle_increment_tolerance_mm", "settle_max_steps", "tissue_youngs_modulus_pa"},
             f, "simulation");
@@ -111,10 +111,14 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
   if (m["solver"]) s.solver.kind = SolverSettings::kindFromName(choice(m["solver"], f, key("solver"), {"multigrid", "cholmod", "jacobi-pcg"}));
   if (m["solver_relative_tolerance"]) s.solver.relative_tolerance = numberIn(m["solver_relative_tolerance"], f, key("solver_relative_tolerance"), 0, 1, true, true);
   if (m["solver_max_iterations"]) s.solver.max_iterations = static_cast<int>(integer(m["solver_max_iterations"], f, key("solver_max_iterations"), 1, 100000));
-  if (m["multigrid_smoother"])
-    s.solver.multigrid.smoother = choice(m["multigrid_smoother"], f, key("multigrid_smoother"), {"jacobi", "gauss-seidel"}) == "jacobi"
-                                      ? MultigridOptions::Smoother::kJacobi
-                                      : MultigridOptions::Smoother::kGaussSeidel;
+  if (m["multigrid_smoother"]) {
+    const std::string sm = choice(m["multigrid_smoother"], f, key("multigrid_smoother"), {"jacobi", "gauss-seidel", "chebyshev"});
+    s.solver.multigrid.smoother = sm == "jacobi"         ? MultigridOptions::Smoother::kJacobi
+                                  : sm == "gauss-seidel" ? MultigridOptions::Smoother::kGaussSeidel
+                                                         : MultigridOptions::Smoother::kChebyshev;
+  }
+  if (m["multigrid_chebyshev_ratio"])
+    s.solver.multigrid.chebyshev_ratio = numberIn(m["multigrid_chebyshev_ratio"], f, key("multigrid_chebyshev_ratio"), 1.5, 100);
   if (m["multigrid_smoothing_steps"])
     s.solver.multigrid.pre_smoothing_steps = s.solver.multigrid.post_smoothing_steps =
         static_cast<int>(integer(m["multigrid_smoothing_steps"], f, key("multigrid_smoothing_steps"), 1, 10));

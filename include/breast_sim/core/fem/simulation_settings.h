@@ -116,7 +116,8 @@ Eigen::VectorXd elementYoungsModuli(const TetMesh& mesh, const SimulationSetting
 /// Reads the `simulation:` map of a case file (absent = defaults). Keys, with units:
 ///   youngs_modulus_pa, poisson_ratio, density_kg_per_m3, time_step_s, mass_damping_per_s,
 ///   stiffness_damping_s, solver (multigrid | cholmod | jacobi-pcg), solver_relative_tolerance,
-///   solver_max_iterations, multigrid_smoother (jacobi | gauss-seidel), multigrid_smoothing_steps,
+///   solver_max_iterations, multigrid_smoother (jacobi | gauss-seidel | chebyshev),
+///   multigrid_chebyshev_ratio, multigrid_smoothing_steps,
 ///   multigrid_coarse_update_interval, multigrid_max_coarsest_elements, fixed_node_set, gravity_mps2, stiffening,
 ///   volume_term (trace | determinant), element (linear | anp), anp_element_volume_fraction (0..1),
 ///   anp_inversion_barrier (volume ratio in [0, 1), 0 = off), sliding,
