@@ -74,6 +74,15 @@ Eigen::Matrix3d deformationGradient(const TetMesh& m, const RestElement& r, int 
   return F;
 }
 
+/// The rotation of F's polar decomposition by SVD, det R = +1 (the reference for rotationsOf).
+Eigen::Matrix3d polarRotation(const Eigen::Matrix3d& F) {
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(F, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d U = svd.matrixU();
+  const Eigen::Matrix3d V = svd.matrixV();
+  if ((U * V.transpose()).determinant() < 0) U.col(2) *= -1;
+  return U * V.transpose();
+}
+
 /// The ANP energy W(x) [J], independently of AnpTetFem: deviatoric co-rotated energy per element
 /// (polar rotation by SVD), the nodal volumetric energy and, with β > 0, the element one.
 double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x, double beta = 0.0, double barrier = 0.0) {
@@ -83,10 +92,7 @@ double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x, 
   std::vector<double> star_volume(m.numNodes(), 0.0), star_current(m.numNodes(), 0.0);
   for (int e = 0; e < m.numTets(); ++e) {
     const Eigen::Matrix3d F = deformationGradient(m, rest[e], e, x);
-    Eigen::JacobiSVD<Eigen::Matrix3d> svd(F, Eigen::ComputeFullU | Eigen::ComputeFullV);
-    Eigen::Matrix3d U = svd.matrixU(), V = svd.matrixV();
-    if ((U * V.transpose()).determinant() < 0) U.col(2) *= -1;
-    const Eigen::Matrix3d R = U * V.transpose();
+    const Eigen::Matrix3d R = polarRotation(F);
     const Eigen::Matrix3d S = R.transpose() * F;
     const double tr = S.trace() - 3.0;
     w += rest[e].volume * (mu * (F - R).squaredNorm() - mu / 3.0 * tr * tr);
@@ -121,10 +127,7 @@ Eigen::MatrixXd denseAnpStiffness(const TetMesh& m, const ElasticMaterial& mat, 
   std::vector<Eigen::VectorXd> b(nn, Eigen::VectorXd::Zero(3 * nn));
   for (int e = 0; e < m.numTets(); ++e) {
     const Eigen::Matrix3d F = deformationGradient(m, rest[e], e, x);
-    Eigen::JacobiSVD<Eigen::Matrix3d> svd(F, Eigen::ComputeFullU | Eigen::ComputeFullV);
-    Eigen::Matrix3d U = svd.matrixU(), V = svd.matrixV();
-    if ((U * V.transpose()).determinant() < 0) U.col(2) *= -1;
-    const Eigen::Matrix3d R = U * V.transpose();
+    const Eigen::Matrix3d R = polarRotation(F);
     Eigen::Matrix<double, 6, 12> B = Eigen::Matrix<double, 6, 12>::Zero();
     for (int i = 0; i < 4; ++i) {
       const double gx = rest[e].grads(i, 0), gy = rest[e].grads(i, 1), gz = rest[e].grads(i, 2);

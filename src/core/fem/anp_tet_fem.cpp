@@ -9,6 +9,18 @@
 
 namespace breast_sim::core {
 
+namespace {
+
+/// Adds the 3×3 block u bᵀ at column `col` of a node's three rows.
+inline void addOuter(double* row0, double* row1, double* row2, int col, double u0, double u1, double u2, const double* b) {
+  const double b0 = b[0], b1 = b[1], b2 = b[2];
+  row0[col] += u0 * b0, row0[col + 1] += u0 * b1, row0[col + 2] += u0 * b2;
+  row1[col] += u1 * b0, row1[col + 1] += u1 * b1, row1[col + 2] += u1 * b2;
+  row2[col] += u2 * b0, row2[col + 1] += u2 * b1, row2[col + 2] += u2 * b2;
+}
+
+}  // namespace
+
 AnpTetFem::AnpTetFem(const TetMesh& mesh, const ElasticMaterial& material)
     : deviatoric_(mesh, material, /*pattern_rings=*/2), star_(mesh.tets(), mesh.numNodes(), 1), tets_(mesh.tets()) {
   deviatoric_.setVolumeTerm(CorotatedTetFem::VolumeTerm::kNone);
@@ -19,15 +31,7 @@ AnpTetFem::AnpTetFem(const TetMesh& mesh, const ElasticMaterial& material)
   volumes_.resize(nt);
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < nt; ++e) {
-    const Eigen::Vector3d a = rest.row(tets_(e, 0));
-    Eigen::Matrix3d Dm;
-    for (int k = 0; k < 3; ++k) Dm.col(k) = Eigen::Vector3d(rest.row(tets_(e, k + 1))) - a;
-    volumes_[e] = Dm.determinant() / 6.0;
-    const Eigen::Matrix3d Dinv = Dm.inverse();  // rows: ∇N_1..∇N_3
-    double* g = &grads_[12 * static_cast<size_t>(e)];
-    for (int i = 1; i < 4; ++i)
-      for (int c = 0; c < 3; ++c) g[3 * i + c] = Dinv(i - 1, c);
-    for (int c = 0; c < 3; ++c) g[c] = -(g[3 + c] + g[6 + c] + g[9 + c]);
+    volumes_[e] = restShapeGradients(rest, tets_, e, &grads_[12 * static_cast<size_t>(e)]);
   }
   // Star weights w_ne and nodal rest volumes V̂_n.
   nodal_rest_volume_ = Eigen::VectorXd::Zero(nn);
@@ -223,13 +227,7 @@ void AnpTetFem::addVolumetricStiffness(double scale, SparseMatrix& A) const {
       const double* const ba = bn + 3 * own_slot_[k];
       const double u0 = w * ba[0], u1 = w * ba[1], u2 = w * ba[2];
       const int* const slots = &wide_slot_[wide_offset_[k]];
-      for (int q = 0; q < deg; ++q) {
-        const int col = 3 * slots[q];
-        const double b0 = bn[3 * q], b1 = bn[3 * q + 1], b2 = bn[3 * q + 2];
-        row0[col] += u0 * b0, row0[col + 1] += u0 * b1, row0[col + 2] += u0 * b2;
-        row1[col] += u1 * b0, row1[col + 1] += u1 * b1, row1[col + 2] += u1 * b2;
-        row2[col] += u2 * b0, row2[col + 1] += u2 * b1, row2[col + 2] += u2 * b2;
-      }
+      for (int q = 0; q < deg; ++q) addOuter(row0, row1, row2, 3 * slots[q], u0, u1, u2, bn + 3 * q);
     }
   }
 }
@@ -253,13 +251,7 @@ void AnpTetFem::addElementVolumeStiffness(double scale, SparseMatrix& A) const {
       const double w = scale * element_stiffness_[e];
       const double u0 = w * d[3 * i], u1 = w * d[3 * i + 1], u2 = w * d[3 * i + 2];
       const int* slot = wide.blockSlot(e) + 4 * i;
-      for (int j = 0; j < 4; ++j) {
-        const int col = 3 * slot[j];
-        const double b0 = d[3 * j], b1 = d[3 * j + 1], b2 = d[3 * j + 2];
-        row0[col] += u0 * b0, row0[col + 1] += u0 * b1, row0[col + 2] += u0 * b2;
-        row1[col] += u1 * b0, row1[col + 1] += u1 * b1, row1[col + 2] += u1 * b2;
-        row2[col] += u2 * b0, row2[col + 1] += u2 * b1, row2[col + 2] += u2 * b2;
-      }
+      for (int j = 0; j < 4; ++j) addOuter(row0, row1, row2, 3 * slot[j], u0, u1, u2, d + 3 * j);
     }
   }
 }

@@ -30,16 +30,8 @@ CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& mat
   von_mises_ = Eigen::VectorXd::Zero(nt);
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < nt; ++e) {
-    const Eigen::Vector3d a = rest_.row(tets_(e, 0));
-    Eigen::Matrix3d Dm;
-    for (int k = 0; k < 3; ++k) Dm.col(k) = Eigen::Vector3d(rest_.row(tets_(e, k + 1))) - a;
-    volumes_[e] = Dm.determinant() / 6.0;
-    // Rows of Dm⁻¹ are ∇N_1..∇N_3; ∇N_0 = −their sum.
-    const Eigen::Matrix3d Dinv = Dm.inverse();
     double* g = &grads_[12 * static_cast<size_t>(e)];
-    for (int i = 1; i < 4; ++i)
-      for (int c = 0; c < 3; ++c) g[3 * i + c] = Dinv(i - 1, c);
-    for (int c = 0; c < 3; ++c) g[c] = -(g[3 + c] + g[6 + c] + g[9 + c]);
+    volumes_[e] = restShapeGradients(rest_, tets_, e, g);
     const size_t b = static_cast<size_t>(e / kBatch), l = static_cast<size_t>(e % kBatch);
     for (int k = 0; k < 12; ++k) batch_grads_[12 * kBatch * b + k * kBatch + l] = g[k];
     for (int k = 0; k < 9; k += 4) rotations_[9 * kBatch * b + k * kBatch + l] = 1.0;

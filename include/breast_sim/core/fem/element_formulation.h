@@ -7,12 +7,27 @@
 #include <algorithm>
 
 #include <Eigen/Core>
+#include <Eigen/LU>
 
 #include "breast_sim/core/fem/block_pattern.h"
 #include "breast_sim/core/mesh/tet_mesh.h"
 #include "breast_sim/core/solver/linear_solver.h"
 
 namespace breast_sim::core {
+
+/// Shape-function gradients of linear tetrahedron e at rest: g = ∇N_0..∇N_3 (12, [1/m]; the rows of
+/// Dm⁻¹ are ∇N_1..∇N_3, Dm = [x1 − x0, x2 − x0, x3 − x0], and ∇N_0 = −their sum). Returns the
+/// signed rest volume [m³].
+inline double restShapeGradients(const Points& rest, const Tets& tets, int e, double* g) {
+  const Eigen::Vector3d a = rest.row(tets(e, 0)).transpose();
+  Eigen::Matrix3d Dm;
+  for (int k = 0; k < 3; ++k) Dm.col(k) = rest.row(tets(e, k + 1)).transpose() - a;
+  const Eigen::Matrix3d Dinv = Dm.inverse();
+  for (int i = 1; i < 4; ++i)
+    for (int c = 0; c < 3; ++c) g[3 * i + c] = Dinv(i - 1, c);
+  for (int c = 0; c < 3; ++c) g[c] = -(g[3 + c] + g[6 + c] + g[9 + c]);
+  return Dm.determinant() / 6.0;
+}
 
 /// Elastic forces and stiffness of a mesh, linearised about the current pose.
 /// \note Forces are those acting ON the nodes (they point back towards the rest shape); the
