@@ -15,8 +15,9 @@
 //             corotated+stiffening/cholmod    the same with CHOLMOD
 //             corotated-det[+stiffening]/...  with the fixed co-rotated J − 1 volume term (docs/corotated)
 //             anp[+stiffening]/...            average-nodal-pressure tetrahedra (fem/anp_tet_fem.h)
-//             anp-b<β>-j<J_b>[+stiffening]/... ANP keeping the share β of the bulk modulus per element,
-//                                             and an inversion barrier below J_b (each optional)
+//             anp-b<β>-j<J_b>-c<c>[+stiffening]/... ANP keeping the share β of the bulk modulus per
+//                                             element, and an inversion barrier below J_b of stiffness
+//                                             c × bulk modulus (each optional; c 100 by default)
 //           Time = the settling steps (the simulator's set-up — multigrid hierarchy, CHOLMOD
 //           analysis — is listed beside it, not included; meshing is listed too). A run that throws
 //           (e.g. a solver returning non-finite velocities) is a row "FAILED" with the message; the
@@ -175,9 +176,9 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
     if (!wall.on) throw std::invalid_argument("method '" + method + "': +sliding needs --wall sliding");
     form.erase(plus_sliding, 8);
   }
-  // "anp-b<β>-j<J_b>": ANP with the element volume fraction β and the inversion barrier J_b
-  // (AnpTetFem::setElementVolumeFraction, setInversionBarrier), each optional.
-  double anp_beta = 0.0, anp_barrier = 0.0;
+  // "anp-b<β>-j<J_b>-c<c>": ANP with the element volume fraction β, the inversion barrier J_b and
+  // its stiffness factor c (AnpTetFem::setElementVolumeFraction, setInversionBarrier), each optional.
+  double anp_beta = 0.0, anp_barrier = 0.0, anp_barrier_c = SimulationSettings{}.anp_inversion_barrier_stiffness;
   if (form.rfind("anp-", 0) == 0) {
     const std::size_t end = std::min(form.find('+'), form.size());
     std::size_t pos = 3;
@@ -192,7 +193,8 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
       }
       if (which == 'b') anp_beta = v;
       else if (which == 'j') anp_barrier = v;
-      else throw std::invalid_argument("method '" + method + "': anp options are -b<share> and -j<ratio>");
+      else if (which == 'c') anp_barrier_c = v;
+      else throw std::invalid_argument("method '" + method + "': anp options are -b<share>, -j<ratio> and -c<factor>");
       pos = next;
     }
     form = "anp" + form.substr(end);
@@ -209,6 +211,7 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
   s.element = form.rfind("anp", 0) == 0 ? SimulationSettings::Element::kAnpTet : SimulationSettings::Element::kLinearTet;
   s.anp_element_volume_fraction = anp_beta;
   s.anp_inversion_barrier = anp_barrier;
+  s.anp_inversion_barrier_stiffness = anp_barrier_c;
   const bool stiffening = form.size() > 11 && form.substr(form.size() - 11) == "+stiffening";
   s.solver.kind = SolverSettings::kindFromName(solver);
   s.dynamics.gravity_mps2 = g;

@@ -85,7 +85,8 @@ Eigen::Matrix3d polarRotation(const Eigen::Matrix3d& F) {
 
 /// The ANP energy W(x) [J], independently of AnpTetFem: deviatoric co-rotated energy per element
 /// (polar rotation by SVD), the nodal volumetric energy and, with β > 0, the element one.
-double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x, double beta = 0.0, double barrier = 0.0) {
+double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x, double beta = 0.0, double barrier = 0.0,
+                 double barrier_c = 1.0) {
   const double mu = mat.lameMu(), kappa = mat.lameLambda() + 2.0 * mu / 3.0;
   const auto rest = restElements(m);
   double w = 0.0;
@@ -98,7 +99,7 @@ double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x, 
     w += rest[e].volume * (mu * (F - R).squaredNorm() - mu / 3.0 * tr * tr);
     w += 0.5 * beta * kappa * rest[e].volume * (F.determinant() - 1.0) * (F.determinant() - 1.0);
     const double below = std::max(0.0, barrier - F.determinant());
-    w += 0.5 * kappa * rest[e].volume * below * below;
+    w += 0.5 * barrier_c * kappa * rest[e].volume * below * below;
     for (int i = 0; i < 4; ++i) {
       star_volume[m.tets()(e, i)] += rest[e].volume;
       star_current[m.tets()(e, i)] += rest[e].volume * F.determinant();
@@ -116,7 +117,7 @@ double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x, 
 /// R K_dev Rᵀ with K_dev = V Bᵀ C_dev B, Σ_n (1 − β) κ V̂_n b_n b_nᵀ with b_n assembled here, and
 /// β κ V_e ∂J_e/∂x ∂J_e/∂xᵀ per element.
 Eigen::MatrixXd denseAnpStiffness(const TetMesh& m, const ElasticMaterial& mat, const Points& x, double beta = 0.0,
-                                  double barrier = 0.0) {
+                                  double barrier = 0.0, double barrier_c = 1.0) {
   const double mu = mat.lameMu(), kappa = mat.lameLambda() + 2.0 * mu / 3.0;
   const int nn = m.numNodes();
   const auto rest = restElements(m);
@@ -149,7 +150,7 @@ Eigen::MatrixXd denseAnpStiffness(const TetMesh& m, const ElasticMaterial& mat, 
     const Eigen::Matrix3d cof = F.determinant() * F.inverse().transpose();
     Eigen::Matrix<double, 12, 1> dJ;
     for (int i = 0; i < 4; ++i) dJ.segment<3>(3 * i) = cof * rest[e].grads.row(i).transpose();
-    const double share = beta + (F.determinant() < barrier ? 1.0 : 0.0);
+    const double share = beta + (F.determinant() < barrier ? barrier_c : 0.0);
     const Eigen::Matrix<double, 12, 12> Kv = share * kappa * rest[e].volume * dJ * dJ.transpose();
     for (int i = 0; i < 4; ++i)
       for (int j = 0; j < 4; ++j) K.block<3, 3>(3 * m.tets()(e, i), 3 * m.tets()(e, j)) += Kv.block<3, 3>(3 * i, 3 * j);
@@ -244,13 +245,14 @@ TEST(AnpTetFem, ForcesAreTheNegativeGradientOfTheAnpEnergy) {
   }
   // β = 0, β = 0.3, and the inversion barrier at a ratio about half the compressed elements are below.
   struct Case {
-    double beta, barrier;
+    double beta, barrier, barrier_c;
     const Points* x;
   };
-  for (const Case& c : {Case{0.0, 0.0, &x}, Case{0.3, 0.0, &x}, Case{0.0, 0.75, &compressed}}) {
-    SCOPED_TRACE(testing::Message() << "beta " << c.beta << " barrier " << c.barrier);
+  for (const Case& c : {Case{0.0, 0.0, 1.0, &x}, Case{0.3, 0.0, 1.0, &x}, Case{0.0, 0.75, 1.0, &compressed},
+                        Case{0.1, 0.75, 7.0, &compressed}}) {
+    SCOPED_TRACE(testing::Message() << "beta " << c.beta << " barrier " << c.barrier << " x" << c.barrier_c);
     fem.setElementVolumeFraction(c.beta);
-    fem.setInversionBarrier(c.barrier);
+    fem.setInversionBarrier(c.barrier, c.barrier_c);
     const Eigen::VectorXd f = forcesAt(fem, *c.x);
     if (c.barrier > 0) {
       EXPECT_GT(fem.barrierActiveElements(), m.numTets() / 5);
@@ -263,17 +265,20 @@ TEST(AnpTetFem, ForcesAreTheNegativeGradientOfTheAnpEnergy) {
       Points xp = *c.x, xm = *c.x;
       xp(i / 3, i % 3) += h;
       xm(i / 3, i % 3) -= h;
-      grad[i] = (anpEnergy(m, mat, xp, c.beta, c.barrier) - anpEnergy(m, mat, xm, c.beta, c.barrier)) / (2 * h);
+      grad[i] = (anpEnergy(m, mat, xp, c.beta, c.barrier, c.barrier_c) -
+                 anpEnergy(m, mat, xm, c.beta, c.barrier, c.barrier_c)) /
+                (2 * h);
     }
     EXPECT_LT((f + grad).norm(), 1e-5 * f.norm()) << "|f| " << f.norm() << " |grad W| " << grad.norm();
     EXPECT_GT(f.norm(), 0.0);
     // The stiffness, with the barrier's elements, equals the dense reference.
     const Eigen::MatrixXd K(stiffnessAt(fem, *c.x));
-    EXPECT_LT((K - denseAnpStiffness(m, mat, *c.x, c.beta, c.barrier)).norm(), 1e-10 * K.norm());
+    EXPECT_LT((K - denseAnpStiffness(m, mat, *c.x, c.beta, c.barrier, c.barrier_c)).norm(), 1e-10 * K.norm());
   }
   fem.setInversionBarrier(0.0);
   EXPECT_THROW(fem.setInversionBarrier(1.0), std::invalid_argument);
   EXPECT_THROW(fem.setInversionBarrier(-0.1), std::invalid_argument);
+  EXPECT_THROW(fem.setInversionBarrier(0.3, 0.0), std::invalid_argument);
   fem.setElementVolumeFraction(0.0);
   forcesAt(fem, x);
   EXPECT_THROW(fem.setElementVolumeFraction(1.5), std::invalid_argument);

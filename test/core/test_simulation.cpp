@@ -103,12 +103,15 @@ simulation:
   element: anp
   anp_element_volume_fraction: 0.1
   anp_inversion_barrier: 0.5
+  anp_inversion_barrier_stiffness: 30
   multigrid_smoother: chebyshev
   multigrid_chebyshev_ratio: 20
 )"));
   EXPECT_EQ(s.element, SimulationSettings::Element::kAnpTet);
   EXPECT_DOUBLE_EQ(s.anp_element_volume_fraction, 0.1);
   EXPECT_DOUBLE_EQ(s.anp_inversion_barrier, 0.5);
+  EXPECT_DOUBLE_EQ(s.anp_inversion_barrier_stiffness, 30);
+  EXPECT_DOUBLE_EQ(SimulationSettings{}.anp_inversion_barrier_stiffness, 100);
   EXPECT_EQ(s.solver.multigrid.smoother, MultigridOptions::Smoother::kChebyshev);
   EXPECT_DOUBLE_EQ(s.solver.multigrid.chebyshev_ratio, 20);
   EXPECT_EQ(SimulationSettings{}.element, SimulationSettings::Element::kLinearTet);

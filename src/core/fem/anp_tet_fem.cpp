@@ -96,7 +96,7 @@ void AnpTetFem::updateStiffnessWeights() {
   const int nt = static_cast<int>(tets_.rows());
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < nt; ++e)
-    element_stiffness_[e] = kappa_ * er[e] * be[e] * volumes_[e] * (beta_ + (volume_ratio_[e] < barrier_j_ ? 1.0 : 0.0));
+    element_stiffness_[e] = kappa_ * er[e] * be[e] * volumes_[e] * (beta_ + (volume_ratio_[e] < barrier_j_ ? barrier_c_ : 0.0));
 }
 
 void AnpTetFem::setElementVolumeFraction(double beta) {
@@ -107,11 +107,15 @@ void AnpTetFem::setElementVolumeFraction(double beta) {
   updateStiffnessWeights();
 }
 
-void AnpTetFem::setInversionBarrier(double volume_ratio) {
+void AnpTetFem::setInversionBarrier(double volume_ratio, double stiffness_factor) {
   if (!(volume_ratio >= 0.0 && volume_ratio < 1.0))
     throw std::invalid_argument("AnpTetFem: inversion barrier at volume ratio " + std::to_string(volume_ratio) +
-                                " is outside [0, 1) (0 = off; e.g. 0.5: an element resists compression below half its volume)");
+                                " is outside [0, 1) (0 = off; e.g. 0.3: an element resists compression below 30 % of its volume)");
+  if (!(stiffness_factor > 0.0) || !std::isfinite(stiffness_factor))
+    throw std::invalid_argument("AnpTetFem: inversion barrier stiffness factor " + std::to_string(stiffness_factor) +
+                                " must be positive and finite (a multiple of the bulk modulus, e.g. 100)");
   barrier_j_ = volume_ratio;
+  barrier_c_ = stiffness_factor;
   updateStiffnessWeights();
 }
 
@@ -165,9 +169,9 @@ void AnpTetFem::update(const Points& x, Eigen::VectorXd& f) {
     nodal_pressure_[n] = (1.0 - beta_) * kappa_ * s * (j - 1.0);
     nodal_stiffness_[n] = (1.0 - beta_) * kappa_ * s * nodal_rest_volume_[n];
   }
-  // Element forces −V_e (p̄_e + β κ_e (J_e − 1) − κ_e (J_b − J_e)₊) ∂J_e/∂x_i, and the weight
-  // of each element's own Gauss–Newton term, κ_e V_e (β + [J_e < J_b]).
-  const double jb = barrier_j_;
+  // Element forces −V_e (p̄_e + β κ_e (J_e − 1) − c κ_e (J_b − J_e)₊) ∂J_e/∂x_i, and the weight
+  // of each element's own Gauss–Newton term, κ_e V_e (β + c [J_e < J_b]).
+  const double jb = barrier_j_, cb = barrier_c_;
   int barrier_active = 0;
 #pragma omp parallel for schedule(static) reduction(+ : barrier_active)
   for (int e = 0; e < nt; ++e) {
@@ -176,8 +180,8 @@ void AnpTetFem::update(const Points& x, Eigen::VectorXd& f) {
     const double ke = kappa_ * er[e] * be[e], j = volume_ratio_[e];
     const bool active = j < jb;
     barrier_active += active;
-    element_stiffness_[e] = ke * volumes_[e] * (beta_ + (active ? 1.0 : 0.0));
-    const double w = -volumes_[e] * (pbar + beta_ * ke * (j - 1.0) - (active ? ke * (jb - j) : 0.0));
+    element_stiffness_[e] = ke * volumes_[e] * (beta_ + (active ? cb : 0.0));
+    const double w = -volumes_[e] * (pbar + beta_ * ke * (j - 1.0) - (active ? cb * ke * (jb - j) : 0.0));
     const double* d = &dJ_[12 * static_cast<size_t>(e)];
     double* fe = &elem_forces_[12 * static_cast<size_t>(e)];
     for (int k = 0; k < 12; ++k) fe[k] = w * d[k];
@@ -233,7 +237,7 @@ void AnpTetFem::addVolumetricStiffness(double scale, SparseMatrix& A) const {
 }
 
 void AnpTetFem::addElementVolumeStiffness(double scale, SparseMatrix& A) const {
-  // κ_e V_e (β + [J_e < J_b]) ∂J_e/∂x_i ∂J_e/∂x_jᵀ, gathered per row node from its elements.
+  // κ_e V_e (β + c [J_e < J_b]) ∂J_e/∂x_i ∂J_e/∂x_jᵀ, gathered per row node from its elements.
   const BlockPattern& wide = deviatoric_.pattern();
   const int nn = star_.numNodes();
   double* const values = A.valuePtr();

@@ -68,7 +68,9 @@ void SimulationSettings::validate() const {
   if (!(anp_element_volume_fraction >= 0 && anp_element_volume_fraction <= 1))
     invalid("anp_element_volume_fraction", anp_element_volume_fraction, "a share in [0, 1], e.g. 0 (pure ANP)");
   if (!(anp_inversion_barrier >= 0 && anp_inversion_barrier < 1))
-    invalid("anp_inversion_barrier", anp_inversion_barrier, "a volume ratio in [0, 1), e.g. 0.5 (0 = off)");
+    invalid("anp_inversion_barrier", anp_inversion_barrier, "a volume ratio in [0, 1), e.g. 0.3 (0 = off)");
+  if (!(anp_inversion_barrier_stiffness > 0) || !std::isfinite(anp_inversion_barrier_stiffness))
+    invalid("anp_inversion_barrier_stiffness", anp_inversion_barrier_stiffness, "a positive multiple of the bulk modulus, e.g. 100");
   for (const auto& [region, e] : region_youngs_modulus_pa)
     if (!(e > 0) || !std::isfinite(e))
       invalid(("region_youngs_modulus_pa[" + std::to_string(region) + "]").c_str(), e, "a positive modulus in Pa");
@@ -97,7 +99,7 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
             {"youngs_modulus_pa", "poisson_ratio", "density_kg_per_m3", "time_step_s", "mass_damping_per_s",
              "stiffness_damping_s", "solver", "solver_relative_tolerance", "solver_max_iterations",
              "multigrid_smoother", "multigrid_chebyshev_ratio", "multigrid_smoothing_steps", "multigrid_coarse_update_interval",
-             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "element", "anp_element_volume_fraction", "anp_inversion_barrier", "sliding", "settle_time_step_s",
+             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "element", "anp_element_volume_fraction", "anp_inversion_barrier", "anp_inversion_barrier_stiffness", "sliding", "settle_time_step_s",
              "settle_increment_tolerance_mm", "settle_max_steps", "tissue_youngs_modulus_pa"},
             f, "simulation");
   const double inf = std::numeric_limits<double>::infinity();
@@ -139,6 +141,9 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
         numberIn(m["anp_element_volume_fraction"], f, key("anp_element_volume_fraction"), 0, 1);
   if (m["anp_inversion_barrier"])
     s.anp_inversion_barrier = numberIn(m["anp_inversion_barrier"], f, key("anp_inversion_barrier"), 0, 1, false, true);
+  if (m["anp_inversion_barrier_stiffness"])
+    s.anp_inversion_barrier_stiffness =
+        numberIn(m["anp_inversion_barrier_stiffness"], f, key("anp_inversion_barrier_stiffness"), 0, 1e6, true, false);
   if (m["volume_term"])
     s.volume_term = choice(m["volume_term"], f, key("volume_term"), {"trace", "determinant"}) == "trace"
                         ? CorotatedTetFem::VolumeTerm::kTrace
@@ -208,7 +213,7 @@ SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel
     auto anp = std::make_unique<AnpTetFem>(model.mesh, settings.material);
     anp->setElementYoungsModuli(elementYoungsModuli(model.mesh, settings));  // empty: E0 everywhere
     anp->setElementVolumeFraction(settings.anp_element_volume_fraction);
-    anp->setInversionBarrier(settings.anp_inversion_barrier);
+    anp->setInversionBarrier(settings.anp_inversion_barrier, settings.anp_inversion_barrier_stiffness);
     elements = std::move(anp);
   } else {
     auto tet = std::make_unique<CorotatedTetFem>(model.mesh, settings.material);

@@ -94,6 +94,8 @@ struct SimulationSettings {
   /// With element kAnpTet: the volume ratio J_b ∈ [0, 1) below which an element resists further
   /// compression with the bulk modulus (AnpTetFem::setInversionBarrier; 0 = off).
   double anp_inversion_barrier = 0.0;
+  /// Its stiffness as a multiple of the bulk modulus (c of AnpTetFem::setInversionBarrier).
+  double anp_inversion_barrier_stiffness = 100.0;
   /// Sliding of the chest-wall nodes on the wall (sliding/chest_wall_sliding.h) after the fixed-wall
   /// settling; needs stiffening and a fixed node set. Off by default: as the supine breast spreads
   /// beyond its prone footprint, the skin next to the rim falls onto the chest wall and the elements
@@ -120,7 +122,8 @@ Eigen::VectorXd elementYoungsModuli(const TetMesh& mesh, const SimulationSetting
 ///   multigrid_chebyshev_ratio, multigrid_smoothing_steps,
 ///   multigrid_coarse_update_interval, multigrid_max_coarsest_elements, fixed_node_set, gravity_mps2, stiffening,
 ///   volume_term (trace | determinant), element (linear | anp), anp_element_volume_fraction (0..1),
-///   anp_inversion_barrier (volume ratio in [0, 1), 0 = off), sliding,
+///   anp_inversion_barrier (volume ratio in [0, 1), 0 = off), anp_inversion_barrier_stiffness (× bulk modulus),
+///   sliding,
 ///   settle_time_step_s, settle_increment_tolerance_mm, settle_max_steps, tissue_youngs_modulus_pa
 ///   (a map tissue name → Pa: {fat, fibroglandular, skin, lesion}, e.g. {lesion: 20000}; see
 ///   SimulationSettings::region_youngs_modulus_pa).
