@@ -275,7 +275,39 @@ TEST(AnpTetFem, ForcesAreTheNegativeGradientOfTheAnpEnergy) {
     const Eigen::MatrixXd K(stiffnessAt(fem, *c.x));
     EXPECT_LT((K - denseAnpStiffness(m, mat, *c.x, c.beta, c.barrier, c.barrier_c)).norm(), 1e-10 * K.norm());
   }
+  // J_b = 0 is off, also for an inverted element: the volumetric forces (ANP's minus the
+  // deviatoric part's) are the nodal term's alone.
+  Points inverted = m.nodes();
+  const Eigen::RowVector3d face = (m.nodes().row(m.tets()(0, 1)) + m.nodes().row(m.tets()(0, 2)) + m.nodes().row(m.tets()(0, 3))) / 3.0;
+  inverted.row(m.tets()(0, 0)) = 2.0 * face - m.nodes().row(m.tets()(0, 0));  // mirrored through the opposite face
   fem.setInversionBarrier(0.0);
+  fem.setElementVolumeFraction(0.0);
+  const Eigen::VectorXd f_inv = forcesAt(fem, inverted);
+  EXPECT_EQ(fem.barrierActiveElements(), 0);
+  CorotatedTetFem deviatoric(m, mat);
+  deviatoric.setVolumeTerm(CorotatedTetFem::VolumeTerm::kNone);
+  const Eigen::VectorXd f_vol = f_inv - forcesAt(deviatoric, inverted);
+  const double kappa = mat.lameLambda() + 2.0 * mat.lameMu() / 3.0;
+  auto nodalEnergy = [&](const Points& y) {  // Σ_n κ/2 V̂_n (J̄_n − 1)²
+    const auto rest = restElements(m);
+    std::vector<double> sv(m.numNodes(), 0.0), sc(m.numNodes(), 0.0);
+    for (int e = 0; e < m.numTets(); ++e)
+      for (int i = 0; i < 4; ++i) {
+        sv[m.tets()(e, i)] += rest[e].volume;
+        sc[m.tets()(e, i)] += rest[e].volume * deformationGradient(m, rest[e], e, y).determinant();
+      }
+    double w = 0.0;
+    for (int n = 0; n < m.numNodes(); ++n) w += 0.5 * kappa * sv[n] / 4.0 * std::pow(sc[n] / sv[n] - 1.0, 2);
+    return w;
+  };
+  Eigen::VectorXd grad_vol(f_vol.size());
+  for (int i = 0; i < f_vol.size(); ++i) {
+    Points xp = inverted, xm = inverted;
+    xp(i / 3, i % 3) += 1e-7;
+    xm(i / 3, i % 3) -= 1e-7;
+    grad_vol[i] = (nodalEnergy(xp) - nodalEnergy(xm)) / 2e-7;
+  }
+  EXPECT_LT((f_vol + grad_vol).norm(), 1e-5 * f_vol.norm()) << "|f_vol| " << f_vol.norm();
   EXPECT_THROW(fem.setInversionBarrier(1.0), std::invalid_argument);
   EXPECT_THROW(fem.setInversionBarrier(-0.1), std::invalid_argument);
   EXPECT_THROW(fem.setInversionBarrier(0.3, 0.0), std::invalid_argument);

@@ -96,7 +96,7 @@ void AnpTetFem::updateStiffnessWeights() {
   const int nt = static_cast<int>(tets_.rows());
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < nt; ++e)
-    element_stiffness_[e] = kappa_ * er[e] * be[e] * volumes_[e] * (beta_ + (volume_ratio_[e] < barrier_j_ ? barrier_c_ : 0.0));
+    element_stiffness_[e] = kappa_ * er[e] * be[e] * volumes_[e] * (beta_ + (barrierActive(volume_ratio_[e]) ? barrier_c_ : 0.0));
 }
 
 void AnpTetFem::setElementVolumeFraction(double beta) {
@@ -178,7 +178,7 @@ void AnpTetFem::update(const Points& x, Eigen::VectorXd& f) {
     const double pbar = 0.25 * (nodal_pressure_[tets_(e, 0)] + nodal_pressure_[tets_(e, 1)] + nodal_pressure_[tets_(e, 2)] +
                                 nodal_pressure_[tets_(e, 3)]);
     const double ke = kappa_ * er[e] * be[e], j = volume_ratio_[e];
-    const bool active = j < jb;
+    const bool active = jb > 0.0 && j < jb;  // J_b = 0 is off, also for inverted elements (J < 0)
     barrier_active += active;
     element_stiffness_[e] = ke * volumes_[e] * (beta_ + (active ? cb : 0.0));
     const double w = -volumes_[e] * (pbar + beta_ * ke * (j - 1.0) - (active ? cb * ke * (jb - j) : 0.0));

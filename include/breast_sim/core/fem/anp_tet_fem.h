@@ -117,6 +117,7 @@ class AnpTetFem : public ElementFormulation {
   std::vector<int> wide_offset_;      // per star_ entry (a, k) + 1: start in wide_slot_
   std::vector<int> wide_slot_;        // for entry (a, k), n = neighbour(k): the two-ring slots in
                                       // a's rows of n's star nodes, in n's star order
+  bool barrierActive(double volume_ratio) const { return barrier_j_ > 0.0 && volume_ratio < barrier_j_; }
   void updateStiffnessWeights();  // nodal_stiffness_ and element_stiffness_ for the current factors
   void addVolumetricStiffness(double scale, SparseMatrix& A) const;
   void addElementVolumeStiffness(double scale, SparseMatrix& A) const;
