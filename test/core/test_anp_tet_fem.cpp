@@ -74,6 +74,45 @@ Eigen::Matrix3d deformationGradient(const TetMesh& m, const RestElement& r, int 
   return F;
 }
 
+/// The stars' volume ratios J̄_n (current over rest volume of node n's elements), and the stars'
+/// rest volumes Σ_{e∋n} V_e [m³] in `star_volume`.
+std::vector<double> starVolumeRatios(const TetMesh& m, const Points& x, std::vector<double>& star_volume) {
+  const auto rest = restElements(m);
+  std::vector<double> current(m.numNodes(), 0.0);
+  star_volume.assign(m.numNodes(), 0.0);
+  for (int e = 0; e < m.numTets(); ++e) {
+    const double j = deformationGradient(m, rest[e], e, x).determinant();
+    for (int i = 0; i < 4; ++i) {
+      star_volume[m.tets()(e, i)] += rest[e].volume;
+      current[m.tets()(e, i)] += rest[e].volume * j;
+    }
+  }
+  for (int n = 0; n < m.numNodes(); ++n) current[n] = star_volume[n] > 0 ? current[n] / star_volume[n] : 1.0;
+  return current;
+}
+
+/// The nodal volumetric energy Σ_n κ/2 V̂_n (J̄_n − 1)², V̂_n = star volume / 4 [J].
+double nodalVolumeEnergy(const TetMesh& m, double kappa, const Points& x) {
+  std::vector<double> star_volume;
+  const std::vector<double> jbar = starVolumeRatios(m, x, star_volume);
+  double w = 0.0;
+  for (int n = 0; n < m.numNodes(); ++n) w += 0.5 * kappa * star_volume[n] / 4.0 * (jbar[n] - 1.0) * (jbar[n] - 1.0);
+  return w;
+}
+
+/// −∇W by central differences along every DOF (step h [m]).
+template <typename Energy>
+Eigen::VectorXd centralGradient(const Energy& energy, const Points& x, double h = 1e-7) {
+  Eigen::VectorXd grad(3 * x.rows());
+  for (Eigen::Index i = 0; i < grad.size(); ++i) {
+    Points xp = x, xm = x;
+    xp(i / 3, i % 3) += h;
+    xm(i / 3, i % 3) -= h;
+    grad[i] = (energy(xp) - energy(xm)) / (2 * h);
+  }
+  return grad;
+}
+
 /// The rotation of F's polar decomposition by SVD, det R = +1 (the reference for rotationsOf).
 Eigen::Matrix3d polarRotation(const Eigen::Matrix3d& F) {
   Eigen::JacobiSVD<Eigen::Matrix3d> svd(F, Eigen::ComputeFullU | Eigen::ComputeFullV);
@@ -90,7 +129,6 @@ double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x, 
   const double mu = mat.lameMu(), kappa = mat.lameLambda() + 2.0 * mu / 3.0;
   const auto rest = restElements(m);
   double w = 0.0;
-  std::vector<double> star_volume(m.numNodes(), 0.0), star_current(m.numNodes(), 0.0);
   for (int e = 0; e < m.numTets(); ++e) {
     const Eigen::Matrix3d F = deformationGradient(m, rest[e], e, x);
     const Eigen::Matrix3d R = polarRotation(F);
@@ -100,16 +138,8 @@ double anpEnergy(const TetMesh& m, const ElasticMaterial& mat, const Points& x, 
     w += 0.5 * beta * kappa * rest[e].volume * (F.determinant() - 1.0) * (F.determinant() - 1.0);
     const double below = std::max(0.0, barrier - F.determinant());
     w += 0.5 * barrier_c * kappa * rest[e].volume * below * below;
-    for (int i = 0; i < 4; ++i) {
-      star_volume[m.tets()(e, i)] += rest[e].volume;
-      star_current[m.tets()(e, i)] += rest[e].volume * F.determinant();
-    }
   }
-  for (int n = 0; n < m.numNodes(); ++n) {
-    if (star_volume[n] == 0.0) continue;
-    const double jbar = star_current[n] / star_volume[n];
-    w += 0.5 * (1.0 - beta) * kappa * star_volume[n] / 4.0 * (jbar - 1.0) * (jbar - 1.0);
-  }
+  w += nodalVolumeEnergy(m, (1.0 - beta) * kappa, x);
   return w;
 }
 
@@ -259,16 +289,8 @@ TEST(AnpTetFem, ForcesAreTheNegativeGradientOfTheAnpEnergy) {
       EXPECT_LT(fem.barrierActiveElements(), m.numTets() * 4 / 5);
     }
     // Central differences of the reference energy along every DOF.
-    const double h = 1e-7;
-    Eigen::VectorXd grad(f.size());
-    for (int i = 0; i < f.size(); ++i) {
-      Points xp = *c.x, xm = *c.x;
-      xp(i / 3, i % 3) += h;
-      xm(i / 3, i % 3) -= h;
-      grad[i] = (anpEnergy(m, mat, xp, c.beta, c.barrier, c.barrier_c) -
-                 anpEnergy(m, mat, xm, c.beta, c.barrier, c.barrier_c)) /
-                (2 * h);
-    }
+    const Eigen::VectorXd grad =
+        centralGradient([&](const Points& y) { return anpEnergy(m, mat, y, c.beta, c.barrier, c.barrier_c); }, *c.x);
     EXPECT_LT((f + grad).norm(), 1e-5 * f.norm()) << "|f| " << f.norm() << " |grad W| " << grad.norm();
     EXPECT_GT(f.norm(), 0.0);
     // The stiffness, with the barrier's elements, equals the dense reference.
@@ -288,25 +310,7 @@ TEST(AnpTetFem, ForcesAreTheNegativeGradientOfTheAnpEnergy) {
   deviatoric.setVolumeTerm(CorotatedTetFem::VolumeTerm::kNone);
   const Eigen::VectorXd f_vol = f_inv - forcesAt(deviatoric, inverted);
   const double kappa = mat.lameLambda() + 2.0 * mat.lameMu() / 3.0;
-  auto nodalEnergy = [&](const Points& y) {  // Σ_n κ/2 V̂_n (J̄_n − 1)²
-    const auto rest = restElements(m);
-    std::vector<double> sv(m.numNodes(), 0.0), sc(m.numNodes(), 0.0);
-    for (int e = 0; e < m.numTets(); ++e)
-      for (int i = 0; i < 4; ++i) {
-        sv[m.tets()(e, i)] += rest[e].volume;
-        sc[m.tets()(e, i)] += rest[e].volume * deformationGradient(m, rest[e], e, y).determinant();
-      }
-    double w = 0.0;
-    for (int n = 0; n < m.numNodes(); ++n) w += 0.5 * kappa * sv[n] / 4.0 * std::pow(sc[n] / sv[n] - 1.0, 2);
-    return w;
-  };
-  Eigen::VectorXd grad_vol(f_vol.size());
-  for (int i = 0; i < f_vol.size(); ++i) {
-    Points xp = inverted, xm = inverted;
-    xp(i / 3, i % 3) += 1e-7;
-    xm(i / 3, i % 3) -= 1e-7;
-    grad_vol[i] = (nodalEnergy(xp) - nodalEnergy(xm)) / 2e-7;
-  }
+  const Eigen::VectorXd grad_vol = centralGradient([&](const Points& y) { return nodalVolumeEnergy(m, kappa, y); }, inverted);
   EXPECT_LT((f_vol + grad_vol).norm(), 1e-5 * f_vol.norm()) << "|f_vol| " << f_vol.norm();
   EXPECT_THROW(fem.setInversionBarrier(1.0), std::invalid_argument);
   EXPECT_THROW(fem.setInversionBarrier(-0.1), std::invalid_argument);
@@ -316,14 +320,9 @@ TEST(AnpTetFem, ForcesAreTheNegativeGradientOfTheAnpEnergy) {
   EXPECT_THROW(fem.setElementVolumeFraction(1.5), std::invalid_argument);
   EXPECT_THROW(fem.setElementVolumeFraction(std::nan("")), std::invalid_argument);
   // The nodal volume ratios are the stars' volume ratios.
-  const auto rest = restElements(m);
-  std::vector<double> sv(m.numNodes(), 0.0), sc(m.numNodes(), 0.0);
-  for (int e = 0; e < m.numTets(); ++e)
-    for (int i = 0; i < 4; ++i) {
-      sv[m.tets()(e, i)] += rest[e].volume;
-      sc[m.tets()(e, i)] += rest[e].volume * deformationGradient(m, rest[e], e, x).determinant();
-    }
-  for (int n = 0; n < m.numNodes(); ++n) EXPECT_NEAR(fem.nodalVolumeRatios()[n], sc[n] / sv[n], 1e-12);
+  std::vector<double> star_volume;
+  const std::vector<double> jbar = starVolumeRatios(m, x, star_volume);
+  for (int n = 0; n < m.numNodes(); ++n) EXPECT_NEAR(fem.nodalVolumeRatios()[n], jbar[n], 1e-12);
 }
 
 TEST(AnpTetFem, SparseTwoRingStiffnessEqualsTheDenseReference) {
