@@ -91,12 +91,12 @@ void AnpTetFem::updateStiffnessWeights() {
       const int e = star_.incidentElement(k);
       s += star_weight_[k] * er[e] * be[e];
     }
-    nodal_stiffness_[n] = (1.0 - beta_) * kappa_ * s * nodal_rest_volume_[n];
+    nodal_stiffness_[n] = nodalWeight(n, s);
   }
   const int nt = static_cast<int>(tets_.rows());
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < nt; ++e)
-    element_stiffness_[e] = kappa_ * er[e] * be[e] * volumes_[e] * (beta_ + (barrierActive(volume_ratio_[e]) ? barrier_c_ : 0.0));
+    element_stiffness_[e] = elementWeight(e, er[e] * be[e], volume_ratio_[e]);
 }
 
 void AnpTetFem::setElementVolumeFraction(double beta) {
@@ -167,20 +167,20 @@ void AnpTetFem::update(const Points& x, Eigen::VectorXd& f) {
     if (k0 == k1) j = 1.0;
     nodal_volume_ratio_[n] = j;
     nodal_pressure_[n] = (1.0 - beta_) * kappa_ * s * (j - 1.0);
-    nodal_stiffness_[n] = (1.0 - beta_) * kappa_ * s * nodal_rest_volume_[n];
+    nodal_stiffness_[n] = nodalWeight(n, s);
   }
   // Element forces −V_e (p̄_e + β κ_e (J_e − 1) − c κ_e (J_b − J_e)₊) ∂J_e/∂x_i, and the weight
   // of each element's own Gauss–Newton term, κ_e V_e (β + c [J_e < J_b]).
-  const double jb = barrier_j_, cb = barrier_c_;
+  const double jb = barrier_j_, cb = barrier_c_;  // the barrier force below; its stiffness is elementWeight()
   int barrier_active = 0;
 #pragma omp parallel for schedule(static) reduction(+ : barrier_active)
   for (int e = 0; e < nt; ++e) {
     const double pbar = 0.25 * (nodal_pressure_[tets_(e, 0)] + nodal_pressure_[tets_(e, 1)] + nodal_pressure_[tets_(e, 2)] +
                                 nodal_pressure_[tets_(e, 3)]);
     const double ke = kappa_ * er[e] * be[e], j = volume_ratio_[e];
-    const bool active = jb > 0.0 && j < jb;  // J_b = 0 is off, also for inverted elements (J < 0)
+    const bool active = barrierActive(j);  // J_b = 0 is off, also for inverted elements (J < 0)
     barrier_active += active;
-    element_stiffness_[e] = ke * volumes_[e] * (beta_ + (active ? cb : 0.0));
+    element_stiffness_[e] = elementWeight(e, er[e] * be[e], j);
     const double w = -volumes_[e] * (pbar + beta_ * ke * (j - 1.0) - (active ? cb * ke * (jb - j) : 0.0));
     const double* d = &dJ_[12 * static_cast<size_t>(e)];
     double* fe = &elem_forces_[12 * static_cast<size_t>(e)];

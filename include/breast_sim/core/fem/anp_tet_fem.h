@@ -118,6 +118,12 @@ class AnpTetFem : public ElementFormulation {
   std::vector<int> wide_slot_;        // for entry (a, k), n = neighbour(k): the two-ring slots in
                                       // a's rows of n's star nodes, in n's star order
   bool barrierActive(double volume_ratio) const { return barrier_j_ > 0.0 && volume_ratio < barrier_j_; }
+  // The stiffness weights, one formula each for update() and updateStiffnessWeights(): node n with
+  // star-averaged modulus scale s, element e with its modulus scale and volume ratio J_e.
+  double nodalWeight(int n, double s) const { return (1.0 - beta_) * kappa_ * s * nodal_rest_volume_[n]; }
+  double elementWeight(int e, double scale, double j) const {
+    return kappa_ * scale * volumes_[e] * (beta_ + (barrierActive(j) ? barrier_c_ : 0.0));
+  }
   void updateStiffnessWeights();  // nodal_stiffness_ and element_stiffness_ for the current factors
   void addVolumetricStiffness(double scale, SparseMatrix& A) const;
   void addElementVolumeStiffness(double scale, SparseMatrix& A) const;
