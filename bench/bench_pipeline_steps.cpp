@@ -188,11 +188,14 @@ int main(int argc, char** argv) {
         char b[64];
         if (!r.ran) return std::string("-");
         std::snprintf(b, sizeof b, "%d(%ld)%s", r.steps, r.reversed_steps, r.converged ? "" : r.stuck ? "S" : "X");
+        if (r.coarse_elements > 0) return std::to_string(r.coarse_steps) + "(" + std::to_string(r.coarse_reversed_steps) + ")c+" + b;
         return std::string(b);
       };
-      const int total = g.steps + sl.steps + mo.steps;
+      // With coarse_start the gravity and sliding stages ran on the coarse model, and so did the
+      // morphing stage's first coarse_steps (their solves are cheaper; the seconds say by how much).
+      const int total = g.steps + sl.steps + mo.coarse_steps + mo.steps;
       // Every trial step costs a solve, the reverted ones too.
-      const long solves = total + g.reversed_steps + sl.reversed_steps + mo.reversed_steps;
+      const long solves = total + g.reversed_steps + sl.reversed_steps + mo.coarse_reversed_steps + mo.reversed_steps;
       std::printf("%-14s %-12s %-14s %-14s %-4d/%-4ld %-11.3f %-11.3f %-11.3f %-8.2f %-4d %-9.3f %-8.2f %-8.2f\n",
                   v.name.c_str(), stage(g).c_str(), stage(sl).c_str(), stage(mo).c_str(), total, solves,
                   fm.surface.model_to_target.mean_m * 1e3, fm.surface.model_to_target.p95_m * 1e3, mo.surface_p95_m * 1e3,
@@ -203,7 +206,9 @@ int main(int argc, char** argv) {
       auto stageJson = [](const StageReport& r) {
         return nlohmann::json{{"ran", r.ran},       {"converged", r.converged},           {"stuck", r.stuck},
                               {"steps", r.steps},   {"reversed", r.reversed_steps},       {"seconds", r.seconds},
-                              {"alpha_per_pa", r.final_alpha_per_pa}, {"max_slide_mm", r.max_slide_m * 1e3}};
+                              {"alpha_per_pa", r.final_alpha_per_pa}, {"max_slide_mm", r.max_slide_m * 1e3},
+                              {"elements", r.elements}, {"coarse_steps", r.coarse_steps},
+                              {"coarse_reversed", r.coarse_reversed_steps}, {"coarse_elements", r.coarse_elements}};
       };
       rows.push_back({{"elements", m.mesh.numTets()},
                       {"variant", v.name},
@@ -220,11 +225,17 @@ int main(int argc, char** argv) {
                       {"volume_change_percent", fm.volume_change_percent},
                       {"inverted", fm.inverted_elements},
                       {"lesion_shift_from_first_mm", lesion_diff * 1e3},
+                      {"lesions_mm", [&] {
+                         nlohmann::json l = nlohmann::json::array();
+                         for (Eigen::Index i = 0; i < lesions.rows(); ++i)
+                           l.push_back({lesions(i, 0) * 1e3, lesions(i, 1) * 1e3, lesions(i, 2) * 1e3});
+                         return l;
+                       }()},
                       {"seconds", seconds},
                       {"ratio_to_first", seconds / base_seconds}});
     }
   }
-  std::printf("\nsteps(reversed), X = not converged, S = stuck; skin mean/p95: all skin -> target [mm]; pulled p95: the "
+  std::printf("\nsteps(reversed), X = not converged, S = stuck; n(r)c+: first on the coarse model (coarse_start); skin mean/p95: all skin -> target [mm]; pulled p95: the "
               "morphing's vertices [mm]; lesion d: largest lesion position change from the first variant [mm]\n");
   if (!json_path.empty()) std::ofstream(json_path) << rows.dump(2) << '\n';
   return 0;

@@ -627,3 +627,155 @@ TEST(Pipeline, PhantomWithSlidingReachesItsSupineTargetAndItsStateRestores) {
   // the two steps sit on either side of a renewal; a lost slip state gave 50 µm.
   EXPECT_LT((pipe.simulator().state().displacement_m - after_one).cwiseAbs().maxCoeff(), 1e-6);
 }
+
+// --- Nested iteration (coarse_start): a pipeline's state carried to another mesh of the same case. ---
+
+TEST(CoarseStart, FromTheSameModelTheStateIsCarriedOverExactly) {
+  // Two pipelines on one mesh: every carried quantity must come back as it was (nodes are vertices of
+  // their own elements, centroids inside them, each pulled vertex its own nearest coarse vertex).
+  const SmallPhantom& p = phantom();
+  const PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  ProneToSupinePipeline a(p.c, p.m, s), b(p.c, p.m, s);
+  a.runGravity();
+  for (int k = 0; k < 5; ++k) a.iterate();
+  ASSERT_TRUE(a.wallSlip() && a.morphing());
+  b.startFrom(a);
+  const SimulationState &sa = a.simulator().state(), &sb = b.simulator().state();
+  EXPECT_LT((sb.displacement_m - sa.displacement_m).cwiseAbs().maxCoeff(), 1e-12);
+  EXPECT_LT((sb.velocity_mps - sa.velocity_mps).cwiseAbs().maxCoeff(), 1e-12);
+  EXPECT_EQ(b.modulusFactors(), a.modulusFactors());
+  EXPECT_EQ(b.stiffening().controller().alpha(), a.stiffening().controller().alpha());
+  EXPECT_EQ(b.simulator().params().gravity_mps2, a.simulator().params().gravity_mps2);
+  // The wall nodes stick where they are.
+  const Points xb = b.positions();
+  const std::vector<int>& wall = b.wallSlip()->nodes();
+  for (size_t i = 0; i < wall.size(); ++i)
+    EXPECT_LT((b.wallSlip()->stickPoints().row(static_cast<Eigen::Index>(i)) - xb.row(wall[i])).norm(), 1e-12);
+  // The morphing forces: each vertex's own traction, up to the 1/d² weights of its three next
+  // neighbours against the 1 µm² floor (relative 1e-6 at mm spacing).
+  ASSERT_TRUE(b.morphing());
+  ASSERT_EQ(b.morphing()->vertices(), a.morphing()->vertices());
+  const Points &fa = a.morphing()->accumulatedForces(), &fb = b.morphing()->accumulatedForces();
+  ASSERT_GT(fa.norm(), 0.0);
+  EXPECT_LT((fb - fa).norm(), 1e-5 * fa.norm());
+  // The next step of both is the same step.
+  a.iterate();
+  b.iterate();
+  EXPECT_LT((b.simulator().state().displacement_m - a.simulator().state().displacement_m).cwiseAbs().maxCoeff(), 1e-9);
+}
+
+TEST(CoarseStart, AnAffineDisplacementIsCarriedExactlyToAnotherMeshAndTheForcesKeepTheirTotal) {
+  const SmallPhantom& coarse = phantom();  // 2000 elements
+  const SmallPhantom fine(5000);
+  PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  ProneToSupinePipeline a(coarse.c, coarse.m, s), b(fine.c, fine.m, s);
+  a.runGravity();
+  for (int k = 0; k < 3; ++k) a.iterate();
+  // Replace the coarse displacement by an affine field (the forces and the rest stay).
+  PipelineState st = a.state();
+  Eigen::Matrix3d A;
+  A << 0.01, -0.02, 0.005, 0.03, 0.0, -0.01, 0.002, 0.015, -0.02;
+  const Eigen::Vector3d t(1e-3, -2e-3, 0.5e-3);
+  for (int n = 0; n < coarse.m.mesh.numNodes(); ++n)
+    st.simulation.displacement_m.segment<3>(3 * n) = A * coarse.m.mesh.nodes().row(n).transpose() + t;
+  a.restore(st);
+  b.startFrom(a);
+  // Exact at the fine nodes inside the coarse mesh; the ones outside take the value at the closest
+  // point of the coarse surface (how far off that is depends on the distance, checked loosely).
+  const PointEmbedding where(coarse.m.mesh, fine.m.mesh.nodes(), {}, 5e-3);
+  const Eigen::VectorXd& u = b.simulator().state().displacement_m;
+  int inside = 0;
+  for (int n = 0; n < fine.m.mesh.numNodes(); ++n) {
+    const Eigen::Vector3d expected = A * fine.m.mesh.nodes().row(n).transpose() + t;
+    const double err = (u.segment<3>(3 * n) - expected).norm();
+    const double outside = where.points()[static_cast<size_t>(n)].outside_distance_m;
+    if (outside == 0.0) {
+      ++inside;
+      EXPECT_LT(err, 1e-12) << "node " << n;
+    } else {
+      EXPECT_LT(err, 0.05 * outside + 1e-12) << "node " << n << ", " << outside * 1e3 << " mm outside";  // ‖A‖ ≈ 0.04
+    }
+  }
+  EXPECT_GT(inside, fine.m.mesh.numNodes() / 2);
+  // The morphing tractions keep their total force within a few per cent (the two skins' areas differ
+  // by their facet approximation).
+  ASSERT_TRUE(b.morphing());
+  const Eigen::RowVector3d fa = a.morphing()->accumulatedForces().colwise().sum();
+  const Eigen::RowVector3d fb = b.morphing()->accumulatedForces().colwise().sum();
+  ASSERT_GT(fa.norm(), 0.0);
+  EXPECT_LT((fb - fa).norm(), 0.05 * fa.norm()) << "coarse " << fa << " N, fine " << fb << " N";
+  // Pipelines that differ in sliding are refused, and the one asked stays as it was.
+  PipelineSettings off = s;
+  off.simulation.sliding = false;
+  ProneToSupinePipeline c(fine.c, fine.m, off);
+  EXPECT_THROW(c.startFrom(a), std::invalid_argument);
+  EXPECT_EQ(c.simulator().state().displacement_m.norm(), 0.0);
+}
+
+TEST(CoarseStart, ThePhantomStartedOnACoarseMeshMeetsTheTargetsWithFewerFineSolves) {
+  SmallPhantom p(4000);
+  PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  ProneToSupinePipeline single(p.c, p.m, s);
+  single.run();
+  s.coarse_start.elements = 1500;
+  ProneToSupinePipeline nested(p.c, p.m, s);
+  ASSERT_TRUE(nested.coarse());
+  const int coarse_elements = nested.coarse()->model().mesh.numTets();
+  EXPECT_LT(coarse_elements, p.m.mesh.numTets() / 2);
+  nested.run();
+  const StageReport &g = nested.gravityReport(), &mo = nested.morphingReport();
+  const PipelineMetrics m = nested.metrics();
+  const long fine_solves = mo.steps + mo.reversed_steps;
+  const StageReport &g1 = single.gravityReport(), &s1 = single.slidingReport(), &m1 = single.morphingReport();
+  const long single_solves = g1.steps + g1.reversed_steps + s1.steps + s1.reversed_steps + m1.steps + m1.reversed_steps;
+  double lesion_shift = 0;
+  const Points l1 = single.lesionPositions(), l2 = nested.lesionPositions();
+  for (Eigen::Index i = 0; i < l1.rows(); ++i) lesion_shift = std::max(lesion_shift, (l2.row(i) - l1.row(i)).norm());
+  std::printf("[ measure  ] %d tets from %d: %d coarse gravity, %d coarse sliding, %d coarse + %d fine morphing steps "
+              "(single-level: %ld solves on the fine mesh); skin->target mean %.3f / p95 %.3f mm, volume %.2f %%, inverted %d, "
+              "lesions %.2f mm from the single-level run\n",
+              p.m.mesh.numTets(), coarse_elements, g.steps, nested.slidingReport().steps, mo.coarse_steps, mo.steps,
+              single_solves, 1e3 * m.surface.model_to_target.mean_m, 1e3 * m.surface.model_to_target.p95_m,
+              m.volume_change_percent, m.inverted_elements, 1e3 * lesion_shift);
+  EXPECT_EQ(g.elements, coarse_elements);
+  EXPECT_EQ(mo.elements, p.m.mesh.numTets());
+  EXPECT_EQ(mo.coarse_elements, coarse_elements);
+  EXPECT_GT(mo.coarse_steps, 0);
+  EXPECT_TRUE(mo.converged);
+  EXPECT_LE(m.surface.model_to_target.mean_m, 0.5e-3);
+  EXPECT_LE(m.surface.model_to_target.p95_m, 1.5e-3);
+  EXPECT_LT(std::abs(m.volume_change_percent), 1.0);
+  EXPECT_EQ(m.inverted_elements, 0);
+  EXPECT_LT(fine_solves, single_solves / 2);
+}
+
+TEST(CoarseStart, SettingsAreReadAndCheckedByName) {
+  const std::string f = writeTemp("breast_sim_coarse_start.yaml", "coarse_start:\n  elements: 5000\n  snap_tolerance_mm: 3\n");
+  const PipelineSettings s = loadPipelineSettings(f);
+  EXPECT_EQ(s.coarse_start.elements, 5000);
+  EXPECT_DOUBLE_EQ(s.coarse_start.snap_tolerance_m, 3e-3);
+  EXPECT_EQ(PipelineSettings{}.coarse_start.elements, 0);  // off by default
+  auto message = [](const std::string& text) {
+    try {
+      loadPipelineSettings(writeTemp("breast_sim_coarse_start_bad.yaml", text));
+    } catch (const std::runtime_error& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(message("coarse_start:\n  elements: -1\n").find("coarse_start.elements"), std::string::npos);
+  EXPECT_NE(message("coarse_start:\n  snap_tolerance_mm: 0\n").find("coarse_start.snap_tolerance_mm"), std::string::npos);
+  EXPECT_NE(message("coarse_start:\n  elemnts: 10\n").find("elemnts"), std::string::npos);
+  EXPECT_NE(message("coarse_start:\n  elements: 1000\nmorphing:\n  enabled: false\n").find("needs the morphing stage"),
+            std::string::npos);
+  // A coarse mesh that is not coarser is refused when the pipeline is built.
+  const SmallPhantom& p = phantom();
+  PipelineSettings big;
+  big.coarse_start.elements = p.m.mesh.numTets();
+  try {
+    ProneToSupinePipeline pipe(p.c, p.m, big);
+    FAIL();
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("is not below this model's"), std::string::npos) << e.what();
+  }
+}

@@ -43,6 +43,19 @@ void SlidingStageSettings::validate() const {
   }
 }
 
+void CoarseStartSettings::validate() const {
+  if (elements < 0 || elements > 100000000) {
+    std::ostringstream s;
+    s << "coarse_start 'elements' = " << elements << " is invalid: expected 0 (off) or a target element count below the model's";
+    throw std::invalid_argument(s.str());
+  }
+  if (!(snap_tolerance_m > 0) || snap_tolerance_m > 0.1) {
+    std::ostringstream s;
+    s << "coarse_start 'snap_tolerance_m' = " << snap_tolerance_m << " is invalid: expected in (0, 0.1] m";
+    throw std::invalid_argument(s.str());
+  }
+}
+
 void PipelineSettings::validate() const {
   simulation.validate();
   stiffening.validate();
@@ -56,6 +69,11 @@ void PipelineSettings::validate() const {
   }
   sliding_stage.validate();
   morphing.validate();
+  coarse_start.validate();
+  if (coarse_start.elements > 0 && !morphing.enabled)
+    throw std::invalid_argument("coarse_start.elements = " + std::to_string(coarse_start.elements) +
+                                " needs the morphing stage (the fine model settles in it): set morphing.enabled: true "
+                                "or coarse_start.elements: 0");
   if (simulation.sliding && (!simulation.stiffening || simulation.fixed_node_set.empty()))
     throw std::invalid_argument(
         "simulation 'sliding' needs 'stiffening: true' and a 'fixed_node_set' (the nodes that slide): turn "
@@ -203,6 +221,13 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     if (m["alpha_reversal_growth"]) d.alpha_reversal_growth = numberIn(m["alpha_reversal_growth"], f, key("alpha_reversal_growth"), 1, 100);
     if (m["volume_tolerance_percent"]) d.volume_tolerance_percent = numberIn(m["volume_tolerance_percent"], f, key("volume_tolerance_percent"), 0, 100, false, false, "%");
     if (m["max_steps"]) d.max_steps = static_cast<int>(integer(m["max_steps"], f, key("max_steps"), 1, 1000000));
+  }
+  if (root.IsMap() && root["coarse_start"] && !root["coarse_start"].IsNull()) {
+    const YAML::Node m = root["coarse_start"];
+    checkKeys(m, {"elements", "snap_tolerance_mm"}, f, "coarse_start");
+    if (m["elements"]) s.coarse_start.elements = static_cast<int>(integer(m["elements"], f, "coarse_start.elements", 0, 100000000));
+    if (m["snap_tolerance_mm"])
+      s.coarse_start.snap_tolerance_m = 1e-3 * numberIn(m["snap_tolerance_mm"], f, "coarse_start.snap_tolerance_mm", 0, 100, true, false, "mm");
   }
   try {
     s.validate();

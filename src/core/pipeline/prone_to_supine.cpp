@@ -40,6 +40,7 @@ void ProneToSupinePipeline::closeReport(StageReport& r, const RunStats& before, 
   r.reversal_limit_hits = after.reversal_limit_hits - before.reversal_limit_hits;
   r.final_alpha_per_pa = stiff_->controller().alpha();
   r.seconds = seconds;
+  r.elements = model_.mesh.numTets();
 }
 
 const char* stageName(PipelineStage stage) {
@@ -82,6 +83,18 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
     } else {
       setTarget(readTargetSurface(ms.target, ms.target_length_unit_m));
     }
+  }
+  if (settings_.coarse_start.elements > 0) {
+    if (settings_.coarse_start.elements >= model_.mesh.numTets())
+      throw std::invalid_argument("coarse_start.elements = " + std::to_string(settings_.coarse_start.elements) +
+                                  " is not below this model's " + std::to_string(model_.mesh.numTets()) +
+                                  " elements: give a smaller coarse target or coarse_start.elements: 0");
+    coarse_case_ = std::make_unique<ModelCase>(case_);
+    coarse_case_->meshing.target_elements = settings_.coarse_start.elements;
+    coarse_model_ = std::make_unique<SimulationModel>(buildSimulationModel(*coarse_case_));
+    PipelineSettings cs = settings_;
+    cs.coarse_start.elements = 0;
+    coarse_ = std::make_unique<ProneToSupinePipeline>(*coarse_case_, *coarse_model_, cs);
   }
 }
 
@@ -161,6 +174,7 @@ void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
   target_ = target;
   distance_ = std::move(distance);
   if (morphing_forces_) morphing_forces_->setField(field_);
+  if (coarse_) coarse_->setTarget(target);
 }
 
 WallSlipSettings ProneToSupinePipeline::wallSlipSettings() const {
@@ -213,6 +227,21 @@ bool ProneToSupinePipeline::slideAfter(const StiffeningStepResult& r, int* stall
 
 StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
   const auto t0 = std::chrono::steady_clock::now();
+  if (coarse_) {
+    // Nested iteration: the whole stage on the coarse model, its state carried to this one (the
+    // fine model settles in the morphing stage).
+    coarse_->runGravity(progress, cancel);
+    gravity_ = coarse_->gravityReport();
+    sliding_report_ = coarse_->slidingReport();
+    if (!(cancel && cancel->load())) {
+      const auto tt = std::chrono::steady_clock::now();
+      startFrom(*coarse_, settings_.coarse_start.snap_tolerance_m);
+      coarse_ahead_ = true;
+      (sliding_report_.ran ? sliding_report_ : gravity_).seconds += since(tt);
+    }
+    stage_ = PipelineStage::kIdle;
+    return gravity_;
+  }
   const SettleOptions& so = settings_.simulation.settle;
   const double tol = so.increment_tolerance_m;
   StageReport rep;
@@ -382,6 +411,20 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   const MorphingStageSettings& ms = settings_.morphing;
   StageReport rep;
   rep.ran = true;
+  if (coarse_ && coarse_ahead_) {
+    // Nested iteration: the coarse model morphs first; this one starts from its state.
+    const StageReport c = coarse_->runMorphing(progress, cancel);
+    rep.coarse_steps = c.steps;
+    rep.coarse_reversed_steps = c.reversed_steps;
+    rep.coarse_elements = coarse_model_->mesh.numTets();
+    if (cancel && cancel->load()) {
+      rep.cancelled = true;
+      rep.seconds = since(t0);
+      morphing_ = rep;
+      return rep;
+    }
+    startFrom(*coarse_, settings_.coarse_start.snap_tolerance_m);  // clears coarse_ahead_
+  }
   stage_ = PipelineStage::kMorphing;
   setTimeStep(ms.time_step_s);
   if (hasSliding() && !sliding_attached_) attachSliding();  // e.g. the gravity stage was skipped
@@ -534,7 +577,85 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
   simulator().clearExternalForces();
   if (s.morphing_forces_n.rows() > 0) ensureMorphing().restoreForces(simulator(), s.morphing_forces_n);
   last_advanced_ = true;
+  coarse_ahead_ = false;  // this state is the one to go on from
   stage_ = s.stage;
+}
+
+void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, double snap_tolerance_m) {
+  if (static_cast<bool>(slip_) != static_cast<bool>(coarse.slip_) || static_cast<bool>(sliding_) != static_cast<bool>(coarse.sliding_))
+    throw std::invalid_argument(std::string("startFrom: sliding differs (coarse: ") +
+                                (coarse.slip_ ? "implicit" : coarse.sliding_ ? "explicit" : "off") + ", this model: " +
+                                (slip_ ? "implicit" : sliding_ ? "explicit" : "off") + "); use the same settings for both");
+  if (coarse.morphing_forces_ && !field_)
+    throw std::invalid_argument("startFrom: the coarse run has morphing forces, but this model has no target surface (setTarget first)");
+  const TetMesh& cm = coarse.model_.mesh;
+  const Points& rest = model_.mesh.nodes();
+  // Rest nodes and element centroids of this model in the coarse rest mesh (everything is
+  // validated before this pipeline changes).
+  const PointEmbedding at_nodes(cm, rest, {}, snap_tolerance_m);
+  Points centroids(model_.mesh.numTets(), 3);
+  const Tets& T = model_.mesh.tets();
+  for (int t = 0; t < model_.mesh.numTets(); ++t)
+    centroids.row(t) = 0.25 * (rest.row(T(t, 0)) + rest.row(T(t, 1)) + rest.row(T(t, 2)) + rest.row(T(t, 3)));
+  const PointEmbedding at_centroids(cm, centroids, {}, snap_tolerance_m);
+
+  const SimulationState& cs = coarse.simulator().state();
+  auto asPoints = [](const Eigen::VectorXd& v) {
+    return Points(Eigen::Map<const Points>(v.data(), v.size() / 3, 3));
+  };
+  auto asVector = [](const Points& p) { return Eigen::VectorXd(Eigen::Map<const Eigen::VectorXd>(p.data(), p.size())); };
+  PipelineState s;
+  const Points u = at_nodes.interpolate(asPoints(cs.displacement_m));
+  s.simulation.displacement_m = asVector(u);
+  s.simulation.velocity_mps = asVector(at_nodes.interpolate(asPoints(cs.velocity_mps)));
+  s.simulation.time_s = cs.time_s;
+  s.simulation.step = cs.step;
+  const Eigen::VectorXd coarse_factors = coarse.modulusFactors();
+  s.modulus_factors.resize(model_.mesh.numTets());
+  for (int t = 0; t < model_.mesh.numTets(); ++t) s.modulus_factors[t] = coarse_factors[at_centroids.points()[t].tet];
+  s.alpha = coarse.stiff_->controller().state();
+  s.stage = coarse.stage_;
+  if (coarse.sliding_attached_) {
+    const std::vector<int>& wall = slip_ ? slip_->nodes() : sliding_->nodes();
+    s.sliding_targets_m.resize(static_cast<Eigen::Index>(wall.size()), 3);
+    for (size_t i = 0; i < wall.size(); ++i) {
+      s.sliding_targets_m.row(static_cast<Eigen::Index>(i)) = u.row(wall[i]);
+      if (slip_) s.sliding_targets_m.row(static_cast<Eigen::Index>(i)) += rest.row(wall[i]);  // stick points are positions
+    }
+    if (slip_) s.sliding_slip_directions = Points::Zero(s.sliding_targets_m.rows(), 3);
+  }
+  // The gravity load before the α state: a direction change would restart the α search.
+  stiff_->setGravity(coarse.simulator().params().gravity_mps2);
+  restore(s);
+
+  if (!coarse.morphing_forces_) return;
+  // Morphing forces as tractions, carried to this model's pulled vertices.
+  const SurfaceMorphing& cmorph = *coarse.morphing_forces_;
+  const std::vector<int>& cv = cmorph.vertices();
+  const Points& cf = cmorph.accumulatedForces();
+  const Eigen::VectorXd& ca = cmorph.vertexAreas();
+  SurfaceMorphing& morph = ensureMorphing();
+  const std::vector<int>& fv = morph.vertices();
+  Points forces = Points::Zero(static_cast<Eigen::Index>(fv.size()), 3);
+  constexpr int kNearest = 4;
+  std::vector<std::pair<double, int>> d2(cv.size());
+  for (size_t j = 0; j < fv.size(); ++j) {
+    const Eigen::RowVector3d p = rest.row(fv[j]);
+    for (size_t i = 0; i < cv.size(); ++i) d2[i] = {(cm.nodes().row(cv[i]) - p).squaredNorm(), static_cast<int>(i)};
+    const size_t k = std::min<size_t>(kNearest, d2.size());
+    std::partial_sort(d2.begin(), d2.begin() + static_cast<std::ptrdiff_t>(k), d2.end());
+    Eigen::RowVector3d traction = Eigen::RowVector3d::Zero();
+    double wsum = 0.0;
+    for (size_t q = 0; q < k; ++q) {
+      const int i = d2[q].second;
+      // 1/d² weights; a coincident vertex (d = 0) takes all the weight through the floor of 1 µm².
+      const double w = 1.0 / std::max(d2[q].first, 1e-12);
+      traction += w * cf.row(i) / ca[i];
+      wsum += w;
+    }
+    if (wsum > 0) forces.row(static_cast<Eigen::Index>(j)) = traction / wsum * morph.vertexAreas()[static_cast<Eigen::Index>(j)];
+  }
+  morph.restoreForces(simulator(), forces);
 }
 
 namespace {

@@ -127,6 +127,19 @@ struct SlidingStageSettings {
   void validate() const;
 };
 
+/// Nested iteration (YAML map `coarse_start:`): gravity, sliding and most of the morphing run on a
+/// coarser mesh of the same case, and the fine model takes that state (startFrom) and only finishes
+/// the morphing stage, which is its settle. Needs the morphing stage with a target. Off by default.
+struct CoarseStartSettings {
+  /// Target element count of the coarse mesh (meshing.target_elements of the coarse model); 0 = off.
+  int elements = 0;
+  /// A fine rest node may lie this far outside the coarse mesh [m] (the two meshes' surfaces differ by
+  /// up to the meshing's facet distance).
+  double snap_tolerance_m = 5e-3;
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
+  void validate() const;
+};
+
 /// Everything the pipeline needs besides the case and the model.
 struct PipelineSettings {
   SimulationSettings simulation;   ///< `simulation:`: material, solver, gravity stage, stiffening, sliding on/off
@@ -142,6 +155,7 @@ struct PipelineSettings {
   WallSlipSettings wall_slip;
   SlidingStageSettings sliding_stage;  ///< the sliding stage's time step and α restart (`sliding:`)
   MorphingStageSettings morphing;  ///< `morphing:`
+  CoarseStartSettings coarse_start;  ///< `coarse_start:`
   void validate() const;
 };
 
@@ -201,6 +215,12 @@ struct StageReport {
   double surface_p95_m = -1;
   double max_slide_m = 0.0;   ///< sliding: largest total slide of a wall node [m]
   double volume_change_percent = 0.0;  ///< (V − V0) / V0 at the end of the stage [%]
+  int elements = 0;           ///< elements of the model the stage's steps ran on (the coarse one with coarse_start)
+  /// Morphing with coarse_start: the coarse model's morphing steps before the fine ones (steps and
+  /// reversed_steps count the fine model's only; seconds is the whole stage, both models).
+  int coarse_steps = 0;
+  long coarse_reversed_steps = 0;
+  int coarse_elements = 0;
 };
 
 /// One Figure-2 iteration (PipelineStage::kMorphing), for callers that drive it themselves.
@@ -297,6 +317,24 @@ class ProneToSupinePipeline {
   PipelineState state() const;
   /// @throws std::invalid_argument when the snapshot does not fit this model (sizes).
   void restore(const PipelineState& s);
+  /// Nested iteration: takes the state of a pipeline on a coarser model of the same case (another
+  /// mesh of the same tissue, not nested in this one) onto this model, so that only the last steps
+  /// run on the fine mesh. Carried over, each by its own rule:
+  ///  - displacement and velocity: interpolated at this model's rest nodes (barycentric in the
+  ///    coarse rest mesh; a node outside it, the two meshes' surfaces differ by up to a facet
+  ///    distance, takes the value at the closest point of the coarse surface);
+  ///  - modulus factors: of the coarse element holding each element's centroid;
+  ///  - α controller state, gravity load, stage, simulated time;
+  ///  - sliding (when the coarse wall was released): the wall nodes stick where they are now
+  ///    (implicit method: stick points at their positions, no slip direction; explicit: targets
+  ///    at their displacements);
+  ///  - morphing forces: as tractions (force / vertex area [Pa]), inverse-distance weighted from the
+  ///    four nearest coarse pulled vertices (rest positions), times this model's vertex areas.
+  /// Nothing else of the coarse run is kept (its reports stay its own).
+  /// @param snap_tolerance_m  a rest node this far outside the coarse mesh at most [m]
+  /// @throws std::invalid_argument when the two pipelines differ in sliding (on / off, method) or
+  ///         morphing (forces without a target here), or a node lies farther outside.
+  void startFrom(const ProneToSupinePipeline& coarse, double snap_tolerance_m = 5e-3);
   /// Binary snapshot file (magic, version, sizes, a fingerprint of the rest mesh, then the vectors).
   /// @throws std::runtime_error naming the file on an I/O error or a snapshot of another model
   ///         (other sizes, or the same sizes with other node positions or numbering).
@@ -314,6 +352,8 @@ class ProneToSupinePipeline {
   const SurfaceMorphing* morphing() const { return morphing_forces_.get(); }
   const PipelineSettings& settings() const { return settings_; }
   const SimulationModel& model() const { return model_; }
+  /// With coarse_start: the pipeline on the coarse model (its model(), reports and state), else null.
+  const ProneToSupinePipeline* coarse() const { return coarse_.get(); }
 
  private:
   void attachSliding();
@@ -357,6 +397,12 @@ class ProneToSupinePipeline {
   bool last_advanced_ = true;
   Eigen::VectorXd iterate_previous_;  // iterate(): displacement before the step (kept to avoid a per-frame allocation)
   bool sliding_attached_ = false;  // the wall nodes are moving constraints (after the fixed-wall settle)
+  // coarse_start: the coarse case (a copy with its own target element count), model and pipeline;
+  // coarse_ahead_: runGravity took the coarse state, so runMorphing starts on the coarse model too.
+  std::unique_ptr<ModelCase> coarse_case_;
+  std::unique_ptr<SimulationModel> coarse_model_;
+  std::unique_ptr<ProneToSupinePipeline> coarse_;
+  bool coarse_ahead_ = false;
   double mesh_volume_m3_ = 0.0;
 };
 
