@@ -74,8 +74,9 @@ struct MorphingStageSettings {
   /// are about, with the same percentile as tolerance_p95_m).
   /// kPulledP95 stops much earlier (35 instead of 115 steps at 10.9k elements), but the volume is
   /// then still 1.4 % down and recovering (the target is 1 %).
-  /// kOffWall (the default): the largest move of a node off the sliding wall, and the 95th percentile
-  /// of the wall nodes' moves (both must be within the tolerance): the whole tissue has come to rest,
+  /// kOffWall (the default): the largest move of a node off the wall band (wallBandNodes(): the
+  /// sliding nodes and the first layer of tissue on them), and the 95th percentile of the band's
+  /// moves (both must be within the tolerance): the whole tissue has come to rest,
   /// but single wall nodes' stick–slip jumps (the largest move in 76 of 77 morphing steps at 10.9k
   /// elements) do not hold the stage; without sliding it is kAllMax. Measured on the phantom against
   /// kAllMax (bench_pipeline_steps): 48.8k elements 99 → 53 morphing steps, volume −0.18 → −0.61 %,
@@ -119,7 +120,7 @@ struct SlidingStageSettings {
   /// 10k–20k elements, the final surface match unchanged).
   double increment_tolerance_m = 0.0;
   /// What the increment tolerance watches: kAllMax, the largest move of any node; kOffWall, the
-  /// largest move of a node off the wall and the 95th percentile of the wall nodes' moves (the wall's
+  /// largest move of a node off the wall band and the 95th percentile of the band's moves (the wall's
   /// stick–slip creep of single nodes, the largest move in 53 of 56 sliding steps at 10k elements, no
   /// longer holds the stage).
   enum class IncrementMeasure { kAllMax, kOffWall } increment_measure = IncrementMeasure::kAllMax;
@@ -230,8 +231,8 @@ struct IterationReport {
   int reversals = 0;
   double increment_m = 0.0;
   double pulled_increment_p95_m = 0.0;  ///< 95th percentile of the pulled vertices' moves in the step [m]
-  double off_wall_increment_m = 0.0;    ///< largest move of a node off the sliding wall [m] (all nodes without sliding)
-  double wall_increment_p95_m = 0.0;    ///< 95th percentile of the sliding wall nodes' moves [m] (0 without sliding)
+  double off_wall_increment_m = 0.0;    ///< largest move of a node off the wall band [m] (all nodes without sliding; wallBandNodes())
+  double wall_increment_p95_m = 0.0;    ///< 95th percentile of the wall band's moves [m] (0 without sliding)
   double surface_mean_m = -1, surface_p95_m = -1;  ///< before the step, of the pulled vertices [m]
   double alpha_per_pa = 0.0;
   bool alpha_held = false;    ///< the tolerance held, so α was not decreased
@@ -325,11 +326,12 @@ class ProneToSupinePipeline {
   ///    distance, takes the value at the closest point of the coarse surface);
   ///  - modulus factors: of the coarse element holding each element's centroid;
   ///  - α controller state, gravity load, stage, simulated time;
-  ///  - sliding (when the coarse wall was released): the wall nodes stick where they are now
-  ///    (implicit method: stick points at their positions, no slip direction; explicit: targets
-  ///    at their displacements);
-  ///  - morphing forces: as tractions (force / vertex area [Pa]), inverse-distance weighted from the
-  ///    four nearest coarse pulled vertices (rest positions), times this model's vertex areas.
+  ///  - sliding (when the coarse wall was released): each wall node takes the friction state of the
+  ///    nearest coarse wall node (rest positions): its stick point's (explicit method: its target's)
+  ///    offset from that node's current position, and its slip direction;
+  ///  - morphing forces: as tractions (force / vertex area [Pa]), inverse-square-distance weighted
+  ///    from the four nearest coarse pulled vertices (rest positions; a coincident one gives its
+  ///    own), times this model's vertex areas.
   /// Nothing else of the coarse run is kept (its reports stay its own).
   /// @param snap_tolerance_m  a rest node this far outside the coarse mesh at most [m]
   /// @throws std::invalid_argument when the two pipelines differ in sliding (on / off, method) or
@@ -349,6 +351,10 @@ class ProneToSupinePipeline {
   /// method: its geometry, whose targets are unused), else null.
   const ChestWallSliding* sliding() const { return slip_ ? &slip_->geometry() : sliding_.get(); }
   const WallSlip* wallSlip() const { return slip_.get(); }  ///< the implicit sliding, or null
+  /// With sliding: the wall band, where the stop rules' off_wall measures take a 95th percentile
+  /// instead of the largest move: the sliding wall nodes and every node of an element touching one
+  /// (the first layer of tissue, which the wall's stick–slip drags along). Empty without sliding.
+  const std::vector<int>& wallBandNodes() const { return wall_band_nodes_; }
   const SurfaceMorphing* morphing() const { return morphing_forces_.get(); }
   const PipelineSettings& settings() const { return settings_; }
   const SimulationModel& model() const { return model_; }
@@ -390,7 +396,8 @@ class ProneToSupinePipeline {
   std::unique_ptr<SurfaceDistance> distance_;
   NodeSprings morph_springs_;  // the morphing's implicit pull of the current iteration
   std::vector<double> pulled_moves_;  // iterate(): squared moves of the pulled vertices (kept buffer)
-  std::vector<char> wall_node_;       // per node: a sliding wall node (empty without sliding)
+  std::vector<char> wall_band_;       // per node: in the wall band (empty without sliding)
+  std::vector<int> wall_band_nodes_;
   std::vector<double> wall_moves_;    // stepMoves(): squared moves of the wall nodes (kept buffer)
   PipelineStage stage_ = PipelineStage::kIdle;
   StageReport gravity_, sliding_report_, morphing_;
