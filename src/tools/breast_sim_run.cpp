@@ -32,6 +32,7 @@ namespace {
 
 const char* kUsage = R"(usage: breast_sim_run --case CASE.yaml --out DIR [--target-elements N] [--model-only]
                       [--solver multigrid|cholmod|jacobi-pcg] [--no-sliding] [--no-morphing]
+                      [--coarse-elements N]
                       [--frames N] [--json FILE] [--quiet]
 
 Builds the tetrahedral simulation model of a case and runs the prone-to-supine pipeline on it: gravity
@@ -57,7 +58,9 @@ Options:
   --model-only           build and write the model, do not simulate
   --solver NAME          overrides simulation.solver
   --no-sliding           overrides simulation.sliding (chest wall fixed)
-  --no-morphing          overrides morphing.enabled (gravity only)
+  --no-morphing          overrides morphing.enabled (gravity only; also turns coarse_start off)
+  --coarse-elements N    overrides coarse_start.elements: gravity, sliding and most of the morphing on
+                         a mesh of about N elements, the last morphing steps on the model (0 = off)
   --frames N             a series frame every N accepted steps (default 5; 0 = no series)
   --max-lesion-error-mm E  "model no more than a scene needs": mesh with the fewest elements whose
                          measured lesion error against the CalculiX reference is at most E mm (from
@@ -76,6 +79,7 @@ struct Args {
   double max_lesion_error_mm = 0.0;
   std::string error_curve;
   bool model_only = false, quiet = false, no_sliding = false, no_morphing = false;
+  int coarse_elements = -1;  // -1: the case file's coarse_start.elements
 };
 
 /// The number after `option`: a whole number if `whole`, at least `min` (strictly above it if
@@ -113,6 +117,7 @@ Args parse(int argc, char** argv) {
     else if (k == "--error-curve") a.error_curve = value();
     else if (k == "--max-lesion-error-mm") a.max_lesion_error_mm = number(k, value(), false, 0.0, true);
     else if (k == "--no-morphing") a.no_morphing = true;
+    else if (k == "--coarse-elements") a.coarse_elements = static_cast<int>(number(k, value(), true, 0.0, false));
     else if (k == "--frames") a.frame_interval = static_cast<int>(number(k, value(), true, 0.0, false));
     else if (k == "--target-elements") a.target_elements = static_cast<int>(number(k, value(), true, 0.0, true)); else if (k == "-h" || k == "--help") {
       std::cout << kUsage;
@@ -171,7 +176,11 @@ int main(int argc, char** argv) {
     PipelineSettings settings = loadPipelineSettings(args.case_file);
     if (!args.solver.empty()) settings.simulation.solver.kind = SolverSettings::kindFromName(args.solver);
     if (args.no_sliding) settings.simulation.sliding = false;
-    if (args.no_morphing) settings.morphing.enabled = false;
+    if (args.coarse_elements >= 0) settings.coarse_start.elements = args.coarse_elements;
+    if (args.no_morphing) {
+      settings.morphing.enabled = false;
+      settings.coarse_start.elements = 0;  // the fine model settles in the morphing stage
+    }
     // Model no more than the scene needs: the coarsest mesh whose measured lesion error meets the request.
     ModelChoice choice;
     if (args.max_lesion_error_mm > 0) {
@@ -261,15 +270,17 @@ int main(int argc, char** argv) {
       std::vector<std::pair<double, std::string>> frames;
       double sim_time = 0.0;
       auto writeFrame = [&](const std::string& tag) {
-        const Points u = pipe->displacement();
-        const Points x = m.mesh.nodes() + u;
+        // With coarse_start the first frames are of the coarse model (the one that is stepping).
+        const ProneToSupinePipeline& running = pipe->running();
+        const Points u = running.displacement();
+        const Points x = running.model().mesh.nodes() + u;
         MeshFields ff;
         ff.point_data.push_back({"displacement_mm", u * 1e3});
         MeshWriteOptions wo;
         wo.vtk.positions_m = &x;
         char name[64];
         std::snprintf(name, sizeof name, "frame_%04zu.vtu", frames.size());
-        writeTetMesh((series_dir / name).string(), m.mesh, ff, 1.0, wo);
+        writeTetMesh((series_dir / name).string(), running.model().mesh, ff, 1.0, wo);
         frames.push_back({sim_time, std::string("series/") + name});
         (void)tag;
       };
@@ -283,7 +294,7 @@ int main(int argc, char** argv) {
           last_step = -1;
         }
         if (p.step != last_step) {
-          sim_time += pipe->simulator().params().time_step_s;
+          sim_time += pipe->running().simulator().params().time_step_s;
           if (args.frame_interval > 0 && p.step % args.frame_interval == 0) writeFrame(stageName(p.stage));
           last_step = p.step;
         }
@@ -355,7 +366,10 @@ int main(int argc, char** argv) {
       auto stage = [](const StageReport& r) {
         nlohmann::json j = {{"ran", r.ran}, {"converged", r.converged}, {"steps", r.steps}, {"reversed_steps", r.reversed_steps},
                             {"reversal_limit_hits", r.reversal_limit_hits}, {"stuck", r.stuck}, {"seconds", r.seconds},
-                            {"last_increment_mm", r.last_increment_m * 1e3}, {"final_alpha_per_pa", r.final_alpha_per_pa}};
+                            {"last_increment_mm", r.last_increment_m * 1e3}, {"final_alpha_per_pa", r.final_alpha_per_pa},
+                            {"elements", r.elements}};
+        if (r.coarse_elements > 0)
+          j["coarse_start"] = {{"elements", r.coarse_elements}, {"steps", r.coarse_steps}, {"reversed_steps", r.coarse_reversed_steps}};
         if (r.surface_mean_m >= 0) j["pulled_vertices_to_target_mm"] = {{"mean", r.surface_mean_m * 1e3}, {"p95", r.surface_p95_m * 1e3}};
         if (r.max_slide_m > 0) j["max_slide_mm"] = r.max_slide_m * 1e3;
         return j;
@@ -386,8 +400,8 @@ int main(int argc, char** argv) {
                  {"stages", {{"gravity", stage(g)}, {"sliding", stage(sl)}, {"morphing", stage(mo)}}},
                  {"after_gravity", deformation(gravity_metrics)},
                  {"final", deformation(fm)},
-                 {"steps", g.steps + sl.steps + mo.steps},
-                 {"reversed_steps", g.reversed_steps + sl.reversed_steps + mo.reversed_steps},
+                 {"steps", g.steps + sl.steps + mo.coarse_steps + mo.steps},
+                 {"reversed_steps", g.reversed_steps + sl.reversed_steps + mo.coarse_reversed_steps + mo.reversed_steps},
                  {"seconds", {{"setup", t_setup}, {"gravity", g.seconds}, {"sliding", sl.seconds}, {"morphing", mo.seconds},
                               {"compute", g.seconds + sl.seconds + mo.seconds}, {"total_with_output", t_sim}}},
                  {"vtu_frames", frames.size()}};
@@ -451,11 +465,22 @@ int main(int argc, char** argv) {
                                                : "NOT converged", r["steps"].get<int>(),
                     r["seconds"].get<double>(), r["reversed_steps"].get<long>(), r["final_alpha_per_pa"].get<double>(), extra);
       };
+      auto on = [&](const nlohmann::json& r) {  // the stage ran on the coarse model (coarse_start)
+        static char b[96];
+        b[0] = 0;
+        if (r.contains("elements") && r["elements"].get<int>() != m.mesh.numTets())
+          std::snprintf(b, sizeof b, " (on the %d-element coarse model)", r["elements"].get<int>());
+        if (r.contains("coarse_start"))
+          std::snprintf(b, sizeof b, " (after %d steps, %ld reversed, on the %d-element coarse model)",
+                        r["coarse_start"]["steps"].get<int>(), r["coarse_start"]["reversed_steps"].get<long>(),
+                        r["coarse_start"]["elements"].get<int>());
+        return std::string(b);
+      };
       char slide[64] = "";
       if (st["sliding"].contains("max_slide_mm")) std::snprintf(slide, sizeof slide, ", largest slide %.1f mm", st["sliding"]["max_slide_mm"].get<double>());
-      line("gravity (wall fixed)", st["gravity"], "");
-      line("gravity with sliding", st["sliding"], slide);
-      line("surface morphing", st["morphing"], "");
+      line("gravity (wall fixed)", st["gravity"], on(st["gravity"]).c_str());
+      line("gravity with sliding", st["sliding"], (slide + on(st["sliding"])).c_str());
+      line("surface morphing", st["morphing"], on(st["morphing"]).c_str());
       auto deformed = [&](const char* name, const nlohmann::json& d) {
         std::printf("  %-26s %d inverted, volume %+.2f%%, max displacement %.1f mm", name, d["inverted_elements"].get<int>(),
                     d["volume_change_percent"].get<double>(), d["max_displacement_mm"].get<double>());

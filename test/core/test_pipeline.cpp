@@ -788,14 +788,11 @@ TEST(CoarseStart, SettingsAreReadAndCheckedByName) {
   EXPECT_NE(message("coarse_start:\n  elemnts: 10\n").find("elemnts"), std::string::npos);
   EXPECT_NE(message("coarse_start:\n  elements: 1000\nmorphing:\n  enabled: false\n").find("needs the morphing stage"),
             std::string::npos);
-  // A coarse mesh that is not coarser is refused when the pipeline is built.
+  // A coarse target not at most half the model's elements: the model runs alone.
   const SmallPhantom& p = phantom();
   PipelineSettings big;
-  big.coarse_start.elements = p.m.mesh.numTets();
-  try {
-    ProneToSupinePipeline pipe(p.c, p.m, big);
-    FAIL();
-  } catch (const std::invalid_argument& e) {
-    EXPECT_NE(std::string(e.what()).find("is not below this model's"), std::string::npos) << e.what();
-  }
+  big.coarse_start.elements = p.m.mesh.numTets() / 2 + 1;
+  EXPECT_EQ(ProneToSupinePipeline(p.c, p.m, big).coarse(), nullptr);
+  big.coarse_start.elements = p.m.mesh.numTets() / 2;
+  EXPECT_NE(ProneToSupinePipeline(p.c, p.m, big).coarse(), nullptr);
 }

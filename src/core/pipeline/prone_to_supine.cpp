@@ -95,11 +95,10 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
       setTarget(readTargetSurface(ms.target, ms.target_length_unit_m));
     }
   }
-  if (settings_.coarse_start.elements > 0) {
-    if (settings_.coarse_start.elements >= model_.mesh.numTets())
-      throw std::invalid_argument("coarse_start.elements = " + std::to_string(settings_.coarse_start.elements) +
-                                  " is not below this model's " + std::to_string(model_.mesh.numTets()) +
-                                  " elements: give a smaller coarse target or coarse_start.elements: 0");
+  // A case file serves models of any size (target_elements is overridden by tools and the node): the
+  // coarse start is used only where it is at most half the model, else the model runs alone (the
+  // reports' elements say which model each stage ran on).
+  if (settings_.coarse_start.elements > 0 && 2 * settings_.coarse_start.elements <= model_.mesh.numTets()) {
     coarse_case_ = std::make_unique<ModelCase>(case_);
     coarse_case_->meshing.target_elements = settings_.coarse_start.elements;
     coarse_model_ = std::make_unique<SimulationModel>(buildSimulationModel(*coarse_case_));
@@ -241,7 +240,9 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
   if (coarse_) {
     // Nested iteration: the whole stage on the coarse model, its state carried to this one (the
     // fine model settles in the morphing stage).
+    coarse_running_ = true;
     coarse_->runGravity(progress, cancel);
+    coarse_running_ = false;
     gravity_ = coarse_->gravityReport();
     sliding_report_ = coarse_->slidingReport();
     if (!(cancel && cancel->load())) {
@@ -424,7 +425,9 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   rep.ran = true;
   if (coarse_ && coarse_ahead_) {
     // Nested iteration: the coarse model morphs first; this one starts from its state.
+    coarse_running_ = true;
     const StageReport c = coarse_->runMorphing(progress, cancel);
+    coarse_running_ = false;
     rep.coarse_steps = c.steps;
     rep.coarse_reversed_steps = c.reversed_steps;
     rep.coarse_elements = coarse_model_->mesh.numTets();

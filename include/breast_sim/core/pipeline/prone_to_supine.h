@@ -133,6 +133,8 @@ struct SlidingStageSettings {
 /// the morphing stage, which is its settle. Needs the morphing stage with a target. Off by default.
 struct CoarseStartSettings {
   /// Target element count of the coarse mesh (meshing.target_elements of the coarse model); 0 = off.
+  /// Used only for a model of at least twice as many elements (a case file serves models of any
+  /// size); a smaller model runs alone.
   int elements = 0;
   /// A fine rest node may lie this far outside the coarse mesh [m] (the two meshes' surfaces differ by
   /// up to the meshing's facet distance).
@@ -360,6 +362,9 @@ class ProneToSupinePipeline {
   const SimulationModel& model() const { return model_; }
   /// With coarse_start: the pipeline on the coarse model (its model(), reports and state), else null.
   const ProneToSupinePipeline* coarse() const { return coarse_.get(); }
+  /// The pipeline whose steps the progress callback is reporting: the coarse one while it runs
+  /// (its model(), positions()), else this one.
+  const ProneToSupinePipeline& running() const { return coarse_running_ ? *coarse_ : *this; }
 
  private:
   void attachSliding();
@@ -410,6 +415,7 @@ class ProneToSupinePipeline {
   std::unique_ptr<SimulationModel> coarse_model_;
   std::unique_ptr<ProneToSupinePipeline> coarse_;
   bool coarse_ahead_ = false;
+  bool coarse_running_ = false;
   double mesh_volume_m3_ = 0.0;
 };
 
