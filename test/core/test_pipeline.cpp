@@ -675,15 +675,13 @@ TEST(CoarseStart, FromTheSameModelTheStateIsCarriedOverExactly) {
   const Points &fa = a.morphing()->accumulatedForces(), &fb = b.morphing()->accumulatedForces();
   ASSERT_GT(fa.norm(), 0.0);
   EXPECT_LT((fb - fa).cwiseAbs().maxCoeff(), 1e-12 * fa.cwiseAbs().maxCoeff());
-  // The next steps are those of a fresh pipeline restored from the snapshot of `a`. (Not exactly
-  // those of `a` itself: a pipeline restored into a new instance steps 3–28 µm away from the one the
-  // snapshot came from, here as with restore(); some state outside PipelineState, to be found.)
-  ProneToSupinePipeline c(p.c, p.m, s);
-  c.restore(a.state());
+  // The next steps are those of `a` itself. (Before StiffeningSimulation::resync, a restored pipeline
+  // took its next moduli from the stress of the state before the restore, at rest for a new one:
+  // 3–28 µm off here, with restore() as with startFrom().)
   for (int k = 0; k < 3; ++k) {
+    a.iterate();
     b.iterate();
-    c.iterate();
-    EXPECT_LT((b.simulator().state().displacement_m - c.simulator().state().displacement_m).cwiseAbs().maxCoeff(), 1e-12)
+    EXPECT_LT((b.simulator().state().displacement_m - a.simulator().state().displacement_m).cwiseAbs().maxCoeff(), 1e-12)
         << "step " << k;
   }
 }

@@ -265,6 +265,14 @@ void StiffeningSimulation::revertTo(int k) {
   settle_run_ = 0;
 }
 
+void StiffeningSimulation::resync() {
+  refreshStress();
+  last_inverted_ = countInverted();
+  history_.clear();
+  pushHistory();
+  settle_run_ = 0;
+}
+
 StiffeningStepResult StiffeningSimulation::step() {
   const auto t0 = std::chrono::steady_clock::now();
   StiffeningStepResult r;

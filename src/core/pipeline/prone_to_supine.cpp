@@ -579,6 +579,7 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
   simulator().restore(s.simulation);
   simulator().elements().setModulusFactors(s.modulus_factors);
   stiff_->controller().setState(s.alpha);
+  stiff_->resync();  // the stress the next moduli come from is this state's
   if (slip_ && s.sliding_targets_m.rows() > 0) {
     slip_->setStickPoints(s.sliding_targets_m, s.sliding_slip_directions);
     slip_->attach(simulator());

@@ -219,6 +219,13 @@ class StiffeningSimulation {
   void addNodalForces(const std::vector<int>& nodes, const Points& forces_n);
   void clearExternalForces();
 
+  /// After the simulator's state, the moduli or the controller were set from outside (a restored
+  /// snapshot): recomputes what this class keeps of the current state — the von Mises stress per
+  /// unit modulus that the next step's moduli come from, the elastic forces, the inversion count —
+  /// and starts the undo history at this state. Without it the next step would take its moduli from
+  /// the state before the restore (at rest: E_r = 1 everywhere).
+  void resync();
+
   /// One step with reversal (see the class comment). Never loops more than max_reversals_per_step
   /// times. A solver failure (non-finite solution, matrix not positive definite) counts as an
   /// inversion.
