@@ -177,10 +177,7 @@ int main(int argc, char** argv) {
     if (!args.solver.empty()) settings.simulation.solver.kind = SolverSettings::kindFromName(args.solver);
     if (args.no_sliding) settings.simulation.sliding = false;
     if (args.coarse_elements >= 0) settings.coarse_start.elements = args.coarse_elements;
-    if (args.no_morphing) {
-      settings.morphing.enabled = false;
-      settings.coarse_start.elements = 0;  // the fine model settles in the morphing stage
-    }
+    if (args.no_morphing) settings.morphing.enabled = false;  // (also no coarse start: the model settles in that stage)
     // Model no more than the scene needs: the coarsest mesh whose measured lesion error meets the request.
     ModelChoice choice;
     if (args.max_lesion_error_mm > 0) {

@@ -26,6 +26,9 @@ void MorphingStageSettings::validate() const {
   if (max_steps < 1) bad("max_steps", max_steps, "≥ 1");
   if (!(volume_tolerance_percent >= 0) || volume_tolerance_percent > 100)
     bad("volume_tolerance_percent", volume_tolerance_percent, "in [0, 100] % (0 = no volume condition)");
+  if (!(max_step_move_m >= 0) || !std::isfinite(max_step_move_m)) bad("max_step_move_m", max_step_move_m, ">= 0 m (0 = no bound)");
+  if (!(max_step_volume_change_percent >= 0) || !std::isfinite(max_step_volume_change_percent))
+    bad("max_step_volume_change_percent", max_step_volume_change_percent, ">= 0 % (0 = no bound)");
   if (!(alpha_reversal_growth >= 1) || !std::isfinite(alpha_reversal_growth))
     bad("alpha_reversal_growth", alpha_reversal_growth, "≥ 1 (1: α doubles per repeated reversal)");
 }
@@ -70,10 +73,6 @@ void PipelineSettings::validate() const {
   sliding_stage.validate();
   morphing.validate();
   coarse_start.validate();
-  if (coarse_start.elements > 0 && !morphing.enabled)
-    throw std::invalid_argument("coarse_start.elements = " + std::to_string(coarse_start.elements) +
-                                " needs the morphing stage (the fine model settles in it): set morphing.enabled: true "
-                                "or coarse_start.elements: 0");
   if (simulation.sliding && (!simulation.stiffening || simulation.fixed_node_set.empty()))
     throw std::invalid_argument(
         "simulation 'sliding' needs 'stiffening: true' and a 'fixed_node_set' (the nodes that slide): turn "
@@ -189,7 +188,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
               {"enabled", "target", "target_unit_mm", "gain_pa_per_mm", "max_traction_pa", "max_distance_mm", "skip_constrained",
                "voxel_size_mm", "max_voxels_per_axis", "time_step_s", "tolerance_mean_mm", "tolerance_p95_mm",
                "increment_tolerance_mm", "increment_measure", "max_steps", "alpha_reversal_growth", "spring_pa_per_mm",
-               "volume_tolerance_percent"},
+               "volume_tolerance_percent", "max_step_move_mm", "max_step_volume_change_percent"},
               f, "morphing");
     auto key = [](const char* k) { return std::string("morphing.") + k; };
     MorphingStageSettings& d = s.morphing;
@@ -220,6 +219,9 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     }
     if (m["alpha_reversal_growth"]) d.alpha_reversal_growth = numberIn(m["alpha_reversal_growth"], f, key("alpha_reversal_growth"), 1, 100);
     if (m["volume_tolerance_percent"]) d.volume_tolerance_percent = numberIn(m["volume_tolerance_percent"], f, key("volume_tolerance_percent"), 0, 100, false, false, "%");
+    if (m["max_step_move_mm"]) d.max_step_move_m = 1e-3 * numberIn(m["max_step_move_mm"], f, key("max_step_move_mm"), 0, inf, false, false, "mm");
+    if (m["max_step_volume_change_percent"])
+      d.max_step_volume_change_percent = numberIn(m["max_step_volume_change_percent"], f, key("max_step_volume_change_percent"), 0, inf, false, false, "%");
     if (m["max_steps"]) d.max_steps = static_cast<int>(integer(m["max_steps"], f, key("max_steps"), 1, 1000000));
   }
   if (root.IsMap() && root["coarse_start"] && !root["coarse_start"].IsNull()) {

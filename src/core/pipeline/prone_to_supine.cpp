@@ -22,6 +22,11 @@ namespace {
 /// tried max_reversals_per_step α increases): the state cannot go on without inverting elements.
 constexpr int kMaxStuckCalls = 5;
 
+/// Implicit sliding: a step is repeated at most this many times with the wall nodes that reversed
+/// against their kinetic friction set sticking (WallSlip::stickReversed); a node set sticking cannot
+/// reverse again, so the passes only catch nodes that reverse because others stopped.
+constexpr int kMaxFrictionPasses = 3;
+
 double since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
@@ -96,9 +101,11 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
     }
   }
   // A case file serves models of any size (target_elements is overridden by tools and the node): the
-  // coarse start is used only where it is at most half the model, else the model runs alone (the
-  // reports' elements say which model each stage ran on).
-  if (settings_.coarse_start.elements > 0 && 2 * settings_.coarse_start.elements <= model_.mesh.numTets()) {
+  // coarse start is used only where it is at most half the model, and only with a morphing target
+  // (the model settles in the morphing stage); else the model runs alone (the reports' elements say
+  // which model each stage ran on).
+  if (settings_.coarse_start.elements > 0 && 2 * settings_.coarse_start.elements <= model_.mesh.numTets() &&
+      settings_.morphing.enabled && field_) {
     coarse_case_ = std::make_unique<ModelCase>(case_);
     coarse_case_->meshing.target_elements = settings_.coarse_start.elements;
     coarse_model_ = std::make_unique<SimulationModel>(buildSimulationModel(*coarse_case_));
@@ -197,8 +204,20 @@ WallSlipSettings ProneToSupinePipeline::wallSlipSettings() const {
 
 StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* moving, const NodeSprings* extra) {
   if (slip_ && sliding_attached_) {
-    slip_->beforeStep(simulator(), extra);
-    const StiffeningStepResult r = stiff_->step();
+    // Coulomb friction holds a slipping node that comes to rest: a step in which slipping wall nodes
+    // were driven back by their (constant) kinetic friction is repeated from its start with those
+    // nodes sticking (wall_slip.h, stickReversed).
+    const SimulationState start = simulator().state();
+    const Eigen::VectorXd start_factors = modulusFactors();
+    const AlphaController::State start_alpha = stiff_->controller().state();
+    StiffeningStepResult r;
+    for (int pass = 0;; ++pass) {
+      slip_->beforeStep(simulator(), extra);
+      r = stiff_->step();
+      if (!r.advanced || pass >= kMaxFrictionPasses || slip_->stickReversed(simulator(), start.displacement_m) == 0) break;
+      ++friction_repeats_;
+      revertStep(start, start_factors, start_alpha);
+    }
     if (r.advanced) {
       const WallSlipStats ws = slip_->afterStep(simulator());
       sliding_report_.max_slide_m = std::max(sliding_report_.max_slide_m, ws.max_slide_m);
@@ -211,6 +230,21 @@ StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* m
   const bool m = slideAfter(r, stalls);
   if (moving) *moving = m;
   return r;
+}
+
+void ProneToSupinePipeline::revertStep(const SimulationState& start, const Eigen::VectorXd& start_factors,
+                                       const AlphaController::State& start_alpha) {
+  // The stiffening driver's own undo (state, moduli, α and its stress at that state) when its
+  // previous entry is the start of this step; otherwise (after a restore() or attach) by hand.
+  if (stiff_->historySize() >= 2 && stiff_->history(1).state.displacement_m == start.displacement_m &&
+      stiff_->history(1).state.velocity_mps == start.velocity_mps)
+    stiff_->revertTo(1);  // also refreshes the driver's stress at that state
+  else
+    simulator().restore(start);
+  // The moduli and α of the start, which may differ from the history entry's (α raised by the
+  // divergence guard since).
+  simulator().elements().setModulusFactors(start_factors);
+  stiff_->controller().setState(start_alpha);
 }
 
 void ProneToSupinePipeline::attachSliding() {
@@ -237,7 +271,7 @@ bool ProneToSupinePipeline::slideAfter(const StiffeningStepResult& r, int* stall
 
 StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
   const auto t0 = std::chrono::steady_clock::now();
-  if (coarse_) {
+  if (coarse_ && field_) {
     // Nested iteration: the whole stage on the coarse model, its state carried to this one (the
     // fine model settles in the morphing stage).
     coarse_running_ = true;
@@ -309,6 +343,7 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
     attachSliding();
     const double sliding_tol = settings_.sliding_stage.increment_tolerance_m > 0 ? settings_.sliding_stage.increment_tolerance_m : tol;
     const RunStats b2 = stiff_->stats();
+    const long repeats_before = friction_repeats_;
     int stalls = 0, quiet_steps = 0, stuck_calls = 0;
     long sl_calls = 0;
     first = -1;
@@ -345,6 +380,7 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
       }
     }
     closeReport(sr, b2, since(ts));
+    sr.friction_repeats = friction_repeats_ - repeats_before;
     sr.max_slide_m = sliding_report_.max_slide_m;
     sr.volume_change_percent = volumeChangePercent();
     sliding_report_ = sr;
@@ -393,7 +429,40 @@ IterationReport ProneToSupinePipeline::iterate() {
   const bool pull = settings_.morphing.forces.spring_pa_per_m > 0;
   if (pull)
     morphing_forces_->springs(morph_springs_.nodes, morph_springs_.stiffness_n_per_m, morph_springs_.anchors_m);
-  const StiffeningStepResult r = stepWithSliding(&stalls, nullptr, pull ? &morph_springs_ : nullptr);
+  // Divergence guard: the state before the step (with the forces just added, the α controller, the
+  // stick points) to come back to when the step runs away.
+  const MorphingStageSettings& ms = settings_.morphing;
+  const bool guard = ms.max_step_move_m > 0 || ms.max_step_volume_change_percent > 0;
+  PipelineState before;
+  double volume_before = 0.0;
+  if (guard) {
+    before = state();
+    if (ms.max_step_volume_change_percent > 0) volume_before = volumeChangePercent();
+  }
+  StiffeningStepResult r = stepWithSliding(&stalls, nullptr, pull ? &morph_springs_ : nullptr);
+  if (guard && r.advanced) {
+    const Eigen::VectorXd& u = simulator().state().displacement_m;
+    double move2 = 0.0;
+    for (Eigen::Index i = 0; i + 2 < u.size(); i += 3)
+      move2 = std::max(move2, (u.segment<3>(i) - iterate_previous_.segment<3>(i)).squaredNorm());
+    const bool too_far = ms.max_step_move_m > 0 && !(std::sqrt(move2) <= ms.max_step_move_m);
+    const bool volume_jump = ms.max_step_volume_change_percent > 0 &&
+                             !(std::abs(volumeChangePercent() - volume_before) <= ms.max_step_volume_change_percent);
+    if (too_far || volume_jump) {
+      // A failed step like an inversion (seed 2.6): back to the state before it, α up, and the next
+      // call repeats it without new forces. The last good state is never overwritten.
+      revertStep(before.simulation, before.modulus_factors, before.alpha);
+      restore(before);  // and the stick points, slip directions and morphing forces
+      // Repeated run-aways grow α as repeated reversals of one step do (reversal_growth).
+      stiff_->controller().onReversed(++diverged_run_);
+      ++diverged_steps_;
+      it.diverged = true;
+      r.advanced = false;
+      r.reversals += 1;
+      r.alpha_per_pa = stiff_->controller().alpha();
+    }
+  }
+  if (r.advanced) diverged_run_ = 0;
   last_advanced_ = r.advanced;
   it.advanced = r.advanced;
   it.reversals = r.reversals;
@@ -430,6 +499,7 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
     coarse_running_ = false;
     rep.coarse_steps = c.steps;
     rep.coarse_reversed_steps = c.reversed_steps;
+    rep.coarse_friction_repeats = c.friction_repeats;
     rep.coarse_elements = coarse_model_->mesh.numTets();
     if (cancel && cancel->load()) {
       rep.cancelled = true;
@@ -454,6 +524,7 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
     ~AlphaParamsScope() { controller.setParams(saved); }
   } alpha_scope(stiff_->controller(), ms.alpha_reversal_growth);
   const RunStats before = stiff_->stats();
+  const long diverged_before = diverged_steps_, repeats_before = friction_repeats_;
   long calls = 0;
   int quiet = 0, stuck = 0;
   double first = -1;
@@ -502,6 +573,9 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
   rep.converged = rep.converged && d.mean_m <= ms.tolerance_mean_m && d.p95_m <= ms.tolerance_p95_m;
   stiff_->holdAlpha(false);
   closeReport(rep, before, since(t0));
+  rep.diverged_steps = diverged_steps_ - diverged_before;
+  rep.reversed_steps += rep.diverged_steps;
+  rep.friction_repeats = friction_repeats_ - repeats_before;
   rep.max_slide_m = sliding_report_.max_slide_m;
   rep.volume_change_percent = volumeChangePercent();
   morphing_ = rep;

@@ -44,6 +44,7 @@ void WallSlipSettings::validate() const {
   require(stick_speed_mps >= 0 && std::isfinite(stick_speed_mps), "stick_speed_mps", stick_speed_mps, ">= 0 m/s");
   require(tether_stiffness_pa_per_m >= 0 && std::isfinite(tether_stiffness_pa_per_m), "tether_stiffness_pa_per_m",
           tether_stiffness_pa_per_m, ">= 0 Pa/m");
+  require(reversal_tolerance_m >= 0 && std::isfinite(reversal_tolerance_m), "reversal_tolerance_m", reversal_tolerance_m, ">= 0 m");
   require(min_weight > 0 && min_weight <= 1, "min_weight", min_weight, "in (0, 1]");
   require(contact_gap_m >= 0 && std::isfinite(contact_gap_m), "contact_gap_m", contact_gap_m, ">= 0 m");
   require(contact_range_m > contact_gap_m && std::isfinite(contact_range_m), "contact_range_m", contact_range_m,
@@ -273,6 +274,34 @@ WallSlipStats WallSlip::afterStep(const DynamicSimulator& sim) {
   st.max_slide_m = max_slide;
   st.slipping = slipping;
   return st;
+}
+
+int WallSlip::stickReversed(const DynamicSimulator& sim, const Eigen::VectorXd& u_start_m) {
+  if (u_start_m.size() != 3 * static_cast<Eigen::Index>(mesh_.numNodes()))
+    throw std::invalid_argument("WallSlip::stickReversed: the start displacement has " + std::to_string(u_start_m.size()) +
+                                " entries, the mesh needs 3 x " + std::to_string(mesh_.numNodes()));
+  const ChestWallSurface& wall = geometry_->surface();
+  const Eigen::VectorXd& u = sim.state().displacement_m;
+  const double kn = settings_.normal_stiffness_pa_per_m, kf = settings_.friction_stiffness_pa_per_m;
+  int stuck = 0;
+  for (size_t i = 0; i < nodes_.size(); ++i) {
+    if (!slipping_[i]) continue;
+    const int v = nodes_[i];
+    const Eigen::Index r = static_cast<Eigen::Index>(i);
+    const Eigen::Vector3d d = slip_dir_.row(r).transpose();
+    const double back = -d.dot(u.segment<3>(3 * v) - u_start_m.segment<3>(3 * v));  // move against the slip [m]
+    if (!(back > 0)) continue;
+    // The kinetic limit at the start of the step, as beforeStep applied it, and its pre-slip length.
+    const Eigen::Vector3d x0 = mesh_.nodes().row(v).transpose() + u_start_m.segment<3>(3 * v);
+    const double h = wall.signedDistance(x0);
+    const double limit = settings_.kinetic_friction * area_[r] * kn * std::abs(h - h0_[r]) + settings_.static_threshold_pa * area_[r];
+    if (back <= std::max(limit / (area_[r] * kf), settings_.reversal_tolerance_m)) continue;
+    slipping_[i] = 0;
+    const WallProjection pr = wall.project(x0, h0_[r]);
+    stick_.row(r) = (pr.converged ? pr.point_m : x0).transpose();
+    ++stuck;
+  }
+  return stuck;
 }
 
 Points WallSlip::slidingVectors(const DynamicSimulator& sim) const {

@@ -89,6 +89,17 @@ struct MorphingStageSettings {
   /// target that encloses the model's rest volume (the phantom's supine surface: its case file sets
   /// 0.5); 0 = no volume condition (the default: a measured surface need not have that volume).
   double volume_tolerance_percent = 0.0;
+  /// Divergence guard: a step in which a node moves more than this counts as a failed step, like one
+  /// that inverts an element (the state before it is restored, α raised, the step repeated without
+  /// new forces) [m]; 0 = no bound. Steps that converge move up to 23 mm on the phantom (the first
+  /// pull of a skin vertex); a run-away wall slide moved 78 mm, then 205 and 1378 mm (7.1k elements,
+  /// sliding stage at 0.33 s, before WallSlip::stickReversed).
+  double max_step_move_m = 0.04;
+  /// ... and so does a step that changes the volume by more than this [percentage points]; 0 = no
+  /// bound. Converging steps: up to 3.6 on the phantom (the first pull), but more than 10 with the
+  /// implicit pull of 100 Pa/mm towards a target 8 % taller than the model (2.2k elements: a bound of
+  /// 10 rejected its good steps); the run-away: 23, 45, then 9650 (its moves hit max_step_move_m first).
+  double max_step_volume_change_percent = 30.0;
   int max_steps = 300;                 ///< accepted steps at most
   /// AlphaControllerParams::reversal_growth during this stage, ≥ 1 (1: the preset's doubling per
   /// repeated reversal). The stage starts with the α the gravity stage left, at the floor after a long
@@ -104,9 +115,12 @@ struct SlidingStageSettings {
   /// Time step of the sliding stage [s]; 0 = the dynamics time step (simulation.time_step_s). Only
   /// the settled state counts, and backward Euler is stable for any step, so a long step (the
   /// settle's 0.33 s) takes the wall and the tissue to rest in fewer steps (measured on the phantom:
-  /// 38 instead of 56 steps at 10.9k elements), but it changes the friction path: at 4.8k elements
-  /// the breast then slid 66–157 mm off its base instead of 42–46 mm. So the default stays the
-  /// dynamics step.
+  /// 38 instead of 56 steps at 10.9k elements), but it changed the friction path: at 4.8k elements
+  /// the breast then slid 66–157 mm off its base instead of 42–46 mm, and at 7.1k elements its
+  /// morphing stage ran away (measured before WallSlip::stickReversed, which stops kinetic friction
+  /// from driving a stopping wall node back within a long step: since then 7.1k elements slide
+  /// 15.5 mm at 0.33 s against 15.1 mm at the dynamics step). The default stays the dynamics step
+  /// until the long step is measured again.
   double time_step_s = 0.0;
   /// α when the wall is released (a boundary-condition change: the seed finds a new α). kInitial:
   /// the search starts again from StiffeningParams' initial α (1e-2 /Pa, "knowingly too high": ~50
@@ -130,11 +144,12 @@ struct SlidingStageSettings {
 
 /// Nested iteration (YAML map `coarse_start:`): gravity, sliding and most of the morphing run on a
 /// coarser mesh of the same case, and the fine model takes that state (startFrom) and only finishes
-/// the morphing stage, which is its settle. Needs the morphing stage with a target. Off by default.
+/// the morphing stage, which is its settle (so only with the morphing stage and a target). Off by default.
 struct CoarseStartSettings {
   /// Target element count of the coarse mesh (meshing.target_elements of the coarse model); 0 = off.
   /// Used only for a model of at least twice as many elements (a case file serves models of any
-  /// size); a smaller model runs alone.
+  /// size) and with the morphing stage on and a target set when the pipeline is built; else the
+  /// model runs alone.
   int elements = 0;
   /// A fine rest node may lie this far outside the coarse mesh [m] (the two meshes' surfaces differ by
   /// up to the meshing's facet distance).
@@ -211,6 +226,12 @@ struct StageReport {
   int steps = 0;              ///< accepted steps
   long reversed_steps = 0;    ///< trial steps reverted (time-step reversal)
   long reversal_limit_hits = 0;
+  /// Morphing: trial steps the divergence guard rejected (max_step_move_m, max_step_volume_change_percent;
+  /// counted in reversed_steps too).
+  long diverged_steps = 0;
+  /// Implicit sliding: trial steps repeated because slipping wall nodes reversed (WallSlip::stickReversed);
+  /// each costs a solve, not counted in reversed_steps.
+  long friction_repeats = 0;
   double seconds = 0.0;       ///< wall time [s]
   double last_increment_m = 0.0;
   double final_alpha_per_pa = 0.0;
@@ -223,6 +244,7 @@ struct StageReport {
   /// reversed_steps count the fine model's only; seconds is the whole stage, both models).
   int coarse_steps = 0;
   long coarse_reversed_steps = 0;
+  long coarse_friction_repeats = 0;
   int coarse_elements = 0;
 };
 
@@ -230,6 +252,7 @@ struct StageReport {
 struct IterationReport {
   bool advanced = false;      ///< a step without inversion was taken
   bool forces_added = false;  ///< false after a call that could not advance (seed: skip the forces)
+  bool diverged = false;      ///< the step ran away (divergence guard) and was taken back
   int reversals = 0;
   double increment_m = 0.0;
   double pulled_increment_p95_m = 0.0;  ///< 95th percentile of the pulled vertices' moves in the step [m]
@@ -377,6 +400,8 @@ class ProneToSupinePipeline {
   // still moves (explicit: by more than the increment tolerance).
   // `extra`: springs set for the step besides the wall's (the morphing's implicit pull), or null.
   StiffeningStepResult stepWithSliding(int* stalls, bool* moving, const NodeSprings* extra = nullptr);
+  // Takes an accepted stiffening step back to its start (state, modulus factors, α controller).
+  void revertStep(const SimulationState& start, const Eigen::VectorXd& start_factors, const AlphaController::State& start_alpha);
   bool hasSliding() const { return sliding_ || slip_; }
   WallSlipSettings wallSlipSettings() const;
   void setTimeStep(double dt_s);
@@ -407,6 +432,9 @@ class ProneToSupinePipeline {
   PipelineStage stage_ = PipelineStage::kIdle;
   StageReport gravity_, sliding_report_, morphing_;
   bool last_advanced_ = true;
+  long diverged_steps_ = 0;    // iterate(): steps the divergence guard took back, all stages
+  int diverged_run_ = 0;       // iterate(): run-away steps in a row (the attempt count for α)
+  long friction_repeats_ = 0;  // stepWithSliding(): steps repeated with reversed wall nodes sticking
   Eigen::VectorXd iterate_previous_;  // iterate(): displacement before the step (kept to avoid a per-frame allocation)
   bool sliding_attached_ = false;  // the wall nodes are moving constraints (after the fixed-wall settle)
   // coarse_start: the coarse case (a copy with its own target element count), model and pipeline;
