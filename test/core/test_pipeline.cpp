@@ -583,13 +583,11 @@ TEST(PipelineSettings, TheDocumentedDefaultsOfTheCaseFileAreTheCodeDefaults) {
   EXPECT_EQ(file.sliding_stage.alpha_restart, code.sliding_stage.alpha_restart);
   EXPECT_DOUBLE_EQ(file.sliding_stage.increment_tolerance_m, code.sliding_stage.increment_tolerance_m);
   EXPECT_EQ(file.sliding_stage.increment_measure, code.sliding_stage.increment_measure);
-  // The documented exceptions. The first ("Here: 0.5"): the phantom's target has the prone volume, so its case
+  // The one documented exception ("Here: 0.5"): the phantom's target has the prone volume, so its case
   // file adds the volume condition, which the code leaves off (a measured surface need not enclose it).
   EXPECT_DOUBLE_EQ(m.volume_tolerance_percent, 0.5);
   EXPECT_DOUBLE_EQ(n.volume_tolerance_percent, 0.0);
-  // The second ("Here: 6000"): the main job starts on a coarse mesh; the code leaves that off.
-  EXPECT_EQ(file.coarse_start.elements, 6000);
-  EXPECT_EQ(code.coarse_start.elements, 0);
+  EXPECT_EQ(file.coarse_start.elements, code.coarse_start.elements);
   EXPECT_DOUBLE_EQ(file.coarse_start.snap_tolerance_m, code.coarse_start.snap_tolerance_m);
   const AlphaControllerParams &fa = file.stiffening.alpha, &ca = code.stiffening.alpha;
   EXPECT_DOUBLE_EQ(fa.initial_alpha_per_pa, ca.initial_alpha_per_pa);
