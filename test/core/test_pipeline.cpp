@@ -41,6 +41,16 @@ std::string writeTemp(const std::string& name, const std::string& text) {
   return p.string();
 }
 
+/// The error loadPipelineSettings gives for a case file of this text ("no error" if none).
+std::string message(const std::string& text) {
+  try {
+    loadPipelineSettings(writeTemp("breast_sim_pipeline_bad.yaml", text));
+  } catch (const std::runtime_error& e) {
+    return std::string(e.what());
+  }
+  return std::string("no error");
+}
+
 }  // namespace
 
 TEST(PipelineSettings, ReadsSlidingAndMorphingMapsWithTheirUnits) {
@@ -89,14 +99,6 @@ TEST(PipelineSettings, ReadsTheStageStepKeysWithTheirUnits) {
 }
 
 TEST(PipelineSettings, BadKeysAndValuesAreNamed) {
-  auto message = [](const std::string& text) {
-    try {
-      loadPipelineSettings(writeTemp("breast_sim_pipeline_bad.yaml", text));
-    } catch (const std::runtime_error& e) {
-      return std::string(e.what());
-    }
-    return std::string("no error");
-  };
   EXPECT_NE(message("morphing: {gain: 3}\n").find("gain"), std::string::npos);
   EXPECT_NE(message("morphing: {tolerance_p95_mm: -1}\n").find("morphing.tolerance_p95_mm"), std::string::npos);
   EXPECT_NE(message("sliding: {max_slide_mm: [1, 2]}\n").find("sliding.max_slide_mm"), std::string::npos);
@@ -144,14 +146,6 @@ TEST(PipelineSettings, ReadsTheAlphaControllerPresetOfTheStiffeningMap) {
 }
 
 TEST(PipelineSettings, BadAlphaControllerKeysNameTheKeyTheValueAndTheRange) {
-  auto message = [](const std::string& text) {
-    try {
-      loadPipelineSettings(writeTemp("breast_sim_pipeline_bad_alpha.yaml", text));
-    } catch (const std::runtime_error& e) {
-      return std::string(e.what());
-    }
-    return std::string("no error");
-  };
   auto expectNames = [&](const std::string& text, const std::vector<std::string>& parts) {
     const std::string m = message(text);
     for (const std::string& part : parts) EXPECT_NE(m.find(part), std::string::npos) << text << " -> " << m;
@@ -779,14 +773,6 @@ TEST(CoarseStart, SettingsAreReadAndCheckedByName) {
   EXPECT_EQ(s.coarse_start.elements, 5000);
   EXPECT_DOUBLE_EQ(s.coarse_start.snap_tolerance_m, 3e-3);
   EXPECT_EQ(PipelineSettings{}.coarse_start.elements, 0);  // off by default
-  auto message = [](const std::string& text) {
-    try {
-      loadPipelineSettings(writeTemp("breast_sim_coarse_start_bad.yaml", text));
-    } catch (const std::runtime_error& e) {
-      return std::string(e.what());
-    }
-    return std::string("no error");
-  };
   EXPECT_NE(message("coarse_start:\n  elements: -1\n").find("coarse_start.elements"), std::string::npos);
   EXPECT_NE(message("coarse_start:\n  snap_tolerance_mm: 0\n").find("coarse_start.snap_tolerance_mm"), std::string::npos);
   EXPECT_NE(message("coarse_start:\n  elemnts: 10\n").find("elemnts"), std::string::npos);

@@ -17,49 +17,13 @@
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/core/sliding/wall_slip.h"
 #include "breast_sim/core/solver/cholmod_solver.h"
+#include "sliding_block.h"
 
 using namespace breast_sim::core;
 
 namespace {
 
-constexpr std::uint16_t kWall = 40, kFat = 1;
-
-// A 20×20×10 mm block on the plane z = 0 (wall below), in a 1 mm label image (as test_wall_slip).
-struct Block {
-  TetMesh mesh = makeBoxMesh({4, 4, 2}, {0.02, 0.02, 0.01});
-  LabelImage image;
-  std::shared_ptr<const ChestWallSliding> geometry;
-  std::unique_ptr<DynamicSimulator> sim;
-  Block() {
-    const Eigen::Vector3d lo(-0.06, -0.03, -0.02), hi(0.12, 0.05, 0.02);
-    const double voxel = 1e-3;
-    const Eigen::Vector3i size = ((hi - lo) / voxel).array().ceil().cast<int>() + 1;
-    image = LabelImage(size, Eigen::Vector3d::Constant(voxel), lo, kFat);
-    for (int k = 0; k < size.z(); ++k)
-      for (int j = 0; j < size.y(); ++j)
-        for (int i = 0; i < size.x(); ++i)
-          if (image.indexToPhysical(Eigen::Vector3d(i, j, k)).z() < 0) image.at(i, j, k) = kWall;
-    auto wall = std::make_shared<const ChestWallSurface>(image, std::set<std::uint16_t>{kWall});
-    SlidingSettings s;
-    s.gaussian_limit = false;
-    s.thickness_limit = false;
-    s.rim_band = false;
-    geometry = std::make_shared<ChestWallSliding>(mesh, mesh.nodeSet("z_min"), wall, s, nullptr, TissueLabels{},
-                                                  std::vector<Eigen::Vector3d>{}, Eigen::Vector3d::UnitZ());
-    ElasticMaterial mat;
-    mat.poisson_ratio = 0.45;
-    DynamicsParams p;
-    p.gravity_mps2 = Eigen::Vector3d(4.0, 0.0, -9.81);  // tan θ = 0.41 > μ_s: it slides along +x
-    p.time_step_s = 0.01;
-    sim = std::make_unique<DynamicSimulator>(mesh, std::make_unique<CorotatedTetFem>(mesh, mat), mat, p,
-                                             std::make_unique<CholmodSolver>());
-  }
-  double meanBottomX() const {
-    double sum = 0;
-    for (int v : mesh.nodeSet("z_min")) sum += sim->state().displacement_m[3 * v];
-    return sum / static_cast<double>(mesh.nodeSet("z_min").size());
-  }
-};
+using Block = test_fixtures::SlidingBlock;
 
 // The block slides along +x, then the load turns below the friction angle (−x, tan θ = 0.10 < μ_k)
 // and long steps follow. Returns the largest move back along −x from the farthest point [m].
@@ -70,7 +34,7 @@ double backSlideAfterStopping(double reversal_tolerance_m, int* repeats) {
   ws.tether_stiffness_pa_per_m = 0;
   ws.contact = false;
   ws.reversal_tolerance_m = reversal_tolerance_m;
-  Block b;
+  Block b(Eigen::Vector3d(4.0, 0.0, -9.81), 0.01, -0.06, 0.12);  // tan θ = 0.41 > μ_s: it slides along +x
   WallSlip slip(b.geometry, b.mesh, ws);
   slip.attach(*b.sim);
   for (int k = 0; k < 10; ++k) {
@@ -83,7 +47,7 @@ double backSlideAfterStopping(double reversal_tolerance_m, int* repeats) {
   p.gravity_mps2 = Eigen::Vector3d(-1.0, 0.0, -9.81);
   p.time_step_s = 0.33;
   b.sim->setParams(p);
-  double farthest = b.meanBottomX(), back = 0;
+  double farthest = b.meanBottom(0), back = 0;
   *repeats = 0;
   for (int k = 0; k < 6; ++k) {
     const SimulationState start = b.sim->state();
@@ -95,8 +59,8 @@ double backSlideAfterStopping(double reversal_tolerance_m, int* repeats) {
       b.sim->restore(start);
     }
     slip.afterStep(*b.sim);
-    farthest = std::max(farthest, b.meanBottomX());
-    back = std::max(back, farthest - b.meanBottomX());
+    farthest = std::max(farthest, b.meanBottom(0));
+    back = std::max(back, farthest - b.meanBottom(0));
   }
   return back;
 }

@@ -16,49 +16,13 @@
 #include "breast_sim/core/model/phantom.h"
 #include "breast_sim/core/sliding/wall_slip.h"
 #include "breast_sim/core/solver/cholmod_solver.h"
+#include "sliding_block.h"
 
 using namespace breast_sim::core;
 
 namespace {
 
-constexpr std::uint16_t kWall = 40, kFat = 1;
-
-// A 20×20×10 mm block on the plane z = 0 (wall below), in a 1 mm label image wide enough to slide in.
-struct Block {
-  TetMesh mesh = makeBoxMesh({4, 4, 2}, {0.02, 0.02, 0.01});
-  LabelImage image;
-  std::shared_ptr<const ChestWallSliding> geometry;
-  std::unique_ptr<DynamicSimulator> sim;
-  Block(const Eigen::Vector3d& g, double dt) {
-    const Eigen::Vector3d lo(-0.03, -0.03, -0.02), hi(0.09, 0.05, 0.02);
-    const double voxel = 1e-3;
-    const Eigen::Vector3i size = ((hi - lo) / voxel).array().ceil().cast<int>() + 1;
-    image = LabelImage(size, Eigen::Vector3d::Constant(voxel), lo, kFat);
-    for (int k = 0; k < size.z(); ++k)
-      for (int j = 0; j < size.y(); ++j)
-        for (int i = 0; i < size.x(); ++i)
-          if (image.indexToPhysical(Eigen::Vector3d(i, j, k)).z() < 0) image.at(i, j, k) = kWall;
-    auto wall = std::make_shared<const ChestWallSurface>(image, std::set<std::uint16_t>{kWall});
-    SlidingSettings s;
-    s.gaussian_limit = false;
-    s.thickness_limit = false;
-    s.rim_band = false;
-    geometry = std::make_shared<ChestWallSliding>(mesh, mesh.nodeSet("z_min"), wall, s, nullptr, TissueLabels{},
-                                                  std::vector<Eigen::Vector3d>{}, Eigen::Vector3d::UnitZ());
-    ElasticMaterial mat;
-    mat.poisson_ratio = 0.45;
-    DynamicsParams p;
-    p.gravity_mps2 = g;
-    p.time_step_s = dt;
-    sim = std::make_unique<DynamicSimulator>(mesh, std::make_unique<CorotatedTetFem>(mesh, mat), mat, p,
-                                             std::make_unique<CholmodSolver>());
-  }
-  double meanBottom(int axis) const {
-    double sum = 0;
-    for (int v : mesh.nodeSet("z_min")) sum += sim->state().displacement_m[3 * v + axis];
-    return sum / static_cast<double>(mesh.nodeSet("z_min").size());
-  }
-};
+using Block = test_fixtures::SlidingBlock;
 
 }  // namespace
 
