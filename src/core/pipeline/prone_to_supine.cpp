@@ -207,8 +207,11 @@ StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* m
     // Coulomb friction holds a slipping node that comes to rest: a step in which slipping wall nodes
     // were driven back by their (constant) kinetic friction is repeated from its start with those
     // nodes sticking (wall_slip.h, stickReversed).
-    const SimulationState start = simulator().state();
-    const Eigen::VectorXd start_factors = modulusFactors();
+    // (into kept buffers: no allocation per step)
+    step_start_ = simulator().state();
+    step_start_factors_ = simulator().elements().modulusFactors();
+    const SimulationState& start = step_start_;
+    const Eigen::VectorXd& start_factors = step_start_factors_;
     const AlphaController::State start_alpha = stiff_->controller().state();
     StiffeningStepResult r;
     for (int pass = 0;; ++pass) {
@@ -433,10 +436,10 @@ IterationReport ProneToSupinePipeline::iterate() {
   // stick points) to come back to when the step runs away.
   const MorphingStageSettings& ms = settings_.morphing;
   const bool guard = ms.max_step_move_m > 0 || ms.max_step_volume_change_percent > 0;
-  PipelineState before;
+  PipelineState& before = guard_before_;  // a kept buffer: no allocation per step
   double volume_before = 0.0;
   if (guard) {
-    before = state();
+    fillState(before);
     if (ms.max_step_volume_change_percent > 0) volume_before = volumeChangePercent();
   }
   StiffeningStepResult r = stepWithSliding(&stalls, nullptr, pull ? &morph_springs_ : nullptr);
@@ -624,17 +627,27 @@ PipelineMetrics ProneToSupinePipeline::metrics() const {
 
 PipelineState ProneToSupinePipeline::state() const {
   PipelineState s;
+  fillState(s);
+  return s;
+}
+
+void ProneToSupinePipeline::fillState(PipelineState& s) const {
+  // Assignments into s's vectors reuse their storage when the sizes match.
   s.simulation = simulator().state();
-  s.modulus_factors = modulusFactors();
+  s.modulus_factors = simulator().elements().modulusFactors();
   s.alpha = stiff_->controller().state();
   if (sliding_) s.sliding_targets_m = sliding_->targets();
   if (slip_ && sliding_attached_) {
     s.sliding_targets_m = slip_->stickPoints();  // positions, not displacements
     s.sliding_slip_directions = slip_->slipDirections();
   }
+  if (!sliding_ && !(slip_ && sliding_attached_)) {
+    s.sliding_targets_m.resize(0, 3);
+    s.sliding_slip_directions.resize(0, 3);
+  }
   if (morphing_forces_) s.morphing_forces_n = morphing_forces_->accumulatedForces();
+  else s.morphing_forces_n.resize(0, 3);
   s.stage = stage_;
-  return s;
 }
 
 void ProneToSupinePipeline::restore(const PipelineState& s) {

@@ -391,6 +391,7 @@ class ProneToSupinePipeline {
 
  private:
   void attachSliding();
+  void fillState(PipelineState& s) const;  // state() into s, reusing its storage
   SurfaceMorphing& ensureMorphing();  // the force generator, on first use
   /// Reversal counts since `before`, the final α and the wall time of a stage.
   void closeReport(StageReport& r, const RunStats& before, double seconds) const;
@@ -444,6 +445,11 @@ class ProneToSupinePipeline {
   std::unique_ptr<ProneToSupinePipeline> coarse_;
   bool coarse_ahead_ = false;
   bool coarse_running_ = false;
+  // Kept buffers of the per-step copies (no allocation per step): the friction repeat's step start,
+  // the divergence guard's state before the step.
+  SimulationState step_start_;
+  Eigen::VectorXd step_start_factors_;
+  PipelineState guard_before_;
   double mesh_volume_m3_ = 0.0;
 };
 
