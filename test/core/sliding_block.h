@@ -1,6 +1,6 @@
 #pragma once
 // A 20×20×10 mm block on the plane z = 0 (the wall below it), in a 1 mm label image, for the
-// implicit sliding tests (test_wall_slip, test_pipeline_divergence): the block's bottom nodes
+// sliding tests (test_wall_slip, test_pipeline_divergence; test_sliding uses its simulator): the block's bottom nodes
 // (node set "z_min") are the wall nodes; CHOLMOD solves, so runs are exact and repeatable.
 
 #include <cmath>
@@ -21,6 +21,17 @@
 #include "breast_sim/core/solver/cholmod_solver.h"
 
 namespace breast_sim::core::test_fixtures {
+
+/// The block's simulator: co-rotated tetrahedra (ν 0.45), gravity g [m/s²], time step dt [s], CHOLMOD.
+inline std::unique_ptr<DynamicSimulator> blockSimulator(const TetMesh& mesh, const Eigen::Vector3d& g_mps2, double dt_s) {
+  ElasticMaterial mat;
+  mat.poisson_ratio = 0.45;
+  DynamicsParams p;
+  p.gravity_mps2 = g_mps2;
+  p.time_step_s = dt_s;
+  return std::make_unique<DynamicSimulator>(mesh, std::make_unique<CorotatedTetFem>(mesh, mat), mat, p,
+                                            std::make_unique<CholmodSolver>());
+}
 
 struct SlidingBlock {
   static constexpr std::uint16_t kWall = 40, kFat = 1;
@@ -46,13 +57,7 @@ struct SlidingBlock {
     s.rim_band = false;
     geometry = std::make_shared<ChestWallSliding>(mesh, mesh.nodeSet("z_min"), wall, s, nullptr, TissueLabels{},
                                                   std::vector<Eigen::Vector3d>{}, Eigen::Vector3d::UnitZ());
-    ElasticMaterial mat;
-    mat.poisson_ratio = 0.45;
-    DynamicsParams p;
-    p.gravity_mps2 = g_mps2;
-    p.time_step_s = dt_s;
-    sim = std::make_unique<DynamicSimulator>(mesh, std::make_unique<CorotatedTetFem>(mesh, mat), mat, p,
-                                             std::make_unique<CholmodSolver>());
+    sim = blockSimulator(mesh, g_mps2, dt_s);
   }
   /// Mean displacement of the bottom (wall) nodes along an axis [m].
   double meanBottom(int axis) const {

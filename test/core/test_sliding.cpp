@@ -15,6 +15,7 @@
 #include "breast_sim/core/model/phantom.h"
 #include "breast_sim/core/sliding/chest_wall_sliding.h"
 #include "breast_sim/core/solver/cholmod_solver.h"
+#include "sliding_block.h"
 
 using namespace breast_sim::core;
 
@@ -423,15 +424,7 @@ struct BlockOnPlane {
                                [](const Eigen::Vector3d& p) { return p.z() < 0; });
   std::shared_ptr<const ChestWallSurface> wall = std::make_shared<const ChestWallSurface>(image, std::set<std::uint16_t>{kWall});
   std::unique_ptr<DynamicSimulator> sim;
-  BlockOnPlane(const Eigen::Vector3d& g, double dt) {
-    ElasticMaterial mat;
-    mat.poisson_ratio = 0.45;
-    DynamicsParams p;
-    p.gravity_mps2 = g;
-    p.time_step_s = dt;
-    sim = std::make_unique<DynamicSimulator>(mesh, std::make_unique<CorotatedTetFem>(mesh, mat), mat, p,
-                                             std::make_unique<CholmodSolver>());
-  }
+  BlockOnPlane(const Eigen::Vector3d& g, double dt) : sim(test_fixtures::blockSimulator(mesh, g, dt)) {}
 };
 
 }  // namespace
@@ -460,8 +453,11 @@ TEST(Sliding, ConstraintRowReactionEqualsTheElasticReactionAtRest) {
   ASSERT_GT(max_load, 1e-5);
   EXPECT_LT(max_diff, 1e-6 * max_load) << "max load " << max_load << " N";
   // Free DOFs carry no reaction.
-  for (int v = 0; v < b.mesh.numNodes(); ++v)
-    if (!b.sim->constrainedDofs()[3 * v]) EXPECT_EQ(reaction.segment<3>(3 * v).norm(), 0.0);
+  for (int v = 0; v < b.mesh.numNodes(); ++v) {
+    if (!b.sim->constrainedDofs()[3 * v]) {
+      EXPECT_EQ(reaction.segment<3>(3 * v).norm(), 0.0);
+    }
+  }
 }
 
 // A forced move that inverts wall elements (one wall node pushed 8 mm across its neighbours, which

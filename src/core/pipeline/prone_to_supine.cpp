@@ -219,7 +219,12 @@ StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* m
       r = stiff_->step();
       if (!r.advanced || pass >= kMaxFrictionPasses || slip_->stickReversed(simulator(), start.displacement_m) == 0) break;
       ++friction_repeats_;
-      revertStep(start, start_factors, start_alpha);
+      // Back to the step's start; resync() gives the stiffening driver its stress at that state (the
+      // next moduli come from it) and drops the taken-back step from its history.
+      simulator().restore(start);
+      simulator().elements().setModulusFactors(start_factors);
+      stiff_->controller().setState(start_alpha);
+      stiff_->resync();
     }
     if (r.advanced) {
       const WallSlipStats ws = slip_->afterStep(simulator());
@@ -233,21 +238,6 @@ StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* m
   const bool m = slideAfter(r, stalls);
   if (moving) *moving = m;
   return r;
-}
-
-void ProneToSupinePipeline::revertStep(const SimulationState& start, const Eigen::VectorXd& start_factors,
-                                       const AlphaController::State& start_alpha) {
-  // The stiffening driver's own undo (state, moduli, α and its stress at that state) when its
-  // previous entry is the start of this step; otherwise (after a restore() or attach) by hand.
-  if (stiff_->historySize() >= 2 && stiff_->history(1).state.displacement_m == start.displacement_m &&
-      stiff_->history(1).state.velocity_mps == start.velocity_mps)
-    stiff_->revertTo(1);  // also refreshes the driver's stress at that state
-  else
-    simulator().restore(start);
-  // The moduli and α of the start, which may differ from the history entry's (α raised by the
-  // divergence guard since).
-  simulator().elements().setModulusFactors(start_factors);
-  stiff_->controller().setState(start_alpha);
 }
 
 void ProneToSupinePipeline::attachSliding() {
@@ -454,8 +444,7 @@ IterationReport ProneToSupinePipeline::iterate() {
     if (too_far || volume_jump) {
       // A failed step like an inversion (seed 2.6): back to the state before it, α up, and the next
       // call repeats it without new forces. The last good state is never overwritten.
-      revertStep(before.simulation, before.modulus_factors, before.alpha);
-      restore(before);  // and the stick points, slip directions and morphing forces
+      restore(before);  // state, moduli, α, stick points, slip directions and morphing forces
       // Repeated run-aways grow α as repeated reversals of one step do (reversal_growth).
       stiff_->controller().onReversed(++diverged_run_);
       ++diverged_steps_;

@@ -401,8 +401,6 @@ class ProneToSupinePipeline {
   // still moves (explicit: by more than the increment tolerance).
   // `extra`: springs set for the step besides the wall's (the morphing's implicit pull), or null.
   StiffeningStepResult stepWithSliding(int* stalls, bool* moving, const NodeSprings* extra = nullptr);
-  // Takes an accepted stiffening step back to its start (state, modulus factors, α controller).
-  void revertStep(const SimulationState& start, const Eigen::VectorXd& start_factors, const AlphaController::State& start_alpha);
   bool hasSliding() const { return sliding_ || slip_; }
   WallSlipSettings wallSlipSettings() const;
   void setTimeStep(double dt_s);
