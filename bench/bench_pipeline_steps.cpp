@@ -105,6 +105,13 @@ int main(int argc, char** argv) {
     return 2;
   }
   if (variants.empty()) variants.push_back({"case", {}});
+  struct Profile {
+    std::string variant;
+    int elements = 0;
+    StepTotals totals;
+    double outside_seconds = -1;  // on the last model of a variant: the run's seconds outside step() [s]
+  };
+  std::vector<Profile> profiles;
   nlohmann::json rows = nlohmann::json::array();
   for (double size : sizes) {
     ModelCase c = loadModelCase(case_file);
@@ -202,6 +209,27 @@ int main(int argc, char** argv) {
                   v.name.c_str(), stage(g).c_str(), stage(sl).c_str(), stage(mo).c_str(), total, solves,
                   fm.surface.model_to_target.mean_m * 1e3, fm.surface.model_to_target.p95_m * 1e3, mo.surface_p95_m * 1e3,
                   fm.volume_change_percent, fm.inverted_elements, lesion_diff * 1e3, seconds, seconds / base_seconds);
+      // Where the seconds went, per model the steps ran on: the simulator's step() calls (assembly,
+      // solver set-up, solve) and the rest of the stages (stiffening, sliding, morphing, stop rules).
+      nlohmann::json profile = nlohmann::json::array();
+      double step_seconds = 0;
+      for (const ProneToSupinePipeline* p : {pipe.coarse(), static_cast<const ProneToSupinePipeline*>(&pipe)}) {
+        if (!p) continue;
+        const StepTotals& t = p->simulator().totals();
+        if (t.steps == 0) continue;
+        step_seconds += t.total_seconds;
+        const double per = 1e3 / static_cast<double>(t.steps);
+        profiles.push_back(Profile{v.name, p->model().mesh.numTets(), t});
+        profile.push_back({{"elements", p->model().mesh.numTets()},
+                           {"solves", t.steps},
+                           {"iterations_per_solve", static_cast<double>(t.iterations) / static_cast<double>(t.steps)},
+                           {"assembly_ms_per_solve", t.assembly_seconds * per},
+                           {"setup_ms_per_solve", t.setup_seconds * per},
+                           {"solve_ms_per_solve", t.solve_seconds * per},
+                           {"step_ms_per_solve", t.total_seconds * per},
+                           {"step_seconds", t.total_seconds}});
+      }
+      profiles.back().outside_seconds = seconds - step_seconds;
       std::fflush(stdout);
       nlohmann::json overrides = nlohmann::json::object();
       for (const auto& [k, val] : v.overrides) overrides[k] = val;
@@ -235,8 +263,23 @@ int main(int argc, char** argv) {
                          return l;
                        }()},
                       {"seconds", seconds},
+                      {"outside_steps_seconds", seconds - step_seconds},
+                      {"profile", profile},
                       {"ratio_to_first", seconds / base_seconds}});
     }
+  }
+  std::printf("\nwhere the time went: the simulator's step() calls per model (ms per solve) and the stages' own work "
+              "outside them (stiffening, sliding, morphing forces, stop rules; whole run [s])\n");
+  std::printf("%-14s %-9s %-7s %-8s %-9s %-8s %-8s %-8s %-9s %-10s\n", "variant", "elements", "solves", "its/sol",
+              "assembly", "setup", "solve", "step", "steps[s]", "outside[s]");
+  for (const Profile& p : profiles) {
+    const double per = 1e3 / static_cast<double>(p.totals.steps);
+    std::printf("%-14s %-9d %-7ld %-8.1f %-9.2f %-8.2f %-8.2f %-8.2f %-9.2f ", p.variant.c_str(), p.elements,
+                p.totals.steps, static_cast<double>(p.totals.iterations) / static_cast<double>(p.totals.steps),
+                p.totals.assembly_seconds * per, p.totals.setup_seconds * per, p.totals.solve_seconds * per,
+                p.totals.total_seconds * per, p.totals.total_seconds);
+    if (p.outside_seconds >= 0) std::printf("%-10.2f", p.outside_seconds);
+    std::printf("\n");
   }
   std::printf("\nsteps(reversed), X = not converged, S = stuck; n(r)c+: first on the coarse model (coarse_start); skin mean/p95: all skin -> target [mm]; pulled p95: the "
               "morphing's vertices [mm]; lesion d: largest lesion position change from the first variant [mm]\n");

@@ -1,7 +1,10 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 #include <random>
+
+#include <Eigen/Dense>
 
 #include "breast_sim/core/model/point_embedding.h"
 #include "breast_sim/core/mesh/box_mesh.h"
@@ -100,4 +103,54 @@ TEST(PointEmbedding, GridSearchAgreesWithBruteForceOverAllElements) {
     EXPECT_LT((e.positions(m.nodes()).row(i) - p.row(i)).norm(), 1e-15);
   }
   EXPECT_THROW(e.interpolate(Points::Zero(3, 3)), std::invalid_argument);
+}
+
+TEST(PointEmbedding, SnappedPointsMatchTheExactDistanceToTheBox) {
+  // Reference for the face grid: the exact distance to the box, for points scattered around a box
+  // mesh up to 6 mm outside it (tolerance 5 mm: the ones within are embedded in one call, each
+  // farther one must be refused).
+  const TetMesh m = makeBoxMesh({6, 5, 4}, {0.05, 0.04, 0.03});
+  const Eigen::Vector3d lo(0, 0, 0), hi(0.05, 0.04, 0.03);
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> ux(-0.006, 0.056), uy(-0.006, 0.046), uz(-0.006, 0.036);
+  const double tolerance = 0.005;
+  std::vector<Eigen::Vector3d> accepted;
+  int refused = 0;
+  for (int i = 0; i < 1000; ++i) {
+    const Eigen::Vector3d q(ux(rng), uy(rng), uz(rng));
+    if ((q.cwiseMax(lo).cwiseMin(hi) - q).norm() <= tolerance) {
+      accepted.push_back(q);
+      continue;
+    }
+    EXPECT_THROW(PointEmbedding(m, Points(q.transpose()), {"x"}, tolerance), std::invalid_argument) << "point " << i;
+    ++refused;
+  }
+  Points p(static_cast<Eigen::Index>(accepted.size()), 3);
+  for (size_t i = 0; i < accepted.size(); ++i) p.row(static_cast<Eigen::Index>(i)) = accepted[i].transpose();
+  const PointEmbedding e(m, p, {}, tolerance);
+  const Points at = e.positions(m.nodes());
+  int snapped = 0;
+  for (Eigen::Index i = 0; i < p.rows(); ++i) {
+    const Eigen::Vector3d q = p.row(i).transpose(), closest = q.cwiseMax(lo).cwiseMin(hi);
+    EXPECT_NEAR(e.points()[static_cast<size_t>(i)].outside_distance_m, (closest - q).norm(), 1e-12) << "point " << i;
+    EXPECT_LT((at.row(i).transpose() - closest).norm(), 1e-12) << "point " << i;  // the box's closest point
+    snapped += (closest - q).norm() > 0;
+  }
+  EXPECT_GT(snapped, 200);
+  EXPECT_GT(refused, 20);
+}
+
+TEST(PointEmbedding, BarycentricCoordinatesMatchADenseSolve) {
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(-0.01, 0.01);
+  for (int k = 0; k < 100; ++k) {
+    Eigen::Vector3d v[5];
+    for (auto& x : v) x << u(rng), u(rng), u(rng);
+    Eigen::Matrix3d m;
+    m << v[1] - v[0], v[2] - v[0], v[3] - v[0];
+    if (std::abs(m.determinant()) < 1e-9) continue;
+    const Eigen::Vector3d l = m.fullPivLu().solve(v[4] - v[0]);
+    const Eigen::Vector4d w = barycentricCoordinates(v[4], v[0], v[1], v[2], v[3]);
+    EXPECT_LT((w - Eigen::Vector4d(1 - l.sum(), l.x(), l.y(), l.z())).cwiseAbs().maxCoeff(), 1e-8) << k;
+  }
 }

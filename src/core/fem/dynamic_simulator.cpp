@@ -250,6 +250,12 @@ StepStats DynamicSimulator::step() {
   state_.time_s += dt;
   ++state_.step;
   st.total_seconds = since(t0);
+  ++totals_.steps;
+  totals_.iterations += st.solve.iterations;
+  totals_.assembly_seconds += st.assembly_seconds;
+  totals_.setup_seconds += st.setup_seconds;
+  totals_.solve_seconds += st.solve.seconds;
+  totals_.total_seconds += st.total_seconds;
   return st;
 }
 

@@ -27,6 +27,18 @@ constexpr int kMaxStuckCalls = 5;
 /// reverse again, so the passes only catch nodes that reverse because others stopped.
 constexpr int kMaxFrictionPasses = 3;
 
+/// FNV-1a of the rest nodes and elements (in [0, 2^52], never 0): which mesh a state or cache belongs to.
+double meshFingerprint(const TetMesh& mesh) {
+  std::uint64_t h = 1469598103934665603ULL;
+  auto mix = [&](const void* data, size_t bytes) {
+    const auto* c = static_cast<const unsigned char*>(data);
+    for (size_t k = 0; k < bytes; ++k) h = (h ^ c[k]) * 1099511628211ULL;
+  };
+  mix(mesh.nodes().data(), sizeof(double) * static_cast<size_t>(mesh.nodes().size()));
+  mix(mesh.tets().data(), sizeof(int) * static_cast<size_t>(mesh.tets().size()));
+  return static_cast<double>(h & ((std::uint64_t{1} << 52) - 1)) + 1.0;  // never 0 (0: older files)
+}
+
 double since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
@@ -683,12 +695,24 @@ void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, doubl
   const Points& rest = model_.mesh.nodes();
   // Rest nodes and element centroids of this model in the coarse rest mesh (everything is
   // validated before this pipeline changes).
-  const PointEmbedding at_nodes(cm, rest, {}, snap_tolerance_m);
-  Points centroids(model_.mesh.numTets(), 3);
-  const Tets& T = model_.mesh.tets();
-  for (int t = 0; t < model_.mesh.numTets(); ++t)
-    centroids.row(t) = 0.25 * (rest.row(T(t, 0)) + rest.row(T(t, 1)) + rest.row(T(t, 2)) + rest.row(T(t, 3)));
-  const PointEmbedding at_centroids(cm, centroids, {}, snap_tolerance_m);
+  // They depend on the two rest meshes alone: kept for the next start from the same coarse mesh
+  // (runGravity and runMorphing both start from the coarse model).
+  const double fingerprint = meshFingerprint(cm);
+  if (!coarse_embedding_ || coarse_embedding_->fingerprint != fingerprint ||
+      coarse_embedding_->snap_tolerance_m != snap_tolerance_m) {
+    auto e = std::make_unique<CoarseEmbedding>();
+    e->nodes = PointEmbedding(cm, rest, {}, snap_tolerance_m);
+    Points centroids(model_.mesh.numTets(), 3);
+    const Tets& T = model_.mesh.tets();
+    for (int t = 0; t < model_.mesh.numTets(); ++t)
+      centroids.row(t) = 0.25 * (rest.row(T(t, 0)) + rest.row(T(t, 1)) + rest.row(T(t, 2)) + rest.row(T(t, 3)));
+    e->centroids = PointEmbedding(cm, centroids, {}, snap_tolerance_m);
+    e->fingerprint = fingerprint;
+    e->snap_tolerance_m = snap_tolerance_m;
+    coarse_embedding_ = std::move(e);
+  }
+  const PointEmbedding& at_nodes = coarse_embedding_->nodes;
+  const PointEmbedding& at_centroids = coarse_embedding_->centroids;
 
   const SimulationState& cs = coarse.simulator().state();
   auto asPoints = [](const Eigen::VectorXd& v) {
@@ -797,16 +821,6 @@ Points toPoints(const Eigen::VectorXd& v) {
 
 // FNV-1a hash of the rest mesh (node coordinates and connectivity), cut to 52 bits so that a double
 // holds it exactly: a state fits a model only if its nodes are numbered the same way.
-double meshFingerprint(const TetMesh& mesh) {
-  std::uint64_t h = 1469598103934665603ULL;
-  auto mix = [&](const void* data, size_t bytes) {
-    const auto* c = static_cast<const unsigned char*>(data);
-    for (size_t k = 0; k < bytes; ++k) h = (h ^ c[k]) * 1099511628211ULL;
-  };
-  mix(mesh.nodes().data(), sizeof(double) * static_cast<size_t>(mesh.nodes().size()));
-  mix(mesh.tets().data(), sizeof(int) * static_cast<size_t>(mesh.tets().size()));
-  return static_cast<double>(h & ((std::uint64_t{1} << 52) - 1)) + 1.0;  // never 0 (0: older files)
-}
 
 Eigen::VectorXd flatten(const Points& p) {
   Eigen::VectorXd v(3 * p.rows());

@@ -41,6 +41,16 @@ struct StepStats {
   double total_seconds = 0.0;
 };
 
+/// What all step() calls of a simulator did, summed (a profile of a run: where its time went).
+struct StepTotals {
+  long steps = 0;                 ///< step() calls (accepted and reverted trials alike)
+  long iterations = 0;            ///< Krylov iterations
+  double assembly_seconds = 0.0;  ///< rotations, forces and matrix [s]
+  double setup_seconds = 0.0;     ///< solver factorize() [s]
+  double solve_seconds = 0.0;     ///< solver solve() [s]
+  double total_seconds = 0.0;     ///< whole step() calls [s]
+};
+
 /// Backward Euler in velocity form, linearised at the start of the step (co-rotated stiffness):
 ///   (M(1 + dt α_M) + dt(dt + α_K) K) v_{t+1} = M v_t + dt (f_ext + f_el(x_t)),  u_{t+1} = u_t + dt v_{t+1}
 /// with f_el the elastic forces on the nodes. Fixed nodes keep their displacement; target nodes
@@ -101,6 +111,8 @@ class DynamicSimulator {
   StepStats step();
 
   const SimulationState& state() const { return state_; }
+  /// Every step() since construction, summed; restore() does not undo it.
+  const StepTotals& totals() const { return totals_; }
   /// Restores a saved state exactly (constraints and external forces are not part of it).
   /// @throws std::invalid_argument if its size does not match the mesh.
   void restore(const SimulationState& s);
@@ -139,6 +151,7 @@ class DynamicSimulator {
   std::vector<char> is_target_;     // per DOF: target (1) or fixed (0) when constrained
   Eigen::VectorXd target_displacement_;  // per DOF [m]
   SimulationState state_;
+  StepTotals totals_;
   SparseMatrix A_;
   Eigen::VectorXd f_el_, rhs_, v_next_;
   Eigen::VectorXd constraint_force_;       // 3N, reactions of the last step [N]

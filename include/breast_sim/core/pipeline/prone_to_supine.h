@@ -441,6 +441,14 @@ class ProneToSupinePipeline {
   std::unique_ptr<ModelCase> coarse_case_;
   std::unique_ptr<SimulationModel> coarse_model_;
   std::unique_ptr<ProneToSupinePipeline> coarse_;
+  /// startFrom(): this model's rest nodes and element centroids in a coarse rest mesh, kept for the
+  /// next start from the same mesh (meshFingerprint) and snap tolerance.
+  struct CoarseEmbedding {
+    double fingerprint = 0.0;
+    double snap_tolerance_m = 0.0;
+    PointEmbedding nodes, centroids;
+  };
+  std::unique_ptr<CoarseEmbedding> coarse_embedding_;
   bool coarse_ahead_ = false;
   bool coarse_running_ = false;
   // Kept buffers of the per-step copies (no allocation per step): the friction repeat's step start,
