@@ -5,7 +5,8 @@
 // first variant of the same size, measured in the same run.
 //
 //   bench_pipeline_steps [--case config/phantom_default.yaml] [--elements 10000,20000]
-//                        [--variant NAME:section.key=value,section.key=value ...] [--trace] [--json FILE]
+//                        [--variant NAME:section.key=value,section.key=value ...] [--trace]
+//                        [--ensemble TOL,TOL,...] [--json FILE]
 //
 // A variant overrides keys of the case file (any key of simulation:, stiffening:, sliding:, morphing:,
 // with the file's units; alpha.KEY is kept as another name of stiffening.KEY), e.g.
@@ -14,6 +15,10 @@
 // (stage, increment, pulled-vertex mean / p95 distance, α, the node that moved most, the largest move
 // off the wall, the 95th percentile of the wall nodes' moves, the volume change, the lesions [mm]). --stretch F: the target is the model's own
 // skin stretched by F along y (reachable with the wall fixed; use with simulation.gravity_mps2=0).
+// --ensemble 1e-2,8e-3,...: each variant runs once per PCG relative tolerance (simulation.
+// solver_relative_tolerance); the wall's stick/slip makes the lesions depend on such small differences
+// in the path, and the table of ensembles gives each variant's mean lesions, its members' spread about
+// them, and the distance of its mean from the first variant's (which is then comparable to the spread).
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -39,6 +44,7 @@ namespace {
 
 struct Variant {
   std::string name;
+  std::string group;  // with --ensemble: the variant this run is a member of (else its own name)
   std::vector<std::pair<std::string, std::string>> overrides;  // "section.key" → YAML scalar text
 };
 
@@ -76,6 +82,58 @@ std::string variantFile(const std::string& case_file, const Variant& v) {
   return out.string();
 }
 
+/// One run of an ensemble: its variant and where it put the lesions [m].
+struct Member {
+  std::string group;
+  Points lesions;
+  double seconds = 0;
+  long solves = 0;
+};
+
+/// The ensembles' table: per variant, the mean lesion positions of its members, how far its members
+/// lie from that mean (the spread the solver tolerance alone makes), and how far the mean lies from
+/// the first variant's mean.
+void printEnsemble(const std::vector<Member>& members, int target, int elements, nlohmann::json& out) {
+  std::vector<std::string> groups;
+  for (const Member& m : members)
+    if (std::find(groups.begin(), groups.end(), m.group) == groups.end()) groups.push_back(m.group);
+  std::printf("\nensembles at %d elements (one run per solver tolerance): lesion positions [mm]\n", elements);
+  std::printf("%-14s %-8s %-8s %-9s %-12s %-14s %s\n", "variant", "members", "solves", "seconds", "spread [mm]",
+              "from first [mm]", "mean lesion positions [mm]");
+  Points first_mean;
+  double first_spread = 0;
+  for (const std::string& g : groups) {
+    std::vector<const Member*> in;
+    for (const Member& m : members)
+      if (m.group == g) in.push_back(&m);
+    Points mean = Points::Zero(in.front()->lesions.rows(), 3);
+    double seconds = 0, solves = 0;
+    for (const Member* m : in) mean += m->lesions, seconds += m->seconds, solves += static_cast<double>(m->solves);
+    const double n = static_cast<double>(in.size());
+    mean /= n;
+    double spread = 0;  // largest distance of a member's lesion from the mean
+    for (const Member* m : in)
+      for (Eigen::Index i = 0; i < mean.rows(); ++i) spread = std::max(spread, (m->lesions.row(i) - mean.row(i)).norm());
+    if (first_mean.size() == 0) first_mean = mean, first_spread = spread;
+    double from_first = 0;
+    for (Eigen::Index i = 0; i < mean.rows(); ++i) from_first = std::max(from_first, (mean.row(i) - first_mean.row(i)).norm());
+    std::printf("%-14s %-8zu %-8.1f %-9.2f %-12.3f %-14.3f", g.c_str(), in.size(), solves / n, seconds / n, spread * 1e3,
+                from_first * 1e3);
+    nlohmann::json lesions = nlohmann::json::array();
+    for (Eigen::Index i = 0; i < mean.rows(); ++i) {
+      std::printf(" (%.2f %.2f %.2f)", mean(i, 0) * 1e3, mean(i, 1) * 1e3, mean(i, 2) * 1e3);
+      lesions.push_back({mean(i, 0) * 1e3, mean(i, 1) * 1e3, mean(i, 2) * 1e3});
+    }
+    std::printf("\n");
+    out.push_back({{"target_elements", target}, {"elements", elements}, {"variant", g}, {"members", in.size()},
+                   {"mean_solves", solves / n}, {"mean_seconds", seconds / n}, {"spread_mm", spread * 1e3},
+                   {"mean_from_first_mm", from_first * 1e3}, {"first_spread_mm", first_spread * 1e3},
+                   {"mean_lesions_mm", lesions}});
+  }
+  std::printf("spread: the largest distance of a member's lesion from its variant's mean; from first: the largest "
+              "distance of a lesion's mean from the first variant's\n");
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -83,6 +141,7 @@ int main(int argc, char** argv) {
   std::vector<double> sizes = {10000, 20000};
   std::vector<Variant> variants;
   bool trace = false;
+  std::vector<std::string> ensemble;  // solver tolerances: each variant runs once per value
   double stretch = 0;  // > 0: the target is the model's own skin stretched by this factor along y (a reachable target)
   try {
     for (int i = 1; i < argc; ++i) {
@@ -94,9 +153,13 @@ int main(int argc, char** argv) {
       else if (a == "--trace") trace = true;
       else if (a == "--stretch") stretch = std::stod(next());
       else if (a == "--json") json_path = next();
-      else {
+      else if (a == "--ensemble") {
+        std::stringstream ss(next());
+        for (std::string item; std::getline(ss, item, ',');)
+          if (!item.empty()) ensemble.push_back((parseList(item), item));  // parseList validates the number
+      } else {
         std::fprintf(stderr, "usage: bench_pipeline_steps [--case FILE] [--elements LIST] [--variant NAME:sec.key=v,...]... "
-                             "[--trace] [--stretch F] [--json FILE]\n");
+                             "[--trace] [--stretch F] [--ensemble TOL,TOL,...] [--json FILE]\n");
         return 2;
       }
     }
@@ -104,7 +167,20 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "bench_pipeline_steps: %s\n", e.what());
     return 2;
   }
-  if (variants.empty()) variants.push_back({"case", {}});
+  if (variants.empty()) variants.push_back({"case", "", {}});
+  for (Variant& v : variants) v.group = v.name;
+  if (!ensemble.empty()) {
+    // Each variant once per solver tolerance: runs that differ only by the PCG's stopping point.
+    std::vector<Variant> members;
+    for (const Variant& v : variants)
+      for (const std::string& tol : ensemble) {
+        Variant m = v;
+        m.name = v.name + "@" + tol;
+        m.overrides.push_back({"simulation.solver_relative_tolerance", tol});
+        members.push_back(m);
+      }
+    variants = members;
+  }
   struct Profile {
     std::string variant;
     int elements = 0;
@@ -112,7 +188,7 @@ int main(int argc, char** argv) {
     double outside_seconds = -1;  // on the last model of a variant: the run's seconds outside step() [s]
   };
   std::vector<Profile> profiles;
-  nlohmann::json rows = nlohmann::json::array();
+  nlohmann::json rows = nlohmann::json::array(), ensemble_rows = nlohmann::json::array();
   for (double size : sizes) {
     ModelCase c = loadModelCase(case_file);
     c.meshing.target_elements = static_cast<int>(size);
@@ -123,6 +199,7 @@ int main(int argc, char** argv) {
                 "seconds", "ratio");
     double base_seconds = -1;
     Points base_lesions;
+    std::vector<Member> members;
     for (const Variant& v : variants) {
       const std::string file = variantFile(case_file, v);
       PipelineSettings s;
@@ -209,6 +286,7 @@ int main(int argc, char** argv) {
                   v.name.c_str(), stage(g).c_str(), stage(sl).c_str(), stage(mo).c_str(), total, solves,
                   fm.surface.model_to_target.mean_m * 1e3, fm.surface.model_to_target.p95_m * 1e3, mo.surface_p95_m * 1e3,
                   fm.volume_change_percent, fm.inverted_elements, lesion_diff * 1e3, seconds, seconds / base_seconds);
+      members.push_back({v.group, lesions, seconds, solves});
       // Where the seconds went, per model the steps ran on: the simulator's step() calls (assembly,
       // solver set-up, solve) and the rest of the stages (stiffening, sliding, morphing, stop rules).
       nlohmann::json profile = nlohmann::json::array();
@@ -267,6 +345,7 @@ int main(int argc, char** argv) {
                       {"profile", profile},
                       {"ratio_to_first", seconds / base_seconds}});
     }
+    if (!ensemble.empty()) printEnsemble(members, static_cast<int>(size), m.mesh.numTets(), ensemble_rows);
   }
   std::printf("\nwhere the time went: the simulator's step() calls per model (ms per solve) and the stages' own work "
               "outside them (stiffening, sliding, morphing forces, stop rules; whole run [s])\n");
@@ -283,6 +362,9 @@ int main(int argc, char** argv) {
   }
   std::printf("\nsteps(reversed), X = not converged, S = stuck; n(r)c+: first on the coarse model (coarse_start); skin mean/p95: all skin -> target [mm]; pulled p95: the "
               "morphing's vertices [mm]; lesion d: largest lesion position change from the first variant [mm]\n");
-  if (!json_path.empty()) std::ofstream(json_path) << rows.dump(2) << '\n';
+  if (!json_path.empty()) {
+    if (ensemble.empty()) std::ofstream(json_path) << rows.dump(2) << '\n';
+    else std::ofstream(json_path) << nlohmann::json{{"runs", rows}, {"ensembles", ensemble_rows}}.dump(2) << '\n';
+  }
   return 0;
 }
