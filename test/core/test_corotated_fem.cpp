@@ -713,3 +713,48 @@ TEST(CorotatedTetFem, TwoMaterialBarInSeriesMatchesTheAnalyticStretch) {
     EXPECT_NEAR(pull, reaction, 1e-9 * reaction);
   }
 }
+
+TEST(CorotatedTetFem, UpdateAtTheSamePositionsAfterNewFactorsEqualsAFreshUpdate) {
+  // The stiffening loop evaluates the stress after a step, sets new factors, and the next step
+  // updates at the same positions: that update reuses the rotations with forces, von Mises stresses
+  // and stiffness records rescaled to the new factors. Reference: a fresh element set.
+  const TetMesh& m = smallBlock();
+  ElasticMaterial mat;
+  mat.poisson_ratio = 0.48;
+  std::mt19937 rng(23);
+  std::normal_distribution<double> d(0, 3e-3);
+  Points x = m.nodes();
+  for (int i = 0; i < x.size(); ++i) x.data()[i] += d(rng);
+  const Eigen::VectorXd first = Eigen::VectorXd::LinSpaced(m.numTets(), 1.0, 3.0);
+  Eigen::VectorXd second(m.numTets());
+  for (int e = 0; e < m.numTets(); ++e) second[e] = 1.0 + 0.37 * (e % 7);
+  for (const auto term : {CorotatedTetFem::VolumeTerm::kTrace, CorotatedTetFem::VolumeTerm::kDeterminant}) {
+    SCOPED_TRACE(term == CorotatedTetFem::VolumeTerm::kTrace ? "tr S - 3" : "J - 1");
+    CorotatedTetFem reused(m, mat), fresh(m, mat);
+    reused.setVolumeTerm(term);
+    fresh.setVolumeTerm(term);
+    reused.setModulusFactors(first);
+    Eigen::VectorXd f;
+    reused.update(x, f);
+    reused.setModulusFactors(second);
+    const SparseMatrix K_reused = stiffnessAt(reused, x);  // update at the same x: reused
+    const Eigen::VectorXd f_reused = forcesAt(reused, x);
+    fresh.setModulusFactors(second);
+    const SparseMatrix K_fresh = stiffnessAt(fresh, x);
+    const Eigen::VectorXd f_fresh = forcesAt(fresh, x);
+    EXPECT_LT((f_reused - f_fresh).cwiseAbs().maxCoeff(), 1e-12 * f_fresh.cwiseAbs().maxCoeff());
+    EXPECT_LT((reused.vonMisesStress() - fresh.vonMisesStress()).cwiseAbs().maxCoeff(),
+              1e-12 * fresh.vonMisesStress().maxCoeff());
+    EXPECT_LT(Eigen::MatrixXd(K_reused - K_fresh).cwiseAbs().maxCoeff(),
+              1e-12 * Eigen::MatrixXd(K_fresh).cwiseAbs().maxCoeff());
+    // A move of one node is seen: the next update recomputes.
+    x(0, 0) += 1e-4;
+    const Eigen::VectorXd f_moved = forcesAt(reused, x);
+    CorotatedTetFem other(m, mat);
+    other.setVolumeTerm(term);
+    other.setModulusFactors(second);
+    EXPECT_LT((f_moved - forcesAt(other, x)).cwiseAbs().maxCoeff(), 1e-12 * f_fresh.cwiseAbs().maxCoeff());
+    EXPECT_GT((f_moved - f_reused).cwiseAbs().maxCoeff(), 1e-6 * f_fresh.cwiseAbs().maxCoeff());
+    x(0, 0) -= 1e-4;
+  }
+}

@@ -58,13 +58,21 @@ void CorotatedTetFem::setModulusFactors(const Eigen::VectorXd& factors) {
       throw std::invalid_argument("setModulusFactors: factor of element " + std::to_string(e) + " is " +
                                   std::to_string(factors[e]) + "; factors must be positive and finite");
   // The stiffness records hold √(V E_r)-scaled gradients: rescale them to the new factors (the
-  // stiffening loop calls this every step: 1.2 M values at 48k elements, so on every thread).
+  // stiffening loop calls this every step: 1.2 M values at 48k elements, so on every thread). The
+  // element forces and von Mises stresses of the last update are linear in E_r: rescaled too, so
+  // that an update() at the same positions needs no new rotations.
   double* const recs = records();
+  const bool forces = elem_forces_.size() == 12 * static_cast<size_t>(factors.size());
 #pragma omp parallel for schedule(static)
   for (Eigen::Index e = 0; e < factors.size(); ++e) {
-    const double rescale = std::sqrt(factors[e] / modulus_factor_[e]);
+    const double ratio = factors[e] / modulus_factor_[e], rescale = std::sqrt(ratio);
     double* const rec = recs + record_ * static_cast<size_t>(e);
     for (int k = 0; k < record_; ++k) rec[k] *= rescale;
+    if (forces) {
+      double* const fe = &elem_forces_[12 * static_cast<size_t>(e)];
+      for (int k = 0; k < 12; ++k) fe[k] *= ratio;
+      von_mises_[e] *= ratio;
+    }
   }
   modulus_factor_ = factors;
 }
@@ -92,6 +100,7 @@ void CorotatedTetFem::setElementYoungsModuli(const Eigen::VectorXd& youngs_modul
     for (int k = 0; k < record_; ++k) rec[k] *= rescale;
   }
   base_scale_ = scale;
+  updated_at_valid_ = false;  // forces and stresses come from the next update
 }
 
 Eigen::Matrix3d CorotatedTetFem::rotation(int e) const {
@@ -244,8 +253,20 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
     record_ = stride;
     records_raw_.assign(static_cast<size_t>(stride) * nt + 8, 0.0);
   }
-  if (determinant) updateBatches<true>(x);
-  else updateBatches<false>(x);
+  // At the positions of the last update, with the same formulation, the rotations, forces, von Mises
+  // stresses and stiffness records are still valid (setModulusFactors rescales them): the stiffening
+  // loop evaluates the stress after a step and the next step's forces at the same positions.
+  const bool same = updated_at_valid_ && updated_corotated_ == corotated_ && updated_volume_term_ == volume_term_ &&
+                    updated_at_.rows() == x.rows() && updated_at_.cols() == x.cols() &&
+                    std::equal(x.data(), x.data() + x.size(), updated_at_.data());
+  if (!same) {
+    if (determinant) updateBatches<true>(x);
+    else updateBatches<false>(x);
+    updated_at_ = x;
+    updated_at_valid_ = true;
+    updated_corotated_ = corotated_;
+    updated_volume_term_ = volume_term_;
+  }
   // Gather per node.
   const int nn = pattern_.numNodes();
   f.resize(3 * nn);  // every entry is written below

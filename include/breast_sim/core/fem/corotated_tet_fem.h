@@ -122,6 +122,11 @@ class CorotatedTetFem : public ElementFormulation {
   bool corotated_ = true;
   VolumeTerm volume_term_ = VolumeTerm::kTrace;
   bool stiffness_is_determinant_ = false;  // the volume term at the last update()
+  // The positions and formulation of the last element update: update() at the same ones reuses it.
+  Points updated_at_;
+  bool updated_at_valid_ = false;
+  bool updated_corotated_ = true;
+  VolumeTerm updated_volume_term_ = VolumeTerm::kTrace;
   double trace_lambda_ = 0.0;              // λ of the trace kernels at the last update(): λ, or −2μ/3 for kNone
   double volumeLambda() const { return trace_lambda_; }
   template <bool kDeterminant>
