@@ -10,6 +10,7 @@
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
 
 using namespace breast_sim::core;
 namespace fs = std::filesystem;
@@ -207,4 +208,43 @@ TEST(ModelCase, BadTissueModuliNameTheKey) {
       loadSimulationSettings(writeTemp("two_moduli.yaml", "phantom: {}\nsimulation: {tissue_youngs_modulus_pa: {fat: 1500, lesion: 9000}}\n"));
   EXPECT_EQ(s.region_youngs_modulus_pa.at(static_cast<int>(TissueClass::kFat)), 1500.0);
   EXPECT_EQ(s.region_youngs_modulus_pa.at(static_cast<int>(TissueClass::kLesion)), 9000.0);
+}
+
+// A case file may start from another (`base:`): config/phantom_fast.yaml is phantom_default.yaml
+// with three keys changed. Maps merge key by key; a missing base or a cycle is a clear error.
+TEST(ModelCase, ACaseFileStartsFromItsBase) {
+  const ModelCase fast = loadModelCase(kConfig + "phantom_fast.yaml");
+  const ModelCase def = loadModelCase(kConfig + "phantom_default.yaml");
+  EXPECT_EQ(fast.meshing.target_elements, def.meshing.target_elements);
+  EXPECT_EQ(fast.lesions.size(), def.lesions.size());
+  EXPECT_EQ(fast.name, "phantom_fast");
+  const PipelineSettings f = loadPipelineSettings(kConfig + "phantom_fast.yaml");
+  const PipelineSettings d = loadPipelineSettings(kConfig + "phantom_default.yaml");
+  EXPECT_EQ(f.coarse_start.elements, 4000);
+  EXPECT_EQ(f.stiffening.alpha.decrease_factor, 0.6);
+  EXPECT_EQ(f.morphing.increment_measure, MorphingStageSettings::IncrementMeasure::kPulledP95);
+  // Inherited: the default file's own choices, and the changed maps' other keys.
+  EXPECT_EQ(f.simulation.volume_term, d.simulation.volume_term);
+  EXPECT_EQ(f.simulation.sliding, d.simulation.sliding);
+  EXPECT_EQ(f.morphing.volume_tolerance_percent, d.morphing.volume_tolerance_percent);
+  EXPECT_EQ(f.morphing.forces.gain_pa_per_m, d.morphing.forces.gain_pa_per_m);
+  EXPECT_EQ(f.stiffening.alpha.increase_factor, d.stiffening.alpha.increase_factor);
+  EXPECT_EQ(f.coarse_start.snap_tolerance_m, d.coarse_start.snap_tolerance_m);
+  EXPECT_EQ(loadSimulationSettings(kConfig + "phantom_fast.yaml").material.poisson_ratio,
+            loadSimulationSettings(kConfig + "phantom_default.yaml").material.poisson_ratio);
+
+  // Chains, nested maps, and the errors.
+  const std::string a = writeTemp("base_a.yaml", "phantom: {depth_mm: 60}\nmeshing: {target_elements: 3000}\n"
+                                                 "morphing: {gain_pa_per_mm: 30, tolerance_mean_mm: 0.4}\n");
+  writeTemp("base_b.yaml", "base: base_a.yaml\nmorphing: {gain_pa_per_mm: 50}\n");
+  const std::string c = writeTemp("base_c.yaml", "base: base_b.yaml\nmeshing: {target_elements: 4000}\n");
+  const ModelCase mc = loadModelCase(c);
+  EXPECT_EQ(mc.meshing.target_elements, 4000);
+  const PipelineSettings pc = loadPipelineSettings(c);
+  EXPECT_NEAR(pc.morphing.forces.gain_pa_per_m, 50e3, 1e-9);       // from b
+  EXPECT_NEAR(pc.morphing.tolerance_mean_m, 0.4e-3, 1e-12);         // from a, beside b's key
+  expectErrorMentions(writeTemp("base_missing.yaml", "base: nowhere_base.yaml\n"), "nowhere_base.yaml");
+  writeTemp("base_loop1.yaml", "base: base_loop2.yaml\nphantom: {}\n");
+  expectErrorMentions(writeTemp("base_loop2.yaml", "base: base_loop1.yaml\n"), "cycle");
+  expectErrorMentions(writeTemp("base_list.yaml", "base: [a, b]\nphantom: {}\n"), "expected the file name");
 }

@@ -74,12 +74,7 @@ MeshingOptions parseMeshing(const YAML::Node& m, const std::string& file, double
 
 ModelCase loadModelCase(const std::string& yaml_path) {
   if (!fs::exists(yaml_path)) throw std::runtime_error(yaml_path + ": no such case file");
-  YAML::Node root;
-  try {
-    root = YAML::LoadFile(yaml_path);
-  } catch (const YAML::Exception& e) {
-    throw std::runtime_error(yaml_path + ":" + std::to_string(e.mark.line + 1) + ": not valid YAML: " + e.msg);
-  }
+  const YAML::Node root = yaml_fields::loadFile(yaml_path);  // with its base: file, if any
   if (!root.IsMap()) throw std::runtime_error(yaml_path + ": expected a map with 'phantom:' or 'image:' at the top");
   ModelCase c;
   c.source_path = yaml_path;

@@ -16,6 +16,7 @@
 #include <yaml-cpp/yaml.h>
 
 #include "breast_sim/core/model/tissue_labels.h"
+#include "../util/yaml_fields.h"
 
 namespace breast_sim::core {
 
@@ -668,9 +669,9 @@ PhantomParams loadPhantomParams(const std::string& yaml_path) {
   const std::string where = "phantom case '" + yaml_path + "': ";
   YAML::Node root;
   try {
-    root = YAML::LoadFile(yaml_path);
-  } catch (const YAML::Exception& e) {
-    throw std::runtime_error(where + "cannot be read as YAML: " + e.what());
+    root = yaml_fields::loadFile(yaml_path);  // with its base: file, if any
+  } catch (const std::runtime_error& e) {
+    throw std::runtime_error(where + "cannot be read: " + e.what());
   }
   if (!root.IsMap()) throw std::runtime_error(where + "expected a map with a 'phantom:' entry at the top level");
   const YAML::Node& croot = root;

@@ -1,9 +1,11 @@
 #include "yaml_fields.h"
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <sstream>
 #include <stdexcept>
+#include <vector>
 
 namespace breast_sim::core::yaml_fields {
 
@@ -85,13 +87,51 @@ void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, cons
   }
 }
 
-YAML::Node loadFile(const std::string& path) {
-  if (!std::filesystem::exists(path)) throw std::runtime_error(path + ": no such file");
+namespace {
+
+/// `over`'s keys into a copy of `base`: maps merge key by key, anything else is replaced.
+YAML::Node merged(const YAML::Node& base, const YAML::Node& over) {
+  if (!base.IsMap() || !over.IsMap()) return YAML::Clone(over);
+  YAML::Node out = YAML::Clone(base);
+  for (const auto& kv : over) {
+    const std::string key = kv.first.as<std::string>();
+    const YAML::Node b = out[key];
+    out[key] = b && b.IsMap() && kv.second.IsMap() ? merged(b, kv.second) : YAML::Clone(kv.second);
+  }
+  return out;
+}
+
+YAML::Node loadWithBase(const std::string& path, std::vector<std::string>& chain) {
+  if (!std::filesystem::exists(path))
+    throw std::runtime_error(path + ": no such file" +
+                             (chain.empty() ? std::string() : " (the base of " + chain.back() + ")"));
+  YAML::Node root;
   try {
-    return YAML::LoadFile(path);
+    root = YAML::LoadFile(path);
   } catch (const YAML::Exception& e) {
     throw std::runtime_error(path + ":" + std::to_string(e.mark.line + 1) + ": not valid YAML: " + e.msg);
   }
+  if (!root.IsMap() || !root["base"]) return root;
+  const YAML::Node b = root["base"];
+  if (!b.IsScalar() || b.as<std::string>().empty())
+    fail(path, "base", "expected the file name of a case file to start from (relative to this file's folder)");
+  const std::filesystem::path base_path =
+      std::filesystem::weakly_canonical(std::filesystem::path(path).parent_path() / b.as<std::string>());
+  chain.push_back(std::filesystem::weakly_canonical(path).string());
+  if (std::find(chain.begin(), chain.end(), base_path.string()) != chain.end())
+    fail(path, "base", "'" + b.as<std::string>() + "' is this file or one of its own bases (a cycle)");
+  if (chain.size() > 8) fail(path, "base", "more than 8 files deep; flatten the chain of bases");
+  const YAML::Node base = loadWithBase(base_path.string(), chain);
+  chain.pop_back();
+  root.remove("base");
+  return merged(base, root);
+}
+
+}  // namespace
+
+YAML::Node loadFile(const std::string& path) {
+  std::vector<std::string> chain;
+  return loadWithBase(path, chain);
 }
 
 }  // namespace breast_sim::core::yaml_fields

@@ -30,7 +30,11 @@ Eigen::Vector3d vec3(const YAML::Node& n, const std::string& file, const std::st
 /// `map` is a map whose keys are all in `allowed`.
 void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, const std::string& file,
                const std::string& section);
-/// Loads a YAML file. @throws std::runtime_error naming the file and line.
+/// Loads a YAML file. A top-level `base: FILE` (relative to this file's folder) loads that file first
+/// and this file's keys replace its keys, map by map (a map merges into the base's map of the same
+/// key, anything else replaces it); bases may have bases (at most 8 deep, no cycles). The `base` key
+/// itself is not in the result.
+/// @throws std::runtime_error naming the file and line, or the base that cannot be read.
 YAML::Node loadFile(const std::string& path);
 
 }  // namespace breast_sim::core::yaml_fields
