@@ -291,6 +291,7 @@ int main(int argc, char** argv) {
       // solver set-up, solve) and the rest of the stages (stiffening, sliding, morphing, stop rules).
       nlohmann::json profile = nlohmann::json::array();
       double step_seconds = 0;
+      const size_t profiles_before = profiles.size();
       for (const ProneToSupinePipeline* p : {pipe.coarse(), static_cast<const ProneToSupinePipeline*>(&pipe)}) {
         if (!p) continue;
         const StepTotals& t = p->simulator().totals();
@@ -307,7 +308,7 @@ int main(int argc, char** argv) {
                            {"step_ms_per_solve", t.total_seconds * per},
                            {"step_seconds", t.total_seconds}});
       }
-      profiles.back().outside_seconds = seconds - step_seconds;
+      if (profiles.size() > profiles_before) profiles.back().outside_seconds = seconds - step_seconds;
       std::fflush(stdout);
       nlohmann::json overrides = nlohmann::json::object();
       for (const auto& [k, val] : v.overrides) overrides[k] = val;

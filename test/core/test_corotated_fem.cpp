@@ -62,6 +62,15 @@ const TetMesh& smallBlock() {
   return m;
 }
 
+/// The rest nodes of `m`, each coordinate moved by a normal random amount of `sigma_m` [m].
+Points jittered(const TetMesh& m, unsigned seed, double sigma_m) {
+  std::mt19937 rng(seed);
+  std::normal_distribution<double> d(0, sigma_m);
+  Points x = m.nodes();
+  for (int i = 0; i < x.size(); ++i) x.data()[i] += d(rng);
+  return x;
+}
+
 /// Static linear solve K u = f with the nodes of `fixed` held at `u_fixed` (per DOF).
 Eigen::VectorXd staticSolve(const Eigen::MatrixXd& K, const Eigen::VectorXd& f, const std::vector<char>& fixed,
                             const Eigen::VectorXd& u_fixed) {
@@ -610,10 +619,7 @@ TEST(CorotatedTetFem, ElementModuliActAsBaseFactorsUnderTheStiffeningFactors) {
   const TetMesh& m = smallBlock();
   ElasticMaterial mat;
   mat.poisson_ratio = 0.45;
-  std::mt19937 rng(17);
-  std::normal_distribution<double> d(0, 2e-3);
-  Points x = m.nodes();
-  for (int i = 0; i < x.size(); ++i) x.data()[i] += d(rng);
+  const Points x = jittered(m, 17, 2e-3);
   const Eigen::VectorXd factors = Eigen::VectorXd::LinSpaced(m.numTets(), 1.0, 2.5);  // E_r
   Eigen::VectorXd moduli(m.numTets());                                             // E_e [Pa]
   for (int e = 0; e < m.numTets(); ++e) moduli[e] = mat.youngs_modulus_pa * (e % 3 == 0 ? 10.0 : 1.0 + 0.1 * (e % 5));
@@ -721,10 +727,7 @@ TEST(CorotatedTetFem, UpdateAtTheSamePositionsAfterNewFactorsEqualsAFreshUpdate)
   const TetMesh& m = smallBlock();
   ElasticMaterial mat;
   mat.poisson_ratio = 0.48;
-  std::mt19937 rng(23);
-  std::normal_distribution<double> d(0, 3e-3);
-  Points x = m.nodes();
-  for (int i = 0; i < x.size(); ++i) x.data()[i] += d(rng);
+  Points x = jittered(m, 23, 3e-3);
   const Eigen::VectorXd first = Eigen::VectorXd::LinSpaced(m.numTets(), 1.0, 3.0);
   Eigen::VectorXd second(m.numTets());
   for (int e = 0; e < m.numTets(); ++e) second[e] = 1.0 + 0.37 * (e % 7);

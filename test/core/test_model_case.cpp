@@ -247,4 +247,6 @@ TEST(ModelCase, ACaseFileStartsFromItsBase) {
   writeTemp("base_loop1.yaml", "base: base_loop2.yaml\nphantom: {}\n");
   expectErrorMentions(writeTemp("base_loop2.yaml", "base: base_loop1.yaml\n"), "cycle");
   expectErrorMentions(writeTemp("base_list.yaml", "base: [a, b]\nphantom: {}\n"), "expected the file name");
+  writeTemp("base_empty.yaml", "");
+  expectErrorMentions(writeTemp("base_of_empty.yaml", "base: base_empty.yaml\nphantom: {}\n"), "is not a map");
 }

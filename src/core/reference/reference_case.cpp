@@ -2,6 +2,8 @@
 
 #include "breast_sim/core/reference/reference_case.h"
 
+#include "../util/yaml_fields.h"
+
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -41,8 +43,12 @@ SimulationModel cachedSimulationModel(const ModelCase& c, const std::string& cac
   std::ostringstream k;
   k.precision(17);
   if (!c.source_path.empty()) {
-    std::ifstream f(c.source_path);
-    k << f.rdbuf();
+    // The case as read, with its base files merged in: an edit of a base changes the key too.
+    try {
+      k << YAML::Dump(yaml_fields::loadFile(c.source_path));
+    } catch (const std::exception&) {
+      k << c.name;  // the file is gone: the case as loaded (the rest of the key) still tells
+    }
   } else {
     k << c.name;
   }

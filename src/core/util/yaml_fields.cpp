@@ -122,6 +122,8 @@ YAML::Node loadWithBase(const std::string& path, std::vector<std::string>& chain
     fail(path, "base", "'" + b.as<std::string>() + "' is this file or one of its own bases (a cycle)");
   if (chain.size() > 8) fail(path, "base", "more than 8 files deep; flatten the chain of bases");
   const YAML::Node base = loadWithBase(base_path.string(), chain);
+  if (!base.IsMap())
+    fail(path, "base", "'" + b.as<std::string>() + "' is not a map of keys (empty, or a list); name a case file");
   chain.pop_back();
   root.remove("base");
   return merged(base, root);
