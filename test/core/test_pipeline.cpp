@@ -18,7 +18,8 @@ namespace fs = std::filesystem;
 
 namespace {
 
-const std::string kPhantomCase = std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml";
+const std::string kConfigDir = std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/";
+const std::string kPhantomCase = kConfigDir + "phantom_default.yaml";
 
 struct SmallPhantom {
   ModelCase c;
@@ -743,7 +744,6 @@ TEST(CoarseStart, ThePhantomStartedOnACoarseMeshMeetsTheTargetsWithFewerFineSolv
   nested.run();
   const StageReport &g = nested.gravityReport(), &mo = nested.morphingReport();
   const PipelineMetrics m = nested.metrics();
-  const long fine_solves = mo.steps + mo.reversed_steps;
   const StageReport &g1 = single.gravityReport(), &s1 = single.slidingReport(), &m1 = single.morphingReport();
   const long single_solves = g1.steps + g1.reversed_steps + s1.steps + s1.reversed_steps + m1.steps + m1.reversed_steps;
   double lesion_shift = 0;
@@ -755,16 +755,37 @@ TEST(CoarseStart, ThePhantomStartedOnACoarseMeshMeetsTheTargetsWithFewerFineSolv
               p.m.mesh.numTets(), coarse_elements, g.steps, nested.slidingReport().steps, mo.coarse_steps, mo.steps,
               single_solves, 1e3 * m.surface.model_to_target.mean_m, 1e3 * m.surface.model_to_target.p95_m,
               m.volume_change_percent, m.inverted_elements, 1e3 * lesion_shift);
-  EXPECT_EQ(g.elements, coarse_elements);
-  EXPECT_EQ(mo.elements, p.m.mesh.numTets());
-  EXPECT_EQ(mo.coarse_elements, coarse_elements);
-  EXPECT_GT(mo.coarse_steps, 0);
-  EXPECT_TRUE(mo.converged);
-  EXPECT_LE(m.surface.model_to_target.mean_m, 0.5e-3);
-  EXPECT_LE(m.surface.model_to_target.p95_m, 1.5e-3);
-  EXPECT_LT(std::abs(m.volume_change_percent), 1.0);
-  EXPECT_EQ(m.inverted_elements, 0);
-  EXPECT_LT(fine_solves, single_solves / 2);
+  auto expectTargets = [&](const ProneToSupinePipeline& run) {
+    const StageReport& r = run.morphingReport();
+    const PipelineMetrics mm = run.metrics();
+    EXPECT_EQ(run.gravityReport().elements, coarse_elements);
+    EXPECT_EQ(r.elements, p.m.mesh.numTets());
+    EXPECT_EQ(r.coarse_elements, coarse_elements);
+    EXPECT_GT(r.coarse_steps, 0);
+    EXPECT_TRUE(r.converged);
+    EXPECT_LE(mm.surface.model_to_target.mean_m, 0.5e-3);
+    EXPECT_LE(mm.surface.model_to_target.p95_m, 1.5e-3);
+    EXPECT_LT(std::abs(mm.volume_change_percent), 1.0);
+    EXPECT_EQ(mm.inverted_elements, 0);
+    EXPECT_LT(r.steps + r.reversed_steps, single_solves / 2);
+  };
+  expectTargets(nested);
+
+  // config/phantom_fast.yaml (base: the phantom case; α decrease 0.6, morphing stopped on the pulled
+  // skin's moves) started on the same coarse size meets the same targets.
+  PipelineSettings fs = loadPipelineSettings(kConfigDir + "phantom_fast.yaml");
+  ASSERT_EQ(fs.morphing.increment_measure, MorphingStageSettings::IncrementMeasure::kPulledP95);
+  fs.coarse_start.elements = 1500;
+  ProneToSupinePipeline fast(p.c, p.m, fs);
+  fast.run();
+  const PipelineMetrics fm = fast.metrics();
+  const StageReport& fmo = fast.morphingReport();
+  std::printf("[ measure  ] %d tets from %d with the fast settings: %d coarse gravity, %d coarse sliding, %d coarse + %d fine "
+              "morphing steps; skin->target mean %.3f / p95 %.3f mm, volume %.2f %%, inverted %d\n",
+              p.m.mesh.numTets(), coarse_elements, fast.gravityReport().steps, fast.slidingReport().steps, fmo.coarse_steps,
+              fmo.steps, 1e3 * fm.surface.model_to_target.mean_m, 1e3 * fm.surface.model_to_target.p95_m,
+              fm.volume_change_percent, fm.inverted_elements);
+  expectTargets(fast);
 }
 
 TEST(CoarseStart, SettingsAreReadAndCheckedByName) {
