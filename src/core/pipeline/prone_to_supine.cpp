@@ -27,7 +27,9 @@ constexpr int kMaxStuckCalls = 5;
 /// reverse again, so the passes only catch nodes that reverse because others stopped.
 constexpr int kMaxFrictionPasses = 3;
 
-/// FNV-1a of the rest nodes and elements (in [0, 2^52], never 0): which mesh a state or cache belongs to.
+/// FNV-1a hash of the rest mesh (node coordinates and connectivity), cut to 52 bits so that a double
+/// holds it exactly (never 0): which mesh a saved state (its nodes must be numbered the same way) or
+/// a kept embedding belongs to.
 double meshFingerprint(const TetMesh& mesh) {
   std::uint64_t h = 1469598103934665603ULL;
   auto mix = [&](const void* data, size_t bytes) {
@@ -818,9 +820,6 @@ Points toPoints(const Eigen::VectorXd& v) {
   for (Eigen::Index i = 0; i < p.rows(); ++i) p.row(i) = v.segment<3>(3 * i).transpose();
   return p;
 }
-
-// FNV-1a hash of the rest mesh (node coordinates and connectivity), cut to 52 bits so that a double
-// holds it exactly: a state fits a model only if its nodes are numbered the same way.
 
 Eigen::VectorXd flatten(const Points& p) {
   Eigen::VectorXd v(3 * p.rows());
