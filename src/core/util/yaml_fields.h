@@ -33,7 +33,8 @@ void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, cons
 /// Loads a YAML file. A top-level `base: FILE` (relative to this file's folder) loads that file first
 /// and this file's keys replace its keys, map by map (a map merges into the base's map of the same
 /// key, anything else replaces it); bases may have bases (at most 8 deep, no cycles). The `base` key
-/// itself is not in the result.
+/// itself is not in the result. Relative paths among the values (image.path, morphing.target) are
+/// not rewritten: the readers resolve them against the top file's folder.
 /// @throws std::runtime_error naming the file and line, or the base that cannot be read.
 YAML::Node loadFile(const std::string& path);
 
