@@ -278,10 +278,10 @@ int main(int argc, char** argv) {
       // With coarse_start the gravity and sliding stages ran on the coarse model, and so did the
       // morphing stage's first coarse_steps (their solves are cheaper; the seconds say by how much).
       const int total = g.steps + sl.steps + mo.coarse_steps + mo.steps;
-      // Every trial step costs a solve, the reverted ones too.
-      // (and the steps repeated with reversed wall nodes sticking, WallSlip::stickReversed)
-      const long solves = total + g.reversed_steps + sl.reversed_steps + mo.coarse_reversed_steps + mo.reversed_steps +
-                          sl.friction_repeats + mo.coarse_friction_repeats + mo.friction_repeats;
+      // Every trial step costs a solve: accepted, reverted, taken back by the divergence guard or
+      // repeated with reversed wall nodes sticking. The simulators count them (both models').
+      long solves = pipe.simulator().totals().steps;
+      if (pipe.coarse()) solves += pipe.coarse()->simulator().totals().steps;
       std::printf("%-14s %-12s %-14s %-14s %-4d/%-4ld %-11.3f %-11.3f %-11.3f %-8.2f %-4d %-9.3f %-8.2f %-8.2f\n",
                   v.name.c_str(), stage(g).c_str(), stage(sl).c_str(), stage(mo).c_str(), total, solves,
                   fm.surface.model_to_target.mean_m * 1e3, fm.surface.model_to_target.p95_m * 1e3, mo.surface_p95_m * 1e3,

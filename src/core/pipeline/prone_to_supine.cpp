@@ -216,17 +216,20 @@ WallSlipSettings ProneToSupinePipeline::wallSlipSettings() const {
   return w;
 }
 
-StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* moving, const NodeSprings* extra) {
+StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* moving, const NodeSprings* extra,
+                                                            const PipelineState* now) {
   if (slip_ && sliding_attached_) {
     // Coulomb friction holds a slipping node that comes to rest: a step in which slipping wall nodes
     // were driven back by their (constant) kinetic friction is repeated from its start with those
     // nodes sticking (wall_slip.h, stickReversed).
-    // (into kept buffers: no allocation per step)
-    step_start_ = simulator().state();
-    step_start_factors_ = simulator().elements().modulusFactors();
-    const SimulationState& start = step_start_;
-    const Eigen::VectorXd& start_factors = step_start_factors_;
-    const AlphaController::State start_alpha = stiff_->controller().state();
+    // The step's start: the caller's snapshot of it, or a copy into kept buffers (no allocation per step).
+    if (!now) {
+      step_start_ = simulator().state();
+      step_start_factors_ = simulator().elements().modulusFactors();
+    }
+    const SimulationState& start = now ? now->simulation : step_start_;
+    const Eigen::VectorXd& start_factors = now ? now->modulus_factors : step_start_factors_;
+    const AlphaController::State start_alpha = now ? now->alpha : stiff_->controller().state();
     StiffeningStepResult r;
     for (int pass = 0;; ++pass) {
       slip_->beforeStep(simulator(), extra);
@@ -446,13 +449,23 @@ IterationReport ProneToSupinePipeline::iterate() {
     fillState(before);
     if (ms.max_step_volume_change_percent > 0) volume_before = volumeChangePercent();
   }
-  StiffeningStepResult r = stepWithSliding(&stalls, nullptr, pull ? &morph_springs_ : nullptr);
-  if (guard && r.advanced) {
+  // `before` is also the step's start for the friction repeat (no second copy).
+  StiffeningStepResult r = stepWithSliding(&stalls, nullptr, pull ? &morph_springs_ : nullptr, guard ? &before : nullptr);
+  // The step's moves (zero after a call that could not advance: the state is back at its start).
+  if (!morphing_forces_->vertices().empty()) {  // no pulled vertex (e.g. nothing within reach): no p95
     const Eigen::VectorXd& u = simulator().state().displacement_m;
-    double move2 = 0.0;
-    for (Eigen::Index i = 0; i + 2 < u.size(); i += 3)
-      move2 = std::max(move2, (u.segment<3>(i) - iterate_previous_.segment<3>(i)).squaredNorm());
-    const bool too_far = ms.max_step_move_m > 0 && !(std::sqrt(move2) <= ms.max_step_move_m);
+    const std::vector<int>& vs = morphing_forces_->vertices();
+    pulled_moves_.resize(vs.size());
+    for (size_t i = 0; i < vs.size(); ++i)
+      pulled_moves_[i] = (u.segment<3>(3 * vs[i]) - iterate_previous_.segment<3>(3 * vs[i])).squaredNorm();
+    // The ⌈0.95 n⌉-th smallest, as distanceStats' p95.
+    const size_t k = std::min(vs.size() - 1, static_cast<size_t>(std::ceil(0.95 * static_cast<double>(vs.size()))) - 1);
+    std::nth_element(pulled_moves_.begin(), pulled_moves_.begin() + static_cast<std::ptrdiff_t>(k), pulled_moves_.end());
+    it.pulled_increment_p95_m = std::sqrt(pulled_moves_[k]);
+  }
+  StepMoves mv = stepMoves(iterate_previous_);
+  if (guard && r.advanced) {
+    const bool too_far = ms.max_step_move_m > 0 && !(mv.all_max <= ms.max_step_move_m);
     const bool volume_jump = ms.max_step_volume_change_percent > 0 &&
                              !(std::abs(volumeChangePercent() - volume_before) <= ms.max_step_volume_change_percent);
     if (too_far || volume_jump) {
@@ -466,6 +479,8 @@ IterationReport ProneToSupinePipeline::iterate() {
       r.advanced = false;
       r.reversals += 1;
       r.alpha_per_pa = stiff_->controller().alpha();
+      mv = StepMoves{};  // back at the start: nothing moved
+      it.pulled_increment_p95_m = 0.0;
     }
   }
   if (r.advanced) diverged_run_ = 0;
@@ -473,18 +488,6 @@ IterationReport ProneToSupinePipeline::iterate() {
   it.advanced = r.advanced;
   it.reversals = r.reversals;
   it.alpha_per_pa = r.alpha_per_pa;
-  if (!morphing_forces_->vertices().empty()) {  // no pulled vertex (e.g. nothing within reach): no p95
-    const Eigen::VectorXd& u = simulator().state().displacement_m;
-    const std::vector<int>& vs = morphing_forces_->vertices();
-    pulled_moves_.resize(vs.size());
-    for (size_t i = 0; i < vs.size(); ++i)
-      pulled_moves_[i] = (u.segment<3>(3 * vs[i]) - iterate_previous_.segment<3>(3 * vs[i])).squaredNorm();
-    // The ⌈0.95 n⌉-th smallest, as distanceStats' p95.
-    const size_t k = std::min(vs.size() - 1, static_cast<size_t>(std::ceil(0.95 * static_cast<double>(vs.size()))) - 1);
-    std::nth_element(pulled_moves_.begin(), pulled_moves_.begin() + static_cast<std::ptrdiff_t>(k), pulled_moves_.end());
-    it.pulled_increment_p95_m = std::sqrt(pulled_moves_[k]);
-  }
-  const StepMoves mv = stepMoves(iterate_previous_);
   it.increment_m = mv.all_max;
   it.off_wall_increment_m = mv.off_wall_max;
   it.wall_increment_p95_m = mv.wall_p95;

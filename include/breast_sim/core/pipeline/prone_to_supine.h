@@ -400,7 +400,9 @@ class ProneToSupinePipeline {
   // state before, the explicit constraint update or the friction update after. *moving: the wall
   // still moves (explicit: by more than the increment tolerance).
   // `extra`: springs set for the step besides the wall's (the morphing's implicit pull), or null.
-  StiffeningStepResult stepWithSliding(int* stalls, bool* moving, const NodeSprings* extra = nullptr);
+  // `now`: the caller's snapshot of the current state (the friction repeat's start), or null to copy it.
+  StiffeningStepResult stepWithSliding(int* stalls, bool* moving, const NodeSprings* extra = nullptr,
+                                       const PipelineState* now = nullptr);
   bool hasSliding() const { return sliding_ || slip_; }
   WallSlipSettings wallSlipSettings() const;
   void setTimeStep(double dt_s);
@@ -451,8 +453,8 @@ class ProneToSupinePipeline {
   std::unique_ptr<CoarseEmbedding> coarse_embedding_;
   bool coarse_ahead_ = false;
   bool coarse_running_ = false;
-  // Kept buffers of the per-step copies (no allocation per step): the friction repeat's step start,
-  // the divergence guard's state before the step.
+  // Kept buffers of the per-step copies (no allocation per step): the friction repeat's step start
+  // (when the caller has no snapshot), the divergence guard's state before the step.
   SimulationState step_start_;
   Eigen::VectorXd step_start_factors_;
   PipelineState guard_before_;
