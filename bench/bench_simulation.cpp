@@ -5,14 +5,18 @@
 // settled CHOLMOD reference of the same run (accuracy in mm). Prints tables; --json FILE writes the
 // same figures.
 //   bench_simulation [--targets 47895,99390,158340,313335] [--steps 25] [--baseline-steps 3]
-//                    [--tol 1e-2] [--settle-target 47895] [--settle-dts 0.033,0.1,0.33,1]
-//                    [--tols 1e-1,1e-2,1e-3,1e-6] [--coarse-interval 4] [--no-baseline] [--no-settle]
+//                    [--tol 1e-2] [--cap K] [--settle-target 47895] [--settle-dts 0.033,0.1,0.33,1]
+//                    [--tols 1e-1,1e-2,1e-3,1e-6] [--caps 2,3,4,6] [--study-steps N]
+//                    [--coarse-interval 4] [--no-baseline] [--no-settle]
 //                    [--element linear|anp] [--volume-term trace|determinant] [--json FILE]
 // --element / --volume-term choose the element formulation (simulation.element, .volume_term) of
 // every run; the defaults are the seed's co-rotated linear tetrahedra with the trace term.
+// --cap K stops PCG after at most K iterations per step in the Table-1 runs (the step is used).
 // --coarse-interval N recomputes the multigrid's Galerkin operators every N-th step in the Table-1 runs.
-// The tolerance study (--tols, at the first size): per-step PCG tolerance against step time and the
-// error of the dynamic path after 3 and after all steps, against CHOLMOD's exact solves.
+// The accuracy study (at the first size): per-step PCG tolerance (--tols) and per-step iteration caps
+// (--caps k: at most k PCG iterations, or fewer at --tol, the step used either way, as real-time
+// multigrid simulations run a fixed number of cycles per step) against step time and the error of the
+// dynamic path after 3 and after --study-steps steps (default --steps), against CHOLMOD's exact solves.
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -74,11 +78,15 @@ int main(int argc, char** argv) {
   // Seed Table 1 (2012 quad-core): element counts and ms per step.
   const std::vector<double> seed_elements = {47895, 99390, 158340, 313335}, seed_ms = {189, 400, 644, 1432};
   int steps = 25, baseline_steps = 3;
+  int table_cap = 0;  // at most this many PCG iterations per step in the Table-1 runs; 0 = the default
   double tol = 1e-2;
   int coarse_interval = SolverSettings{}.multigrid.coarse_update_interval;
   int settle_target = 47895;
   std::vector<double> settle_dts = {0.033, 0.1, 0.33, 1.0};
   std::vector<double> tol_study = {1e-1, 1e-2, 1e-3, 1e-6};
+  // Per-step iteration caps (at most k PCG iterations per step, at the tolerance --tol).
+  std::vector<double> cap_study = {2, 3, 4, 6};
+  int study_steps = 0;  // steps of the accuracy study; 0 = --steps
   bool baseline = true, settle_study = true;
   std::string json_path;
   SimulationSettings defaults;
@@ -96,6 +104,9 @@ int main(int argc, char** argv) {
     else if (k == "--settle-target") settle_target = std::stoi(value());
     else if (k == "--settle-dts") settle_dts = parseList(value());
     else if (k == "--tols") tol_study = parseList(value());
+    else if (k == "--cap") table_cap = std::stoi(value());
+    else if (k == "--caps") cap_study = parseList(value());
+    else if (k == "--study-steps") study_steps = std::stoi(value());
     else if (k == "--no-baseline") baseline = false;
     else if (k == "--no-settle") settle_study = false;
     else if (k == "--json") json_path = value();
@@ -109,7 +120,9 @@ int main(int argc, char** argv) {
       defaults.volume_term = v == "trace" ? CorotatedTetFem::VolumeTerm::kTrace : CorotatedTetFem::VolumeTerm::kDeterminant;
     } else {
       std::fprintf(stderr,
-                   "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-2] [--coarse-interval 4]\n"
+                   "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-2] [--cap K]\n"
+                   "         [--coarse-interval 4]\n"
+                   "         [--tols 1e-1,...] [--caps 2,3,...] [--study-steps N]\n"
                    "         [--settle-target 47895] [--settle-dts 0.033,...] [--no-baseline] [--no-settle]\n"
                    "         [--element linear|anp] [--volume-term trace|determinant] [--json FILE]\n");
       return 2;
@@ -121,16 +134,20 @@ int main(int argc, char** argv) {
   out["threads"] = omp_get_max_threads();
   out["steps"] = steps;
   out["relative_tolerance"] = tol;
+  out["iteration_cap"] = table_cap;
   out["coarse_update_interval"] = coarse_interval;
   out["element"] = defaults.element == SimulationSettings::Element::kAnpTet ? "anp" : "linear";
   out["volume_term"] = defaults.volume_term == CorotatedTetFem::VolumeTerm::kDeterminant ? "determinant" : "trace";
 
-  std::printf("Table 1 on this machine: %d threads, %d steps of dt 0.033 s, supine gravity, multigrid-PCG to %.0e\n",
-              omp_get_max_threads(), steps, tol);
-  std::printf("(medians over the steps; 'first' = the first step, with the solver's first set-up; seed = 2012 quad-core)\n");
-  std::printf("%8s %7s %7s | %8s %8s %8s %8s %6s | %8s %8s | %9s %8s %7s | %6s %7s\n", "tets", "nodes", "levels",
-              "step[ms]", "assem", "galerk.", "solve", "iters", "first", "setup[s]", "ns/el/st", "peak[MB]", "cholmod",
-              "seed", "speedup");
+  std::printf("Table 1 on this machine: %d threads, %d steps of dt 0.033 s, supine gravity, multigrid-PCG to %.0e%s\n",
+              omp_get_max_threads(), steps, tol,
+              table_cap > 0 ? (" or at most " + std::to_string(table_cap) + " iterations per step").c_str() : "");
+  std::printf("(medians over the steps but 'mean'; 'factor.' = the solver's set-up per step; 'first' = the first step, with the\n"
+              " solver's first set-up; ns/el/st and the speed-up from the mean, which includes the coarse operators' renewal\n"
+              " every %d steps; seed = 2012 quad-core, its 25 steps' mean)\n", coarse_interval);
+  std::printf("%8s %7s %7s | %8s %6s %8s %8s %8s %6s | %8s %8s | %9s %8s %7s | %6s %7s\n", "tets", "nodes", "levels",
+              "step[ms]", "mean", "assem", "factor.", "solve", "iters", "first", "setup[s]", "ns/el/st", "peak[MB]",
+              "cholmod", "seed", "speedup");
   nlohmann::json rows = nlohmann::json::array();
   double ns_ref = 0.0;
   for (size_t ti = 0; ti < targets.size(); ++ti) {
@@ -143,6 +160,7 @@ int main(int argc, char** argv) {
     SimulationSettings settings = defaults;
     settings.solver.relative_tolerance = tol;
     settings.solver.multigrid.coarse_update_interval = coarse_interval;
+    if (table_cap > 0) settings.solver.max_iterations = table_cap;
     settings.dynamics.gravity_mps2 = g_supine;
     SimulatorBuild b = buildSimulator(c, model, settings);
     DynamicSimulator& sim = *b.simulator;
@@ -150,8 +168,11 @@ int main(int argc, char** argv) {
     const StepRun run = runSteps(sim, steps - 1);
     const double peak = peakMemoryMb();
     const int inverted = static_cast<int>(invertedTets(model.mesh.tets(), model.mesh.nodes() + sim.displacement()).size());
+    // The median step is a step without the coarse operators' renewal (every --coarse-interval-th
+    // step); the mean includes its share, as the seed's per-step figure (its 25 steps' total / 25) does.
     const double step_ms = 1e3 * median(run.total);
-    const double ns = 1e9 * median(run.total) / model.mesh.numTets();
+    const double step_mean_ms = 1e3 * mean(run.total);
+    const double ns = 1e9 * mean(run.total) / model.mesh.numTets();
     if (ti == 0) ns_ref = ns;
 
     double cholmod_ms = 0.0, trajectory_error_mm = -1.0, trajectory_scale_mm = 0.0;
@@ -173,10 +194,11 @@ int main(int argc, char** argv) {
     double seed = 0.0;
     for (size_t k = 0; k < seed_elements.size(); ++k)
       if (targets[ti] == seed_elements[k]) seed = seed_ms[k];
-    std::printf("%8d %7d %7d | %8.1f %8.1f %8.1f %8.1f %6.1f | %8.1f %8.2f | %9.0f %8.0f %7.0f | %6.0f %6.1fx\n",
-                model.mesh.numTets(), model.mesh.numNodes(), b.multigrid_levels, step_ms, 1e3 * median(run.assembly),
+    std::printf("%8d %7d %7d | %8.1f %6.1f %8.1f %8.1f %8.1f %6.1f | %8.1f %8.2f | %9.0f %8.0f %7.0f | %6.0f %6.1fx\n",
+                model.mesh.numTets(), model.mesh.numNodes(), b.multigrid_levels, step_ms, step_mean_ms,
+                1e3 * median(run.assembly),
                 1e3 * median(run.setup), 1e3 * median(run.solve), mean(run.iterations), 1e3 * first.total[0],
-                b.hierarchy_seconds + b.setup_seconds, ns, peak, cholmod_ms, seed, seed > 0 ? seed / step_ms : 0.0);
+                b.hierarchy_seconds + b.setup_seconds, ns, peak, cholmod_ms, seed, seed > 0 ? seed / step_mean_ms : 0.0);
     if (trajectory_error_mm >= 0)
       std::printf("         after %d steps the multigrid path differs from CHOLMOD's (exact solves) by at most %.2e mm "
                   "(largest displacement %.2f mm)\n", steps, trajectory_error_mm, trajectory_scale_mm);
@@ -191,6 +213,7 @@ int main(int argc, char** argv) {
                     {"simulator_setup_s", b.setup_seconds},
                     {"first_step_ms", 1e3 * first.total[0]},
                     {"step_ms_median", step_ms},
+                    {"step_ms_mean", step_mean_ms},
                     {"step_ms_mean", 1e3 * mean(run.total)},
                     {"assembly_ms_median", 1e3 * median(run.assembly)},
                     {"solver_setup_ms_median", 1e3 * median(run.setup)},
@@ -205,7 +228,7 @@ int main(int argc, char** argv) {
                     {"trajectory_error_vs_cholmod_mm", trajectory_error_mm},
                     {"trajectory_max_displacement_mm", trajectory_scale_mm},
                     {"seed_ms", seed},
-                    {"speedup_vs_seed", seed > 0 ? seed / step_ms : 0.0}});
+                    {"speedup_vs_seed", seed > 0 ? seed / step_mean_ms : 0.0}});
   }
   out["table1"] = rows;
   {
@@ -218,41 +241,78 @@ int main(int argc, char** argv) {
     out["ns_per_element_ratio_range"] = {lo, hi};
   }
 
-  if (!tol_study.empty() && !targets.empty()) {
+  if ((!tol_study.empty() || !cap_study.empty()) && !targets.empty()) {
     ModelCase c = base;
     c.meshing.target_elements = static_cast<int>(targets[0]);
     const SimulationModel model = buildSimulationModel(c);
     SimulationSettings settings = defaults;
     settings.dynamics.gravity_mps2 = g_supine;
+    settings.solver.multigrid.coarse_update_interval = coarse_interval;
     SimulationSettings cs = settings;
     cs.solver.kind = SolverSettings::Kind::kCholmod;
     SimulatorBuild cb = buildSimulator(c, model, cs);
-    const int early = std::min(3, steps);
+    const int horizon = study_steps > 0 ? study_steps : steps;
+    const int early = std::min(3, horizon);
     runSteps(*cb.simulator, early);
     const Eigen::VectorXd u_early = cb.simulator->state().displacement_m;
-    runSteps(*cb.simulator, steps - early);
+    runSteps(*cb.simulator, horizon - early);
     const Eigen::VectorXd u_end = cb.simulator->state().displacement_m;
-    std::printf("\nPer-step PCG tolerance, %d tets: step time against the error of the dynamic path (CHOLMOD = exact)\n",
-                model.mesh.numTets());
-    std::printf("%9s | %8s %6s | %14s %14s\n", "tolerance", "step[ms]", "iters", "err@3 steps", "err@end");
+    const double scale_end = maxNodalNorm(u_end);
+    std::printf("\nPer-step solver accuracy, %d tets, %d steps: step time against the error of the dynamic path "
+                "(CHOLMOD = exact; largest displacement at the end %.2f mm)\n",
+                model.mesh.numTets(), horizon, 1e3 * scale_end);
+    std::printf("(a cap of k stops PCG after k iterations, or earlier at the tolerance %.0e; the step is used either way)\n",
+                tol);
+    std::printf("%9s %5s | %8s %6s %8s %8s %6s %6s | %14s %14s %9s\n", "tolerance", "cap", "step[ms]", "mean", "assem",
+                "solve", "iters", "capped", "err@3 steps", "err@end", "err/max");
     nlohmann::json trows = nlohmann::json::array();
-    for (double t : tol_study) {
+    struct Variant {
+      double tolerance;
+      int cap;  // 0 = the default max_iterations
+    };
+    std::vector<Variant> variants;
+    for (double t : tol_study) variants.push_back({t, 0});
+    for (double k : cap_study) variants.push_back({tol, static_cast<int>(k)});
+    for (const Variant& v : variants) {
       SimulationSettings ts = settings;
-      ts.solver.relative_tolerance = t;
+      ts.solver.relative_tolerance = v.tolerance;
+      if (v.cap > 0) ts.solver.max_iterations = v.cap;
       SimulatorBuild tb = buildSimulator(c, model, ts);
       const StepRun a = runSteps(*tb.simulator, early);
       const double e_early = maxNodalNorm(tb.simulator->state().displacement_m - u_early);
-      const StepRun b2 = runSteps(*tb.simulator, steps - early);
+      const StepRun b2 = runSteps(*tb.simulator, horizon - early);
       const double e_end = maxNodalNorm(tb.simulator->state().displacement_m - u_end);
-      std::vector<double> total = a.total, its = a.iterations;
+      std::vector<double> total = a.total, its = a.iterations, assem = a.assembly, solve = a.solve;
       total.insert(total.end(), b2.total.begin(), b2.total.end());
       its.insert(its.end(), b2.iterations.begin(), b2.iterations.end());
-      std::printf("%9.0e | %8.1f %6.1f | %11.2e mm %11.2e mm\n", t, 1e3 * median(total), mean(its), 1e3 * e_early, 1e3 * e_end);
+      assem.insert(assem.end(), b2.assembly.begin(), b2.assembly.end());
+      solve.insert(solve.end(), b2.solve.begin(), b2.solve.end());
+      const int capped = v.cap > 0 ? a.unconverged + b2.unconverged : 0;
+      const int inverted =
+          static_cast<int>(invertedTets(model.mesh.tets(), model.mesh.nodes() + tb.simulator->displacement()).size());
+      const std::string cap_text = v.cap > 0 ? std::to_string(v.cap) : "-";
+      std::printf("%9.0e %5s | %8.1f %6.1f %8.1f %8.1f %6.1f %6d | %11.2e mm %11.2e mm %9.1e%s\n", v.tolerance,
+                  cap_text.c_str(), 1e3 * median(total), 1e3 * mean(total), 1e3 * median(assem), 1e3 * median(solve), mean(its), capped,
+                  1e3 * e_early, 1e3 * e_end, scale_end > 0 ? e_end / scale_end : 0.0,
+                  inverted ? ("  (" + std::to_string(inverted) + " inverted)").c_str() : "");
       std::fflush(stdout);
-      trows.push_back({{"relative_tolerance", t}, {"step_ms_median", 1e3 * median(total)}, {"iterations_mean", mean(its)},
-                       {"path_error_after_3_steps_mm", 1e3 * e_early}, {"path_error_at_end_mm", 1e3 * e_end}});
+      trows.push_back({{"relative_tolerance", v.tolerance},
+                       {"iteration_cap", v.cap},
+                       {"step_ms_median", 1e3 * median(total)},
+                       {"step_ms_mean", 1e3 * mean(total)},
+                       {"assembly_ms_median", 1e3 * median(assem)},
+                       {"solve_ms_median", 1e3 * median(solve)},
+                       {"iterations_mean", mean(its)},
+                       {"capped_steps", capped},
+                       {"inverted", inverted},
+                       {"path_error_after_3_steps_mm", 1e3 * e_early},
+                       {"path_error_at_end_mm", 1e3 * e_end},
+                       {"path_error_at_end_relative", scale_end > 0 ? e_end / scale_end : 0.0}});
     }
-    out["tolerance_study"] = {{"elements", model.mesh.numTets()}, {"rows", trows}};
+    out["tolerance_study"] = {{"elements", model.mesh.numTets()},
+                              {"steps", horizon},
+                              {"max_displacement_at_end_mm", 1e3 * scale_end},
+                              {"rows", trows}};
   }
 
   if (settle_study) {

@@ -59,6 +59,11 @@ struct PcgOptions {
 /// Decoupled rows (no nonzero off the diagonal: the Dirichlet rows of the LinearSolver contract)
 /// are solved exactly before iterating (x_i = b_i / A_ii) and stay at that value: every
 /// preconditioner keeps them decoupled.
+///
+/// A matrix in the 3×3-block layout of fem/block_pattern.h (found in analyzePattern()) is multiplied
+/// block by block: one column index per block instead of nine, and each x_J read once for three
+/// rows. At the iteration limit the preconditioner is not applied for the iteration that would
+/// follow, and the reported residual is the recursive one (SolveStats::relative_residual).
 /// \note factorize() keeps a pointer to A: A must stay alive and unchanged until the last solve()
 /// before the next factorize(). A must be compressed CSR with sorted columns (Eigen's default).
 /// \note Indefiniteness is only detected when met: factorize() throws on a diagonal entry ≤ 0,
@@ -87,6 +92,8 @@ class PcgSolver : public LinearSolver {
   void setOptions(const PcgOptions& options) { options_ = options; }
   Preconditioner& preconditioner() { return *preconditioner_; }
   const Preconditioner& preconditioner() const { return *preconditioner_; }
+  /// Whether analyzePattern() found A in 3×3-block layout (and multiplies it block by block).
+  bool blockLayout() const { return !block_start_.empty(); }
   /// Rows found decoupled (fixed) by the last factorize(), ascending.
   const std::vector<int>& decoupledRows() const { return decoupled_; }
 
@@ -99,6 +106,7 @@ class PcgSolver : public LinearSolver {
   std::vector<int> diagonal_position_;
   std::vector<unsigned char> decoupled_flag_;
   std::vector<int> decoupled_;
+  std::vector<int> block_start_, block_col_;  // node columns of A's 3×3 blocks (empty: no block layout)
   Eigen::VectorXd r_, z_, p_, q_;
 };
 
