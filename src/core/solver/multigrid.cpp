@@ -13,6 +13,7 @@
 
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/point_embedding.h"
+#include "breast_sim/core/solver/block_kernels.h"
 
 namespace breast_sim::core {
 
@@ -813,8 +814,15 @@ void MultigridPreconditioner::residual(int l, const double* b, const double* x, 
   const float* val = lv.block_val.data();
   const int* col = lv.block_col.data();
   const int* start = lv.block_start.data();
-#pragma omp parallel for schedule(static) if (lv.nodes > kParallelMinNodes)
-  for (int i = 0; i < lv.nodes; ++i) blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, x, t + 3 * i);
+  const int n = lv.nodes;
+  const bool simd = options_.simd_kernels;
+  // The static schedule's split: each thread one contiguous range of node rows.
+#pragma omp parallel if (n > kParallelMinNodes)
+  {
+    const int p = omp_get_thread_num(), np = omp_get_num_threads();
+    blockResidualRows(val, col, start, b, x, t, static_cast<int>(static_cast<long>(n) * p / np),
+                      static_cast<int>(static_cast<long>(n) * (p + 1) / np), simd);
+  }
 }
 
 void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool forward, bool from_zero) {

@@ -6,6 +6,10 @@
 #include <sstream>
 #include <stdexcept>
 
+#include <omp.h>
+
+#include "breast_sim/core/solver/block_kernels.h"
+
 namespace breast_sim::core {
 
 namespace {
@@ -92,41 +96,23 @@ void copy(const Eigen::VectorXd& from, Eigen::VectorXd& to) {
 }
 
 // The same two products on a matrix in 3×3-block layout (fem/block_pattern.h), one node row (three
-// matrix rows) at a time: `block_col` holds the node column J of every block of rows 3I..3I+2
-// (`block_start` per node), so a block costs its nine values and one index instead of nine of each,
-// and x_J is loaded once for the three rows. One accumulator per block entry keeps the nine
-// multiply-adds of a block independent of each other (the row-wise loop waits out nine dependent
-// ones); the sums therefore differ from the row-wise ones in the last bits.
+// matrix rows) at a time (solver/block_kernels.h): `block_col` holds the node column J of every block
+// of rows 3I..3I+2 (`block_start` per node), so a block costs its nine values and one index instead
+// of nine of each, and x_J is loaded once for the three rows. One accumulator per block entry keeps
+// the nine multiply-adds of a block independent of each other (the row-wise loop waits out nine
+// dependent ones); the sums therefore differ from the row-wise ones in the last bits.
 template <bool kResidual>
 double blockProduct(const SparseMatrix& A, const std::vector<int>& block_start, const std::vector<int>& block_col,
-                    const double* b, const double* x, double* y) {
-  const int* outer = A.outerIndexPtr();
-  const double* val = A.valuePtr();
+                    const double* b, const double* x, double* y, bool simd) {
   const int nodes = static_cast<int>(block_start.size()) - 1;
-  const int* bs = block_start.data();
-  const int* bc = block_col.data();
   double sum = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : sum) if (3 * nodes > kParallelMin)
-  for (int i = 0; i < nodes; ++i) {
-    const double* v0 = val + outer[3 * i];
-    const double* v1 = val + outer[3 * i + 1];
-    const double* v2 = val + outer[3 * i + 2];
-    double a00 = 0, a01 = 0, a02 = 0, a10 = 0, a11 = 0, a12 = 0, a20 = 0, a21 = 0, a22 = 0;
-    for (int k = bs[i], m = 0; k < bs[i + 1]; ++k, m += 3) {
-      const double* xj = x + 3 * static_cast<size_t>(bc[k]);
-      const double x0 = xj[0], x1 = xj[1], x2 = xj[2];
-      a00 += v0[m] * x0, a01 += v0[m + 1] * x1, a02 += v0[m + 2] * x2;
-      a10 += v1[m] * x0, a11 += v1[m + 1] * x1, a12 += v1[m + 2] * x2;
-      a20 += v2[m] * x0, a21 += v2[m + 1] * x1, a22 += v2[m + 2] * x2;
-    }
-    double s0 = (a00 + a01) + a02, s1 = (a10 + a11) + a12, s2 = (a20 + a21) + a22;
-    if constexpr (kResidual) {
-      s0 = b[3 * i] - s0, s1 = b[3 * i + 1] - s1, s2 = b[3 * i + 2] - s2;
-      sum += s0 * s0 + s1 * s1 + s2 * s2;
-    } else {
-      sum += x[3 * i] * s0 + x[3 * i + 1] * s1 + x[3 * i + 2] * s2;
-    }
-    y[3 * i] = s0, y[3 * i + 1] = s1, y[3 * i + 2] = s2;
+  // The static schedule's split: each thread one contiguous range of node rows.
+#pragma omp parallel reduction(+ : sum) if (3 * nodes > kParallelMin)
+  {
+    const int p = omp_get_thread_num(), np = omp_get_num_threads();
+    sum += blockProductRows(A.outerIndexPtr(), A.valuePtr(), block_start.data(), block_col.data(), b, x, y,
+                            static_cast<int>(static_cast<long>(nodes) * p / np),
+                            static_cast<int>(static_cast<long>(nodes) * (p + 1) / np), kResidual, simd);
   }
   return sum;
 }
@@ -326,7 +312,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   const double tol = options_.relative_tolerance * bnorm;
   const bool blocks = !block_start_.empty();
   auto trueResidual = [&]() {
-    return blocks ? blockProduct<true>(A, block_start_, block_col_, b.data(), x.data(), r_.data()) : residual(A, b, x, r_);
+    return blocks ? blockProduct<true>(A, block_start_, block_col_, b.data(), x.data(), r_.data(), options_.simd_kernels) : residual(A, b, x, r_);
   };
   double rr = trueResidual();
   if (std::sqrt(rr) <= tol) {
@@ -351,7 +337,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
       throw std::runtime_error(s.str());
     }
     const double pq =
-        blocks ? blockProduct<false>(A, block_start_, block_col_, nullptr, p_.data(), q_.data()) : multiplyDot(A, p_, q_);
+        blocks ? blockProduct<false>(A, block_start_, block_col_, nullptr, p_.data(), q_.data(), options_.simd_kernels) : multiplyDot(A, p_, q_);
     if (!(pq > 0.0)) {
       std::ostringstream s;
       s << name() << ": the matrix is not positive definite (pᵀAp = " << pq << " at iteration " << it

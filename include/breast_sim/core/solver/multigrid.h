@@ -199,6 +199,9 @@ struct MultigridOptions {
   /// 0.28 ms dense (solve 0.02–0.03 against 0.01 ms). A dense factorization grows with the cube of
   /// the size (492 DOFs 2.2 ms, 1266 DOFs 37 ms). 0 = always CHOLMOD.
   int dense_coarsest_max_dofs = 600;
+  /// The residuals of the V-cycle by the AVX2/FMA kernel when the processor has it
+  /// (solver/block_kernels.h); false = the portable scalar kernel everywhere.
+  bool simd_kernels = true;
   /// The Galerkin operators and the coarsest factorization are recomputed in every this-many-th
   /// factorize() (1 = every one); in between only the fine level takes the new matrix. The V-cycle
   /// stays symmetric positive definite with older coarse operators (Galerkin operators of an earlier

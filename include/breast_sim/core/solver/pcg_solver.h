@@ -50,6 +50,9 @@ struct PcgOptions {
   /// convergence is declared, so round-off in the recursive residual cannot fake it).
   double relative_tolerance = 1e-8;
   int max_iterations = 2000;  ///< returns with converged = false after this many iterations
+  /// Products with a block-layout matrix by the AVX2/FMA kernel when the processor has it
+  /// (solver/block_kernels.h); false = the portable scalar kernel.
+  bool simd_kernels = true;
 };
 
 /// Conjugate gradients with a preconditioner, for symmetric positive definite A [Saad, Iterative

@@ -1,0 +1,175 @@
+#include "breast_sim/core/solver/block_kernels.h"
+
+#include <cstddef>
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+#define BREAST_SIM_X86_SIMD 1
+#endif
+
+namespace breast_sim::core {
+
+namespace {
+
+void residualScalar(const float* val, const int* col, const int* start, const double* b, const double* x, double* t,
+                    int i0, int i1) {
+  for (int i = i0; i < i1; ++i) {
+    double a00 = 0, a01 = 0, a02 = 0, a10 = 0, a11 = 0, a12 = 0, a20 = 0, a21 = 0, a22 = 0;
+    for (int k = start[i]; k < start[i + 1]; ++k) {
+      const float* a = val + 9 * static_cast<size_t>(k);
+      const double* xj = x + 3 * static_cast<size_t>(col[k]);
+      const double x0 = xj[0], x1 = xj[1], x2 = xj[2];
+      a00 += a[0] * x0, a01 += a[1] * x1, a02 += a[2] * x2;
+      a10 += a[3] * x0, a11 += a[4] * x1, a12 += a[5] * x2;
+      a20 += a[6] * x0, a21 += a[7] * x1, a22 += a[8] * x2;
+    }
+    t[3 * i] = b[3 * i] - ((a00 + a01) + a02);
+    t[3 * i + 1] = b[3 * i + 1] - ((a10 + a11) + a12);
+    t[3 * i + 2] = b[3 * i + 2] - ((a20 + a21) + a22);
+  }
+}
+
+double productScalar(const int* outer, const double* val, const int* start, const int* col, const double* b,
+                     const double* x, double* y, int i0, int i1, bool residual) {
+  double sum = 0.0;
+  for (int i = i0; i < i1; ++i) {
+    const double* v0 = val + outer[3 * i];
+    const double* v1 = val + outer[3 * i + 1];
+    const double* v2 = val + outer[3 * i + 2];
+    double a00 = 0, a01 = 0, a02 = 0, a10 = 0, a11 = 0, a12 = 0, a20 = 0, a21 = 0, a22 = 0;
+    for (int k = start[i], m = 0; k < start[i + 1]; ++k, m += 3) {
+      const double* xj = x + 3 * static_cast<size_t>(col[k]);
+      const double x0 = xj[0], x1 = xj[1], x2 = xj[2];
+      a00 += v0[m] * x0, a01 += v0[m + 1] * x1, a02 += v0[m + 2] * x2;
+      a10 += v1[m] * x0, a11 += v1[m + 1] * x1, a12 += v1[m + 2] * x2;
+      a20 += v2[m] * x0, a21 += v2[m + 1] * x1, a22 += v2[m + 2] * x2;
+    }
+    double s0 = (a00 + a01) + a02, s1 = (a10 + a11) + a12, s2 = (a20 + a21) + a22;
+    if (residual) {
+      s0 = b[3 * i] - s0, s1 = b[3 * i + 1] - s1, s2 = b[3 * i + 2] - s2;
+      sum += s0 * s0 + s1 * s1 + s2 * s2;
+    } else {
+      sum += x[3 * i] * s0 + x[3 * i + 1] * s1 + x[3 * i + 2] * s2;
+    }
+    y[3 * i] = s0, y[3 * i + 1] = s1, y[3 * i + 2] = s2;
+  }
+  return sum;
+}
+
+#ifdef BREAST_SIM_X86_SIMD
+// A block's values a0..a7 as doubles [a0 a1 a2 a3] and [a4 a5 a6 a7] times [x0 x1 x2 x0] and
+// [x1 x2 x0 x1] (x_J permuted), a8 times x2 on its own: the nine products of the scalar version in
+// the same accumulator slots (lo = a00 a01 a02 a10, hi = a11 a12 a20 a21, a22).
+__attribute__((target("avx2,fma"), always_inline)) inline void avx2Block(const float* val, const int* col,
+                                                                          const double* x, int k, __m256d& lo,
+                                                                          __m256d& hi, double& a22) {
+  const float* a = val + 9 * static_cast<size_t>(k);
+  const double* xj = x + 3 * static_cast<size_t>(col[k]);
+  const __m256d xv = _mm256_maskload_pd(xj, _mm256_set_epi64x(0, -1, -1, -1));  // x0 x1 x2 0
+  const __m256d x_lo = _mm256_permute4x64_pd(xv, 0b00100100);                    // x0 x1 x2 x0
+  const __m256d x_hi = _mm256_permute4x64_pd(xv, 0b01001001);                    // x1 x2 x0 x1
+  const __m256 a8 = _mm256_loadu_ps(a);                                          // a0 .. a7
+  lo = _mm256_fmadd_pd(_mm256_cvtps_pd(_mm256_castps256_ps128(a8)), x_lo, lo);
+  hi = _mm256_fmadd_pd(_mm256_cvtps_pd(_mm256_extractf128_ps(a8, 1)), x_hi, hi);
+  a22 = __builtin_fma(static_cast<double>(a[8]), xj[2], a22);
+}
+
+// Two blocks per iteration into two sets of accumulators (even and odd blocks), added at the end:
+// the multiply-adds of consecutive blocks do not wait for each other.
+__attribute__((target("avx2,fma"))) void residualAvx2(const float* val, const int* col, const int* start,
+                                                       const double* b, const double* x, double* t, int i0, int i1) {
+  for (int i = i0; i < i1; ++i) {
+    __m256d lo0 = _mm256_setzero_pd(), hi0 = _mm256_setzero_pd(), lo1 = _mm256_setzero_pd(), hi1 = _mm256_setzero_pd();
+    double a22_0 = 0.0, a22_1 = 0.0;
+    int k = start[i];
+    const int k1 = start[i + 1];
+    for (; k + 1 < k1; k += 2) {
+      avx2Block(val, col, x, k, lo0, hi0, a22_0);
+      avx2Block(val, col, x, k + 1, lo1, hi1, a22_1);
+    }
+    if (k < k1) avx2Block(val, col, x, k, lo0, hi0, a22_0);
+    alignas(32) double l[4], h[4];
+    _mm256_store_pd(l, _mm256_add_pd(lo0, lo1));
+    _mm256_store_pd(h, _mm256_add_pd(hi0, hi1));
+    const double a22 = a22_0 + a22_1;
+    t[3 * i] = b[3 * i] - ((l[0] + l[1]) + l[2]);
+    t[3 * i + 1] = b[3 * i + 1] - ((l[3] + h[0]) + h[1]);
+    t[3 * i + 2] = b[3 * i + 2] - ((h[2] + h[3]) + a22);
+  }
+}
+
+// Block row r's three values (v_r[m], v_r[m+1], v_r[m+2], and a masked-off fourth) times
+// (x0 x1 x2 0): each lane is one accumulator of the scalar version (lane 3 stays zero).
+__attribute__((target("avx2,fma"))) double productAvx2(const int* outer, const double* val, const int* start,
+                                                        const int* col, const double* b, const double* x, double* y,
+                                                        int i0, int i1, bool residual) {
+  const __m256i first_three = _mm256_set_epi64x(0, -1, -1, -1);
+  double sum = 0.0;
+  for (int i = i0; i < i1; ++i) {
+    const double* v0 = val + outer[3 * i];
+    const double* v1 = val + outer[3 * i + 1];
+    const double* v2 = val + outer[3 * i + 2];
+    __m256d r0 = _mm256_setzero_pd(), r1 = _mm256_setzero_pd(), r2 = _mm256_setzero_pd();
+    const int k_last = start[i + 1] - 1;
+    int k = start[i], m = 0;
+    // Before a row's last block the fourth lane reads the row's next value, times the masked zero.
+    for (; k < k_last; ++k, m += 3) {
+      const __m256d xv = _mm256_maskload_pd(x + 3 * static_cast<size_t>(col[k]), first_three);
+      r0 = _mm256_fmadd_pd(_mm256_loadu_pd(v0 + m), xv, r0);
+      r1 = _mm256_fmadd_pd(_mm256_loadu_pd(v1 + m), xv, r1);
+      r2 = _mm256_fmadd_pd(_mm256_loadu_pd(v2 + m), xv, r2);
+    }
+    if (k == k_last) {  // the last block: nothing read past the row (nor past the matrix)
+      const __m256d xv = _mm256_maskload_pd(x + 3 * static_cast<size_t>(col[k]), first_three);
+      r0 = _mm256_fmadd_pd(_mm256_maskload_pd(v0 + m, first_three), xv, r0);
+      r1 = _mm256_fmadd_pd(_mm256_maskload_pd(v1 + m, first_three), xv, r1);
+      r2 = _mm256_fmadd_pd(_mm256_maskload_pd(v2 + m, first_three), xv, r2);
+    }
+    alignas(32) double a[4], c[4], d[4];
+    _mm256_store_pd(a, r0);
+    _mm256_store_pd(c, r1);
+    _mm256_store_pd(d, r2);
+    double s0 = (a[0] + a[1]) + a[2], s1 = (c[0] + c[1]) + c[2], s2 = (d[0] + d[1]) + d[2];
+    if (residual) {
+      s0 = b[3 * i] - s0, s1 = b[3 * i + 1] - s1, s2 = b[3 * i + 2] - s2;
+      sum += s0 * s0 + s1 * s1 + s2 * s2;
+    } else {
+      sum += x[3 * i] * s0 + x[3 * i + 1] * s1 + x[3 * i + 2] * s2;
+    }
+    y[3 * i] = s0, y[3 * i + 1] = s1, y[3 * i + 2] = s2;
+  }
+  return sum;
+}
+#endif
+
+}  // namespace
+
+bool blockKernelsHaveSimd() {
+#ifdef BREAST_SIM_X86_SIMD
+  static const bool has = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  return has;
+#else
+  return false;
+#endif
+}
+
+void blockResidualRows(const float* val, const int* col, const int* start, const double* b, const double* x,
+                       double* t, int i0, int i1, bool simd) {
+#ifdef BREAST_SIM_X86_SIMD
+  if (simd && blockKernelsHaveSimd()) {
+    residualAvx2(val, col, start, b, x, t, i0, i1);
+    return;
+  }
+#endif
+  residualScalar(val, col, start, b, x, t, i0, i1);
+}
+
+double blockProductRows(const int* outer, const double* val, const int* start, const int* col, const double* b,
+                        const double* x, double* y, int i0, int i1, bool residual, bool simd) {
+#ifdef BREAST_SIM_X86_SIMD
+  if (simd && blockKernelsHaveSimd()) return productAvx2(outer, val, start, col, b, x, y, i0, i1, residual);
+#endif
+  return productScalar(outer, val, start, col, b, x, y, i0, i1, residual);
+}
+
+}  // namespace breast_sim::core
