@@ -415,7 +415,7 @@ struct MultigridPreconditioner::Level {
   std::vector<int> colour_start, colour_node;
   // The operator in 3×3 blocks of floats for the V-cycle's sweeps (residuals and smoothing): one
   // column index per block instead of nine and 4-byte values move 2.7× fewer bytes than the CSR
-  // matrix, and the sweeps are bound by memory bandwidth. Refreshed from A whenever A changes.
+  // matrix. Refreshed from A whenever A changes.
   std::vector<int> block_start, block_col;  // per node: its blocks; per block: its column node
   std::vector<float> block_val;             // per block: 9 values, row-major
   // Transfer to the next coarser level: children (Pᵀ) of each coarse node.
@@ -583,9 +583,8 @@ namespace {
 // b_i − Σ_j A_ij x_j over the blocks [k0, k1) of a row in float block storage, into r.
 // One accumulator per block entry (nine): each block's nine products are independent, so the loop
 // runs at the machine's multiply-add throughput instead of waiting out three dependent multiply-adds
-// per row and block. Measured at 48.8k elements, 2 threads: the fine level's V-cycle 0.70 → … ms
-// (bench_solvers --morton); the sweeps were latency-bound at ~15 GB/s where this machine reads
-// ~87 GB/s from cache.
+// per row and block (the residuals of the V-cycle itself run in solver/block_kernels.cpp, which
+// sums the same way; this one serves Gauss–Seidel, Chebyshev and the damping estimate).
 inline void blockRowResidual(const float* val, const int* col, int k0, int k1, const double* b, const double* x,
                              double r[3]) {
   double a00 = 0, a01 = 0, a02 = 0, a10 = 0, a11 = 0, a12 = 0, a20 = 0, a21 = 0, a22 = 0;
