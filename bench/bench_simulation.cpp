@@ -25,6 +25,7 @@
 #include <string>
 #include <vector>
 
+#include <immintrin.h>
 #include <omp.h>
 
 #include <nlohmann/json.hpp>
@@ -50,6 +51,45 @@ double peakMemoryMb() {
   return 0.0;
 }
 void resetPeakMemory() { std::ofstream("/proc/self/clear_refs") << "5"; }
+
+// Sum of n floats from `a`, four 8-wide accumulators (AVX2), over [i0, i1).
+__attribute__((target("avx2"))) float sumAvx2(const float* a, size_t i0, size_t i1) {
+  __m256 s0 = _mm256_setzero_ps(), s1 = s0, s2 = s0, s3 = s0;
+  size_t i = i0;
+  for (; i + 32 <= i1; i += 32) {
+    s0 = _mm256_add_ps(s0, _mm256_loadu_ps(a + i));
+    s1 = _mm256_add_ps(s1, _mm256_loadu_ps(a + i + 8));
+    s2 = _mm256_add_ps(s2, _mm256_loadu_ps(a + i + 16));
+    s3 = _mm256_add_ps(s3, _mm256_loadu_ps(a + i + 24));
+  }
+  alignas(32) float t[8];
+  _mm256_store_ps(t, _mm256_add_ps(_mm256_add_ps(s0, s1), _mm256_add_ps(s2, s3)));
+  float sum = t[0] + t[1] + t[2] + t[3] + t[4] + t[5] + t[6] + t[7];
+  for (; i < i1; ++i) sum += a[i];
+  return sum;
+}
+
+// What this machine reads [GB/s] with the benchmark's threads from an array of `bytes` (the best
+// of 40 passes after one that pages it in): the bound the sparse kernels are measured against.
+double readBandwidthGBs(size_t bytes) {
+  if (!__builtin_cpu_supports("avx2")) return 0.0;
+  const size_t n = bytes / sizeof(float);
+  std::vector<float> a(n, 1.0f);
+  double best = 1e30, keep = 0.0;
+  for (int rep = 0; rep < 41; ++rep) {
+    const auto t0 = Clock::now();
+    double total = 0.0;
+#pragma omp parallel reduction(+ : total)
+    {
+      const size_t p = static_cast<size_t>(omp_get_thread_num()), np = static_cast<size_t>(omp_get_num_threads());
+      total += sumAvx2(a.data(), n * p / np, n * (p + 1) / np);
+    }
+    const double t = since(t0);
+    keep += total;
+    if (rep > 0) best = std::min(best, t);
+  }
+  return keep > 0 ? bytes / best / 1e9 : 0.0;
+}
 
 
 struct StepRun {
@@ -139,6 +179,14 @@ int main(int argc, char** argv) {
   out["element"] = defaults.element == SimulationSettings::Element::kAnpTet ? "anp" : "linear";
   out["volume_term"] = defaults.volume_term == CorotatedTetFem::VolumeTerm::kDeterminant ? "determinant" : "trace";
 
+  {
+    // The roofline the step is held against: the V-cycle's float blocks at 48k elements are ~5 MB,
+    // the double matrix ~10 MB (cache-resident), the 319k one's ~70 MB (memory).
+    const double cache = readBandwidthGBs(size_t(16) << 20), memory = readBandwidthGBs(size_t(256) << 20);
+    std::printf("this machine reads %.0f GB/s from a 16 MB array and %.0f GB/s from a 256 MB one (%d threads, AVX2 sums)\n",
+                cache, memory, omp_get_max_threads());
+    out["read_bandwidth_gbs"] = {{"array_16mb", cache}, {"array_256mb", memory}};
+  }
   std::printf("Table 1 on this machine: %d threads, %d steps of dt 0.033 s, supine gravity, multigrid-PCG to %.0e%s\n",
               omp_get_max_threads(), steps, tol,
               table_cap > 0 ? (" or at most " + std::to_string(table_cap) + " iterations per step").c_str() : "");
