@@ -13,20 +13,20 @@ namespace {
 
 void residualScalar(const float* val, const int* col, const int* start, const double* b, const double* x, double* t,
                     int i0, int i1) {
-  for (int i = i0; i < i1; ++i) {
-    double a00 = 0, a01 = 0, a02 = 0, a10 = 0, a11 = 0, a12 = 0, a20 = 0, a21 = 0, a22 = 0;
-    for (int k = start[i]; k < start[i + 1]; ++k) {
-      const float* a = val + 9 * static_cast<size_t>(k);
-      const double* xj = x + 3 * static_cast<size_t>(col[k]);
-      const double x0 = xj[0], x1 = xj[1], x2 = xj[2];
-      a00 += a[0] * x0, a01 += a[1] * x1, a02 += a[2] * x2;
-      a10 += a[3] * x0, a11 += a[4] * x1, a12 += a[5] * x2;
-      a20 += a[6] * x0, a21 += a[7] * x1, a22 += a[8] * x2;
-    }
-    t[3 * i] = b[3 * i] - ((a00 + a01) + a02);
-    t[3 * i + 1] = b[3 * i + 1] - ((a10 + a11) + a12);
-    t[3 * i + 2] = b[3 * i + 2] - ((a20 + a21) + a22);
+  for (int i = i0; i < i1; ++i) blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, x, t + 3 * i);
+}
+
+// A node row's three sums s into y (PCG's products): b − s and Σ y² for a residual, s and Σ x·s
+// otherwise, added to `sum`.
+inline void finishProductRow(double s0, double s1, double s2, bool residual, const double* b, const double* x,
+                             double* y, int i, double& sum) {
+  if (residual) {
+    s0 = b[3 * i] - s0, s1 = b[3 * i + 1] - s1, s2 = b[3 * i + 2] - s2;
+    sum += s0 * s0 + s1 * s1 + s2 * s2;
+  } else {
+    sum += x[3 * i] * s0 + x[3 * i + 1] * s1 + x[3 * i + 2] * s2;
   }
+  y[3 * i] = s0, y[3 * i + 1] = s1, y[3 * i + 2] = s2;
 }
 
 double productScalar(const int* outer, const double* val, const int* start, const int* col, const double* b,
@@ -44,14 +44,7 @@ double productScalar(const int* outer, const double* val, const int* start, cons
       a10 += v1[m] * x0, a11 += v1[m + 1] * x1, a12 += v1[m + 2] * x2;
       a20 += v2[m] * x0, a21 += v2[m + 1] * x1, a22 += v2[m + 2] * x2;
     }
-    double s0 = (a00 + a01) + a02, s1 = (a10 + a11) + a12, s2 = (a20 + a21) + a22;
-    if (residual) {
-      s0 = b[3 * i] - s0, s1 = b[3 * i + 1] - s1, s2 = b[3 * i + 2] - s2;
-      sum += s0 * s0 + s1 * s1 + s2 * s2;
-    } else {
-      sum += x[3 * i] * s0 + x[3 * i + 1] * s1 + x[3 * i + 2] * s2;
-    }
-    y[3 * i] = s0, y[3 * i + 1] = s1, y[3 * i + 2] = s2;
+    finishProductRow((a00 + a01) + a02, (a10 + a11) + a12, (a20 + a21) + a22, residual, b, x, y, i, sum);
   }
   return sum;
 }
@@ -129,14 +122,7 @@ __attribute__((target("avx2,fma"))) double productAvx2(const int* outer, const d
     _mm256_store_pd(a, r0);
     _mm256_store_pd(c, r1);
     _mm256_store_pd(d, r2);
-    double s0 = (a[0] + a[1]) + a[2], s1 = (c[0] + c[1]) + c[2], s2 = (d[0] + d[1]) + d[2];
-    if (residual) {
-      s0 = b[3 * i] - s0, s1 = b[3 * i + 1] - s1, s2 = b[3 * i + 2] - s2;
-      sum += s0 * s0 + s1 * s1 + s2 * s2;
-    } else {
-      sum += x[3 * i] * s0 + x[3 * i + 1] * s1 + x[3 * i + 2] * s2;
-    }
-    y[3 * i] = s0, y[3 * i + 1] = s1, y[3 * i + 2] = s2;
+    finishProductRow((a[0] + a[1]) + a[2], (c[0] + c[1]) + c[2], (d[0] + d[1]) + d[2], residual, b, x, y, i, sum);
   }
   return sum;
 }
