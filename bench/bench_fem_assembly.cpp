@@ -104,7 +104,7 @@ int main(int argc, char** argv) {
     for (int n = 0; n < x.rows(); ++n) x(n, 0) += 0.05 * x(n, 1) * x(n, 1);
     Points x_other = x;
     x_other(0, 0) += 1e-9;
-    auto pose = [&](int r) -> const Points& { return r % 2 ? x_other : x; };
+    auto pose = [&](int r) -> const Points& { return r % 2 ? x : x_other; };  // the warm-ups are at x
     Eigen::VectorXd f;
     // Forces alone: identity rotations.
     Timing t_forces;

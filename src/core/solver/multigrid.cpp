@@ -574,6 +574,7 @@ void MultigridPreconditioner::analyzePattern(const SparseMatrix& A) {
     coarsest_.analyzePattern(*levels_.back()->A);
   }
   fine_nnz_ = A.nonZeros();
+  fine_outer_.assign(A.outerIndexPtr(), A.outerIndexPtr() + A.rows() + 1);
   factorizations_ = 0;
   factorized_ = false;
 }
@@ -719,7 +720,10 @@ void MultigridPreconditioner::estimateDamping(int l) {
 
 void MultigridPreconditioner::factorize(const SparseMatrix& A) {
   if (fine_nnz_ < 0) throw std::logic_error("multigrid: factorize() called before analyzePattern()");
-  if (A.rows() != levels_[0]->A->rows() || A.nonZeros() != fine_nnz_)
+  // Same size, entry count and row lengths: the float blocks and the Galerkin index lists are laid
+  // out over the analysed rows.
+  if (A.rows() != levels_[0]->A->rows() || A.nonZeros() != fine_nnz_ ||
+      !std::equal(fine_outer_.begin(), fine_outer_.end(), A.outerIndexPtr()))
     throw std::logic_error("multigrid: the matrix pattern changed since analyzePattern()");
   factorized_ = false;
   timings_.scan_s = timings_.damping_s = timings_.galerkin_s = timings_.coarse_factorize_s = 0.0;

@@ -16,6 +16,8 @@ namespace {
 
 // Vectors of a few thousand entries are not worth waking a second thread for.
 constexpr Eigen::Index kParallelMin = 4096;
+// Up to this many iterations the recursive residual is reported at the iteration limit.
+constexpr int kRecursiveResidualMaxIterations = 8;
 
 std::string dofName(Eigen::Index k) {
   std::ostringstream s;
@@ -242,6 +244,7 @@ void PcgSolver::analyzePattern(const SparseMatrix& A) {
   block_start_.clear();
   block_col_.clear();
   blockColumns(A, block_start_, block_col_);
+  analysed_outer_.assign(A.outerIndexPtr(), A.outerIndexPtr() + n + 1);
   n_ = n;
   nnz_ = A.nonZeros();
   A_ = nullptr;
@@ -256,6 +259,10 @@ void PcgSolver::factorize(const SparseMatrix& A) {
       << (A.isCompressed() ? "" : " (uncompressed)") << "; call analyzePattern() when the pattern changes";
     throw std::logic_error(s.str());
   }
+  // The block products walk the analysed block lists over A's rows: the row starts must be the
+  // analysed ones (the same count of entries in other rows would read past the values).
+  if (!std::equal(analysed_outer_.begin(), analysed_outer_.end(), A.outerIndexPtr()))
+    throw std::logic_error(name() + ": the matrix's row lengths changed since analyzePattern(); call it again");
   A_ = nullptr;
   const int* outer = A.outerIndexPtr();
   const double* val = A.valuePtr();
@@ -365,7 +372,9 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   }
   stats.iterations = it;
   // At the iteration limit rr is the recursive residual: within round-off of ‖b − A x‖² after the
-  // few iterations of a capped time step, and a whole product cheaper than recomputing it.
+  // few iterations of a capped time step (a whole product cheaper than recomputing it). Over many
+  // iterations it can drift below the true one, which is then recomputed.
+  if (!stats.converged && it > kRecursiveResidualMaxIterations) rr = trueResidual();
   return finish(rr, bnorm);
 }
 

@@ -2,11 +2,11 @@
 /// @file block_kernels.h
 /// The solver's hottest loops over ranges of node rows: the multigrid's residual t = b − A x of a
 /// level stored in 3×3 blocks of floats (one column node per block, nine row-major values), and
-/// PCG's product with the double CSR matrix in block layout. Two versions of the same arithmetic: portable scalar code (the reference), and AVX2/FMA code that works on a
-/// block's first eight values as two four-wide vectors, chosen at run time when the processor has
-/// those instructions. Both sum each block entry's products in its own accumulator, in block
-/// order, and add the three accumulators of a row at the end, so they differ only in rounding
-/// (the AVX2 version fuses each multiply-add).
+/// PCG's product with the double CSR matrix in block layout. Two versions of the same arithmetic:
+/// portable scalar code (the reference), and AVX2/FMA code chosen at run time when the processor
+/// has those instructions. Both sum each block entry's products in an accumulator of its own and
+/// add the three of a row at the end; the AVX2 residual keeps two sets (even and odd blocks) and
+/// every AVX2 multiply-add is fused, so the results differ in the last bits.
 
 namespace breast_sim::core {
 

@@ -16,8 +16,8 @@ using SparseMatrix = Eigen::SparseMatrix<double, Eigen::RowMajor, int>;
 /// What one solve did.
 struct SolveStats {
   int iterations = 0;             ///< Krylov iterations (0 for a direct solve)
-  /// ‖b − A x‖ / ‖b‖ at return (PCG stopped by its iteration limit: the recursive residual, equal to
-  /// it up to round-off)
+  /// ‖b − A x‖ / ‖b‖ at return (PCG stopped by its iteration limit after at most 8 iterations: the
+  /// recursive residual, equal to it up to round-off that far)
   double relative_residual = 0.0;
   bool converged = false;
   double seconds = 0.0;           ///< wall time of solve() [s]

@@ -212,9 +212,10 @@ struct MultigridOptions {
 
 /// One symmetric V-cycle [GW08] as preconditioner: smoothing on each level, Galerkin coarse
 /// operators (recomputed in every factorize(), or every coarse_update_interval-th), a direct solve on
-/// the coarsest level (dense Cholesky up to dense_coarsest_max_dofs, CHOLMOD beyond). factorize()
-/// and apply() do not allocate after the first call, apart from the temporary permuted copy CHOLMOD
-/// makes of a large coarsest matrix.
+/// the coarsest level (dense Cholesky up to dense_coarsest_max_dofs, CHOLMOD beyond). apply() does
+/// not allocate; factorize() does not after the first call, apart from the temporary permuted copy
+/// CHOLMOD makes of a large coarsest matrix and the blocked dense Cholesky's workspace beyond a few
+/// hundred DOFs.
 ///
 /// The sweeps of the V-cycle (residuals, smoothing) read a copy of each level's operator in 3×3
 /// blocks of floats, made in factorize(): one column index per block and 4-byte values move 2.7×
@@ -243,7 +244,8 @@ class MultigridPreconditioner : public Preconditioner {
   /// @throws std::invalid_argument when A is not 3#N_0 square in block layout (see GalerkinProduct).
   void analyzePattern(const SparseMatrix& A) override;
   /// @throws std::logic_error when A's pattern changed; std::runtime_error "multigrid: …" when a
-  ///         diagonal block of some level is not positive definite or CHOLMOD fails on the coarsest.
+  ///         diagonal block of some level is not positive definite or the coarsest level's
+  ///         factorization (dense Cholesky or CHOLMOD) fails.
   void factorize(const SparseMatrix& A) override;
   void apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) override;
   std::string name() const override { return "multigrid"; }
@@ -298,6 +300,7 @@ class MultigridPreconditioner : public Preconditioner {
   Eigen::MatrixXd coarsest_dense_;
   Eigen::LLT<Eigen::MatrixXd> coarsest_llt_;
   Eigen::Index fine_nnz_ = -1;
+  std::vector<int> fine_outer_;  // the fine matrix's row starts at analyzePattern()
   long factorizations_ = 0;
   bool factorized_ = false;
   Timings timings_;

@@ -66,7 +66,8 @@ struct PcgOptions {
 /// A matrix in the 3×3-block layout of fem/block_pattern.h (found in analyzePattern()) is multiplied
 /// block by block: one column index per block instead of nine, and each x_J read once for three
 /// rows. At the iteration limit the preconditioner is not applied for the iteration that would
-/// follow, and the reported residual is the recursive one (SolveStats::relative_residual).
+/// follow, and after at most 8 iterations the reported residual is the recursive one
+/// (SolveStats::relative_residual; beyond that the true one is recomputed).
 /// \note factorize() keeps a pointer to A: A must stay alive and unchanged until the last solve()
 /// before the next factorize(). A must be compressed CSR with sorted columns (Eigen's default).
 /// \note Indefiniteness is only detected when met: factorize() throws on a diagonal entry ≤ 0,
@@ -77,7 +78,7 @@ class PcgSolver : public LinearSolver {
   explicit PcgSolver(PcgOptions options = {}, std::unique_ptr<Preconditioner> preconditioner = nullptr);
 
   void analyzePattern(const SparseMatrix& A) override;
-  /// @throws std::logic_error before analyzePattern or when A's size or nonzero count changed;
+  /// @throws std::logic_error before analyzePattern or when A's size, nonzero count or row lengths changed;
   ///         std::runtime_error when a diagonal entry is ≤ 0 or the preconditioner throws.
   void factorize(const SparseMatrix& A) override;
   /// Iterates from the initial guess x (warm start; an x of the wrong size starts from zero).
@@ -110,6 +111,7 @@ class PcgSolver : public LinearSolver {
   std::vector<unsigned char> decoupled_flag_;
   std::vector<int> decoupled_;
   std::vector<int> block_start_, block_col_;  // node columns of A's 3×3 blocks (empty: no block layout)
+  std::vector<int> analysed_outer_;           // A's row starts at analyzePattern()
   Eigen::VectorXd r_, z_, p_, q_;
 };
 
