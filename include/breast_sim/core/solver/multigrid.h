@@ -290,6 +290,7 @@ class MultigridPreconditioner : public Preconditioner {
   void smooth(int level, const double* b, double* x, bool forward, bool from_zero);
   void chebyshev(int level, const double* b, double* x, int degree, bool from_zero);
   void residual(int level, const double* b, const double* x, double* t);
+  void toBlocks(int level);
 
   MultigridOptions options_;
   std::vector<NodeProlongation> prolongations_;
