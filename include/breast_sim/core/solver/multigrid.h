@@ -221,10 +221,10 @@ struct MultigridOptions {
 /// blocks of floats, made in factorize(): one column index per block and 4-byte values move 2.7×
 /// fewer bytes than the CSR matrix (fine level 0.96 → 0.61 ms per V-cycle at 48k elements with a
 /// Morton-ordered mesh, bench_solvers). The sweeps are bound by instructions, not by memory: at
-/// 0.5 ms per fine V-cycle they read ~25 GB/s where this machine reads 150–190 GB/s from cache
-/// (bench_simulation's first line), so
-/// their residuals run in the AVX2/FMA kernel of solver/block_kernels.h (fine level 0.49–0.62 →
-/// 0.33–0.40 ms, level 1 0.24–0.30 → 0.15–0.17 ms). The
+/// 0.6 ms per fine V-cycle they read ~20 GB/s where this machine reads 150–190 GB/s from cache
+/// (bench_simulation's first line), so their residuals run in the AVX2/FMA kernel of
+/// solver/block_kernels.h (fine level 0.62–0.67 → 0.40–0.44 ms, level 1 0.27–0.32 → 0.16–0.19 ms,
+/// docs/benchmarks/solver_kernels_ab.txt). The
 /// preconditioner stays a fixed symmetric linear operator (the values are rounded once, the
 /// arithmetic is in double); PCG itself multiplies by the caller's double matrix, so the solution
 /// is as exact as before.
