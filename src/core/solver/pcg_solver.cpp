@@ -319,7 +319,9 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   const double tol = options_.relative_tolerance * bnorm;
   const bool blocks = !block_start_.empty();
   auto trueResidual = [&]() {
-    return blocks ? blockProduct<true>(A, block_start_, block_col_, b.data(), x.data(), r_.data(), options_.simd_kernels) : residual(A, b, x, r_);
+    return blocks ? blockProduct<true>(A, block_start_, block_col_, b.data(), x.data(), r_.data(),
+                                       options_.simd_kernels)
+                  : residual(A, b, x, r_);
   };
   double rr = trueResidual();
   if (std::sqrt(rr) <= tol) {
@@ -343,8 +345,9 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
         << ")";
       throw std::runtime_error(s.str());
     }
-    const double pq =
-        blocks ? blockProduct<false>(A, block_start_, block_col_, nullptr, p_.data(), q_.data(), options_.simd_kernels) : multiplyDot(A, p_, q_);
+    const double pq = blocks ? blockProduct<false>(A, block_start_, block_col_, nullptr, p_.data(), q_.data(),
+                                                   options_.simd_kernels)
+                             : multiplyDot(A, p_, q_);
     if (!(pq > 0.0)) {
       std::ostringstream s;
       s << name() << ": the matrix is not positive definite (pᵀAp = " << pq << " at iteration " << it
