@@ -9,6 +9,7 @@
 #include <string>
 
 #include <geometry_msgs/PoseStamped.h>
+#include <boost/make_shared.hpp>
 #include <rosbag/bag.h>
 #include <ros/package.h>
 #include <ros/time.h>
@@ -64,7 +65,13 @@ int main(int argc, char** argv) {
     ts.child_frame_id = "tracker";
     ts.transform = ros_interface::transformFromIsometry(sim.worldFromTracker());
     statics.transforms.push_back(ts);
-    bag.write("/tf_static", t0, statics);
+    // Latched, as tf2's static broadcaster does: `rosbag play` then keeps it for subscribers that
+    // connect after the first message (otherwise a node slow to connect under load never gets the
+    // tracker frame and drops every cloud).
+    auto latched = boost::make_shared<ros::M_string>();
+    (*latched)["latching"] = "1";
+    (*latched)["callerid"] = "/make_test_bags";
+    bag.write("/tf_static", t0, statics, latched);
     const int poses = static_cast<int>(seconds * pose_rate), clouds = static_cast<int>(seconds * cloud_rate);
     int p = 0, k = 0;
     while (p < poses || k < clouds) {
