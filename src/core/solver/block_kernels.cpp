@@ -2,6 +2,8 @@
 
 #include <cstddef>
 
+#include <omp.h>
+
 #if defined(__x86_64__) && defined(__GNUC__)
 #include <immintrin.h>
 #define BREAST_SIM_X86_SIMD 1
@@ -156,6 +158,32 @@ double blockProductRows(const int* outer, const double* val, const int* start, c
   if (simd && blockKernelsHaveSimd()) return productAvx2(outer, val, start, col, b, x, y, i0, i1, residual);
 #endif
   return productScalar(outer, val, start, col, b, x, y, i0, i1, residual);
+}
+
+namespace {
+// Thread p's share [first, second) of n rows among np threads.
+inline int shareStart(int n, int p, int np) { return static_cast<int>(static_cast<long>(n) * p / np); }
+}  // namespace
+
+void blockResidual(const float* val, const int* col, const int* start, const double* b, const double* x, double* t,
+                   int nodes, bool simd, bool parallel) {
+#pragma omp parallel if (parallel)
+  {
+    const int p = omp_get_thread_num(), np = omp_get_num_threads();
+    blockResidualRows(val, col, start, b, x, t, shareStart(nodes, p, np), shareStart(nodes, p + 1, np), simd);
+  }
+}
+
+double blockProduct(const int* outer, const double* val, const int* start, const int* col, const double* b,
+                    const double* x, double* y, int nodes, bool residual, bool simd, bool parallel) {
+  double sum = 0.0;
+#pragma omp parallel reduction(+ : sum) if (parallel)
+  {
+    const int p = omp_get_thread_num(), np = omp_get_num_threads();
+    sum += blockProductRows(outer, val, start, col, b, x, y, shareStart(nodes, p, np), shareStart(nodes, p + 1, np),
+                            residual, simd);
+  }
+  return sum;
 }
 
 }  // namespace breast_sim::core

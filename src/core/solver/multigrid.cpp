@@ -769,7 +769,6 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
   factorized_ = true;
 }
 
-
 void MultigridPreconditioner::toBlocks(int l) {
   Level& lv = *levels_[l];
   const SparseMatrix& M = *lv.A;
@@ -793,15 +792,7 @@ void MultigridPreconditioner::residual(int l, const double* b, const double* x, 
   const float* val = lv.block_val.data();
   const int* col = lv.block_col.data();
   const int* start = lv.block_start.data();
-  const int n = lv.nodes;
-  const bool simd = options_.simd_kernels;
-  // The static schedule's split: each thread one contiguous range of node rows.
-#pragma omp parallel if (n > kParallelMinNodes)
-  {
-    const int p = omp_get_thread_num(), np = omp_get_num_threads();
-    blockResidualRows(val, col, start, b, x, t, static_cast<int>(static_cast<long>(n) * p / np),
-                      static_cast<int>(static_cast<long>(n) * (p + 1) / np), simd);
-  }
+  blockResidual(val, col, start, b, x, t, lv.nodes, options_.simd_kernels, lv.nodes > kParallelMinNodes);
 }
 
 void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool forward, bool from_zero) {

@@ -6,8 +6,6 @@
 #include <sstream>
 #include <stdexcept>
 
-#include <omp.h>
-
 #include "breast_sim/core/solver/block_kernels.h"
 
 namespace breast_sim::core {
@@ -95,28 +93,6 @@ void copy(const Eigen::VectorXd& from, Eigen::VectorXd& to) {
   const Eigen::Index n = from.size();
 #pragma omp parallel for schedule(static) if (n > kParallelMin)
   for (Eigen::Index i = 0; i < n; ++i) to[i] = from[i];
-}
-
-// The same two products on a matrix in 3×3-block layout (fem/block_pattern.h), one node row (three
-// matrix rows) at a time (solver/block_kernels.h): `block_col` holds the node column J of every block
-// of rows 3I..3I+2 (`block_start` per node), so a block costs its nine values and one index instead
-// of nine of each, and x_J is loaded once for the three rows. One accumulator per block entry keeps
-// the nine multiply-adds of a block independent of each other (the row-wise loop waits out nine
-// dependent ones); the sums therefore differ from the row-wise ones in the last bits.
-template <bool kResidual>
-double blockProduct(const SparseMatrix& A, const std::vector<int>& block_start, const std::vector<int>& block_col,
-                    const double* b, const double* x, double* y, bool simd) {
-  const int nodes = static_cast<int>(block_start.size()) - 1;
-  double sum = 0.0;
-  // The static schedule's split: each thread one contiguous range of node rows.
-#pragma omp parallel reduction(+ : sum) if (3 * nodes > kParallelMin)
-  {
-    const int p = omp_get_thread_num(), np = omp_get_num_threads();
-    sum += blockProductRows(A.outerIndexPtr(), A.valuePtr(), block_start.data(), block_col.data(), b, x, y,
-                            static_cast<int>(static_cast<long>(nodes) * p / np),
-                            static_cast<int>(static_cast<long>(nodes) * (p + 1) / np), kResidual, simd);
-  }
-  return sum;
 }
 
 // Node columns of every 3×3 block when A has the block layout (rows 3I, 3I+1, 3I+2 hold the same
@@ -318,9 +294,13 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   for (int i : decoupled_) x[i] = b[i] / val[diagonal_position_[i]];
   const double tol = options_.relative_tolerance * bnorm;
   const bool blocks = !block_start_.empty();
+  // Block layout: the products block by block (solver/block_kernels.h): one column index per block
+  // instead of nine, x_J read once for three rows, the nine multiply-adds of a block independent.
+  const int nodes = static_cast<int>(block_start_.size()) - 1;
+  const bool parallel = A.rows() > kParallelMin;
   auto trueResidual = [&]() {
-    return blocks ? blockProduct<true>(A, block_start_, block_col_, b.data(), x.data(), r_.data(),
-                                       options_.simd_kernels)
+    return blocks ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(), b.data(),
+                                 x.data(), r_.data(), nodes, true, options_.simd_kernels, parallel)
                   : residual(A, b, x, r_);
   };
   double rr = trueResidual();
@@ -345,8 +325,8 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
         << ")";
       throw std::runtime_error(s.str());
     }
-    const double pq = blocks ? blockProduct<false>(A, block_start_, block_col_, nullptr, p_.data(), q_.data(),
-                                                   options_.simd_kernels)
+    const double pq = blocks ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(),
+                                            nullptr, p_.data(), q_.data(), nodes, false, options_.simd_kernels, parallel)
                              : multiplyDot(A, p_, q_);
     if (!(pq > 0.0)) {
       std::ostringstream s;

@@ -49,4 +49,11 @@ void blockResidualRows(const float* val, const int* col, const int* start, const
 double blockProductRows(const int* outer, const double* val, const int* start, const int* col, const double* b,
                         const double* x, double* y, int i0, int i1, bool residual, bool simd);
 
+/// The same over all `nodes` node rows, split into one contiguous range per OpenMP thread (the
+/// static schedule's split) when `parallel`; blockProduct returns the whole sum.
+void blockResidual(const float* val, const int* col, const int* start, const double* b, const double* x, double* t,
+                   int nodes, bool simd, bool parallel);
+double blockProduct(const int* outer, const double* val, const int* start, const int* col, const double* b,
+                    const double* x, double* y, int nodes, bool residual, bool simd, bool parallel);
+
 }  // namespace breast_sim::core
