@@ -10,6 +10,8 @@
 //                without the polar decomposition, so rotations ≈ update(trace) − forces
 //   stiffness  = zeroing A + addStiffness()
 //   assign     = assignStiffness(): the same A in one pass (rows cleared as the gather reaches them)
+//   scalar     = assignStiffness() with the portable scalar gather (setSimdKernels(false)), timed in
+//                the same repetitions; the same as assign where the processor lacks AVX-512VL
 //   step asm   = DynamicSimulator::step()'s assembly_seconds; overhead = step asm − update − stiffness
 // Figures are medians over the repetitions (the minima go to the JSON too): on a shared machine an
 // OpenMP region whose second thread is descheduled waits for it, so single runs scatter widely.
@@ -90,8 +92,9 @@ int main(int argc, char** argv) {
   const ModelCase base = loadModelCase(std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml");
   std::printf("threads %d, %d repetitions per size, medians [ms], %s time\n", omp_get_max_threads(), reps,
               cpu_clock ? "process CPU" : "wall");
-  std::printf("%8s %7s %6s %9s %9s %9s %9s %9s %9s %9s %9s\n", "tets", "nodes", "volume", "rotations", "forces", "update",
-              "stiffness", "assign", "sum", "step asm", "overhead");
+  std::printf("AVX-512VL stiffness gather: %s\n", CorotatedTetFem::gatherHasSimd() ? "yes" : "no (assign = scalar)");
+  std::printf("%8s %7s %6s %9s %9s %9s %9s %9s %9s %9s %9s %9s\n", "tets", "nodes", "volume", "rotations", "forces", "update",
+              "stiffness", "assign", "scalar", "sum", "step asm", "overhead");
   nlohmann::json rows = nlohmann::json::array();
   for (int target : targets) {
     ModelCase c = base;
@@ -124,7 +127,7 @@ int main(int argc, char** argv) {
       fem.setVolumeTerm(volume);
       SparseMatrix A = fem.pattern().matrix();
       fem.update(x, f);  // warm-up
-      Timing t_update, t_assemble, t_assign, t_step;
+      Timing t_update, t_assemble, t_assign, t_scalar, t_step;
       for (int r = 0; r < reps; ++r) {
         const double t0 = now(cpu_clock);
         fem.update(pose(r), f);
@@ -133,9 +136,14 @@ int main(int argc, char** argv) {
         fem.addStiffness(1.0, A);
         const double t2 = now(cpu_clock);
         fem.assignStiffness(1.0, A);
+        const double t3 = now(cpu_clock);
+        fem.setSimdKernels(false);
+        fem.assignStiffness(1.0, A);
+        fem.setSimdKernels(true);
         t_update.s.push_back(t1 - t0);
         t_assemble.s.push_back(t2 - t1);
-        t_assign.s.push_back(now(cpu_clock) - t2);
+        t_assign.s.push_back(t3 - t2);
+        t_scalar.s.push_back(now(cpu_clock) - t3);
       }
       // The same pose through DynamicSimulator::step().
       DynamicsParams params;
@@ -161,8 +169,9 @@ int main(int argc, char** argv) {
       }
       const double u = t_update.med(), a = t_assemble.med(), s = t_step.med(), fo = t_forces.med();
       const bool trace = volume == CorotatedTetFem::VolumeTerm::kTrace;
-      std::printf("%8d %7d %6s %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f\n", model.mesh.numTets(),
-                  model.mesh.numNodes(), volume_name, u - fo, fo, u, a, t_assign.med(), u + a, s, s - u - a);
+      std::printf("%8d %7d %6s %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f\n", model.mesh.numTets(),
+                  model.mesh.numNodes(), volume_name, u - fo, fo, u, a, t_assign.med(), t_scalar.med(), u + a, s,
+                  s - u - a);
       std::fflush(stdout);
       rows.push_back({{"tets", model.mesh.numTets()},
                       {"nodes", model.mesh.numNodes()},
@@ -172,12 +181,14 @@ int main(int argc, char** argv) {
                       {"update_ms_median", u},
                       {"stiffness_ms_median", a},
                       {"assign_stiffness_ms_median", t_assign.med()},
+                      {"assign_stiffness_scalar_ms_median", t_scalar.med()},
                       {"step_assembly_ms_median", s},
                       {"step_overhead_ms_median", s - u - a},
                       {"forces_ms_min", t_forces.min()},
                       {"update_ms_min", t_update.min()},
                       {"stiffness_ms_min", t_assemble.min()},
                       {"assign_stiffness_ms_min", t_assign.min()},
+                      {"assign_stiffness_scalar_ms_min", t_scalar.min()},
                       {"step_assembly_ms_min", t_step.min()}});
     }
   }

@@ -38,6 +38,8 @@
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/solver/multigrid.h"
+#include "breast_sim/core/solver/pcg_solver.h"
 
 using namespace breast_sim::core;
 using namespace breast_sim::bench;
@@ -106,6 +108,13 @@ struct StepRun {
   int unconverged = 0;
 };
 
+/// Coarse-operator renewals of the simulator's multigrid so far (−1 without a multigrid).
+long coarseRenewals(DynamicSimulator& sim) {
+  if (auto* pcg = dynamic_cast<PcgSolver*>(&sim.solver()))
+    if (auto* mg = dynamic_cast<MultigridPreconditioner*>(&pcg->preconditioner())) return mg->coarseRenewals();
+  return -1;
+}
+
 StepRun runSteps(DynamicSimulator& sim, int steps) {
   StepRun r;
   for (int s = 0; s < steps; ++s) {
@@ -130,6 +139,7 @@ int main(int argc, char** argv) {
   int table_cap = 0;  // at most this many PCG iterations per step in the Table-1 runs; 0 = the default
   double tol = 1e-2;
   int coarse_interval = SolverSettings{}.multigrid.coarse_update_interval;
+  double coarse_slowdown = SolverSettings{}.multigrid.coarse_update_slowdown;
   int settle_target = 47895;
   std::vector<double> settle_dts = {0.033, 0.1, 0.33, 1.0};
   std::vector<double> tol_study = {1e-1, 1e-2, 1e-3, 1e-6};
@@ -150,6 +160,7 @@ int main(int argc, char** argv) {
     else if (k == "--baseline-steps") baseline_steps = std::stoi(value());
     else if (k == "--tol") tol = std::stod(value());
     else if (k == "--coarse-interval") coarse_interval = std::stoi(value());
+    else if (k == "--coarse-slowdown") coarse_slowdown = std::stod(value());
     else if (k == "--settle-target") settle_target = std::stoi(value());
     else if (k == "--settle-dts") settle_dts = parseList(value());
     else if (k == "--tols") tol_study = parseList(value());
@@ -170,7 +181,7 @@ int main(int argc, char** argv) {
     } else {
       std::fprintf(stderr,
                    "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-2] [--cap K]\n"
-                   "         [--coarse-interval 4]\n"
+                   "         [--coarse-interval 4] [--coarse-slowdown S (0 = off)]\n"
                    "         [--tols 1e-1,...] [--caps 2,3,...] [--study-steps N]\n"
                    "         [--settle-target 47895] [--settle-dts 0.033,...] [--no-baseline] [--no-settle]\n"
                    "         [--element linear|anp] [--volume-term trace|determinant] [--json FILE]\n");
@@ -185,6 +196,7 @@ int main(int argc, char** argv) {
   out["relative_tolerance"] = tol;
   out["iteration_cap"] = table_cap;
   out["coarse_update_interval"] = coarse_interval;
+  out["coarse_update_slowdown"] = coarse_slowdown;
   out["element"] = defaults.element == SimulationSettings::Element::kAnpTet ? "anp" : "linear";
   out["volume_term"] = defaults.volume_term == CorotatedTetFem::VolumeTerm::kDeterminant ? "determinant" : "trace";
 
@@ -202,8 +214,11 @@ int main(int argc, char** argv) {
   std::printf("(medians over the steps but 'mean'; 'factor.' = the solver's set-up per step; 'first' = the first step, with the\n"
               " solver's first set-up; ns/el/st and the speed-up from the mean, which includes the coarse operators' renewal\n"
               " every %d steps; seed = 2012 quad-core, its 25 steps' mean)\n", coarse_interval);
-  std::printf("%8s %7s %7s | %8s %6s %8s %8s %8s %6s | %8s %8s | %9s %8s %7s | %6s %7s\n", "tets", "nodes", "levels",
-              "step[ms]", "mean", "assem", "factor.", "solve", "iters", "first", "setup[s]", "ns/el/st", "peak[MB]",
+  if (coarse_slowdown > 0)
+    std::printf("(and earlier when PCG converges %.2f times slower than after the last renewal; 'renew' = renewals in all steps)\n",
+                coarse_slowdown);
+  std::printf("%8s %7s %7s | %8s %6s %8s %8s %8s %6s %5s | %8s %8s | %9s %8s %7s | %6s %7s\n", "tets", "nodes", "levels",
+              "step[ms]", "mean", "assem", "factor.", "solve", "iters", "renew", "first", "setup[s]", "ns/el/st", "peak[MB]",
               "cholmod", "seed", "speedup");
   nlohmann::json rows = nlohmann::json::array();
   double ns_ref = 0.0;
@@ -217,6 +232,7 @@ int main(int argc, char** argv) {
     SimulationSettings settings = defaults;
     settings.solver.relative_tolerance = tol;
     settings.solver.multigrid.coarse_update_interval = coarse_interval;
+    settings.solver.multigrid.coarse_update_slowdown = coarse_slowdown;
     if (table_cap > 0) settings.solver.max_iterations = table_cap;
     settings.dynamics.gravity_mps2 = g_supine;
     SimulatorBuild b = buildSimulator(c, model, settings);
@@ -251,10 +267,11 @@ int main(int argc, char** argv) {
     double seed = 0.0;
     for (size_t k = 0; k < seed_elements.size(); ++k)
       if (targets[ti] == seed_elements[k]) seed = seed_ms[k];
-    std::printf("%8d %7d %7d | %8.1f %6.1f %8.1f %8.1f %8.1f %6.1f | %8.1f %8.2f | %9.0f %8.0f %7.0f | %6.0f %6.1fx\n",
+    const long renewals = coarseRenewals(sim);
+    std::printf("%8d %7d %7d | %8.1f %6.1f %8.1f %8.1f %8.1f %6.1f %5ld | %8.1f %8.2f | %9.0f %8.0f %7.0f | %6.0f %6.1fx\n",
                 model.mesh.numTets(), model.mesh.numNodes(), b.multigrid_levels, step_ms, step_mean_ms,
                 1e3 * median(run.assembly),
-                1e3 * median(run.setup), 1e3 * median(run.solve), mean(run.iterations), 1e3 * first.total[0],
+                1e3 * median(run.setup), 1e3 * median(run.solve), mean(run.iterations), renewals, 1e3 * first.total[0],
                 b.hierarchy_seconds + b.setup_seconds, ns, peak, cholmod_ms, seed, seed > 0 ? seed / step_mean_ms : 0.0);
     if (trajectory_error_mm >= 0)
       std::printf("         after %d steps the multigrid path differs from CHOLMOD's (exact solves) by at most %.2e mm "
@@ -269,6 +286,7 @@ int main(int argc, char** argv) {
                     {"hierarchy_s", b.hierarchy_seconds},
                     {"simulator_setup_s", b.setup_seconds},
                     {"first_step_ms", 1e3 * first.total[0]},
+                    {"coarse_renewals", renewals},
                     {"step_ms_median", step_ms},
                     {"step_ms_mean", step_mean_ms},
                     {"assembly_ms_median", 1e3 * median(run.assembly)},
@@ -304,6 +322,7 @@ int main(int argc, char** argv) {
     SimulationSettings settings = defaults;
     settings.dynamics.gravity_mps2 = g_supine;
     settings.solver.multigrid.coarse_update_interval = coarse_interval;
+    settings.solver.multigrid.coarse_update_slowdown = coarse_slowdown;
     SimulationSettings cs = settings;
     cs.solver.kind = SolverSettings::Kind::kCholmod;
     SimulatorBuild cb = buildSimulator(c, model, cs);

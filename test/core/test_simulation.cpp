@@ -63,6 +63,7 @@ simulation:
   multigrid_smoother: gauss-seidel
   multigrid_smoothing_steps: 2
   multigrid_coarse_update_interval: 3
+  multigrid_coarse_update_slowdown: 1.25
   multigrid_max_coarsest_elements: 500
   fixed_node_set: z_min
   gravity_mps2: 9.80665
@@ -86,6 +87,7 @@ simulation:
   EXPECT_EQ(s.solver.multigrid.pre_smoothing_steps, 2);
   EXPECT_EQ(s.solver.multigrid.post_smoothing_steps, 2);
   EXPECT_EQ(s.solver.multigrid.coarse_update_interval, 3);
+  EXPECT_DOUBLE_EQ(s.solver.multigrid.coarse_update_slowdown, 1.25);
   EXPECT_EQ(s.solver.coarsening.max_coarsest_elements, 500);
   EXPECT_EQ(s.fixed_node_set, "z_min");
   EXPECT_DOUBLE_EQ(s.gravity_mps2, 9.80665);
@@ -121,6 +123,9 @@ simulation:
   EXPECT_NE(errorOf("simulation: {anp_element_volume_fraction: -0.1}").find("anp_element_volume_fraction"),
             std::string::npos);
   EXPECT_NE(errorOf("simulation: {multigrid_smoother: sor}").find("chebyshev"), std::string::npos);
+  EXPECT_NE(errorOf("simulation: {multigrid_coarse_update_slowdown: 0.8}").find("multigrid_coarse_update_slowdown = 0.8"),
+            std::string::npos)
+      << errorOf("simulation: {multigrid_coarse_update_slowdown: 0.8}");
 }
 
 TEST(SimulationSettings, BadValuesNameTheKeyAndTheAcceptedRange) {

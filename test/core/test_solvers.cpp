@@ -662,3 +662,125 @@ TEST(LinearSolver, RelativeToleranceCanBeChangedBetweenSolves) {
   EXPECT_NO_THROW(direct.setRelativeTolerance(0.1));
   EXPECT_EQ(direct.relativeTolerance(), 0.0);
 }
+
+namespace {
+/// Jacobi, and what PCG reports to the preconditioner after each solve.
+class ReportRecorder : public JacobiPreconditioner {
+ public:
+  void reportConvergence(int iterations, double residual_reduction) override {
+    reports.emplace_back(iterations, residual_reduction);
+  }
+  std::vector<std::pair<int, double>> reports;
+};
+}  // namespace
+
+TEST(PcgSolver, ReportsItsResidualReductionToThePreconditioner) {
+  const Fixture& f = fixture();
+  for (int cap : {5, 1000}) {
+    SCOPED_TRACE("iteration limit " + std::to_string(cap));
+    PcgOptions o;
+    o.relative_tolerance = 1e-6;
+    o.max_iterations = cap;
+    auto recorder = std::make_unique<ReportRecorder>();
+    ReportRecorder* rec = recorder.get();
+    PcgSolver pcg(o, std::move(recorder));
+    pcg.analyzePattern(f.A);
+    pcg.factorize(f.A);
+    Eigen::VectorXd x0 = Eigen::VectorXd::Constant(f.b.size(), 1e-4), x = x0;
+    const SolveStats st = pcg.solve(f.b, x);
+    ASSERT_EQ(rec->reports.size(), 1u);
+    EXPECT_EQ(rec->reports[0].first, st.iterations);
+    // r_0 is the residual after PCG solved the decoupled (fixed) rows exactly.
+    for (int i : pcg.decoupledRows()) x0[i] = f.b[i] / f.A.coeff(i, i);
+    const double reduction = (f.b - f.A * x).norm() / (f.b - f.A * x0).norm();
+    EXPECT_NEAR(rec->reports[0].second, reduction, 1e-6 * reduction);
+    // A warm start at the answer does not iterate and reports nothing.
+    pcg.solve(f.b, x);
+    if (st.converged) EXPECT_EQ(rec->reports.size(), 1u);
+  }
+}
+
+TEST(MultigridPreconditioner, RenewsTheCoarseOperatorsEarlyWhenConvergenceSlowsDown) {
+  const Fixture& f = fixture();
+  MultigridOptions o;
+  o.coarse_update_interval = 100;
+  o.coarse_update_slowdown = 1.2;
+  MultigridPreconditioner mg(f.hierarchy, o);
+  mg.analyzePattern(f.A);
+  mg.factorize(f.A);
+  EXPECT_EQ(mg.coarseRenewals(), 1);
+  // The first solve after a renewal is the reference: 10 iterations, 1e-3 (log rate −0.69 per iteration).
+  mg.reportConvergence(10, 1e-3);
+  mg.factorize(f.A);
+  EXPECT_EQ(mg.coarseRenewals(), 1);
+  // As fast again: no renewal (mean log rate −0.69).
+  mg.reportConvergence(10, 1e-3);
+  mg.factorize(f.A);
+  EXPECT_EQ(mg.coarseRenewals(), 1);
+  // 1e-2 in 10 (−0.46): the mean −0.61 is within the factor 1.2 of −0.69 (threshold −0.576).
+  mg.reportConvergence(10, 1e-2);
+  mg.factorize(f.A);
+  EXPECT_EQ(mg.coarseRenewals(), 1);
+  // 1e-1 in 10 (−0.23): the mean −0.52 is slower than 1.2 times the reference: renewed at the next factorize().
+  mg.reportConvergence(10, 1e-1);
+  EXPECT_EQ(mg.coarseRenewals(), 1);
+  mg.factorize(f.A);
+  EXPECT_EQ(mg.coarseRenewals(), 2);
+  // A new reference after the renewal: the slow rate is now the norm.
+  mg.reportConvergence(10, 1e-1);
+  mg.reportConvergence(10, 1e-1);
+  mg.factorize(f.A);
+  EXPECT_EQ(mg.coarseRenewals(), 2);
+  // A residual that did not fall renews at once; one that vanished teaches nothing.
+  mg.reportConvergence(3, 0.0);
+  mg.factorize(f.A);
+  EXPECT_EQ(mg.coarseRenewals(), 2);
+  mg.reportConvergence(3, 1.5);
+  mg.factorize(f.A);
+  EXPECT_EQ(mg.coarseRenewals(), 3);
+  mg.reportConvergence(3, std::nan(""));
+  mg.factorize(f.A);
+  EXPECT_EQ(mg.coarseRenewals(), 4);
+
+  // Off (0, the default): only the interval renews.
+  MultigridOptions fixed = o;
+  fixed.coarse_update_slowdown = 0.0;
+  fixed.coarse_update_interval = 3;
+  MultigridPreconditioner mg2(f.hierarchy, fixed);
+  mg2.analyzePattern(f.A);
+  for (int k = 0; k < 7; ++k) {
+    mg2.factorize(f.A);
+    mg2.reportConvergence(10, k == 0 ? 1e-3 : 0.9);
+  }
+  EXPECT_EQ(mg2.coarseRenewals(), 3);  // factorizations 0, 3 and 6
+
+  // In PCG: a solve reports its reduction (ReportsItsResidualReductionToThePreconditioner); with a
+  // stiffer matrix on stale coarse operators the solver still converges to the answer.
+  PcgOptions pcg;
+  pcg.relative_tolerance = 1e-10;
+  MultigridPcgSolver solver(f.hierarchy, pcg, o);
+  solver.analyzePattern(f.A);
+  solver.factorize(f.A);
+  Eigen::VectorXd x;
+  ASSERT_TRUE(solver.solve(f.b, x).converged);
+  const SparseMatrix A2 = implicitStepMatrix(f.model.mesh, f.fixed, 5000.0, 0.45);
+  solver.factorize(A2);
+  x.setZero();
+  ASSERT_TRUE(solver.solve(f.b, x).converged);
+  const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt{Eigen::SparseMatrix<double>(A2)};
+  EXPECT_LE(relativeDifference(x, ldlt.solve(f.b)), 1e-6);
+}
+
+TEST(MultigridPreconditioner, RejectsACoarseUpdateSlowdownOfOneOrLess) {
+  const Fixture& f = fixture();
+  for (double s : {0.5, 1.0, -2.0}) {
+    MultigridOptions o;
+    o.coarse_update_slowdown = s;
+    try {
+      MultigridPreconditioner mg(f.hierarchy, o);
+      FAIL() << "expected an error for " << s;
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("slowdown"), std::string::npos) << e.what();
+    }
+  }
+}

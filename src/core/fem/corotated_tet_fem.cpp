@@ -7,6 +7,10 @@
 
 #include <Eigen/Dense>
 
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+#endif
+
 #include "breast_sim/core/fem/polar_decomposition.h"
 
 namespace breast_sim::core {
@@ -299,65 +303,52 @@ void CorotatedTetFem::assignStiffness(double scale, SparseMatrix& A) const {
   else gatherStiffness<false, true>(scale, A);
 }
 
-template <bool kDeterminant, bool kAssign>
-void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
-  // Block (i, j) of an element, with a = R ∇N (rotated shape gradients) and V including E_r:
-  //   kTrace, R K_e0 Rᵀ:  V(λ a_i a_jᵀ + μ a_j a_iᵀ + μ (a_i·a_j) I)
-  //   kDeterminant:       V(λ c_i c_jᵀ + μ a_j a_iᵀ + μ (a_i·a_j) I), c = cof F ∇N = ∂J/∂x: the μ part
-  //                       of R K_e0 Rᵀ and the Gauss–Newton part of λ (J − 1) cof F, whose dropped
-  //                       remainder λ (J − 1) ∂cof F/∂x is indefinite. SPD, and R K_e0 Rᵀ at rest.
-  // Both are u h_jᵀ + a_j vᵀ + (v·a_j) I with u = λ h_i, v = μ a_i, h = a or c, the records holding
-  // √(V E_r) a and √(V E_r) c.
-  const int nn = pattern_.numNodes();
-  double* const values = A.valuePtr();
-  const int* const outer = A.outerIndexPtr();
-  const double* const recs = records();
-  const int* const islots = incident_slots_.data();
-  const double sl = scale * (kDeterminant ? lambda_ : volumeLambda()), sm = scale * mu_;
-  constexpr int kStride = kDeterminant ? kRecordDeterminant : kRecordTrace;
-  constexpr int kH = kDeterminant ? kVolumeGrads : 0;  // where h starts in the record
-  // Everything is read into locals before the writes to A: `values` could alias the gradients for
-  // the compiler, which would otherwise reload them after every store. Node n's three rows are
-  // contiguous (3·deg entries each), so its writes stay in one ~1 kB stretch of A (L1-resident).
-  // The element records are prefetched a few incidences ahead.
-  // Measured (bench_fem_assembly, 2 threads, minima over 40 or 20 runs, old and new binaries
-  // interleaved, quiet machine): assemble (serial zeroing of A + this) 47.5k tets 8.4–9.9 → 3.9–4.0
-  // ms, 308k tets 114.6 → 31.0 ms. Prefetching the element forces in update()'s node gather the
-  // same way did not pay (measured, dropped). The determinant term's c in the same record, read and
-  // prefetched with it, instead of a separate array: 48.8k tets, 1 thread, medians, 10.9–11.1 →
-  // 6.1–6.4 ms (trace 5.6–5.8, unchanged). Prefetching 8 incidences ahead instead of 4: 1 thread,
-  // process CPU time, medians, 3 interleaved runs: zero + add 5.1–5.8 → 5.1–5.4 ms (trace), 5.8–6.4
-  // → 5.6–5.9 ms (det); 16 ahead was not distinguishable from 8. Records scaled by √(V E_r) without
-  // the weight and padding (96 instead of 128 bytes, det 192 instead of 256), same measurement:
-  // trace 5.7–5.9 → 4.8–5.2 ms, det 6.0–6.1 → 5.7–6.1 ms.
-  constexpr int kAhead = 8;
-  const int num_incidences = pattern_.incidentStart(nn);
-  auto prefetch = [&](int k) {
-    const double* r = recs + kStride * static_cast<size_t>(pattern_.incidentElement(k));
-    for (int line = 0; line < kStride; line += 8) __builtin_prefetch(r + line);
-    __builtin_prefetch(r + kStride - 1);  // records are not line-aligned
-  };
-#pragma omp parallel for schedule(dynamic, 64)
-  for (int n = 0; n < nn; ++n) {
-    double* const row0 = values + outer[3 * n];
-    const int len = outer[3 * n + 1] - outer[3 * n];
+namespace {
+
+/// What the stiffness gather of a range of nodes reads and writes (CorotatedTetFem::gatherStiffness).
+struct GatherArgs {
+  double* values;          // A's values
+  const int* outer;        // A's row starts
+  const double* recs;      // the element records
+  const int* islots;       // per incidence and j: 3·block slot
+  const int* inc_start;    // the pattern's incidentStart
+  const int* incident;     // the pattern's incidences: element·4 + local index
+  int num_incidences;
+  double sl, sm;           // scale·λ, scale·μ
+};
+
+// The element records are prefetched this many incidences ahead (see gatherStiffness).
+constexpr int kGatherAhead = 8;
+
+template <int kStride>
+inline void prefetchRecord(const GatherArgs& a, int k) {
+  const double* r = a.recs + kStride * static_cast<size_t>(a.incident[k] >> 2);
+  for (int line = 0; line < kStride; line += 8) __builtin_prefetch(r + line);
+  __builtin_prefetch(r + kStride - 1);  // records are not line-aligned
+}
+
+/// The portable gather of nodes [n0, n1): 36 scalar read-modify-writes per incidence.
+template <int kStride, int kH, bool kAssign>
+void gatherNodesScalar(const GatherArgs& a, int n0, int n1) {
+  for (int n = n0; n < n1; ++n) {
+    double* const row0 = a.values + a.outer[3 * n];
+    const int len = a.outer[3 * n + 1] - a.outer[3 * n];
     double* const row1 = row0 + len;
     double* const row2 = row1 + len;
     if constexpr (kAssign) std::fill(row0, row0 + 3 * len, 0.0);
-    const int k_begin = pattern_.incidentStart(n), k_end = pattern_.incidentStart(n + 1);
-    for (int k = k_begin; k < std::min(k_begin + kAhead, num_incidences); ++k) prefetch(k);
+    const int k_begin = a.inc_start[n], k_end = a.inc_start[n + 1];
+    for (int k = k_begin; k < std::min(k_begin + kGatherAhead, a.num_incidences); ++k) prefetchRecord<kStride>(a, k);
     for (int k = k_begin; k < k_end; ++k) {
-      if (k + kAhead < num_incidences) prefetch(k + kAhead);
-      const int i = pattern_.incidentLocal(k);
-      const double* const rec = recs + kStride * static_cast<size_t>(pattern_.incidentElement(k));
+      if (k + kGatherAhead < a.num_incidences) prefetchRecord<kStride>(a, k + kGatherAhead);
+      const int i = a.incident[k] & 3;
+      const double* const rec = a.recs + kStride * static_cast<size_t>(a.incident[k] >> 2);
       double g[12], h[12];
       for (int q = 0; q < 12; ++q) g[q] = rec[q];
       for (int q = 0; q < 12; ++q) h[q] = rec[kH + q];
-      const double wl = sl, wm = sm;
-      const double u0 = wl * h[3 * i], u1 = wl * h[3 * i + 1], u2 = wl * h[3 * i + 2];
-      const double v0 = wm * g[3 * i], v1 = wm * g[3 * i + 1], v2 = wm * g[3 * i + 2];
+      const double u0 = a.sl * h[3 * i], u1 = a.sl * h[3 * i + 1], u2 = a.sl * h[3 * i + 2];
+      const double v0 = a.sm * g[3 * i], v1 = a.sm * g[3 * i + 1], v2 = a.sm * g[3 * i + 2];
       int slot[4];
-      for (int j = 0; j < 4; ++j) slot[j] = islots[4 * static_cast<size_t>(k) + j];
+      for (int j = 0; j < 4; ++j) slot[j] = a.islots[4 * static_cast<size_t>(k) + j];
       for (int j = 0; j < 4; ++j) {
         const double gj0 = g[3 * j], gj1 = g[3 * j + 1], gj2 = g[3 * j + 2];
         const double hj0 = h[3 * j], hj1 = h[3 * j + 1], hj2 = h[3 * j + 2];
@@ -376,6 +367,151 @@ void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
         p2[2] += u2 * hj2 + gj2 * v2 + d;
       }
     }
+  }
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#define BREAST_SIM_GATHER_AVX512 1
+/// The same gather with AVX-512VL: a block row's three values as one masked four-wide vector, so an
+/// incidence is 12 masked read-modify-writes instead of 36 scalar ones (the fourth lane is never
+/// read or written: it belongs to the next block, or to another node's row).
+/// Rows r = 0..2 of element block (i, j): u_r h_j + a_j[r] μ a_i + (μ a_i·a_j) e_r, with v = μ a_i
+/// and u_r = λ h_i[r] on every lane (lane 3 of the results is zero).
+template <int kH>
+__attribute__((target("avx512f,avx512vl,fma"), always_inline)) inline void gatherBlock(
+    const double* rec, const double* hrec, int j, __m256d v, __m256d u0, __m256d u1, __m256d u2, __m256d& r0,
+    __m256d& r1, __m256d& r2) {
+  constexpr __mmask8 k3 = 0x7;
+  const __m256d gj = _mm256_maskz_loadu_pd(k3, rec + 3 * j);
+  const __m256d hj = kH == 0 ? gj : _mm256_maskz_loadu_pd(k3, hrec + 3 * j);
+  __m256d d = _mm256_mul_pd(v, gj);
+  d = _mm256_add_pd(d, _mm256_permute4x64_pd(d, 0x4E));  // (0+2, 1+3, 2+0, 3+1)
+  d = _mm256_add_pd(d, _mm256_permute_pd(d, 0x5));       // every lane: 0+1+2+3
+  r0 = _mm256_fmadd_pd(u0, hj, _mm256_mul_pd(_mm256_set1_pd(rec[3 * j]), v));
+  r1 = _mm256_fmadd_pd(u1, hj, _mm256_mul_pd(_mm256_set1_pd(rec[3 * j + 1]), v));
+  r2 = _mm256_fmadd_pd(u2, hj, _mm256_mul_pd(_mm256_set1_pd(rec[3 * j + 2]), v));
+  r0 = _mm256_mask_add_pd(r0, 0x1, r0, d);
+  r1 = _mm256_mask_add_pd(r1, 0x2, r1, d);
+  r2 = _mm256_mask_add_pd(r2, 0x4, r2, d);
+}
+
+// The local indices other than i, for i = 0..3.
+constexpr int kOthers[4][3] = {{1, 2, 3}, {0, 2, 3}, {0, 1, 3}, {0, 1, 2}};
+
+/// The same gather with AVX-512VL: a block row's three values are one masked four-wide vector (the
+/// fourth lane, which belongs to the next block or to another node's row, is never read or
+/// written), so an incidence is 9 read-modify-writes instead of 36; the diagonal block (n, n), which
+/// every incidence adds to, is summed in registers and written once.
+template <int kStride, int kH, bool kAssign>
+__attribute__((target("avx512f,avx512vl,fma"))) void gatherNodesAvx512(const GatherArgs& a, int n0, int n1) {
+  constexpr __mmask8 k3 = 0x7;
+  const __m256d sm = _mm256_set1_pd(a.sm);
+  for (int n = n0; n < n1; ++n) {
+    double* const row0 = a.values + a.outer[3 * n];
+    const int len = a.outer[3 * n + 1] - a.outer[3 * n];
+    double* const row1 = row0 + len;
+    double* const row2 = row1 + len;
+    if constexpr (kAssign) std::fill(row0, row0 + 3 * len, 0.0);
+    const int k_begin = a.inc_start[n], k_end = a.inc_start[n + 1];
+    for (int k = k_begin; k < std::min(k_begin + kGatherAhead, a.num_incidences); ++k) prefetchRecord<kStride>(a, k);
+    __m256d diag0 = _mm256_setzero_pd(), diag1 = diag0, diag2 = diag0;
+    for (int k = k_begin; k < k_end; ++k) {
+      if (k + kGatherAhead < a.num_incidences) prefetchRecord<kStride>(a, k + kGatherAhead);
+      const int i = a.incident[k] & 3;
+      const double* const rec = a.recs + kStride * static_cast<size_t>(a.incident[k] >> 2);
+      const double* const hrec = rec + kH;
+      const __m256d v = _mm256_mul_pd(sm, _mm256_maskz_loadu_pd(k3, rec + 3 * i));  // μ a_i, lane 3 zero
+      const __m256d u0 = _mm256_set1_pd(a.sl * hrec[3 * i]), u1 = _mm256_set1_pd(a.sl * hrec[3 * i + 1]),
+                    u2 = _mm256_set1_pd(a.sl * hrec[3 * i + 2]);
+      const int* const slot = a.islots + 4 * static_cast<size_t>(k);
+      __m256d r0, r1, r2;
+      gatherBlock<kH>(rec, hrec, i, v, u0, u1, u2, r0, r1, r2);
+      diag0 = _mm256_add_pd(diag0, r0), diag1 = _mm256_add_pd(diag1, r1), diag2 = _mm256_add_pd(diag2, r2);
+      for (int q = 0; q < 3; ++q) {
+        const int j = kOthers[i][q];
+        gatherBlock<kH>(rec, hrec, j, v, u0, u1, u2, r0, r1, r2);
+        double* const p0 = row0 + slot[j];
+        double* const p1 = row1 + slot[j];
+        double* const p2 = row2 + slot[j];
+        _mm256_mask_storeu_pd(p0, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p0), r0));
+        _mm256_mask_storeu_pd(p1, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p1), r1));
+        _mm256_mask_storeu_pd(p2, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p2), r2));
+      }
+    }
+    if (k_begin < k_end) {
+      double* const p0 = row0 + a.islots[4 * static_cast<size_t>(k_begin) + (a.incident[k_begin] & 3)];
+      double* const p1 = p0 + len;
+      double* const p2 = p1 + len;
+      _mm256_mask_storeu_pd(p0, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p0), diag0));
+      _mm256_mask_storeu_pd(p1, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p1), diag1));
+      _mm256_mask_storeu_pd(p2, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p2), diag2));
+    }
+  }
+}
+#endif
+
+}  // namespace
+
+bool CorotatedTetFem::gatherHasSimd() {
+#ifdef BREAST_SIM_GATHER_AVX512
+  static const bool has = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vl") &&
+                          __builtin_cpu_supports("fma");
+  return has;
+#else
+  return false;
+#endif
+}
+
+template <bool kDeterminant, bool kAssign>
+void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
+  // Block (i, j) of an element, with a = R ∇N (rotated shape gradients) and V including E_r:
+  //   kTrace, R K_e0 Rᵀ:  V(λ a_i a_jᵀ + μ a_j a_iᵀ + μ (a_i·a_j) I)
+  //   kDeterminant:       V(λ c_i c_jᵀ + μ a_j a_iᵀ + μ (a_i·a_j) I), c = cof F ∇N = ∂J/∂x: the μ part
+  //                       of R K_e0 Rᵀ and the Gauss–Newton part of λ (J − 1) cof F, whose dropped
+  //                       remainder λ (J − 1) ∂cof F/∂x is indefinite. SPD, and R K_e0 Rᵀ at rest.
+  // Both are u h_jᵀ + a_j vᵀ + (v·a_j) I with u = λ h_i, v = μ a_i, h = a or c, the records holding
+  // √(V E_r) a and √(V E_r) c.
+  // Each node gathers its own three rows, so no two threads write the same entry. Everything is read
+  // into locals before the writes to A (`values` could alias the gradients for the compiler, which
+  // would otherwise reload them after every store). Node n's three rows are contiguous (3·deg
+  // entries each), so its writes stay in one ~1 kB stretch of A (L1-resident). The element records
+  // are prefetched a few incidences ahead.
+  // Measured (bench_fem_assembly, 2 threads, minima over 40 or 20 runs, old and new binaries
+  // interleaved, quiet machine): assemble (serial zeroing of A + this) 47.5k tets 8.4–9.9 → 3.9–4.0
+  // ms, 308k tets 114.6 → 31.0 ms. Prefetching the element forces in update()'s node gather the
+  // same way did not pay (measured, dropped). The determinant term's c in the same record, read and
+  // prefetched with it, instead of a separate array: 48.8k tets, 1 thread, medians, 10.9–11.1 →
+  // 6.1–6.4 ms (trace 5.6–5.8, unchanged). Prefetching 8 incidences ahead instead of 4: 1 thread,
+  // process CPU time, medians, 3 interleaved runs: zero + add 5.1–5.8 → 5.1–5.4 ms (trace), 5.8–6.4
+  // → 5.6–5.9 ms (det); 16 ahead was not distinguishable from 8. Records scaled by √(V E_r) without
+  // the weight and padding (96 instead of 128 bytes, det 192 instead of 256), same measurement:
+  // trace 5.7–5.9 → 4.8–5.2 ms, det 6.0–6.1 → 5.7–6.1 ms.
+  const int nn = pattern_.numNodes();
+  GatherArgs args;
+  args.values = A.valuePtr();
+  args.outer = A.outerIndexPtr();
+  args.recs = records();
+  args.islots = incident_slots_.data();
+  args.inc_start = pattern_.incidentStarts();
+  args.incident = pattern_.incidences();
+  args.num_incidences = pattern_.incidentStart(nn);
+  args.sl = scale * (kDeterminant ? lambda_ : volumeLambda());
+  args.sm = scale * mu_;
+  constexpr int kStride = kDeterminant ? kRecordDeterminant : kRecordTrace;
+  constexpr int kH = kDeterminant ? kVolumeGrads : 0;  // where h starts in the record
+  const bool simd = simd_kernels_ && gatherHasSimd();
+  constexpr int kChunk = 64;  // nodes per scheduling chunk (node degrees vary)
+  const int num_chunks = (nn + kChunk - 1) / kChunk;
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int c = 0; c < num_chunks; ++c) {
+    const int n0 = c * kChunk, n1 = std::min(nn, n0 + kChunk);
+#ifdef BREAST_SIM_GATHER_AVX512
+    if (simd) {
+      gatherNodesAvx512<kStride, kH, kAssign>(args, n0, n1);
+      continue;
+    }
+#endif
+    gatherNodesScalar<kStride, kH, kAssign>(args, n0, n1);
   }
 }
 

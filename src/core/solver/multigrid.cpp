@@ -441,10 +441,12 @@ MultigridPreconditioner::MultigridPreconditioner(std::vector<NodeProlongation> p
   if (options_.pre_smoothing_steps < 0 || options_.post_smoothing_steps < 0 ||
       !(options_.jacobi_damping >= 0 && options_.jacobi_damping <= 1) || !(options_.coarsest_diagonal_shift >= 0) ||
       !(options_.fine_eigenvalue_bound >= 0) ||
-      options_.coarse_update_interval < 1 || options_.power_iterations < 1 || options_.dense_coarsest_max_dofs < 0)
+      options_.coarse_update_interval < 1 || options_.power_iterations < 1 || options_.dense_coarsest_max_dofs < 0 ||
+      !(options_.coarse_update_slowdown == 0.0 || options_.coarse_update_slowdown > 1.0))
     throw std::invalid_argument(
         "multigrid: smoothing steps must be ≥ 0, the Jacobi damping in [0, 1], the coarsest shift and the "
-        "eigenvalue bound ≥ 0, the coarse update interval and the power iterations ≥ 1, the dense coarsest size ≥ 0");
+        "eigenvalue bound ≥ 0, the coarse update interval and the power iterations ≥ 1, the dense coarsest size ≥ 0, "
+        "and the coarse update slowdown 0 (off) or > 1 (it is " + std::to_string(options_.coarse_update_slowdown) + ")");
   if (!(options_.chebyshev_ratio > 1.0) || !std::isfinite(options_.chebyshev_ratio) ||
       !(options_.chebyshev_eigenvalue_safety >= 1.0) || !std::isfinite(options_.chebyshev_eigenvalue_safety))
     throw std::invalid_argument("multigrid: chebyshev_ratio = " + std::to_string(options_.chebyshev_ratio) +
@@ -576,6 +578,9 @@ void MultigridPreconditioner::analyzePattern(const SparseMatrix& A) {
   fine_nnz_ = A.nonZeros();
   fine_outer_.assign(A.outerIndexPtr(), A.outerIndexPtr() + A.rows() + 1);
   factorizations_ = 0;
+  fine_only_ = 0;
+  renew_requested_ = false;
+  rate_count_ = 0;
   factorized_ = false;
 }
 
@@ -713,7 +718,10 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
   timings_.level_s.resize(levels_.size());  // allocates once
   std::fill(timings_.level_s.begin(), timings_.level_s.end(), 0.0);
   levels_[0]->A = &A;
-  const bool coarse = numLevels() == 1 || factorizations_ % options_.coarse_update_interval == 0;
+  // Coarse renewal: at the first factorization, after coarse_update_interval − 1 fine-only ones, or
+  // early when the adaptive rule asked for it (reportConvergence).
+  const bool coarse = numLevels() == 1 || factorizations_ == 0 || fine_only_ + 1 >= options_.coarse_update_interval ||
+                      renew_requested_;
   const int L = coarse ? numLevels() : 1;
   for (int l = 0; l < L; ++l) {
     auto t0 = Clock::now();
@@ -734,6 +742,7 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
   }
   if (!coarse) {
     ++factorizations_;
+    ++fine_only_;
     factorized_ = true;
     return;
   }
@@ -766,7 +775,27 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
   }
   timings_.coarse_factorize_s = since(t0);
   ++factorizations_;
+  ++coarse_renewals_;
+  fine_only_ = 0;
+  renew_requested_ = false;
+  rate_count_ = 0;
   factorized_ = true;
+}
+
+void MultigridPreconditioner::reportConvergence(int iterations, double residual_reduction) {
+  if (options_.coarse_update_slowdown == 0.0 || iterations < 1 || numLevels() == 1) return;
+  if (!std::isfinite(residual_reduction) || residual_reduction >= 1.0) {  // the residual did not fall
+    renew_requested_ = true;
+    return;
+  }
+  if (!(residual_reduction > 0.0)) return;  // solved exactly: nothing to measure
+  const double log_rate = std::log(residual_reduction) / iterations;  // < 0: log of the mean reduction per iteration
+  if (rate_count_ == 0) first_log_rate_ = log_rate, sum_log_rate_ = 0.0;
+  sum_log_rate_ += log_rate;
+  ++rate_count_;
+  // Iterations to a tolerance scale with 1 / |log rate|: slower by the factor s when the mean
+  // log rate has shrunk to first / s.
+  if (sum_log_rate_ / rate_count_ > first_log_rate_ / options_.coarse_update_slowdown) renew_requested_ = true;
 }
 
 void MultigridPreconditioner::toBlocks(int l) {

@@ -308,6 +308,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
     stats.converged = true;
     return finish(rr, bnorm);
   }
+  const double rr_initial = rr;
 
   bool restart = true;
   double rz = 0.0;
@@ -358,6 +359,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   // few iterations of a capped time step (a whole product cheaper than recomputing it). Over many
   // iterations it can drift below the true one, which is then recomputed.
   if (!stats.converged && it > kRecursiveResidualMaxIterations) rr = trueResidual();
+  if (it > 0) preconditioner_->reportConvergence(it, std::sqrt(rr / rr_initial));
   return finish(rr, bnorm);
 }
 

@@ -38,6 +38,10 @@ class BlockPattern {
   int incidentStart(int node) const { return incident_start_[node]; }
   int incidentElement(int k) const { return incident_[k] >> 2; }
   int incidentLocal(int k) const { return incident_[k] & 3; }
+  /// The same as arrays, for kernels: incidentStarts()[I] = incidentStart(I) (N + 1 values), and
+  /// incidences()[k] = incidentElement(k)·4 + incidentLocal(k).
+  const int* incidentStarts() const { return incident_start_.data(); }
+  const int* incidences() const { return incident_.data(); }
   /// Position in the CSR value array of entry (3I + r, 3J + c) of block slot k of node I.
   int valueIndex(const SparseMatrix& A, int node, int r, int k, int c) const {
     return A.outerIndexPtr()[3 * node + r] + 3 * k + c;

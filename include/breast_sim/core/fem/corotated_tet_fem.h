@@ -89,6 +89,12 @@ class CorotatedTetFem : public ElementFormulation {
   /// Selects the volumetric term (kTrace by default).
   void setVolumeTerm(VolumeTerm term) { volume_term_ = term; }
   VolumeTerm volumeTerm() const { return volume_term_; }
+  /// Whether the stiffness gather may use its AVX-512VL version (when the processor has it, see
+  /// gatherHasSimd()); false selects the portable scalar one, the reference (on by default; both
+  /// give the same sums up to the rounding of fused multiply-adds).
+  void setSimdKernels(bool simd) { simd_kernels_ = simd; }
+  /// Whether this processor runs the AVX-512VL stiffness gather (checked once).
+  static bool gatherHasSimd();
   /// \note update() must run before addStiffness() and denseStiffness(): both use its rotations.
 
   /// Dense 3N×3N stiffness at the last update, element by element (the slow reference for tests).
@@ -126,6 +132,7 @@ class CorotatedTetFem : public ElementFormulation {
   Eigen::VectorXd base_scale_;       // b_e = E_e / E0 (per-tissue moduli); the kernels use E_r b_e
   Eigen::VectorXd von_mises_;
   bool corotated_ = true;
+  bool simd_kernels_ = true;
   VolumeTerm volume_term_ = VolumeTerm::kTrace;
   bool stiffness_is_determinant_ = false;  // the volume term at the last update()
   // The positions and formulation of the last element update: update() at the same ones reuses it.

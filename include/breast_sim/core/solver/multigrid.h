@@ -208,6 +208,13 @@ struct MultigridOptions {
   /// SPD matrix); it converges somewhat slower when the matrix has changed much since (large
   /// rotations of the co-rotated elements).
   int coarse_update_interval = 1;
+  /// Adaptive renewal within that interval (0 = off, else > 1): the coarse operators are renewed
+  /// early, at the next factorize(), once PCG converges this many times slower than in its first
+  /// solve after the last renewal. Slower is measured by the mean over the solves since the renewal
+  /// of log(‖r_k‖/‖r_0‖) / k, the log of the mean reduction per iteration (reportConvergence):
+  /// 1.1 renews when a solve to a tolerance would need 10 % more iterations. A residual that did not
+  /// fall renews at once.
+  double coarse_update_slowdown = 0.0;
 };
 
 /// One symmetric V-cycle [GW08] as preconditioner: smoothing on each level, Galerkin coarse
@@ -249,8 +256,12 @@ class MultigridPreconditioner : public Preconditioner {
   void factorize(const SparseMatrix& A) override;
   void apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) override;
   std::string name() const override { return "multigrid"; }
+  /// Records PCG's convergence for the adaptive coarse renewal (MultigridOptions::coarse_update_slowdown).
+  void reportConvergence(int iterations, double residual_reduction) override;
 
   int numLevels() const { return static_cast<int>(levels_.size()); }
+  /// How many factorize() calls renewed the coarse operators (the first one included).
+  long coarseRenewals() const { return coarse_renewals_; }
   /// Operator of a level after factorize(): 0 = the caller's matrix, ≥ 1 Galerkin operators
   /// (with unit diagonals on DOFs that only interpolate fixed DOFs; the coarsest with its shift).
   const SparseMatrix& levelMatrix(int level) const;
@@ -303,6 +314,13 @@ class MultigridPreconditioner : public Preconditioner {
   Eigen::Index fine_nnz_ = -1;
   std::vector<int> fine_outer_;  // the fine matrix's row starts at analyzePattern()
   long factorizations_ = 0;
+  // Coarse renewal: factorizations since the last one, renewals so far, and the convergence record
+  // of the adaptive rule (coarse_update_slowdown).
+  int fine_only_ = 0;
+  long coarse_renewals_ = 0;
+  bool renew_requested_ = false;
+  int rate_count_ = 0;
+  double first_log_rate_ = 0.0, sum_log_rate_ = 0.0;
   bool factorized_ = false;
   Timings timings_;
 };

@@ -28,6 +28,14 @@ class Preconditioner {
   virtual void apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) = 0;
   /// Short name: "jacobi", "multigrid".
   virtual std::string name() const = 0;
+  /// Told by PCG after each solve that iterated: `iterations` reduced the residual by
+  /// `residual_reduction` = ‖r_k‖ / ‖r_0‖, r_0 the residual of the initial guess with the decoupled
+  /// rows solved (at the iteration limit r_k may be the recursive residual; a preconditioner may renew parts of itself when it
+  /// degrades; the default ignores it).
+  virtual void reportConvergence(int iterations, double residual_reduction) {
+    (void)iterations;
+    (void)residual_reduction;
+  }
 };
 
 /// Point Jacobi: M = diag(A).
