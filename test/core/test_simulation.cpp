@@ -63,7 +63,8 @@ simulation:
   multigrid_smoother: gauss-seidel
   multigrid_smoothing_steps: 2
   multigrid_coarse_update_interval: 3
-  multigrid_coarse_update_slowdown: 1.25
+  multigrid_coarse_update_adaptive: true
+  multigrid_coarse_update_cost_iterations: 7.5
   multigrid_max_coarsest_elements: 500
   fixed_node_set: z_min
   gravity_mps2: 9.80665
@@ -87,7 +88,8 @@ simulation:
   EXPECT_EQ(s.solver.multigrid.pre_smoothing_steps, 2);
   EXPECT_EQ(s.solver.multigrid.post_smoothing_steps, 2);
   EXPECT_EQ(s.solver.multigrid.coarse_update_interval, 3);
-  EXPECT_DOUBLE_EQ(s.solver.multigrid.coarse_update_slowdown, 1.25);
+  EXPECT_TRUE(s.solver.multigrid.coarse_update_adaptive);
+  EXPECT_DOUBLE_EQ(s.solver.multigrid.coarse_update_cost_iterations, 7.5);
   EXPECT_EQ(s.solver.coarsening.max_coarsest_elements, 500);
   EXPECT_EQ(s.fixed_node_set, "z_min");
   EXPECT_DOUBLE_EQ(s.gravity_mps2, 9.80665);
@@ -123,9 +125,9 @@ simulation:
   EXPECT_NE(errorOf("simulation: {anp_element_volume_fraction: -0.1}").find("anp_element_volume_fraction"),
             std::string::npos);
   EXPECT_NE(errorOf("simulation: {multigrid_smoother: sor}").find("chebyshev"), std::string::npos);
-  EXPECT_NE(errorOf("simulation: {multigrid_coarse_update_slowdown: 0.8}").find("multigrid_coarse_update_slowdown = 0.8"),
+  EXPECT_NE(errorOf("simulation: {multigrid_coarse_update_adaptive: 2}").find("multigrid_coarse_update_adaptive"),
             std::string::npos)
-      << errorOf("simulation: {multigrid_coarse_update_slowdown: 0.8}");
+      << errorOf("simulation: {multigrid_coarse_update_adaptive: 2}");
 }
 
 TEST(SimulationSettings, BadValuesNameTheKeyAndTheAcceptedRange) {

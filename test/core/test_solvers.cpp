@@ -700,35 +700,45 @@ TEST(PcgSolver, ReportsItsResidualReductionToThePreconditioner) {
   }
 }
 
-TEST(MultigridPreconditioner, RenewsTheCoarseOperatorsEarlyWhenConvergenceSlowsDown) {
+TEST(MultigridPreconditioner, RenewsTheCoarseOperatorsOnceTheIterationsTheirAgeLostAreWorthARenewal) {
   const Fixture& f = fixture();
   MultigridOptions o;
   o.coarse_update_interval = 100;
-  o.coarse_update_slowdown = 1.2;
+  o.coarse_update_adaptive = true;
+  o.coarse_update_cost_iterations = 6.0;
   MultigridPreconditioner mg(f.hierarchy, o);
   mg.analyzePattern(f.A);
   mg.factorize(f.A);
   EXPECT_EQ(mg.coarseRenewals(), 1);
-  // The first solve after a renewal is the reference: 10 iterations, 1e-3 (log rate −0.69 per iteration).
+  // The first solve after a renewal is the reference: 10 iterations to 1e-3 (log rate −0.69).
   mg.reportConvergence(10, 1e-3);
+  EXPECT_EQ(mg.lostIterationsSinceRenewal(), 0.0);
   mg.factorize(f.A);
-  EXPECT_EQ(mg.coarseRenewals(), 1);
-  // As fast again: no renewal (mean log rate −0.69).
+  // As fast again: nothing lost.
   mg.reportConvergence(10, 1e-3);
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 0.0, 1e-12);
   mg.factorize(f.A);
-  EXPECT_EQ(mg.coarseRenewals(), 1);
-  // 1e-2 in 10 (−0.46): the mean −0.61 is within the factor 1.2 of −0.69 (threshold −0.576).
+  // 1e-2 in 10 iterations: at the reference rate 10·2/3 would have done; 10/3 lost.
   mg.reportConvergence(10, 1e-2);
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 10.0 / 3.0, 1e-12);
+  mg.factorize(f.A);
+  // A faster solve gives iterations back: 1e-4 in 3 would have taken 40/3 at the reference.
+  mg.reportConvergence(3, 1e-4);
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 10.0 / 3.0 + 3.0 - 40.0 / 3.0, 1e-12);  // −7
+  mg.factorize(f.A);
+  mg.reportConvergence(10, 1e-2);  // 10/3 more: −11/3
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), -11.0 / 3.0, 1e-12);
   mg.factorize(f.A);
   EXPECT_EQ(mg.coarseRenewals(), 1);
-  // 1e-1 in 10 (−0.23): the mean −0.52 is slower than 1.2 times the reference: renewed at the next factorize().
-  mg.reportConvergence(10, 1e-1);
+  mg.reportConvergence(15, 1e-1);  // 15 − 10/3 more: 8 ≥ 6, renewed at the next factorize()
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 8.0, 1e-12);
   EXPECT_EQ(mg.coarseRenewals(), 1);
   mg.factorize(f.A);
   EXPECT_EQ(mg.coarseRenewals(), 2);
   // A new reference after the renewal: the slow rate is now the norm.
-  mg.reportConvergence(10, 1e-1);
-  mg.reportConvergence(10, 1e-1);
+  mg.reportConvergence(6, 1e-1);
+  mg.reportConvergence(6, 1e-1);
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 0.0, 1e-12);
   mg.factorize(f.A);
   EXPECT_EQ(mg.coarseRenewals(), 2);
   // A residual that did not fall renews at once; one that vanished teaches nothing.
@@ -742,9 +752,9 @@ TEST(MultigridPreconditioner, RenewsTheCoarseOperatorsEarlyWhenConvergenceSlowsD
   mg.factorize(f.A);
   EXPECT_EQ(mg.coarseRenewals(), 4);
 
-  // Off (0, the default): only the interval renews.
+  // Off (the default): only the interval renews.
   MultigridOptions fixed = o;
-  fixed.coarse_update_slowdown = 0.0;
+  fixed.coarse_update_adaptive = false;
   fixed.coarse_update_interval = 3;
   MultigridPreconditioner mg2(f.hierarchy, fixed);
   mg2.analyzePattern(f.A);
@@ -771,16 +781,16 @@ TEST(MultigridPreconditioner, RenewsTheCoarseOperatorsEarlyWhenConvergenceSlowsD
   EXPECT_LE(relativeDifference(x, ldlt.solve(f.b)), 1e-6);
 }
 
-TEST(MultigridPreconditioner, RejectsACoarseUpdateSlowdownOfOneOrLess) {
+TEST(MultigridPreconditioner, RejectsACoarseUpdateCostThatIsNotPositive) {
   const Fixture& f = fixture();
-  for (double s : {0.5, 1.0, -2.0}) {
+  for (double c : {0.0, -1.0, std::nan("")}) {
     MultigridOptions o;
-    o.coarse_update_slowdown = s;
+    o.coarse_update_cost_iterations = c;
     try {
       MultigridPreconditioner mg(f.hierarchy, o);
-      FAIL() << "expected an error for " << s;
+      FAIL() << "expected an error for " << c;
     } catch (const std::invalid_argument& e) {
-      EXPECT_NE(std::string(e.what()).find("slowdown"), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("coarse update cost"), std::string::npos) << e.what();
     }
   }
 }

@@ -62,9 +62,8 @@ void SimulationSettings::validate() const {
     invalid("solver.multigrid smoothing steps", solver.multigrid.pre_smoothing_steps, "≥ 1");
   if (solver.multigrid.coarse_update_interval < 1)
     invalid("solver.multigrid.coarse_update_interval", solver.multigrid.coarse_update_interval, "≥ 1");
-  if (!(solver.multigrid.coarse_update_slowdown == 0.0 || solver.multigrid.coarse_update_slowdown > 1.0) ||
-      !std::isfinite(solver.multigrid.coarse_update_slowdown))
-    invalid("solver.multigrid.coarse_update_slowdown", solver.multigrid.coarse_update_slowdown, "0 (off) or > 1, e.g. 1.1");
+  if (!(solver.multigrid.coarse_update_cost_iterations > 0) || !std::isfinite(solver.multigrid.coarse_update_cost_iterations))
+    invalid("solver.multigrid.coarse_update_cost_iterations", solver.multigrid.coarse_update_cost_iterations, "> 0, e.g. 5");
   if (!(gravity_mps2 >= 0) || !std::isfinite(gravity_mps2)) invalid("gravity_mps2", gravity_mps2, "≥ 0 m/s², e.g. 9.81");
   if (solver.coarsening.max_coarsest_elements < 10)
     invalid("solver.coarsening.max_coarsest_elements", solver.coarsening.max_coarsest_elements, "≥ 10");
@@ -102,7 +101,7 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
             {"youngs_modulus_pa", "poisson_ratio", "density_kg_per_m3", "time_step_s", "mass_damping_per_s",
              "stiffness_damping_s", "solver", "solver_relative_tolerance", "solver_max_iterations",
              "multigrid_smoother", "multigrid_chebyshev_ratio", "multigrid_smoothing_steps", "multigrid_coarse_update_interval",
-             "multigrid_coarse_update_slowdown",
+             "multigrid_coarse_update_adaptive", "multigrid_coarse_update_cost_iterations",
              "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "element", "anp_element_volume_fraction", "anp_inversion_barrier", "anp_inversion_barrier_stiffness", "sliding", "settle_time_step_s",
              "settle_increment_tolerance_mm", "settle_max_steps", "tissue_youngs_modulus_pa"},
             f, "simulation");
@@ -130,13 +129,11 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
         static_cast<int>(integer(m["multigrid_smoothing_steps"], f, key("multigrid_smoothing_steps"), 1, 10));
   if (m["multigrid_coarse_update_interval"])
     s.solver.multigrid.coarse_update_interval = static_cast<int>(integer(m["multigrid_coarse_update_interval"], f, key("multigrid_coarse_update_interval"), 1, 1000));
-  if (m["multigrid_coarse_update_slowdown"]) {
-    const double v = numberIn(m["multigrid_coarse_update_slowdown"], f, key("multigrid_coarse_update_slowdown"), 0, 100, true, true);
-    if (v != 0.0 && !(v > 1.0))
-      throw std::invalid_argument(f + ": " + key("multigrid_coarse_update_slowdown") + " = " + std::to_string(v) +
-                                  "; give 0 (fixed interval) or a factor > 1, e.g. 1.1");
-    s.solver.multigrid.coarse_update_slowdown = v;
-  }
+  if (m["multigrid_coarse_update_adaptive"])
+    s.solver.multigrid.coarse_update_adaptive = boolean(m["multigrid_coarse_update_adaptive"], f, key("multigrid_coarse_update_adaptive"));
+  if (m["multigrid_coarse_update_cost_iterations"])
+    s.solver.multigrid.coarse_update_cost_iterations =
+        numberIn(m["multigrid_coarse_update_cost_iterations"], f, key("multigrid_coarse_update_cost_iterations"), 0, 1000, true, false);
   if (m["multigrid_max_coarsest_elements"])
     s.solver.coarsening.max_coarsest_elements = static_cast<int>(integer(m["multigrid_max_coarsest_elements"], f, key("multigrid_max_coarsest_elements"), 10, 100000));
   if (m["fixed_node_set"]) s.fixed_node_set = m["fixed_node_set"].IsNull() ? "" : text(m["fixed_node_set"], f, key("fixed_node_set"));

@@ -442,11 +442,11 @@ MultigridPreconditioner::MultigridPreconditioner(std::vector<NodeProlongation> p
       !(options_.jacobi_damping >= 0 && options_.jacobi_damping <= 1) || !(options_.coarsest_diagonal_shift >= 0) ||
       !(options_.fine_eigenvalue_bound >= 0) ||
       options_.coarse_update_interval < 1 || options_.power_iterations < 1 || options_.dense_coarsest_max_dofs < 0 ||
-      !(options_.coarse_update_slowdown == 0.0 || options_.coarse_update_slowdown > 1.0))
+      !(options_.coarse_update_cost_iterations > 0.0))
     throw std::invalid_argument(
         "multigrid: smoothing steps must be ≥ 0, the Jacobi damping in [0, 1], the coarsest shift and the "
-        "eigenvalue bound ≥ 0, the coarse update interval and the power iterations ≥ 1, the dense coarsest size ≥ 0, "
-        "and the coarse update slowdown 0 (off) or > 1 (it is " + std::to_string(options_.coarse_update_slowdown) + ")");
+        "eigenvalue bound ≥ 0, the coarse update interval and the power iterations ≥ 1, the dense coarsest size ≥ 0, and the coarse update cost > 0 iterations (it is " +
+        std::to_string(options_.coarse_update_cost_iterations) + ")");
   if (!(options_.chebyshev_ratio > 1.0) || !std::isfinite(options_.chebyshev_ratio) ||
       !(options_.chebyshev_eigenvalue_safety >= 1.0) || !std::isfinite(options_.chebyshev_eigenvalue_safety))
     throw std::invalid_argument("multigrid: chebyshev_ratio = " + std::to_string(options_.chebyshev_ratio) +
@@ -783,19 +783,21 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
 }
 
 void MultigridPreconditioner::reportConvergence(int iterations, double residual_reduction) {
-  if (options_.coarse_update_slowdown == 0.0 || iterations < 1 || numLevels() == 1) return;
+  if (!options_.coarse_update_adaptive || iterations < 1 || numLevels() == 1) return;
   if (!std::isfinite(residual_reduction) || residual_reduction >= 1.0) {  // the residual did not fall
     renew_requested_ = true;
     return;
   }
   if (!(residual_reduction > 0.0)) return;  // solved exactly: nothing to measure
   const double log_rate = std::log(residual_reduction) / iterations;  // < 0: log of the mean reduction per iteration
-  if (rate_count_ == 0) first_log_rate_ = log_rate, sum_log_rate_ = 0.0;
-  sum_log_rate_ += log_rate;
-  ++rate_count_;
-  // Iterations to a tolerance scale with 1 / |log rate|: slower by the factor s when the mean
-  // log rate has shrunk to first / s.
-  if (sum_log_rate_ / rate_count_ > first_log_rate_ / options_.coarse_update_slowdown) renew_requested_ = true;
+  if (rate_count_++ == 0) {
+    first_log_rate_ = log_rate;  // the reference: fresh coarse operators
+    lost_iterations_ = 0.0;
+    return;
+  }
+  // At the reference rate the same reduction takes iterations · ρ/ρ_0 iterations: the rest was lost.
+  lost_iterations_ += iterations * (1.0 - log_rate / first_log_rate_);
+  if (lost_iterations_ >= options_.coarse_update_cost_iterations) renew_requested_ = true;
 }
 
 void MultigridPreconditioner::toBlocks(int l) {
