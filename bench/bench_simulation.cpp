@@ -212,10 +212,9 @@ int main(int argc, char** argv) {
               omp_get_max_threads(), steps, tol,
               table_cap > 0 ? (" or at most " + std::to_string(table_cap) + " iterations per step").c_str() : "");
   std::printf("(medians over the steps but 'mean'; 'factor.' = the solver's set-up per step; 'first' = the first step, with the\n"
-              " solver's first set-up; ns/el/st and the speed-up from the mean, which includes the coarse operators' renewal\n"
-              " every %d steps; seed = 2012 quad-core, its 25 steps' mean)\n", coarse_interval);
-  if (coarse_adaptive)
-    std::printf("(or earlier, once the PCG time lost to their age has cost a renewal; 'renew' = renewals in all steps)\n");
+              " solver's first set-up; ns/el/st and the speed-up from the mean, which includes the coarse operators' renewals,\n"
+              " 'renew' of them in all steps: at least every %d steps%s; seed = 2012 quad-core, its 25 steps' mean)\n",
+              coarse_interval, coarse_adaptive ? ", earlier once the PCG iterations their age lost are worth one" : "");
   std::printf("%8s %7s %7s | %8s %6s %8s %8s %8s %6s %5s | %8s %8s | %9s %8s %7s | %6s %7s\n", "tets", "nodes", "levels",
               "step[ms]", "mean", "assem", "factor.", "solve", "iters", "renew", "first", "setup[s]", "ns/el/st", "peak[MB]",
               "cholmod", "seed", "speedup");
