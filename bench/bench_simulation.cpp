@@ -7,12 +7,14 @@
 //   bench_simulation [--targets 47895,99390,158340,313335] [--steps 25] [--baseline-steps 3]
 //                    [--tol 1e-2] [--cap K] [--settle-target 47895] [--settle-dts 0.033,0.1,0.33,1]
 //                    [--tols 1e-1,1e-2,1e-3,1e-6] [--caps 2,3,4,6] [--study-steps N]
-//                    [--coarse-interval 4] [--no-baseline] [--no-settle]
+//                    [--coarse-interval 50] [--coarse-adaptive 0|1] [--no-baseline] [--no-settle]
 //                    [--element linear|anp] [--volume-term trace|determinant] [--json FILE]
 // --element / --volume-term choose the element formulation (simulation.element, .volume_term) of
 // every run; the defaults are the seed's co-rotated linear tetrahedra with the trace term.
 // --cap K stops PCG after at most K iterations per step in the Table-1 runs (the step is used).
-// --coarse-interval N recomputes the multigrid's Galerkin operators every N-th step in the Table-1 runs.
+// --coarse-interval N recomputes the multigrid's Galerkin operators at least every N-th step, and
+// --coarse-adaptive 1 (the default) earlier once the PCG iterations their age lost are worth a
+// renewal (MultigridOptions::coarse_update_adaptive); 0 renews every N-th step only.
 // The accuracy study (at the first size): per-step PCG tolerance (--tols) and per-step iteration caps
 // (--caps k: at most k PCG iterations, or fewer at --tol, the step used either way, as real-time
 // multigrid simulations run a fixed number of cycles per step) against step time and the error of the
@@ -160,7 +162,11 @@ int main(int argc, char** argv) {
     else if (k == "--baseline-steps") baseline_steps = std::stoi(value());
     else if (k == "--tol") tol = std::stod(value());
     else if (k == "--coarse-interval") coarse_interval = std::stoi(value());
-    else if (k == "--coarse-adaptive") coarse_adaptive = std::stoi(value()) != 0;
+    else if (k == "--coarse-adaptive") {
+      const std::string v = value();
+      if (v != "0" && v != "1") throw std::invalid_argument("--coarse-adaptive takes 0 or 1, not '" + v + "'");
+      coarse_adaptive = v == "1";
+    }
     else if (k == "--settle-target") settle_target = std::stoi(value());
     else if (k == "--settle-dts") settle_dts = parseList(value());
     else if (k == "--tols") tol_study = parseList(value());
@@ -181,7 +187,7 @@ int main(int argc, char** argv) {
     } else {
       std::fprintf(stderr,
                    "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-2] [--cap K]\n"
-                   "         [--coarse-interval 4] [--coarse-adaptive 0|1]\n"
+                   "         [--coarse-interval 50] [--coarse-adaptive 0|1]\n"
                    "         [--tols 1e-1,...] [--caps 2,3,...] [--study-steps N]\n"
                    "         [--settle-target 47895] [--settle-dts 0.033,...] [--no-baseline] [--no-settle]\n"
                    "         [--element linear|anp] [--volume-term trace|determinant] [--json FILE]\n");

@@ -125,6 +125,9 @@ simulation:
   EXPECT_NE(errorOf("simulation: {anp_element_volume_fraction: -0.1}").find("anp_element_volume_fraction"),
             std::string::npos);
   EXPECT_NE(errorOf("simulation: {multigrid_smoother: sor}").find("chebyshev"), std::string::npos);
+  EXPECT_NE(errorOf("simulation: {multigrid_coarse_update_cost_iterations: 0}").find("multigrid_coarse_update_cost_iterations"),
+            std::string::npos)
+      << errorOf("simulation: {multigrid_coarse_update_cost_iterations: 0}");
   EXPECT_NE(errorOf("simulation: {multigrid_coarse_update_adaptive: 2}").find("multigrid_coarse_update_adaptive"),
             std::string::npos)
       << errorOf("simulation: {multigrid_coarse_update_adaptive: 2}");

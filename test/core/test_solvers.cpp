@@ -722,16 +722,17 @@ TEST(MultigridPreconditioner, RenewsTheCoarseOperatorsOnceTheIterationsTheirAgeL
   mg.reportConvergence(10, 1e-2);
   EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 10.0 / 3.0, 1e-12);
   mg.factorize(f.A);
-  // A faster solve gives iterations back: 1e-4 in 3 would have taken 40/3 at the reference.
+  // A faster solve gives iterations back: 1e-4 in 3 would have taken 40/3 at the reference; the sum
+  // 10/3 + 3 − 40/3 = −7 stops at one renewal's worth of credit, −6.
   mg.reportConvergence(3, 1e-4);
-  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 10.0 / 3.0 + 3.0 - 40.0 / 3.0, 1e-12);  // −7
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), -6.0, 1e-12);
   mg.factorize(f.A);
-  mg.reportConvergence(10, 1e-2);  // 10/3 more: −11/3
-  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), -11.0 / 3.0, 1e-12);
+  mg.reportConvergence(10, 1e-2);  // 10/3 more: −8/3
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), -8.0 / 3.0, 1e-12);
   mg.factorize(f.A);
   EXPECT_EQ(mg.coarseRenewals(), 1);
-  mg.reportConvergence(15, 1e-1);  // 15 − 10/3 more: 8 ≥ 6, renewed at the next factorize()
-  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 8.0, 1e-12);
+  mg.reportConvergence(15, 1e-1);  // 15 − 10/3 more: 9 ≥ 6, renewed at the next factorize()
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 9.0, 1e-12);
   EXPECT_EQ(mg.coarseRenewals(), 1);
   mg.factorize(f.A);
   EXPECT_EQ(mg.coarseRenewals(), 2);
@@ -741,16 +742,36 @@ TEST(MultigridPreconditioner, RenewsTheCoarseOperatorsOnceTheIterationsTheirAgeL
   EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 0.0, 1e-12);
   mg.factorize(f.A);
   EXPECT_EQ(mg.coarseRenewals(), 2);
-  // A residual that did not fall renews at once; one that vanished teaches nothing.
+  // Credit for fast solves is capped at one renewal's worth.
+  mg.reportConvergence(10, 1e-30);
+  EXPECT_EQ(mg.lostIterationsSinceRenewal(), -6.0);
+  mg.reportConvergence(10, 1e-1);  // 10 iterations where 6 would have done: 4 lost
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), -2.0, 1e-12);
+  // A residual that vanished teaches nothing; one that did not fall lost all its iterations (CG's
+  // residual need not fall in a capped solve of a few); a non-finite one renews at once.
   mg.reportConvergence(3, 0.0);
-  mg.factorize(f.A);
-  EXPECT_EQ(mg.coarseRenewals(), 2);
-  mg.reportConvergence(3, 1.5);
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), -2.0, 1e-12);
+  for (int k = 0; k < 2; ++k) mg.reportConvergence(4, 1.5);
+  EXPECT_NEAR(mg.lostIterationsSinceRenewal(), 6.0, 1e-12);
   mg.factorize(f.A);
   EXPECT_EQ(mg.coarseRenewals(), 3);
+  EXPECT_EQ(mg.lostIterationsSinceRenewal(), 0.0);
   mg.reportConvergence(3, std::nan(""));
   mg.factorize(f.A);
   EXPECT_EQ(mg.coarseRenewals(), 4);
+
+  // An early renewal restarts the interval: interval 3, renewed at factorizations 0, 2 (early), 5.
+  MultigridOptions short_interval = o;
+  short_interval.coarse_update_interval = 3;
+  MultigridPreconditioner mg3(f.hierarchy, short_interval);
+  mg3.analyzePattern(f.A);
+  std::vector<long> renewals;
+  for (int k = 0; k < 6; ++k) {
+    if (k == 2) mg3.reportConvergence(3, std::nan(""));
+    mg3.factorize(f.A);
+    renewals.push_back(mg3.coarseRenewals());
+  }
+  EXPECT_EQ(renewals, (std::vector<long>{1, 1, 2, 2, 2, 3}));
 
   // Off (the default): only the interval renews.
   MultigridOptions fixed = o;
@@ -779,6 +800,8 @@ TEST(MultigridPreconditioner, RenewsTheCoarseOperatorsOnceTheIterationsTheirAgeL
   ASSERT_TRUE(solver.solve(f.b, x).converged);
   const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt{Eigen::SparseMatrix<double>(A2)};
   EXPECT_LE(relativeDifference(x, ldlt.solve(f.b)), 1e-6);
+  EXPECT_EQ(solver.multigrid().coarseRenewals(), 1);
+  EXPECT_NE(solver.multigrid().lostIterationsSinceRenewal(), 0.0);  // the second solve was measured against the first
 }
 
 TEST(MultigridPreconditioner, RejectsACoarseUpdateCostThatIsNotPositive) {
@@ -790,7 +813,7 @@ TEST(MultigridPreconditioner, RejectsACoarseUpdateCostThatIsNotPositive) {
       MultigridPreconditioner mg(f.hierarchy, o);
       FAIL() << "expected an error for " << c;
     } catch (const std::invalid_argument& e) {
-      EXPECT_NE(std::string(e.what()).find("coarse update cost"), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("coarse_update_cost_iterations"), std::string::npos) << e.what();
     }
   }
 }

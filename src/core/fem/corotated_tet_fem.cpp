@@ -372,9 +372,6 @@ void gatherNodesScalar(const GatherArgs& a, int n0, int n1) {
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #define BREAST_SIM_GATHER_AVX512 1
-/// The same gather with AVX-512VL: a block row's three values as one masked four-wide vector, so an
-/// incidence is 12 masked read-modify-writes instead of 36 scalar ones (the fourth lane is never
-/// read or written: it belongs to the next block, or to another node's row).
 /// Rows r = 0..2 of element block (i, j): u_r h_j + a_j[r] μ a_i + (μ a_i·a_j) e_r, with v = μ a_i
 /// and u_r = λ h_i[r] on every lane (lane 3 of the results is zero).
 template <int kH>

@@ -441,12 +441,14 @@ MultigridPreconditioner::MultigridPreconditioner(std::vector<NodeProlongation> p
   if (options_.pre_smoothing_steps < 0 || options_.post_smoothing_steps < 0 ||
       !(options_.jacobi_damping >= 0 && options_.jacobi_damping <= 1) || !(options_.coarsest_diagonal_shift >= 0) ||
       !(options_.fine_eigenvalue_bound >= 0) ||
-      options_.coarse_update_interval < 1 || options_.power_iterations < 1 || options_.dense_coarsest_max_dofs < 0 ||
-      !(options_.coarse_update_cost_iterations > 0.0))
+      options_.coarse_update_interval < 1 || options_.power_iterations < 1 || options_.dense_coarsest_max_dofs < 0)
     throw std::invalid_argument(
         "multigrid: smoothing steps must be ≥ 0, the Jacobi damping in [0, 1], the coarsest shift and the "
-        "eigenvalue bound ≥ 0, the coarse update interval and the power iterations ≥ 1, the dense coarsest size ≥ 0, and the coarse update cost > 0 iterations (it is " +
-        std::to_string(options_.coarse_update_cost_iterations) + ")");
+        "eigenvalue bound ≥ 0, the coarse update interval and the power iterations ≥ 1, the dense coarsest size ≥ 0");
+  if (!(options_.coarse_update_cost_iterations > 0.0) || !std::isfinite(options_.coarse_update_cost_iterations))
+    throw std::invalid_argument("multigrid: coarse_update_cost_iterations = " +
+                                std::to_string(options_.coarse_update_cost_iterations) +
+                                " must be a finite number of PCG iterations > 0 (e.g. 5)");
   if (!(options_.chebyshev_ratio > 1.0) || !std::isfinite(options_.chebyshev_ratio) ||
       !(options_.chebyshev_eigenvalue_safety >= 1.0) || !std::isfinite(options_.chebyshev_eigenvalue_safety))
     throw std::invalid_argument("multigrid: chebyshev_ratio = " + std::to_string(options_.chebyshev_ratio) +
@@ -581,6 +583,7 @@ void MultigridPreconditioner::analyzePattern(const SparseMatrix& A) {
   fine_only_ = 0;
   renew_requested_ = false;
   rate_count_ = 0;
+  lost_iterations_ = 0.0;
   factorized_ = false;
 }
 
@@ -779,25 +782,35 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
   fine_only_ = 0;
   renew_requested_ = false;
   rate_count_ = 0;
+  lost_iterations_ = 0.0;
   factorized_ = true;
 }
 
 void MultigridPreconditioner::reportConvergence(int iterations, double residual_reduction) {
   if (!options_.coarse_update_adaptive || iterations < 1 || numLevels() == 1) return;
-  if (!std::isfinite(residual_reduction) || residual_reduction >= 1.0) {  // the residual did not fall
+  if (!std::isfinite(residual_reduction)) {  // a broken solve: start afresh
     renew_requested_ = true;
     return;
   }
-  if (!(residual_reduction > 0.0)) return;  // solved exactly: nothing to measure
-  const double log_rate = std::log(residual_reduction) / iterations;  // < 0: log of the mean reduction per iteration
-  if (rate_count_++ == 0) {
-    first_log_rate_ = log_rate;  // the reference: fresh coarse operators
-    lost_iterations_ = 0.0;
-    return;
+  if (residual_reduction == 0.0) return;  // solved exactly: nothing to measure
+  const double cost = options_.coarse_update_cost_iterations;
+  if (residual_reduction >= 1.0) {
+    // CG's residual norm need not fall in every iteration: a capped solve of a few iterations can
+    // end above its start with sound coarse operators. Its iterations count as lost.
+    if (rate_count_ > 0) lost_iterations_ += iterations;
+  } else {
+    const double log_rate = std::log(residual_reduction) / iterations;  // < 0: log of the mean reduction per iteration
+    if (rate_count_++ == 0) {
+      first_log_rate_ = log_rate;  // the reference: fresh coarse operators
+      lost_iterations_ = 0.0;
+      return;
+    }
+    // At the reference rate the same reduction takes iterations · ρ/ρ_0 iterations: the rest was
+    // lost. Faster solves give iterations back, at most one renewal's worth in all: a reference
+    // taken at an unusually slow solve cannot bank credit that holds the renewal off for good.
+    lost_iterations_ = std::max(-cost, lost_iterations_ + iterations * (1.0 - log_rate / first_log_rate_));
   }
-  // At the reference rate the same reduction takes iterations · ρ/ρ_0 iterations: the rest was lost.
-  lost_iterations_ += iterations * (1.0 - log_rate / first_log_rate_);
-  if (lost_iterations_ >= options_.coarse_update_cost_iterations) renew_requested_ = true;
+  if (lost_iterations_ >= cost) renew_requested_ = true;
 }
 
 void MultigridPreconditioner::toBlocks(int l) {

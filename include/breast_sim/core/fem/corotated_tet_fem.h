@@ -91,7 +91,8 @@ class CorotatedTetFem : public ElementFormulation {
   VolumeTerm volumeTerm() const { return volume_term_; }
   /// Whether the stiffness gather may use its AVX-512VL version (when the processor has it, see
   /// gatherHasSimd()); false selects the portable scalar one, the reference (on by default; both
-  /// give the same sums up to the rounding of fused multiply-adds).
+  /// give the same sums up to rounding: fused multiply-adds, and the diagonal block summed in
+  /// registers before it is added to A).
   void setSimdKernels(bool simd) { simd_kernels_ = simd; }
   /// Whether this processor runs the AVX-512VL stiffness gather (checked once).
   static bool gatherHasSimd();

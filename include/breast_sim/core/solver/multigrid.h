@@ -202,8 +202,9 @@ struct MultigridOptions {
   /// The residuals of the V-cycle by the AVX2/FMA kernel when the processor has it
   /// (solver/block_kernels.h); false = the portable scalar kernel everywhere.
   bool simd_kernels = true;
-  /// The Galerkin operators and the coarsest factorization are recomputed in every this-many-th
-  /// factorize() (1 = every one); in between only the fine level takes the new matrix. The V-cycle
+  /// The Galerkin operators and the coarsest factorization are recomputed at least in every
+  /// this-many-th factorize() since the last renewal (1 = every one; coarse_update_adaptive may
+  /// renew earlier); in between only the fine level takes the new matrix. The V-cycle
   /// stays symmetric positive definite with older coarse operators (Galerkin operators of an earlier
   /// SPD matrix); it converges somewhat slower when the matrix has changed much since (large
   /// rotations of the co-rotated elements).
@@ -214,8 +215,10 @@ struct MultigridOptions {
   /// is ρ = log(‖r_k‖/‖r_0‖) / k, the log of the mean reduction per iteration, and a solve of k
   /// iterations at rate ρ lost k (1 − ρ/ρ_0) against the rate ρ_0 of the first solve after the
   /// renewal: at ρ_0 the same reduction takes k ρ/ρ_0 iterations (signed: a faster solve gives
-  /// iterations back). A residual that did not fall renews at once. The rule reads residuals only,
-  /// never the clock, so a run is reproducible.
+  /// iterations back, at most one renewal's worth in all). A solve whose residual did not fall
+  /// (CG's residual norm need not fall in each iteration: a capped solve of a few can end above its
+  /// start) lost all its iterations; a non-finite one renews at once. The rule reads residuals
+  /// only, never the clock, so a run is reproducible.
   bool coarse_update_adaptive = false;
   /// The price of a renewal in PCG iterations for the adaptive rule (> 0). Measured at 48k elements
   /// (bench_solvers, 2 threads): Galerkin products, coarse set-up, damping and the coarsest
@@ -224,7 +227,8 @@ struct MultigridOptions {
 };
 
 /// One symmetric V-cycle [GW08] as preconditioner: smoothing on each level, Galerkin coarse
-/// operators (recomputed in every factorize(), or every coarse_update_interval-th), a direct solve on
+/// operators (recomputed in every factorize(), or at least every coarse_update_interval-th and
+/// earlier when PCG's reports say their age costs more than a renewal), a direct solve on
 /// the coarsest level (dense Cholesky up to dense_coarsest_max_dofs, CHOLMOD beyond). apply() does
 /// not allocate; factorize() does not after the first call, apart from the temporary permuted copy
 /// CHOLMOD makes of a large coarsest matrix and the blocked dense Cholesky's workspace beyond a few
