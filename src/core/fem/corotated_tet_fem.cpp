@@ -327,18 +327,29 @@ inline void prefetchRecord(const GatherArgs& a, int k) {
   __builtin_prefetch(r + kStride - 1);  // records are not line-aligned
 }
 
+/// Node n's three rows of A (row 1 and 2 follow row 0 at len and 2·len entries), cleared when
+/// kAssign, and its incidences [k_begin, k_end), the first few of whose records are prefetched.
+struct NodeRows {
+  double *row0, *row1, *row2;
+  int len, k_begin, k_end;
+};
+
+template <int kStride, bool kAssign>
+inline NodeRows beginNode(const GatherArgs& a, int n) {
+  const int len = a.outer[3 * n + 1] - a.outer[3 * n];
+  double* const row0 = a.values + a.outer[3 * n];
+  NodeRows r{row0, row0 + len, row0 + 2 * len, len, a.inc_start[n], a.inc_start[n + 1]};
+  if constexpr (kAssign) std::fill(r.row0, r.row0 + 3 * r.len, 0.0);
+  for (int k = r.k_begin; k < std::min(r.k_begin + kGatherAhead, a.num_incidences); ++k) prefetchRecord<kStride>(a, k);
+  return r;
+}
+
 /// The portable gather of nodes [n0, n1): 36 scalar read-modify-writes per incidence.
 template <int kStride, int kH, bool kAssign>
 void gatherNodesScalar(const GatherArgs& a, int n0, int n1) {
   for (int n = n0; n < n1; ++n) {
-    double* const row0 = a.values + a.outer[3 * n];
-    const int len = a.outer[3 * n + 1] - a.outer[3 * n];
-    double* const row1 = row0 + len;
-    double* const row2 = row1 + len;
-    if constexpr (kAssign) std::fill(row0, row0 + 3 * len, 0.0);
-    const int k_begin = a.inc_start[n], k_end = a.inc_start[n + 1];
-    for (int k = k_begin; k < std::min(k_begin + kGatherAhead, a.num_incidences); ++k) prefetchRecord<kStride>(a, k);
-    for (int k = k_begin; k < k_end; ++k) {
+    const NodeRows r = beginNode<kStride, kAssign>(a, n);
+    for (int k = r.k_begin; k < r.k_end; ++k) {
       if (k + kGatherAhead < a.num_incidences) prefetchRecord<kStride>(a, k + kGatherAhead);
       const int i = a.incident[k] & 3;
       const double* const rec = a.recs + kStride * static_cast<size_t>(a.incident[k] >> 2);
@@ -353,9 +364,9 @@ void gatherNodesScalar(const GatherArgs& a, int n0, int n1) {
         const double gj0 = g[3 * j], gj1 = g[3 * j + 1], gj2 = g[3 * j + 2];
         const double hj0 = h[3 * j], hj1 = h[3 * j + 1], hj2 = h[3 * j + 2];
         const double d = v0 * gj0 + v1 * gj1 + v2 * gj2;
-        double* const p0 = row0 + slot[j];
-        double* const p1 = row1 + slot[j];
-        double* const p2 = row2 + slot[j];
+        double* const p0 = r.row0 + slot[j];
+        double* const p1 = r.row1 + slot[j];
+        double* const p2 = r.row2 + slot[j];
         p0[0] += u0 * hj0 + gj0 * v0 + d;
         p0[1] += u0 * hj1 + gj0 * v1;
         p0[2] += u0 * hj2 + gj0 * v2;
@@ -404,15 +415,9 @@ __attribute__((target("avx512f,avx512vl,fma"))) void gatherNodesAvx512(const Gat
   constexpr __mmask8 k3 = 0x7;
   const __m256d sm = _mm256_set1_pd(a.sm);
   for (int n = n0; n < n1; ++n) {
-    double* const row0 = a.values + a.outer[3 * n];
-    const int len = a.outer[3 * n + 1] - a.outer[3 * n];
-    double* const row1 = row0 + len;
-    double* const row2 = row1 + len;
-    if constexpr (kAssign) std::fill(row0, row0 + 3 * len, 0.0);
-    const int k_begin = a.inc_start[n], k_end = a.inc_start[n + 1];
-    for (int k = k_begin; k < std::min(k_begin + kGatherAhead, a.num_incidences); ++k) prefetchRecord<kStride>(a, k);
+    const NodeRows r = beginNode<kStride, kAssign>(a, n);
     __m256d diag0 = _mm256_setzero_pd(), diag1 = diag0, diag2 = diag0;
-    for (int k = k_begin; k < k_end; ++k) {
+    for (int k = r.k_begin; k < r.k_end; ++k) {
       if (k + kGatherAhead < a.num_incidences) prefetchRecord<kStride>(a, k + kGatherAhead);
       const int i = a.incident[k] & 3;
       const double* const rec = a.recs + kStride * static_cast<size_t>(a.incident[k] >> 2);
@@ -427,18 +432,18 @@ __attribute__((target("avx512f,avx512vl,fma"))) void gatherNodesAvx512(const Gat
       for (int q = 0; q < 3; ++q) {
         const int j = kOthers[i][q];
         gatherBlock<kH>(rec, hrec, j, v, u0, u1, u2, r0, r1, r2);
-        double* const p0 = row0 + slot[j];
-        double* const p1 = row1 + slot[j];
-        double* const p2 = row2 + slot[j];
+        double* const p0 = r.row0 + slot[j];
+        double* const p1 = r.row1 + slot[j];
+        double* const p2 = r.row2 + slot[j];
         _mm256_mask_storeu_pd(p0, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p0), r0));
         _mm256_mask_storeu_pd(p1, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p1), r1));
         _mm256_mask_storeu_pd(p2, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p2), r2));
       }
     }
-    if (k_begin < k_end) {
-      double* const p0 = row0 + a.islots[4 * static_cast<size_t>(k_begin) + (a.incident[k_begin] & 3)];
-      double* const p1 = p0 + len;
-      double* const p2 = p1 + len;
+    if (r.k_begin < r.k_end) {
+      double* const p0 = r.row0 + a.islots[4 * static_cast<size_t>(r.k_begin) + (a.incident[r.k_begin] & 3)];
+      double* const p1 = p0 + r.len;
+      double* const p2 = p1 + r.len;
       _mm256_mask_storeu_pd(p0, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p0), diag0));
       _mm256_mask_storeu_pd(p1, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p1), diag1));
       _mm256_mask_storeu_pd(p2, k3, _mm256_add_pd(_mm256_maskz_loadu_pd(k3, p2), diag2));
