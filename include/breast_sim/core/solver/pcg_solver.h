@@ -30,8 +30,8 @@ class Preconditioner {
   virtual std::string name() const = 0;
   /// Told by PCG after each solve that iterated: `iterations` reduced the residual by
   /// `residual_reduction` = ‖r_k‖ / ‖r_0‖, r_0 the residual of the initial guess with the decoupled
-  /// rows solved (at the iteration limit r_k may be the recursive residual; a preconditioner may renew parts of itself when it
-  /// degrades; the default ignores it).
+  /// rows solved (at an iteration limit of at most 8, r_k is the recursive residual). A
+  /// preconditioner may renew parts of itself when convergence degrades; the default ignores it.
   virtual void reportConvergence(int iterations, double residual_reduction) {
     (void)iterations;
     (void)residual_reduction;
