@@ -33,15 +33,16 @@ struct SolverSettings {
   /// solves after 3 steps (1e-3: 19 iterations, 0.00007 mm; 1e-1: 8 iterations, 0.005 mm).
   double relative_tolerance = 1e-2;
   int max_iterations = 200;  ///< per step; a step that hits it is used anyway and counted
-  /// Coarse operators every 4th step: bench_simulation at 48k elements, 25 steps — Galerkin
-  /// products 9.5 → 0.4 ms per step (median), PCG iterations 14 → 13, path error unchanged.
-  /// The adaptive renewal (MultigridOptions::coarse_update_adaptive; with at most 3 iterations per
-  /// step 1 renewal in 25 steps instead of 7) is off by default: with it the navigation test's live
-  /// tracking, which missed one of 100 clouds, ended up to 5.5 mm from an offline run of the same
-  /// clouds (1 mm allowed; within it at every 4th step). README "Renewing the coarse operators".
+  /// Coarse operators renewed when the PCG iterations lost to their age are worth a renewal
+  /// (MultigridOptions::coarse_update_adaptive), at least every 50th step. bench_simulation at 48k
+  /// elements, 25 steps of supine gravity: 2 renewals and 14.8 PCG iterations per step (every 4th
+  /// step: 7 and 14.3; every 16th: 2 and 15.7); with at most 3 iterations per step 1 renewal
+  /// instead of 7. The main job: the same steps' cost as every 4th step, where every 16th step made
+  /// its sliding stage 1.7× slower (README "Renewing the coarse operators").
   MultigridOptions multigrid = [] {
     MultigridOptions o;
-    o.coarse_update_interval = 4;
+    o.coarse_update_interval = 50;
+    o.coarse_update_adaptive = true;
     return o;
   }();
   CoarseningOptions coarsening;
