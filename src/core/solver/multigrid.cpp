@@ -579,9 +579,8 @@ void MultigridPreconditioner::analyzePattern(const SparseMatrix& A) {
   }
   fine_nnz_ = A.nonZeros();
   fine_outer_.assign(A.outerIndexPtr(), A.outerIndexPtr() + A.rows() + 1);
-  factorizations_ = 0;
   fine_only_ = 0;
-  renew_requested_ = false;
+  renew_requested_ = true;  // the first factorize() makes the coarse operators
   rate_count_ = 0;
   lost_iterations_ = 0.0;
   factorized_ = false;
@@ -721,10 +720,10 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
   timings_.level_s.resize(levels_.size());  // allocates once
   std::fill(timings_.level_s.begin(), timings_.level_s.end(), 0.0);
   levels_[0]->A = &A;
-  // Coarse renewal: at the first factorization, after coarse_update_interval − 1 fine-only ones, or
-  // early when the adaptive rule asked for it (reportConvergence).
-  const bool coarse = numLevels() == 1 || factorizations_ == 0 || fine_only_ + 1 >= options_.coarse_update_interval ||
-                      renew_requested_;
+  // Coarse renewal: at the first factorization (and after one that failed), after
+  // coarse_update_interval − 1 fine-only ones, or early when the adaptive rule asked for it
+  // (reportConvergence).
+  const bool coarse = numLevels() == 1 || renew_requested_ || fine_only_ + 1 >= options_.coarse_update_interval;
   const int L = coarse ? numLevels() : 1;
   for (int l = 0; l < L; ++l) {
     auto t0 = Clock::now();
@@ -744,7 +743,6 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
     }
   }
   if (!coarse) {
-    ++factorizations_;
     ++fine_only_;
     factorized_ = true;
     return;
@@ -777,7 +775,6 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
     }
   }
   timings_.coarse_factorize_s = since(t0);
-  ++factorizations_;
   ++coarse_renewals_;
   fine_only_ = 0;
   renew_requested_ = false;

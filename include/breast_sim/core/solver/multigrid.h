@@ -325,9 +325,9 @@ class MultigridPreconditioner : public Preconditioner {
   Eigen::LLT<Eigen::MatrixXd> coarsest_llt_;
   Eigen::Index fine_nnz_ = -1;
   std::vector<int> fine_outer_;  // the fine matrix's row starts at analyzePattern()
-  long factorizations_ = 0;
-  // Coarse renewal: factorizations since the last one, renewals so far, and the convergence record
-  // of the adaptive rule (coarse_update_adaptive).
+  // Coarse renewal: fine-only factorizations since the last one, renewals so far, whether the next
+  // factorize() renews (the first after analyzePattern(), or asked by the adaptive rule), and the
+  // rule's convergence record (coarse_update_adaptive).
   int fine_only_ = 0;
   long coarse_renewals_ = 0;
   bool renew_requested_ = false;
