@@ -2,6 +2,7 @@
 #include "breast_sim/ros_interface/breast_sim_node.h"
 
 #include <cmath>
+#include <limits>
 #include <sstream>
 
 #include <diagnostic_msgs/DiagnosticArray.h>
@@ -500,6 +501,7 @@ bool BreastSimNode::loadStateSrv(breast_sim::StateFile::Request& req, breast_sim
   }
   try {
     engine_->pipeline->loadState(req.path);
+    engine_->gravity_load_mps2 = engine_->pipeline->gravityLoad();  // the state's, for the pose-update rule
     engine_->precomputed = true;
     tracker_.reset();
     {
@@ -580,17 +582,18 @@ void BreastSimNode::poseCb(const geometry_msgs::PoseStampedConstPtr& msg) {
                                << "'); ignored, gravity and transforms keep their last values");
       return;
     }
+    geometry_msgs::TransformStamped ts;
+    ts.header = msg->header;
+    ts.child_frame_id = params_.frame_id;
+    ts.transform = transformFromIsometry(t);
     {
       std::lock_guard<std::mutex> lock(pose_mutex_);
+      // Time went back (a bag played again, a simulator restarted): the kept poses are of another run.
+      if (pose_ && msg->header.stamp + ros::Duration(1.0) < pose_->header.stamp) pose_buffer_.clear();
       pose_ = msg;
+      pose_buffer_.setTransform(ts, "~patient_pose");
     }
-    if (params_.publish_pose_tf) {
-      geometry_msgs::TransformStamped ts;
-      ts.header = msg->header;
-      ts.child_frame_id = params_.frame_id;
-      ts.transform = transformFromIsometry(t);
-      tf_broadcaster_.sendTransform(ts);
-    }
+    if (params_.publish_pose_tf) tf_broadcaster_.sendTransform(ts);
   } catch (const std::exception& ex) {
     ROS_WARN_STREAM_THROTTLE(params_.warn_throttle_s, "breast_sim: ~patient_pose ignored: " << ex.what()
                              << "; gravity and transforms keep their last values");
@@ -638,19 +641,16 @@ bool BreastSimNode::cloudTransform(const std::string& frame, const ros::Time& st
     *t = Eigen::Isometry3d::Identity();
     return true;
   }
-  geometry_msgs::PoseStampedConstPtr pose;
-  {
-    std::lock_guard<std::mutex> lock(pose_mutex_);
-    pose = pose_;
-  }
-  if (pose && std::abs((stamp - pose->header.stamp).toSec()) <= params_.max_transform_age_s) {
-    const Eigen::Isometry3d model_from_pose_frame = isometryFromPose(pose->pose).inverse();
-    if (frame == pose->header.frame_id) {
+  Eigen::Isometry3d pose_frame_from_model;
+  std::string pose_frame;
+  if (poseAt(stamp, params_.max_transform_age_s, &pose_frame_from_model, &pose_frame)) {
+    const Eigen::Isometry3d model_from_pose_frame = pose_frame_from_model.inverse();
+    if (frame == pose_frame) {
       *t = model_from_pose_frame;
       return true;
     }
     Eigen::Isometry3d pose_from_cloud;
-    if (lookup(pose->header.frame_id, frame, stamp, &pose_from_cloud, why)) {
+    if (lookup(pose_frame, frame, stamp, &pose_from_cloud, why)) {
       *t = model_from_pose_frame * pose_from_cloud;
       return true;
     }
@@ -659,40 +659,52 @@ bool BreastSimNode::cloudTransform(const std::string& frame, const ros::Time& st
   return lookup(params_.frame_id, frame, stamp, t, why);
 }
 
-bool BreastSimNode::gravityRotation(Eigen::Matrix3d* r) {
-  if (!params_.follow_patient_pose) return false;
-  geometry_msgs::PoseStampedConstPtr pose;
-  {
-    std::lock_guard<std::mutex> lock(pose_mutex_);
-    pose = pose_;
+bool BreastSimNode::poseAt(const ros::Time& stamp, double max_age_s, Eigen::Isometry3d* frame_from_model,
+                           std::string* frame) {
+  std::lock_guard<std::mutex> lock(pose_mutex_);
+  if (!pose_) return false;
+  *frame = pose_->header.frame_id;
+  try {
+    // Between two poses (or at one): tf2's interpolation (linear, slerp).
+    *frame_from_model = isometryFromTransform(pose_buffer_.lookupTransform(*frame, params_.frame_id, stamp).transform);
+    return true;
+  } catch (const tf2::TransformException&) {
+    // Before the first kept pose or after the newest: the newest, if close enough in time.
   }
-  std::string why;
-  if (pose) {
-    const Eigen::Matrix3d model_from_pose = isometryFromPose(pose->pose).linear().transpose();
-    if (pose->header.frame_id == params_.gravity_frame) {
+  if (std::abs((stamp - pose_->header.stamp).toSec()) > max_age_s) return false;
+  *frame_from_model = isometryFromPose(pose_->pose);
+  return true;
+}
+
+bool BreastSimNode::gravityRotation(const ros::Time& stamp, Eigen::Matrix3d* r) {
+  if (!params_.follow_patient_pose) return false;
+  Eigen::Isometry3d pose_frame_from_model;
+  std::string pose_frame;
+  // A pose of any age: the newest known table orientation is the best guess of gravity.
+  if (poseAt(stamp, std::numeric_limits<double>::infinity(), &pose_frame_from_model, &pose_frame)) {
+    const Eigen::Matrix3d model_from_pose = pose_frame_from_model.linear().transpose();
+    if (pose_frame == params_.gravity_frame) {
       *r = model_from_pose;
       return true;
     }
-    Eigen::Isometry3d pose_from_gravity;
-    std::string err;
-    if (tf_buffer_.canTransform(pose->header.frame_id, params_.gravity_frame, ros::Time(0), &err)) {
-      pose_from_gravity = isometryFromTransform(
-          tf_buffer_.lookupTransform(pose->header.frame_id, params_.gravity_frame, ros::Time(0)).transform);
-      *r = model_from_pose * pose_from_gravity.linear();
+    for (const ros::Time& at : {stamp, ros::Time(0)})  // at the cloud's time, else the newest
+      if (tf_buffer_.canTransform(pose_frame, params_.gravity_frame, at)) {
+        *r = model_from_pose *
+             isometryFromTransform(tf_buffer_.lookupTransform(pose_frame, params_.gravity_frame, at).transform).linear();
+        return true;
+      }
+  }
+  for (const ros::Time& at : {stamp, ros::Time(0)})
+    if (tf_buffer_.canTransform(params_.frame_id, params_.gravity_frame, at)) {
+      *r = isometryFromTransform(tf_buffer_.lookupTransform(params_.frame_id, params_.gravity_frame, at).transform).linear();
       return true;
     }
-  }
-  if (tf_buffer_.canTransform(params_.frame_id, params_.gravity_frame, ros::Time(0))) {
-    *r = isometryFromTransform(tf_buffer_.lookupTransform(params_.frame_id, params_.gravity_frame, ros::Time(0)).transform)
-             .linear();
-    return true;
-  }
   return false;
 }
 
-void BreastSimNode::applyGravity(Engine& e) {
+void BreastSimNode::applyGravity(Engine& e, const ros::Time& stamp) {
   Eigen::Matrix3d r;
-  if (!gravityRotation(&r)) return;  // no pose and no tf: the precomputed (case) gravity stays
+  if (!gravityRotation(stamp, &r)) return;  // no pose and no tf: the precomputed (case) gravity stays
   const Eigen::Vector3d load = gravityLoad(r, e.settings.simulation.gravity_mps2, e.prone_gravity_mps2);
   if (angleDeg(load, e.gravity_load_mps2) > params_.gravity_update_threshold_deg ||
       (load - e.gravity_load_mps2).norm() > 0.01 * e.settings.simulation.gravity_mps2) {
@@ -808,7 +820,7 @@ void BreastSimNode::processCloud(const sensor_msgs::PointCloud2ConstPtr& msg, Cl
                              "~start_precomputation (or ~load_state) has run");
     return;
   }
-  applyGravity(e);
+  applyGravity(e, msg->header.stamp);
   const TrackResult r = tracker_.track(*e.pipeline, cloud);
   if (!r.tracked) {
     ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: cloud refused: " << r.reason << "; the model keeps its last state");

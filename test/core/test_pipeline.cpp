@@ -5,8 +5,10 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdint>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/mesh/tet_quality.h"
@@ -511,6 +513,36 @@ TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
   EXPECT_EQ(pipe.simulator().state().velocity_mps, saved.simulation.velocity_mps);
   EXPECT_EQ(pipe.modulusFactors(), saved.modulus_factors);
   EXPECT_EQ(pipe.stiffening().controller().alpha(), saved.alpha.alpha_per_pa);
+  // The gravity load comes back with the state (it was the supine load), from the file and from
+  // memory; without it a state loaded after a table tilt would go on under the tilted load.
+  EXPECT_EQ(saved.gravity_load_mps2, pipe.supineGravityLoad());
+  EXPECT_EQ(pipe.gravityLoad(), saved.gravity_load_mps2);
+  pipe.setGravityLoad(Eigen::Vector3d(5, 0, 0));
+  pipe.restore(saved);
+  EXPECT_EQ(pipe.gravityLoad(), saved.gravity_load_mps2);
+  // A file of the format before (no gravity load at its end) loads under the supine load.
+  {
+    PipelineState tilted = saved;
+    tilted.gravity_load_mps2 = Eigen::Vector3d(1, 2, 3);
+    pipe.restore(tilted);
+    pipe.saveState(file.string());
+    fs::resize_file(file, fs::file_size(file) - sizeof(std::int64_t) - 3 * sizeof(double));
+    pipe.loadState(file.string());
+    EXPECT_EQ(pipe.gravityLoad(), pipe.supineGravityLoad());
+    EXPECT_EQ(pipe.simulator().state().displacement_m, saved.simulation.displacement_m);
+    // A gravity load that is not finite is refused, naming it, and the state is kept.
+    tilted.gravity_load_mps2.x() = std::numeric_limits<double>::quiet_NaN();
+    tilted.simulation.displacement_m.setZero();
+    try {
+      pipe.restore(tilted);
+      FAIL();
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("gravity load"), std::string::npos) << e.what();
+    }
+    EXPECT_EQ(pipe.simulator().state().displacement_m, saved.simulation.displacement_m);
+    EXPECT_EQ(pipe.gravityLoad(), pipe.supineGravityLoad());
+    pipe.saveState(file.string());  // the state file again, for the checks below
+  }
 
   // A snapshot of another model is refused by name and leaves the state alone.
   SmallPhantom other(1000);

@@ -55,8 +55,9 @@ namespace {
 using Clock = std::chrono::steady_clock;
 // Lesions while tracking vs the offline tracking run on the same clouds (regenerated here from the
 // bag's deterministic tracker simulation: the phantom's supine skin with 0.5 mm noise, 1 % strays,
-// ±1 mm breathing, a ±2° table roll that gravity follows). What differs: float32 clouds in the
-// messages, tf interpolation, and when the node sees the newest pose (gravity).
+// ±1 mm breathing, a ±2° table roll that gravity follows; float32 points in the tracker frame, as the
+// bag holds them). What differs: the last bits of the transforms, which the node composes from
+// messages (pose, tf) at each cloud's time.
 constexpr double TRACKING_TOLERANCE_MM = 1.0;
 // The bag (scripts/make_test_bags.sh): clouds at 10 Hz for 10 s from t = 100 s.
 constexpr double BAG_START_S = 100.0, BAG_CLOUD_RATE_HZ = 10.0;
@@ -160,21 +161,30 @@ std::vector<core::Points> trackOffline(Offline& o, const std::vector<bool>& trac
   p.restore(o.precomputed);
   const core::PipelineSettings& settings = p.settings();
   const Eigen::Vector3d prone = settings.simulation.gravity_mps2 * o.c.prone_gravity_direction.normalized();
-  Eigen::Vector3d current = p.supineGravityLoad();
+  Eigen::Vector3d current = p.gravityLoad();  // the precomputed state's (supine), as the node after load_state
   std::vector<core::Points> lesions;
   for (int k = 0; k < BAG_CLOUDS; ++k) {
+    const double t = k / BAG_CLOUD_RATE_HZ;
+    // Drawn for every cloud, tracked or not: the simulation's noise and strays come from one random
+    // stream, so skipping a draw would change every later cloud. The cloud as the node gets it: in
+    // the tracker frame in single precision (the bag's PointCloud2), put into the model frame with
+    // the pose at the cloud's time. Tracking can turn a difference as small as the float rounding
+    // (~10 nm) into millimetres (README, "Tracking's sensitivity").
+    core::Points cloud = sim.cloudInTracker(t).cast<float>().cast<double>();
+    const Eigen::Isometry3d model_from_tracker = sim.worldFromModel(t).inverse() * sim.worldFromTracker();
+    for (Eigen::Index i = 0; i < cloud.rows(); ++i)
+      cloud.row(i) = (model_from_tracker * Eigen::Vector3d(cloud.row(i).transpose())).transpose();
     if (!tracked[static_cast<size_t>(k)]) {
       lesions.push_back(p.lesionPositions());
       continue;
     }
-    const double t = k / BAG_CLOUD_RATE_HZ;
     const Eigen::Vector3d load = ros_interface::gravityLoad(sim.worldFromModel(t).linear().transpose(),
                                                             settings.simulation.gravity_mps2, prone);
     if (ros_interface::angleDeg(load, current) > node.gravity_update_threshold_deg || (load - current).norm() > 0.01 * settings.simulation.gravity_mps2) {
       p.setGravityLoad(load);
       current = load;
     }
-    tracker.track(p, sim.cloudInModel(t));
+    tracker.track(p, cloud);
     lesions.push_back(p.lesionPositions());
   }
   return lesions;
@@ -324,6 +334,8 @@ TEST(Navigation, FollowsTheRecordedTrackerAndSurvivesMalformedClouds) {
   ASSERT_TRUE(load.response.success) << load.response.message;
   std::string bag;
   pnh.getParam("bag", bag);
+  double play_rate = 0.5;
+  pnh.getParam("play_rate", play_rate);
   offline();  // the offline pipeline is ready before the bag plays: the node gets the CPU to itself
   ros::Publisher bad = nh.advertise<sensor_msgs::PointCloud2>("/tracker/surface_points", 5);
   {
@@ -339,9 +351,10 @@ TEST(Navigation, FollowsTheRecordedTrackerAndSurvivesMalformedClouds) {
   int play_status = -1;
   const auto t0 = Clock::now();
   std::thread player([&] {
-    // Half speed: 200 ms of wall time per cloud, so that a loaded machine seldom drops one (how fast
-    // the node is, is the latency benchmark's business, not this test's).
-    play_status = std::system(("rosbag play --clock -r 0.5 -q " + bag + " > /dev/null 2>&1").c_str());
+    // Half speed by default (navigation.test, play_rate): 200 ms of wall time per cloud, so that a
+    // loaded machine seldom drops one (how fast the node is, is the latency benchmark's business, not
+    // this test's).
+    play_status = std::system(("rosbag play --clock -r " + std::to_string(play_rate) + " -q " + bag + " > /dev/null 2>&1").c_str());
     played = true;
   });
   // Malformed clouds in between the bag's: NaN only, empty, an unknown frame, a truncated one.
@@ -377,9 +390,11 @@ TEST(Navigation, FollowsTheRecordedTrackerAndSurvivesMalformedClouds) {
   EXPECT_GE(rec.mesh_times.size(), static_cast<size_t>(0.9 * BAG_CLOUDS)) << "of " << BAG_CLOUDS << " clouds";
   ASSERT_GE(rec.lesion_history.size(), static_cast<size_t>(0.9 * BAG_CLOUDS)) << "of " << BAG_CLOUDS << " clouds";
   // The largest gap between tracked clouds, in the bag's time: no cloud stream stalled.
+  // (Only the bag's: an array the node published before, e.g. after load_state, may arrive late.)
   double gap = 0;
   for (size_t i = 1; i < rec.lesion_history.size(); ++i)
-    gap = std::max(gap, (rec.lesion_history[i]->header.stamp - rec.lesion_history[i - 1]->header.stamp).toSec());
+    if (rec.lesion_history[i - 1]->header.stamp.toSec() >= BAG_START_S)
+      gap = std::max(gap, (rec.lesion_history[i]->header.stamp - rec.lesion_history[i - 1]->header.stamp).toSec());
   std::printf("[ measure  ] largest gap between tracked clouds (bag time): %.3f s\n", gap);
   EXPECT_LT(gap, 0.35);
   // The clouds the node tracked, by their stamps. It drops a cloud when its tracking thread has not
@@ -403,11 +418,13 @@ TEST(Navigation, FollowsTheRecordedTrackerAndSurvivesMalformedClouds) {
               BAG_CLOUDS, since(t_offline));
   // Each lesion array against the offline tracking run after the same cloud.
   double worst = 0, moved = 0;
-  int compared = 0;
+  int compared = 0, first_off = -1;  // the first cloud after which the node is off by the tolerance
   for (size_t i = 0; i < history.size(); ++i) {
     const int k = cloud_of[i];
     if (k < 0 || k >= BAG_CLOUDS) continue;
-    worst = std::max(worst, maxLesionErrorMm(*history[i], reference[static_cast<size_t>(k)]));
+    const double error = maxLesionErrorMm(*history[i], reference[static_cast<size_t>(k)]);
+    if (error >= TRACKING_TOLERANCE_MM && first_off < 0) first_off = k;
+    worst = std::max(worst, error);
     moved = std::max(moved, maxLesionErrorMm(*history[i], off.lesions));
     ++compared;
   }
@@ -418,14 +435,17 @@ TEST(Navigation, FollowsTheRecordedTrackerAndSurvivesMalformedClouds) {
     for (int k = 0; k < BAG_CLOUDS; ++k)
       for (Eigen::Index r = 0; r < all[static_cast<size_t>(k)].rows(); ++r)
         shift = std::max(shift, 1e3 * (all[static_cast<size_t>(k)].row(r) - reference[static_cast<size_t>(k)].row(r)).norm());
-    std::printf("[ measure  ] the node dropped %d clouds; offline, dropping them moved the lesions up to %.3f mm\n",
-                BAG_CLOUDS - num_tracked, shift);
+    std::string which;
+    for (int k = 0; k < BAG_CLOUDS; ++k)
+      if (!was_tracked[static_cast<size_t>(k)]) which += (which.empty() ? "" : " ") + std::to_string(k);
+    std::printf("[ measure  ] the node dropped %d clouds (%s); offline, dropping them moved the lesions up to %.3f mm\n",
+                BAG_CLOUDS - num_tracked, which.c_str(), shift);
   }
   std::printf("[ measure  ] lesions while tracking vs the offline tracking run: max %.4f mm over %d arrays (tolerance %.1f mm); "
               "moved up to %.3f mm from the precomputed positions\n",
               worst, compared, TRACKING_TOLERANCE_MM, moved);
   EXPECT_GE(compared, static_cast<int>(0.9 * BAG_CLOUDS));
-  EXPECT_LT(worst, TRACKING_TOLERANCE_MM);
+  EXPECT_LT(worst, TRACKING_TOLERANCE_MM) << "first off after cloud " << first_off << " of " << BAG_CLOUDS;
   EXPECT_GT(history.back()->header.stamp.toSec(), 100.0);  // stamped with the bag's (simulated) time
   l.lock();
   ASSERT_TRUE(rec.diagnostics);
@@ -438,7 +458,9 @@ TEST(Navigation, FollowsTheRecordedTrackerAndSurvivesMalformedClouds) {
         std::printf("[ measure  ] diagnostics: %s = %s\n", kv.key.c_str(), kv.value.c_str());
     }
   EXPECT_FALSE(tracked.empty());
-  if (!tracked.empty()) EXPECT_GE(std::stol(tracked), static_cast<long>(0.9 * BAG_CLOUDS) - 10);  // diagnostics lag
+  if (!tracked.empty()) {
+    EXPECT_GE(std::stol(tracked), static_cast<long>(0.9 * BAG_CLOUDS) - 10);  // diagnostics lag
+  }
 }
 
 TEST(Navigation, SavedStateLoadsBack) {
@@ -490,8 +512,9 @@ int main(int argc, char** argv) {
   ros::init(argc, argv, "navigation_test");
   ros::NodeHandle nh;
   ros::Subscriber s1 = nh.subscribe("/breast_sim/state", 10, onState);
-  ros::Subscriber s2 = nh.subscribe("/breast_sim/deformed_mesh", 5, onMesh);
-  ros::Subscriber s3 = nh.subscribe("/breast_sim/lesions", 5, onLesions);
+  // Queues longer than the bag: a message lost here would read as a cloud the node dropped.
+  ros::Subscriber s2 = nh.subscribe("/breast_sim/deformed_mesh", 200, onMesh);
+  ros::Subscriber s3 = nh.subscribe("/breast_sim/lesions", 200, onLesions);
   ros::Subscriber s4 = nh.subscribe("/diagnostics", 5, onDiagnostics);
   ros::Publisher clock = nh.advertise<rosgraph_msgs::Clock>("/clock", 10);
   std::thread clock_thread([&] {

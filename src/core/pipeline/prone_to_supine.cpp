@@ -142,6 +142,8 @@ Eigen::Vector3d ProneToSupinePipeline::supineGravityLoad() const {
 
 void ProneToSupinePipeline::setGravityLoad(const Eigen::Vector3d& g_mps2) { stiff_->setGravity(g_mps2); }
 
+Eigen::Vector3d ProneToSupinePipeline::gravityLoad() const { return simulator().params().gravity_mps2; }
+
 void ProneToSupinePipeline::setTimeStep(double dt_s) {
   DynamicsParams p = simulator().params();
   if (p.time_step_s == dt_s) return;
@@ -654,6 +656,7 @@ void ProneToSupinePipeline::fillState(PipelineState& s) const {
   if (morphing_forces_) s.morphing_forces_n = morphing_forces_->accumulatedForces();
   else s.morphing_forces_n.resize(0, 3);
   s.stage = stage_;
+  s.gravity_load_mps2 = gravityLoad();
 }
 
 void ProneToSupinePipeline::restore(const PipelineState& s) {
@@ -669,7 +672,13 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
                                 " nodes, but sliding is " + (hasSliding() ? "on for " + std::to_string(sliding_nodes) + " nodes" : "off"));
   if (s.morphing_forces_n.rows() > 0 && !field_)
     throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
+  if (!s.gravity_load_mps2.allFinite())
+    throw std::invalid_argument("pipeline state has a gravity load that is not finite (norm " +
+                                std::to_string(s.gravity_load_mps2.norm()) + " m/s²)");
   simulator().restore(s.simulation);
+  // Directly, not through setGravityLoad: the α controller's state below is the snapshot's, not a
+  // restarted search.
+  simulator().setGravity(s.gravity_load_mps2);
   simulator().elements().setModulusFactors(s.modulus_factors);
   stiff_->controller().setState(s.alpha);
   stiff_->resync();  // the stress the next moduli come from is this state's
@@ -762,7 +771,8 @@ void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, doubl
     }
   }
   // The gravity load before the α state: a direction change would restart the α search.
-  stiff_->setGravity(coarse.simulator().params().gravity_mps2);
+  s.gravity_load_mps2 = coarse.gravityLoad();
+  stiff_->setGravity(s.gravity_load_mps2);
   restore(s);
 
   if (!coarse.morphing_forces_) return;
@@ -853,6 +863,8 @@ void ProneToSupinePipeline::saveState(const std::string& path) const {
   // Appended after the first format (a file without it loads with every wall node sticking).
   const Eigen::VectorXd sd = flatten(s.sliding_slip_directions);
   writeVector(out, sd.data(), sd.size());
+  // Appended after the second (a file without it loads under the supine gravity load).
+  writeVector(out, s.gravity_load_mps2.data(), 3);
   if (!out) throw std::runtime_error(path + ": writing the state file failed (disk full?)");
 }
 
@@ -892,6 +904,12 @@ void ProneToSupinePipeline::loadState(const std::string& path) {
   s.sliding_targets_m = toPoints(readVector(in, path));
   s.morphing_forces_n = toPoints(readVector(in, path));
   if (in.peek() != std::char_traits<char>::eof()) s.sliding_slip_directions = toPoints(readVector(in, path));
+  s.gravity_load_mps2 = supineGravityLoad();
+  if (in.peek() != std::char_traits<char>::eof()) {
+    const Eigen::VectorXd g = readVector(in, path);
+    if (g.size() != 3) throw std::runtime_error(path + ": corrupt state file (a gravity load of " + std::to_string(g.size()) + " values)");
+    s.gravity_load_mps2 = g;
+  }
   try {
     restore(s);
   } catch (const std::invalid_argument& e) {

@@ -287,6 +287,11 @@ struct PipelineState {
   Points sliding_slip_directions;
   Points morphing_forces_n;     ///< accumulated per pulled vertex (empty without morphing)
   PipelineStage stage = PipelineStage::kIdle;
+  /// The gravity load the state was computed under, g_now − g_prone [m/s²] (setGravityLoad). A
+  /// state restored under another load would start its next step out of equilibrium, and a tracking
+  /// run's gravity-update rule, which compares the pose's load with the current one, would see the
+  /// wrong current load.
+  Eigen::Vector3d gravity_load_mps2 = Eigen::Vector3d::Zero();
 };
 
 class ProneToSupinePipeline {
@@ -321,6 +326,8 @@ class ProneToSupinePipeline {
   /// Sets the gravity load [m/s²] (e.g. a table tilt: g_now − g_prone); a direction change beyond
   /// StiffeningParams::gravity_direction_tolerance_deg restarts the α search.
   void setGravityLoad(const Eigen::Vector3d& g_mps2);
+  /// The current gravity load [m/s²].
+  Eigen::Vector3d gravityLoad() const;
   /// The load of the supine position for this case: g_supine − g_prone [m/s²] (the phantom's own
   /// tilted supine gravity; an image case turns its prone direction around).
   Eigen::Vector3d supineGravityLoad() const;
@@ -363,6 +370,8 @@ class ProneToSupinePipeline {
   ///         morphing (forces without a target here), or a node lies farther outside.
   void startFrom(const ProneToSupinePipeline& coarse, double snap_tolerance_m = 5e-3);
   /// Binary snapshot file (magic, version, sizes, a fingerprint of the rest mesh, then the vectors).
+  /// A file written before the gravity load was saved loads with the supine load (supineGravityLoad),
+  /// the load every precomputation ends under.
   /// @throws std::runtime_error naming the file on an I/O error or a snapshot of another model
   ///         (other sizes, or the same sizes with other node positions or numbering).
   void saveState(const std::string& path) const;
