@@ -590,8 +590,9 @@ void BreastSimNode::poseCb(const geometry_msgs::PoseStampedConstPtr& msg) {
       std::lock_guard<std::mutex> lock(pose_mutex_);
       // Time went back (a bag played again, a simulator restarted): the kept poses are of another run.
       if (pose_ && msg->header.stamp + ros::Duration(1.0) < pose_->header.stamp) pose_buffer_.clear();
+      // tf2 logs an error for a second pose at the same stamp; the newest still becomes pose_.
+      if (!pose_ || msg->header.stamp != pose_->header.stamp) pose_buffer_.setTransform(ts, "~patient_pose");
       pose_ = msg;
-      pose_buffer_.setTransform(ts, "~patient_pose");
     }
     if (params_.publish_pose_tf) tf_broadcaster_.sendTransform(ts);
   } catch (const std::exception& ex) {
