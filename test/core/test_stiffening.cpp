@@ -3,6 +3,7 @@
 // stability grid.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <iostream>
@@ -153,6 +154,43 @@ TEST(AlphaController, RepeatedReversalsOfOneStepGrowGeometricallyWithReversalGro
   EXPECT_NEAR(grown.alpha(), 1e-7 * 1024 * p.decrease_factor * 2, 1e-16);
   for (int attempt = 2; attempt < 40; ++attempt) grown.onReversed(attempt);
   EXPECT_DOUBLE_EQ(grown.alpha(), p.max_alpha_per_pa);  // still capped
+}
+
+// In the settling phase a repeated reversal of one step doubles the settling increment, up to the
+// search phase's factor: it does not jump to ×2 at once (which the settling descent, × (1 − ρ) per
+// step, takes hundreds of steps to undo).
+TEST(AlphaController, InTheSettlingPhaseRepeatedReversalsDoubleTheSettlingIncrement) {
+  AlphaControllerParams p;
+  p.initial_alpha_per_pa = 1e-3;
+  AlphaController c(p);
+  // Decrease, increase, decrease: an oscillation, and the settling phase.
+  c.onAccepted();
+  c.onReversed(1);
+  c.onAccepted();
+  ASSERT_EQ(c.phase(), AlphaController::Phase::kSettling);
+  const double k = (p.increase_factor - 1.0) / (1.0 - p.decrease_factor);
+  // Deep in settling: more oscillations halve ρ down to its floor.
+  for (int i = 0; i < 20; ++i) {
+    c.onReversed(1);
+    c.onAccepted();
+  }
+  const double rho = c.rate();
+  ASSERT_DOUBLE_EQ(rho, p.min_rate);
+  double alpha = c.alpha();
+  for (int attempt = 1; attempt <= 12; ++attempt) {
+    c.onReversed(attempt);
+    const double f = std::min(1.0 + k * rho * std::pow(2.0, attempt - 1), p.increase_factor);
+    EXPECT_NEAR(c.alpha(), alpha * f, 1e-12 * alpha) << "attempt " << attempt;
+    alpha = c.alpha();
+  }
+  // The second reversal of a step: ×(1 + 2kρ) = ×1.01 here, not ×2.
+  AlphaController d(c.params());
+  d.setState(c.state());
+  const double before = d.alpha();
+  d.onReversed(1);
+  d.onReversed(2);
+  EXPECT_NEAR(d.alpha(), before * (1 + k * rho) * (1 + 2 * k * rho), 1e-12 * before);
+  EXPECT_LT(d.alpha(), 1.02 * before);
 }
 
 // A step inverts whenever α < α*: the controller must oscillate first, detect it, and settle just
