@@ -38,8 +38,8 @@ struct AlphaControllerParams {
   double min_alpha_per_pa = 1e-7;   ///< floor [1/Pa]: below it stiffening is negligible (E_r − 1 < 1e-4 at 1 kPa)
   double max_alpha_per_pa = 1e4;    ///< ceiling [1/Pa]: E_r up to 1e7 at 1 kPa
   double decrease_factor = 0.8;     ///< search phase: α ← α · this after an accepted step, in (0, 1)
-  double increase_factor = 2.0;     ///< α ← α · this on a reversal in the search phase (and the most
-                                    ///< a settling-phase reversal may raise it), > 1
+  double increase_factor = 2.0;     ///< α ← α · this on a reversal in the search phase (and from the
+                                    ///< third reversal of the same step in the settling phase), > 1
   /// Repeated reversals of the same step grow geometrically: the k-th (k ≥ 2) multiplies α by
   /// increase_factor · reversal_growth^(k−1), ≥ 1 (1: by increase_factor each time, the seed's
   /// doubling). With 2, α climbs by 2, 4, 8, 16, … (×1024 in 4 reversals instead of 10): a stage that
@@ -49,10 +49,10 @@ struct AlphaControllerParams {
   /// Settling phase (entered at the first oscillation: a decrease, an increase, a decrease): α changes
   /// by a rate ρ proportional to its magnitude, Δα = ρ α down after an accepted step and
   /// k ρ α up on the first reversal of a step, k = (increase_factor − 1) / (1 − decrease_factor) (the
-  /// search phase's up/down ratio); the a-th reversal of the same step raises it by k ρ 2^(a−1) α, at
-  /// most × increase_factor (· reversal_growth^(a−1)). ρ starts at (1 − decrease_factor) ·
-  /// rate_halving and is multiplied by rate_halving at every further oscillation, so α converges to
-  /// just above the smallest α that does not invert. In (0, 1).
+  /// search phase's up/down ratio); a second reversal of the same step by 2 k ρ α, a third and later
+  /// ones as in the search phase. ρ starts at (1 − decrease_factor) · rate_halving and is multiplied
+  /// by rate_halving at every further oscillation, so α converges to just above the smallest α that
+  /// does not invert. In (0, 1).
   double rate_halving = 0.5;
   double min_rate = 1e-3;           ///< ρ never falls below this, in [0, 1 − decrease_factor]
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
