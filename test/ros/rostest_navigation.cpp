@@ -169,7 +169,7 @@ std::vector<core::Points> trackOffline(Offline& o, const std::vector<bool>& trac
     // stream, so skipping a draw would change every later cloud. The cloud as the node gets it: in
     // the tracker frame in single precision (the bag's PointCloud2), put into the model frame with
     // the pose at the cloud's time. Tracking can turn a difference as small as the float rounding
-    // (~10 nm) into millimetres (README, "Tracking's sensitivity").
+    // (~10 nm) into millimetres (README, "Tracking at the cloud's time").
     core::Points cloud = sim.cloudInTracker(t).cast<float>().cast<double>();
     const Eigen::Isometry3d model_from_tracker = sim.worldFromModel(t).inverse() * sim.worldFromTracker();
     for (Eigen::Index i = 0; i < cloud.rows(); ++i)
