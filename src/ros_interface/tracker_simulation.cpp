@@ -95,4 +95,12 @@ core::Points TrackerSimulation::cloudInTracker(double t) {
   return out;
 }
 
+core::Points TrackerSimulation::cloudAsRecordedInModel(double t) {
+  core::Points cloud = cloudInTracker(t).cast<float>().cast<double>();
+  const Eigen::Isometry3d model_from_tracker = worldFromModel(t).inverse() * worldFromTracker();
+  for (Eigen::Index i = 0; i < cloud.rows(); ++i)
+    cloud.row(i) = (model_from_tracker * Eigen::Vector3d(cloud.row(i).transpose())).transpose();
+  return cloud;
+}
+
 }  // namespace breast_sim::ros_interface

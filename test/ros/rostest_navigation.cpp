@@ -166,15 +166,10 @@ std::vector<core::Points> trackOffline(Offline& o, const std::vector<bool>& trac
   for (int k = 0; k < BAG_CLOUDS; ++k) {
     const double t = k / BAG_CLOUD_RATE_HZ;
     // Drawn for every cloud, tracked or not: the simulation's noise and strays come from one random
-    // stream, so skipping a draw would change every later cloud. The cloud as the node gets it: in
-    // the tracker frame in single precision (the bag's PointCloud2), put into the model frame with
-    // the pose at the cloud's time. At a threshold (whether a step inverts an element) a difference
-    // as small as the float rounding (~10 nm) can send tracking another way (README, "Tracking at
-    // the cloud's time").
-    core::Points cloud = sim.cloudInTracker(t).cast<float>().cast<double>();
-    const Eigen::Isometry3d model_from_tracker = sim.worldFromModel(t).inverse() * sim.worldFromTracker();
-    for (Eigen::Index i = 0; i < cloud.rows(); ++i)
-      cloud.row(i) = (model_from_tracker * Eigen::Vector3d(cloud.row(i).transpose())).transpose();
+    // stream, so skipping a draw would change every later cloud. As the node gets it from the bag:
+    // at a threshold (whether a step inverts an element) a difference as small as the float
+    // rounding (~10 nm) can send tracking another way (README, "Tracking at the cloud's time").
+    const core::Points cloud = sim.cloudAsRecordedInModel(t);
     if (!tracked[static_cast<size_t>(k)]) {
       lesions.push_back(p.lesionPositions());
       continue;

@@ -48,6 +48,10 @@ class TrackerSimulation {
   core::Points cloudInModel(double t_s);
   /// The same cloud in the scanner frame [m].
   core::Points cloudInTracker(double t_s);
+  /// The cloud as a node gets it from a recording (make_test_bags): in the scanner frame in single
+  /// precision (PointCloud2 FLOAT32), put into the model frame with the pose at time t [m]. Offline
+  /// references of the node use it: tracking can tell the ~10 nm of the rounding apart.
+  core::Points cloudAsRecordedInModel(double t_s);
   /// The visible (anterior-facing) supine skin triangles that are sampled.
   const core::TargetSurface& visibleSkin() const { return skin_; }
 
