@@ -33,39 +33,15 @@ using namespace breast_sim;
 
 namespace {
 
-struct Run {
-  std::vector<core::Points> lesions;  ///< after each cloud [m] (a skipped cloud: those before it)
-  int reverted_frames = 0, reversals = 0;
-};
-
 /// One offline tracking run from `precomputed`, skipping the clouds in `drop`.
-Run track(core::ProneToSupinePipeline& p, const core::PipelineState& precomputed, const core::ModelCase& c,
-          const ros_interface::NodeParams& node, int clouds, double rate_hz, const std::set<int>& drop) {
-  p.restore(precomputed);
-  ros_interface::SurfaceTracker tracker(node.tracker);
-  ros_interface::TrackerSimulation sim(c);  // the bag's options (scripts/make_test_bags.sh)
-  const core::PipelineSettings& settings = p.settings();
-  const Eigen::Vector3d prone = settings.simulation.gravity_mps2 * c.prone_gravity_direction.normalized();
-  Eigen::Vector3d current = p.gravityLoad();
-  Run run;
-  for (int k = 0; k < clouds; ++k) {
-    const double t = k / rate_hz;
-    const core::Points cloud = sim.cloudAsRecordedInModel(t);  // drawn for every cloud: one random stream
-    if (!drop.count(k)) {
-      const Eigen::Vector3d load = ros_interface::gravityLoad(sim.worldFromModel(t).linear().transpose(),
-                                                              settings.simulation.gravity_mps2, prone);
-      if (ros_interface::angleDeg(load, current) > node.gravity_update_threshold_deg ||
-          (load - current).norm() > 0.01 * settings.simulation.gravity_mps2) {
-        p.setGravityLoad(load);
-        current = load;
-      }
-      const ros_interface::TrackResult r = tracker.track(p, cloud);
-      run.reversals += r.reversals;
-      run.reverted_frames += r.reversals > 0;
-    }
-    run.lesions.push_back(p.lesionPositions());
-  }
-  return run;
+ros_interface::OfflineTrackingRun track(core::ProneToSupinePipeline& p, const core::PipelineState& precomputed,
+                                        const core::ModelCase& c, const ros_interface::NodeParams& node, int clouds,
+                                        const std::set<int>& drop) {
+  std::vector<bool> tracked(static_cast<size_t>(clouds), true);
+  for (int k : drop)
+    if (k >= 0 && k < clouds) tracked[static_cast<size_t>(k)] = false;
+  return ros_interface::trackRecordingOffline(p, precomputed, c, node.tracker, node.gravity_update_threshold_deg, clouds,
+                                              10.0, tracked);
 }
 
 double maxDistanceMm(const core::Points& a, const core::Points& b) { return 1e3 * (a - b).rowwise().norm().maxCoeff(); }
@@ -132,11 +108,11 @@ int main(int argc, char** argv) {
               << " tetrahedra; precomputation " << std::fixed << std::setprecision(2) << pre_s << " s, morphing "
               << m.steps << " steps, " << m.reversed_steps << " reverted\n";
     t0 = bench::Clock::now();
-    const Run all = track(p, precomputed, c, node, clouds, 10.0, {});
+    const ros_interface::OfflineTrackingRun all = track(p, precomputed, c, node, clouds, {});
     const double run_s = bench::since(t0);
     std::cout << clouds << " clouds at 10 Hz, every one tracked: " << run_s << " s, " << all.reverted_frames
               << " frames reverted (" << all.reversals << " reversals); lesions end "
-              << maxDistanceMm(all.lesions.back(), lesions0) << " mm from the precomputed positions\n\n";
+              << maxDistanceMm(all.lesions_m.back(), lesions0) << " mm from the precomputed positions\n\n";
     out["tetrahedra"] = model.mesh.numTets();
     out["settings"] = settings_file;
     out["precompute_s"] = pre_s;
@@ -144,13 +120,13 @@ int main(int argc, char** argv) {
     out["morphing_reverted_steps"] = m.reversed_steps;
     out["clouds"] = clouds;
     out["all"] = {{"reverted_frames", all.reverted_frames}, {"reversals", all.reversals},
-                  {"end_from_precomputed_mm", maxDistanceMm(all.lesions.back(), lesions0)}};
+                  {"end_from_precomputed_mm", maxDistanceMm(all.lesions_m.back(), lesions0)}};
     std::cout << "dropped clouds                          | n  | max diff[mm]  end diff[mm] | reverted frames\n";
     for (const std::set<int>& drop : sets) {
-      const Run r = track(p, precomputed, c, node, clouds, 10.0, drop);
+      const ros_interface::OfflineTrackingRun r = track(p, precomputed, c, node, clouds, drop);
       double worst = 0;
-      for (int k = 0; k < clouds; ++k) worst = std::max(worst, maxDistanceMm(r.lesions[k], all.lesions[k]));
-      const double end = maxDistanceMm(r.lesions.back(), all.lesions.back());
+      for (int k = 0; k < clouds; ++k) worst = std::max(worst, maxDistanceMm(r.lesions_m[k], all.lesions_m[k]));
+      const double end = maxDistanceMm(r.lesions_m.back(), all.lesions_m.back());
       std::string name;
       for (int k : drop) name += (name.empty() ? "" : ",") + std::to_string(k);
       std::cout << std::left << std::setw(40) << name.substr(0, 40) << std::right << "| " << std::setw(2) << drop.size()

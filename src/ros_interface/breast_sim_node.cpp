@@ -707,8 +707,7 @@ void BreastSimNode::applyGravity(Engine& e, const ros::Time& stamp) {
   Eigen::Matrix3d r;
   if (!gravityRotation(stamp, &r)) return;  // no pose and no tf: the precomputed (case) gravity stays
   const Eigen::Vector3d load = gravityLoad(r, e.settings.simulation.gravity_mps2, e.prone_gravity_mps2);
-  if (angleDeg(load, e.gravity_load_mps2) > params_.gravity_update_threshold_deg ||
-      (load - e.gravity_load_mps2).norm() > 0.01 * e.settings.simulation.gravity_mps2) {
+  if (gravityLoadChanged(load, e.gravity_load_mps2, params_.gravity_update_threshold_deg, e.settings.simulation.gravity_mps2)) {
     e.pipeline->setGravityLoad(load);
     e.gravity_load_mps2 = load;
   }

@@ -296,6 +296,10 @@ double angleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
   return std::atan2(a.cross(b).norm(), a.dot(b)) * 180.0 / M_PI;
 }
 
+bool gravityLoadChanged(const Eigen::Vector3d& load, const Eigen::Vector3d& current, double threshold_deg, double g_mps2) {
+  return angleDeg(load, current) > threshold_deg || (load - current).norm() > 0.01 * g_mps2;
+}
+
 DisplaySurface decimateSurface(const core::Points& positions_m, const core::Triangles& triangles, int max_triangles) {
   const Eigen::Index nv = positions_m.rows();
   for (Eigen::Index i = 0; i < triangles.size(); ++i)

@@ -6,6 +6,7 @@
 #include <stdexcept>
 
 #include "breast_sim/core/model/phantom.h"
+#include "breast_sim/ros_interface/conversions.h"
 
 namespace breast_sim::ros_interface {
 
@@ -101,6 +102,38 @@ core::Points TrackerSimulation::cloudAsRecordedInModel(double t) {
   for (Eigen::Index i = 0; i < cloud.rows(); ++i)
     cloud.row(i) = (model_from_tracker * Eigen::Vector3d(cloud.row(i).transpose())).transpose();
   return cloud;
+}
+
+OfflineTrackingRun trackRecordingOffline(core::ProneToSupinePipeline& p, const core::PipelineState& start,
+                                         const core::ModelCase& model_case, const TrackerOptions& options,
+                                         double gravity_update_threshold_deg, int clouds, double cloud_rate_hz,
+                                         const std::vector<bool>& tracked, const TrackerSimulationOptions& sim_options) {
+  if (tracked.size() != static_cast<size_t>(std::max(clouds, 0)))
+    throw std::invalid_argument("trackRecordingOffline: " + std::to_string(tracked.size()) + " tracked flags for " +
+                                std::to_string(clouds) + " clouds; give one per cloud");
+  p.restore(start);
+  SurfaceTracker tracker(options);
+  TrackerSimulation sim(model_case, sim_options);
+  const double g = p.settings().simulation.gravity_mps2;
+  const Eigen::Vector3d prone = g * model_case.prone_gravity_direction.normalized();
+  Eigen::Vector3d current = p.gravityLoad();  // the start state's, as the node's after load_state
+  OfflineTrackingRun run;
+  for (int k = 0; k < clouds; ++k) {
+    const double t = k / cloud_rate_hz;
+    const core::Points cloud = sim.cloudAsRecordedInModel(t);
+    if (tracked[static_cast<size_t>(k)]) {
+      const Eigen::Vector3d load = gravityLoad(sim.worldFromModel(t).linear().transpose(), g, prone);
+      if (gravityLoadChanged(load, current, gravity_update_threshold_deg, g)) {
+        p.setGravityLoad(load);
+        current = load;
+      }
+      const TrackResult r = tracker.track(p, cloud);
+      run.reversals += r.reversals;
+      run.reverted_frames += r.reversals > 0;
+    }
+    run.lesions_m.push_back(p.lesionPositions());
+  }
+  return run;
 }
 
 }  // namespace breast_sim::ros_interface

@@ -186,6 +186,13 @@ TEST(Conversions, GravityLoadFollowsTheTableTilt) {
   // A quarter of the tilt period later the table has rolled by the amplitude (2°).
   const Eigen::Matrix3d r2 = sim.worldFromModel(2.0).linear().transpose();
   EXPECT_NEAR(ros_interface::angleDeg(ros_interface::gravityLoad(r2, 9.81, g_prone) + g_prone, load + g_prone), 2.0, 1e-9);
+  // The node's update rule: a turn beyond the threshold, or a change beyond 1 % of g (0.0981 m/s²).
+  const Eigen::Vector3d current(0, 9.81, 0);
+  const Eigen::Vector3d turned = Eigen::AngleAxisd(0.4 * M_PI / 180, Eigen::Vector3d::UnitX()) * current;  // 0.068 m/s² apart
+  EXPECT_FALSE(ros_interface::gravityLoadChanged(turned, current, 0.5, 9.81));
+  EXPECT_TRUE(ros_interface::gravityLoadChanged(turned, current, 0.3, 9.81));
+  EXPECT_FALSE(ros_interface::gravityLoadChanged(1.005 * current, current, 0.5, 9.81));
+  EXPECT_TRUE(ros_interface::gravityLoadChanged(1.02 * current, current, 0.5, 9.81));
   EXPECT_NEAR(ros_interface::angleDeg(Eigen::Vector3d::UnitX(), Eigen::Vector3d::UnitY()), 90.0, 1e-12);
   EXPECT_EQ(ros_interface::angleDeg(Eigen::Vector3d::Zero(), Eigen::Vector3d::UnitY()), 0.0);
 }

@@ -87,6 +87,11 @@ Eigen::Vector3d gravityLoad(const Eigen::Matrix3d& model_from_gravity, double g_
 /// Angle between two vectors [deg] (0 when either is zero).
 double angleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b);
 
+/// The node's rule for following the table: the gravity load is set anew when the pose's `load`
+/// turned by more than `threshold_deg` from the `current` one or differs from it by more than 1 % of
+/// g [m/s²] (~gravity/update_threshold_deg); smaller changes keep the step's system as it is.
+bool gravityLoadChanged(const Eigen::Vector3d& load, const Eigen::Vector3d& current, double threshold_deg, double g_mps2);
+
 /// A surface decimated for display by vertex clustering on a grid: vertices falling into one cell
 /// collapse onto one representative vertex; triangles that degenerate or repeat are dropped.
 struct DisplaySurface {

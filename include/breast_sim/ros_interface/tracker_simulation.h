@@ -12,12 +12,15 @@
 /// `tracker` hangs above the table looking down.
 
 #include <random>
+#include <vector>
 #include <string>
 
 #include <Eigen/Geometry>
 
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/morphing/target_surface.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "breast_sim/ros_interface/surface_tracker.h"
 
 namespace breast_sim::ros_interface {
 
@@ -64,5 +67,25 @@ class TrackerSimulation {
   Eigen::AlignedBox3d box_;
   std::mt19937 rng_;
 };
+
+/// What an offline tracking run of a recording did.
+struct OfflineTrackingRun {
+  std::vector<core::Points> lesions_m;  ///< after each cloud [m] (after a skipped one, those before it)
+  int reverted_frames = 0;              ///< tracked clouds whose step reverted at least once
+  int reversals = 0;                    ///< time-step reversals in all
+};
+
+/// The clouds of a recording (make_test_bags: TrackerSimulation with `sim`'s options, `clouds` clouds
+/// at `cloud_rate_hz` from t = 0) tracked offline as the node tracks them, without ROS in between:
+/// from the state `start`, for each cloud k with tracked[k] the gravity load of the table's pose at
+/// the cloud's time (gravityLoadChanged, `gravity_update_threshold_deg`), then the SurfaceTracker
+/// with `options` on the cloud as recorded (cloudAsRecordedInModel). Every cloud is drawn, tracked
+/// or not: the noise comes from one random stream. The navigation rostest's reference and
+/// bench_tracking_drops.
+/// @throws std::invalid_argument when `tracked` does not hold `clouds` entries.
+OfflineTrackingRun trackRecordingOffline(core::ProneToSupinePipeline& pipeline, const core::PipelineState& start,
+                                         const core::ModelCase& model_case, const TrackerOptions& options,
+                                         double gravity_update_threshold_deg, int clouds, double cloud_rate_hz,
+                                         const std::vector<bool>& tracked, const TrackerSimulationOptions& sim = {});
 
 }  // namespace breast_sim::ros_interface
