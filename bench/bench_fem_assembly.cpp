@@ -6,6 +6,9 @@
 // stays the same every step.
 //   update     = rotations + forces: CorotatedTetFem::update() (F, polar rotation, stress, forces,
 //                the per-node gather of the forces)
+//   upd port.  = update() with the portable element kernel (setSimdKernels(false): SSE2, two lanes
+//                per vector), timed in the same repetitions at a third pose; the same as update where
+//                the processor lacks AVX-512 (CorotatedTetFem::updateHasSimd)
 //   forces     = update() with setCorotated(false) (identity rotations, trace term): the same work
 //                without the polar decomposition, so rotations ≈ update(trace) − forces
 //   stiffness  = zeroing A + addStiffness()
@@ -92,9 +95,11 @@ int main(int argc, char** argv) {
   const ModelCase base = loadModelCase(std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml");
   std::printf("threads %d, %d repetitions per size, medians [ms], %s time\n", omp_get_max_threads(), reps,
               cpu_clock ? "process CPU" : "wall");
-  std::printf("AVX-512VL stiffness gather: %s\n", CorotatedTetFem::gatherHasSimd() ? "yes" : "no (assign = scalar)");
-  std::printf("%8s %7s %6s %9s %9s %9s %9s %9s %9s %9s %9s %9s\n", "tets", "nodes", "volume", "rotations", "forces", "update",
-              "stiffness", "assign", "scalar", "sum", "step asm", "overhead");
+  std::printf("AVX-512VL stiffness gather: %s; AVX-512 element update: %s\n",
+              CorotatedTetFem::gatherHasSimd() ? "yes" : "no (assign = scalar)",
+              CorotatedTetFem::updateHasSimd() ? "yes" : "no (update = upd port.)");
+  std::printf("%8s %7s %6s %9s %9s %9s %9s %9s %9s %9s %9s %9s %9s\n", "tets", "nodes", "volume", "rotations", "forces",
+              "update", "upd port.", "stiffness", "assign", "scalar", "sum", "step asm", "overhead");
   nlohmann::json rows = nlohmann::json::array();
   for (int target : targets) {
     ModelCase c = base;
@@ -105,8 +110,9 @@ int main(int argc, char** argv) {
     // positions of the last one reuses its results (CorotatedTetFem::update) and would time nothing.
     Points x = model.mesh.nodes();
     for (int n = 0; n < x.rows(); ++n) x(n, 0) += 0.05 * x(n, 1) * x(n, 1);
-    Points x_other = x;
+    Points x_other = x, x_portable = x;
     x_other(0, 0) += 1e-9;
+    x_portable(0, 0) += 2e-9;
     auto pose = [&](int r) -> const Points& { return r % 2 ? x : x_other; };  // the warm-ups are at x
     Eigen::VectorXd f;
     // Forces alone: identity rotations.
@@ -127,7 +133,7 @@ int main(int argc, char** argv) {
       fem.setVolumeTerm(volume);
       SparseMatrix A = fem.pattern().matrix();
       fem.update(x, f);  // warm-up
-      Timing t_update, t_assemble, t_assign, t_scalar, t_step;
+      Timing t_update, t_portable, t_assemble, t_assign, t_scalar, t_step;
       for (int r = 0; r < reps; ++r) {
         const double t0 = now(cpu_clock);
         fem.update(pose(r), f);
@@ -139,11 +145,15 @@ int main(int argc, char** argv) {
         const double t3 = now(cpu_clock);
         fem.setSimdKernels(false);
         fem.assignStiffness(1.0, A);
+        const double t4 = now(cpu_clock);
+        fem.update(x_portable, f);  // never the pose of the update before
+        const double t5 = now(cpu_clock);
         fem.setSimdKernels(true);
         t_update.s.push_back(t1 - t0);
         t_assemble.s.push_back(t2 - t1);
         t_assign.s.push_back(t3 - t2);
-        t_scalar.s.push_back(now(cpu_clock) - t3);
+        t_scalar.s.push_back(t4 - t3);
+        t_portable.s.push_back(t5 - t4);
       }
       // The same pose through DynamicSimulator::step().
       DynamicsParams params;
@@ -169,9 +179,9 @@ int main(int argc, char** argv) {
       }
       const double u = t_update.med(), a = t_assemble.med(), s = t_step.med(), fo = t_forces.med();
       const bool trace = volume == CorotatedTetFem::VolumeTerm::kTrace;
-      std::printf("%8d %7d %6s %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f\n", model.mesh.numTets(),
-                  model.mesh.numNodes(), volume_name, u - fo, fo, u, a, t_assign.med(), t_scalar.med(), u + a, s,
-                  s - u - a);
+      std::printf("%8d %7d %6s %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f\n", model.mesh.numTets(),
+                  model.mesh.numNodes(), volume_name, u - fo, fo, u, t_portable.med(), a, t_assign.med(), t_scalar.med(),
+                  u + a, s, s - u - a);
       std::fflush(stdout);
       rows.push_back({{"tets", model.mesh.numTets()},
                       {"nodes", model.mesh.numNodes()},
@@ -179,6 +189,7 @@ int main(int argc, char** argv) {
                       {"rotations_ms_median", u - fo},
                       {"forces_ms_median", fo},
                       {"update_ms_median", u},
+                      {"update_portable_ms_median", t_portable.med()},
                       {"stiffness_ms_median", a},
                       {"assign_stiffness_ms_median", t_assign.med()},
                       {"assign_stiffness_scalar_ms_median", t_scalar.med()},
@@ -186,6 +197,7 @@ int main(int argc, char** argv) {
                       {"step_overhead_ms_median", s - u - a},
                       {"forces_ms_min", t_forces.min()},
                       {"update_ms_min", t_update.min()},
+                      {"update_portable_ms_min", t_portable.min()},
                       {"stiffness_ms_min", t_assemble.min()},
                       {"assign_stiffness_ms_min", t_assign.min()},
                       {"assign_stiffness_scalar_ms_min", t_scalar.min()},

@@ -171,16 +171,20 @@ TEST(FemFastPaths, AssignStiffnessRejectsAMatrixOfAnotherPattern) {
 }
 
 TEST(FemFastPaths, BatchedUpdateEqualsElementByElementReferenceWithInvertedElements) {
-  // 3×2×2 cells: 72 tets (whole batches); 5×3×1: 90 (a partial batch of 2).
+  // 3×2×2 cells: 72 tets (whole batches); 5×3×1: 90 (a partial batch of 2). Both kernels: the
+  // AVX-512 one where the processor has it (CorotatedTetFem::updateHasSimd) and the portable one.
   for (const Eigen::Vector3i& cells : {Eigen::Vector3i(3, 2, 2), Eigen::Vector3i(5, 3, 1)}) {
     const DeformedBox d = deformedBox(cells);
     ASSERT_GT(invertedElements(d.mesh, d.x), 0);
     ElasticMaterial mat;
     mat.poisson_ratio = 0.45;
     const Eigen::VectorXd factors = Eigen::VectorXd::LinSpaced(d.mesh.numTets(), 1.0, 4.0);
-    for (bool determinant : {false, true}) {
-      SCOPED_TRACE(std::string(determinant ? "determinant" : "trace") + ", " + std::to_string(d.mesh.numTets()) + " tets");
+    for (bool determinant : {false, true})
+    for (bool simd : {true, false}) {
+      SCOPED_TRACE(std::string(determinant ? "determinant" : "trace") + ", " + std::to_string(d.mesh.numTets()) +
+                   " tets, " + (simd && CorotatedTetFem::updateHasSimd() ? "AVX-512" : "portable") + " kernels");
       CorotatedTetFem fem(d.mesh, mat);
+      fem.setSimdKernels(simd);
       fem.setModulusFactors(factors);
       if (determinant) fem.setVolumeTerm(CorotatedTetFem::VolumeTerm::kDeterminant);
       Eigen::VectorXd f;

@@ -9,9 +9,13 @@
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #include <immintrin.h>
+// The AVX-512 kernels (element update, stiffness gather), chosen at run time (updateHasSimd,
+// gatherHasSimd) beside the portable ones.
+#define BREAST_SIM_FEM_AVX512 1
 #endif
 
 #include "breast_sim/core/fem/polar_decomposition.h"
+#include "breast_sim/core/fem/polar_decomposition_detail.h"
 
 namespace breast_sim::core {
 
@@ -128,7 +132,7 @@ constexpr int W = kRotationBatch;
 /// not pay: 48.8k tets, 1 thread, medians, update 5.1–5.3 ms either way (the rotations ~0.4 ms
 /// faster, the rest as much slower): update() is bound by memory traffic, not arithmetic.
 template <bool kDeterminant>
-void batchKernel(const double* __restrict xs, const double* __restrict g, const double* __restrict sf,
+__attribute__((always_inline)) inline void batchKernel(const double* __restrict xs, const double* __restrict g, const double* __restrict sf,
                  const double* __restrict vol, const double* __restrict root_w, int m, bool corotated, double lambda,
                  double two_mu, double* __restrict Rb,
                  double* __restrict f, double* __restrict rg, double* __restrict cg, double* __restrict vm2) {
@@ -139,7 +143,7 @@ void batchKernel(const double* __restrict xs, const double* __restrict g, const 
       for (int l = 0; l < W; ++l)
         F[(r + 3 * c) * W + l] = xs[r * W + l] * g[c * W + l] + xs[(3 + r) * W + l] * g[(3 + c) * W + l] +
                                  xs[(6 + r) * W + l] * g[(6 + c) * W + l] + xs[(9 + r) * W + l] * g[(9 + c) * W + l];
-  if (corotated) rotationsOf(F, Rb, m);
+  if (corotated) detail::rotationsOfLanes(F, Rb, m);
   for (int l = corotated ? m : 0; l < W; ++l)
     for (int k = 0; k < 9; ++k) Rb[k * W + l] = k % 4 == 0 ? 1.0 : 0.0;
   for (int l = 0; l < W; ++l) {
@@ -200,51 +204,117 @@ void batchKernel(const double* __restrict xs, const double* __restrict g, const 
   }
 }
 
+/// What one batch of CorotatedTetFem::update() reads and writes (updateBatch).
+struct UpdateArgs {
+  const double* batch_grads;  // per batch, component-major
+  double* rotations;          // per batch, component-major
+  const double* volumes;
+  const double* modulus_factor;
+  const double* base_scale;
+  const int* tets;            // row-major #T × 4 (Tets)
+  int num_tets;
+  const double* x;            // row-major #N × 3 (Points) [m]
+  double* von_mises;
+  double* elem_forces;
+  double* records;
+  int stride;                 // record length
+  bool corotated;
+  double lambda, two_mu;
+};
+
+/// Batch b of CorotatedTetFem::update(): component-major arrays v[k·W + l] (lane l = element
+/// e0 + l); every arithmetic loop runs over l without a branch, so it vectorises (see rotationsOf
+/// for why: no conditional expressions, square roots in loops of their own). Lanes past the last
+/// element compute on zeros and the identity and are not written back. Inline, so that each
+/// instantiation below compiles it for its own instruction set.
+template <bool kDeterminant>
+__attribute__((always_inline)) inline void updateBatch(const UpdateArgs& a, int b) {
+  const int e0 = b * W, m = std::min(W, a.num_tets - e0);
+  const double* const g = a.batch_grads + 12 * W * static_cast<size_t>(b);
+  double* const Rb = a.rotations + 9 * W * static_cast<size_t>(b);
+  alignas(64) double xs[12 * W], f[12 * W], rg[12 * W], cg[12 * W], sf[W], vol[W], root_w[W], vm2[W];
+  for (int l = 0; l < W; ++l) {
+    const bool in = l < m;
+    vol[l] = in ? a.volumes[e0 + l] : 0.0;
+    sf[l] = in ? a.modulus_factor[e0 + l] * a.base_scale[e0 + l] : 0.0;  // E_r b_e
+    for (int i = 0; i < 4; ++i) {
+      const size_t node = in ? static_cast<size_t>(a.tets[4 * static_cast<size_t>(e0 + l) + i]) : 0;
+      for (int c = 0; c < 3; ++c) xs[(3 * i + c) * W + l] = in ? a.x[3 * node + c] : 0.0;
+    }
+  }
+  for (int l = 0; l < W; ++l) root_w[l] = std::sqrt(sf[l] * vol[l]);
+  batchKernel<kDeterminant>(xs, g, sf, vol, root_w, m, a.corotated, a.lambda, a.two_mu, Rb, f, rg, cg, vm2);
+  // Back to per-element storage.
+  for (int l = 0; l < m; ++l) {
+    const size_t e = static_cast<size_t>(e0 + l);
+    a.von_mises[e] = std::sqrt(vm2[l]);
+    double* const fe = a.elem_forces + 12 * e;
+    double* const rec = a.records + a.stride * e;
+    for (int k = 0; k < 12; ++k) fe[k] = f[k * W + l];
+    for (int k = 0; k < 12; ++k) rec[k] = rg[k * W + l];
+    if constexpr (kDeterminant)
+      for (int k = 0; k < 12; ++k) rec[12 + k] = cg[k * W + l];
+  }
+}
+
+template <bool kDeterminant>
+void updateBatchPortable(const UpdateArgs& a, int b) {
+  updateBatch<kDeterminant>(a, b);
+}
+
+#ifdef BREAST_SIM_FEM_AVX512
+/// The same batch compiled for AVX-512 (one batch of 8 doubles is one vector; the compiler may
+/// contract products and sums into fused multiply-adds, so it equals the portable one to rounding).
+template <bool kDeterminant>
+__attribute__((target("avx512f,avx512vl,avx512dq,avx2,fma"))) void updateBatchAvx512(const UpdateArgs& a, int b) {
+  updateBatch<kDeterminant>(a, b);
+}
+#endif
+
 }  // namespace
+
+bool CorotatedTetFem::updateHasSimd() {
+#ifdef BREAST_SIM_FEM_AVX512
+  static const bool has = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vl") &&
+                          __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx2") &&
+                          __builtin_cpu_supports("fma");
+  return has;
+#else
+  return false;
+#endif
+}
 
 template <bool kDeterminant>
 void CorotatedTetFem::updateBatches(const Points& x) {
   constexpr int W = kBatch;
   const int nt = static_cast<int>(tets_.rows());
   const int num_batches = (nt + W - 1) / W;
-  const double lambda = volumeLambda(), two_mu = 2.0 * mu_;
-  const bool corotated = corotated_;
-  double* const recs = records();
-  const int stride = record_;
-  // Per batch, component-major arrays v[k·W + l] (lane l = element e0 + l); every arithmetic loop
-  // below runs over l without a branch, so it vectorises (see rotationsOf for why: no conditional
-  // expressions, square roots in loops of their own). Lanes past the last element compute on zeros
-  // and the identity and are not written back.
+  static_assert(kVolumeGrads == 12, "updateBatch writes the volume gradients after the 12 rotated ones");
+  UpdateArgs a;
+  a.batch_grads = batch_grads_.data();
+  a.rotations = rotations_.data();
+  a.volumes = volumes_.data();
+  a.modulus_factor = modulus_factor_.data();
+  a.base_scale = base_scale_.data();
+  a.tets = tets_.data();
+  a.num_tets = nt;
+  a.x = x.data();
+  a.von_mises = von_mises_.data();
+  a.elem_forces = elem_forces_.data();
+  a.records = records();
+  a.stride = record_;
+  a.corotated = corotated_;
+  a.lambda = volumeLambda();
+  a.two_mu = 2.0 * mu_;
+  void (*batch)(const UpdateArgs&, int) = updateBatchPortable<kDeterminant>;
+#ifdef BREAST_SIM_FEM_AVX512
+  if (simd_kernels_ && updateHasSimd()) batch = updateBatchAvx512<kDeterminant>;
+#endif
   // Measured (bench_fem_assembly, 48.8k tets, 1 thread, medians of 40, old and new binaries
   // interleaved on a loaded machine): update (rotations + forces) trace 10.5–10.9 → 5.0 ms,
   // determinant 11.9 → 6.0 ms; of which rotations 7.9–8.5 → 2.8 ms.
 #pragma omp parallel for schedule(static)
-  for (int b = 0; b < num_batches; ++b) {
-    const int e0 = b * W, m = std::min(W, nt - e0);
-    const double* const g = &batch_grads_[12 * W * static_cast<size_t>(b)];
-    double* const Rb = &rotations_[9 * W * static_cast<size_t>(b)];
-    alignas(64) double xs[12 * W], f[12 * W], rg[12 * W], cg[12 * W], sf[W], vol[W], root_w[W], vm2[W];
-    for (int l = 0; l < W; ++l) {
-      const bool in = l < m;
-      vol[l] = in ? volumes_[e0 + l] : 0.0;
-      sf[l] = in ? modulus_factor_[e0 + l] * base_scale_[e0 + l] : 0.0;  // E_r b_e
-      for (int i = 0; i < 4; ++i)
-        for (int c = 0; c < 3; ++c) xs[(3 * i + c) * W + l] = in ? x(tets_(e0 + l, i), c) : 0.0;
-    }
-    for (int l = 0; l < W; ++l) root_w[l] = std::sqrt(sf[l] * vol[l]);
-    batchKernel<kDeterminant>(xs, g, sf, vol, root_w, m, corotated, lambda, two_mu, Rb, f, rg, cg, vm2);
-    // Back to per-element storage.
-    for (int l = 0; l < m; ++l) {
-      const size_t e = static_cast<size_t>(e0 + l);
-      von_mises_[e0 + l] = std::sqrt(vm2[l]);
-      double* const fe = &elem_forces_[12 * e];
-      double* const rec = recs + stride * e;
-      for (int k = 0; k < 12; ++k) fe[k] = f[k * W + l];
-      for (int k = 0; k < 12; ++k) rec[k] = rg[k * W + l];
-      if constexpr (kDeterminant)
-        for (int k = 0; k < 12; ++k) rec[kVolumeGrads + k] = cg[k * W + l];
-    }
-  }
+  for (int b = 0; b < num_batches; ++b) batch(a, b);
 }
 
 void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
@@ -382,7 +452,6 @@ void gatherNodesScalar(const GatherArgs& a, int n0, int n1) {
 }
 
 #if defined(__x86_64__) && defined(__GNUC__)
-#define BREAST_SIM_GATHER_AVX512 1
 /// Rows r = 0..2 of element block (i, j): u_r h_j + a_j[r] μ a_i + (μ a_i·a_j) e_r, with v = μ a_i
 /// and u_r = λ h_i[r] on every lane (lane 3 of the results is zero).
 template <int kH>
@@ -455,7 +524,7 @@ __attribute__((target("avx512f,avx512vl,fma"))) void gatherNodesAvx512(const Gat
 }  // namespace
 
 bool CorotatedTetFem::gatherHasSimd() {
-#ifdef BREAST_SIM_GATHER_AVX512
+#ifdef BREAST_SIM_FEM_AVX512
   static const bool has = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vl") &&
                           __builtin_cpu_supports("fma");
   return has;
@@ -507,7 +576,7 @@ void CorotatedTetFem::gatherStiffness(double scale, SparseMatrix& A) const {
 #pragma omp parallel for schedule(dynamic, 1)
   for (int c = 0; c < num_chunks; ++c) {
     const int n0 = c * kChunk, n1 = std::min(nn, n0 + kChunk);
-#ifdef BREAST_SIM_GATHER_AVX512
+#ifdef BREAST_SIM_FEM_AVX512
     if (simd) {
       gatherNodesAvx512<kStride, kH, kAssign>(args, n0, n1);
       continue;

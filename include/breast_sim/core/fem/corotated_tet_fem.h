@@ -89,13 +89,17 @@ class CorotatedTetFem : public ElementFormulation {
   /// Selects the volumetric term (kTrace by default).
   void setVolumeTerm(VolumeTerm term) { volume_term_ = term; }
   VolumeTerm volumeTerm() const { return volume_term_; }
-  /// Whether the stiffness gather may use its AVX-512VL version (when the processor has it, see
-  /// gatherHasSimd()); false selects the portable scalar one, the reference (on by default; both
-  /// give the same sums up to rounding: fused multiply-adds, and the diagonal block summed in
-  /// registers before it is added to A).
+  /// Whether the stiffness gather and the element update may use their AVX-512 versions (when the
+  /// processor has them, see gatherHasSimd() and updateHasSimd()); false selects the portable ones,
+  /// the reference (on by default). Both give the same results up to rounding: fused multiply-adds,
+  /// and the gather's diagonal block summed in registers before it is added to A.
   void setSimdKernels(bool simd) { simd_kernels_ = simd; }
   /// Whether this processor runs the AVX-512VL stiffness gather (checked once).
   static bool gatherHasSimd();
+  /// Whether this processor runs update()'s element kernel compiled for AVX-512 (checked once): the
+  /// same source as the portable one (SSE2, two lanes per vector), one batch of 8 elements per
+  /// vector instead of four.
+  static bool updateHasSimd();
   /// \note update() must run before addStiffness() and denseStiffness(): both use its rotations.
 
   /// Dense 3N×3N stiffness at the last update, element by element (the slow reference for tests).
