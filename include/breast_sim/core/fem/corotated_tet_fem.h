@@ -147,8 +147,13 @@ class CorotatedTetFem : public ElementFormulation {
   VolumeTerm updated_volume_term_ = VolumeTerm::kTrace;
   double trace_lambda_ = 0.0;              // λ of the trace kernels at the last update(): λ, or −2μ/3 for kNone
   double volumeLambda() const { return trace_lambda_; }
+  std::vector<double> thread_forces_;  // per OpenMP thread, 3 per node: the node-force sums of its batches [N]
   template <bool kDeterminant>
-  void updateBatches(const Points& x);
+  void updateBatches(const Points& x, Eigen::VectorXd& f);
+  /// f = Σ over threads of the node forces batch(node_forces, b) adds for each batch b of the
+  /// thread's static share (see the definition).
+  template <class BatchFn>
+  void withThreadForces(Eigen::VectorXd& f, BatchFn&& batch);
   template <bool kDeterminant, bool kAssign>
   void gatherStiffness(double scale, SparseMatrix& A) const;
 };
