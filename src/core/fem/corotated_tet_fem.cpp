@@ -246,12 +246,15 @@ __attribute__((always_inline)) inline void updateBatch(const UpdateArgs& a, int 
       for (int c = 0; c < 3; ++c) xs[(3 * i + c) * W + l] = in ? a.x[3 * node + c] : 0.0;
     }
   }
+#pragma omp simd
   for (int l = 0; l < W; ++l) root_w[l] = std::sqrt(sf[l] * vol[l]);
   batchKernel<kDeterminant>(xs, g, sf, vol, root_w, m, a.corotated, a.lambda, a.two_mu, Rb, f, rg, cg, vm2);
   // Back to per-element storage.
+#pragma omp simd
+  for (int l = 0; l < W; ++l) vm2[l] = std::sqrt(vm2[l]);
   for (int l = 0; l < m; ++l) {
     const size_t e = static_cast<size_t>(e0 + l);
-    a.von_mises[e] = std::sqrt(vm2[l]);
+    a.von_mises[e] = vm2[l];
     double* const fe = a.elem_forces + 12 * e;
     double* const rec = a.records + a.stride * e;
     for (int k = 0; k < 12; ++k) fe[k] = f[k * W + l];

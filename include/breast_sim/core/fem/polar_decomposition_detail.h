@@ -55,6 +55,7 @@ __attribute__((always_inline)) inline void rotationsOfLanes(const double* F, dou
         }
         gamma[l] = cn / (det[l] * det[l] * xn);
       }
+#pragma omp simd
       for (int l = 0; l < W; ++l) gamma[l] = std::sqrt(std::sqrt(gamma[l]));
     } else {
       for (int l = 0; l < W; ++l) gamma[l] = 1.0;
