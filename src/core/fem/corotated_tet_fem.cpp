@@ -129,9 +129,14 @@ constexpr int W = kRotationBatch;
 /// identity otherwise), the element forces f = −V R σ ∇N_i (12), √(V E_r) R ∇N_i (12), with
 /// kDeterminant √(V E_r) cof F ∇N_i (12), and the squared von Mises stress vm2; sf is E_r (times the
 /// element's base modulus scale b_e, setElementYoungsModuli), vol V [m³] and root_w √(V E_r).
-/// \note Compiling it (and rotationsOf) for AVX2/FMA and AVX-512 as well (GCC target_clones) did
-/// not pay: 48.8k tets, 1 thread, medians, update 5.1–5.3 ms either way (the rotations ~0.4 ms
-/// faster, the rest as much slower): update() is bound by memory traffic, not arithmetic.
+/// \note It is compiled twice (updateBatchPortable, updateBatchAvx512), inlined with rotationsOf's
+/// lane arithmetic into each. An earlier try compiled only this kernel and rotationsOf for AVX-512
+/// (GCC target_clones) and did not pay (1 thread, update 5.1–5.3 ms either way): the batch's
+/// gathers and transposes around it stayed two-wide, and the square roots were scalar calls behind
+/// an errno branch (CGAL's -frounding-math and -fmath-errno, both off for this file now, see
+/// CMakeLists.txt). With the whole batch in one function and the roots vectorised, bench_fem_assembly
+/// (48.8k, 1 thread, process CPU time, both kernels in the same repetitions, before the roots were
+/// vectorised) gave update trace 5.3 ms portable against 4.1 ms AVX-512, determinant 6.1 against 4.5.
 template <bool kDeterminant>
 __attribute__((always_inline)) inline void batchKernel(const double* __restrict xs, const double* __restrict g, const double* __restrict sf,
                  const double* __restrict vol, const double* __restrict root_w, int m, bool corotated, double lambda,
