@@ -69,28 +69,60 @@ __attribute__((target("avx2,fma"), always_inline)) inline void avx2Block(const f
   a22 = __builtin_fma(static_cast<double>(a[8]), xj[2], a22);
 }
 
-// Two blocks per iteration into two sets of accumulators (even and odd blocks), added at the end:
-// the multiply-adds of consecutive blocks do not wait for each other.
-__attribute__((target("avx2,fma"))) void residualAvx2(const float* val, const int* col, const int* start,
-                                                       const double* b, const double* x, double* t, int i0, int i1) {
+// The end of a residual row: s holds the accumulators' eight lanes in avx2Block's order
+// (a00 a01 a02 a10 | a11 a12 a20 a21), a22 the ninth.
+inline void finishResidualRow(const double s[8], double a22, const double* b, double* t, int i) {
+  t[3 * i] = b[3 * i] - ((s[0] + s[1]) + s[2]);
+  t[3 * i + 1] = b[3 * i + 1] - ((s[3] + s[4]) + s[5]);
+  t[3 * i + 2] = b[3 * i + 2] - ((s[6] + s[7]) + a22);
+}
+
+// The residual rows t_i = b_i − A_i x with the block kernel K (Avx2Blocks, Avx512Blocks): two
+// blocks per iteration into two sets of accumulators (even and odd blocks), added at the end, so the
+// multiply-adds of consecutive blocks do not wait for each other. Inlined into each kernel's entry
+// point (residualAvx2, residualAvx512), whose instruction set the kernel's members then inline into.
+template <class K>
+__attribute__((always_inline)) inline void residualRowsWith(const K& kernel, const float* val, const int* col,
+                                                           const int* start, const double* b, const double* x,
+                                                           double* t, int i0, int i1) {
   for (int i = i0; i < i1; ++i) {
-    __m256d lo0 = _mm256_setzero_pd(), hi0 = _mm256_setzero_pd(), lo1 = _mm256_setzero_pd(), hi1 = _mm256_setzero_pd();
+    typename K::Acc acc0 = kernel.zero(), acc1 = kernel.zero();
     double a22_0 = 0.0, a22_1 = 0.0;
     int k = start[i];
     const int k1 = start[i + 1];
     for (; k + 1 < k1; k += 2) {
-      avx2Block(val, col, x, k, lo0, hi0, a22_0);
-      avx2Block(val, col, x, k + 1, lo1, hi1, a22_1);
+      kernel.block(val, col, x, k, acc0, a22_0);
+      kernel.block(val, col, x, k + 1, acc1, a22_1);
     }
-    if (k < k1) avx2Block(val, col, x, k, lo0, hi0, a22_0);
-    alignas(32) double l[4], h[4];
-    _mm256_store_pd(l, _mm256_add_pd(lo0, lo1));
-    _mm256_store_pd(h, _mm256_add_pd(hi0, hi1));
-    const double a22 = a22_0 + a22_1;
-    t[3 * i] = b[3 * i] - ((l[0] + l[1]) + l[2]);
-    t[3 * i + 1] = b[3 * i + 1] - ((l[3] + h[0]) + h[1]);
-    t[3 * i + 2] = b[3 * i + 2] - ((h[2] + h[3]) + a22);
+    if (k < k1) kernel.block(val, col, x, k, acc0, a22_0);
+    alignas(64) double s[8];
+    kernel.store(s, acc0, acc1);
+    finishResidualRow(s, a22_0 + a22_1, b, t, i);
   }
+}
+
+// The members carry their instruction set but not always_inline: residualRowsWith, which calls
+// them, has none until it is inlined into its entry point, and GCC refuses to force-inline a
+// function with more instructions into one with fewer. They are inlined there all the same (no call
+// is left in either entry point).
+struct Avx2Blocks {
+  struct Acc {
+    __m256d lo, hi;
+  };
+  __attribute__((target("avx2,fma"))) Acc zero() const { return {_mm256_setzero_pd(), _mm256_setzero_pd()}; }
+  __attribute__((target("avx2,fma"))) void block(const float* val, const int* col, const double* x, int k, Acc& acc,
+                                                 double& a22) const {
+    avx2Block(val, col, x, k, acc.lo, acc.hi, a22);
+  }
+  __attribute__((target("avx2,fma"))) void store(double* s, const Acc& a, const Acc& b) const {
+    _mm256_store_pd(s, _mm256_add_pd(a.lo, b.lo));
+    _mm256_store_pd(s + 4, _mm256_add_pd(a.hi, b.hi));
+  }
+};
+
+__attribute__((target("avx2,fma"))) void residualAvx2(const float* val, const int* col, const int* start,
+                                                       const double* b, const double* x, double* t, int i0, int i1) {
+  residualRowsWith(Avx2Blocks{}, val, col, start, b, x, t, i0, i1);
 }
 
 // GCC 12's AVX-512 headers leave the unused upper half of a conversion or permutation "undefined"
@@ -101,39 +133,30 @@ __attribute__((target("avx2,fma"))) void residualAvx2(const float* val, const in
 // doubles, times (x0 x1 x2 x0 x1 x2 x0 x1) in one multiply-add, in the same accumulator lanes as
 // avx2Block's lo and hi (lanes 0–3 and 4–7), and a8 on its own: the same sums, bit for bit, in
 // fewer instructions (one conversion, permutation and multiply-add per block instead of two).
-__attribute__((target("avx512f,avx2,fma"), always_inline)) inline void avx512Block(const float* val, const int* col,
-                                                                                    const double* x, int k,
-                                                                                    __m512i spread, __m512d& acc,
-                                                                                    double& a22) {
-  const float* a = val + 9 * static_cast<size_t>(k);
-  const double* xj = x + 3 * static_cast<size_t>(col[k]);
-  const __m256d xv = _mm256_maskload_pd(xj, _mm256_set_epi64x(0, -1, -1, -1));  // x0 x1 x2 0
-  const __m512d xs = _mm512_permutexvar_pd(spread, _mm512_zextpd256_pd512(xv));  // x0 x1 x2 x0 x1 x2 x0 x1
-  acc = _mm512_fmadd_pd(_mm512_cvtps_pd(_mm256_loadu_ps(a)), xs, acc);
-  a22 = __builtin_fma(static_cast<double>(a[8]), xj[2], a22);
-}
+struct Avx512Blocks {
+  struct Acc {
+    __m512d v;
+  };
+  __attribute__((target("avx512f,avx2,fma"))) Acc zero() const { return {_mm512_setzero_pd()}; }
+  __attribute__((target("avx512f,avx2,fma"))) void block(const float* val, const int* col, const double* x, int k,
+                                                         Acc& acc, double& a22) const {
+    const float* a = val + 9 * static_cast<size_t>(k);
+    const double* xj = x + 3 * static_cast<size_t>(col[k]);
+    const __m256d xv = _mm256_maskload_pd(xj, _mm256_set_epi64x(0, -1, -1, -1));  // x0 x1 x2 0
+    const __m512i spread = _mm512_set_epi64(1, 0, 2, 1, 0, 2, 1, 0);                // → x0 x1 x2 x0 x1 x2 x0 x1
+    const __m512d xs = _mm512_permutexvar_pd(spread, _mm512_zextpd256_pd512(xv));
+    acc.v = _mm512_fmadd_pd(_mm512_cvtps_pd(_mm256_loadu_ps(a)), xs, acc.v);
+    a22 = __builtin_fma(static_cast<double>(a[8]), xj[2], a22);
+  }
+  __attribute__((target("avx512f,avx2,fma"))) void store(double* s, const Acc& a, const Acc& b) const {
+    _mm512_store_pd(s, _mm512_add_pd(a.v, b.v));
+  }
+};
 
 __attribute__((target("avx512f,avx2,fma"))) void residualAvx512(const float* val, const int* col, const int* start,
                                                                  const double* b, const double* x, double* t, int i0,
                                                                  int i1) {
-  const __m512i spread = _mm512_set_epi64(1, 0, 2, 1, 0, 2, 1, 0);
-  for (int i = i0; i < i1; ++i) {
-    __m512d acc0 = _mm512_setzero_pd(), acc1 = _mm512_setzero_pd();
-    double a22_0 = 0.0, a22_1 = 0.0;
-    int k = start[i];
-    const int k1 = start[i + 1];
-    for (; k + 1 < k1; k += 2) {
-      avx512Block(val, col, x, k, spread, acc0, a22_0);
-      avx512Block(val, col, x, k + 1, spread, acc1, a22_1);
-    }
-    if (k < k1) avx512Block(val, col, x, k, spread, acc0, a22_0);
-    alignas(64) double s[8];
-    _mm512_store_pd(s, _mm512_add_pd(acc0, acc1));
-    const double a22 = a22_0 + a22_1;
-    t[3 * i] = b[3 * i] - ((s[0] + s[1]) + s[2]);
-    t[3 * i + 1] = b[3 * i + 1] - ((s[3] + s[4]) + s[5]);
-    t[3 * i + 2] = b[3 * i + 2] - ((s[6] + s[7]) + a22);
-  }
+  residualRowsWith(Avx512Blocks{}, val, col, start, b, x, t, i0, i1);
 }
 #pragma GCC diagnostic pop
 
