@@ -4,6 +4,7 @@
 // evaluation of the same formulas, on a deformed mesh with inverted elements and an element count
 // that leaves a partial batch.
 #include <gtest/gtest.h>
+#include <omp.h>
 
 #include <algorithm>
 #include <cmath>
@@ -233,6 +234,36 @@ TEST(FemFastPaths, LinearElementsMatchTheDenseStiffnessTimesDisplacement) {
   const Eigen::VectorXd ref = -fem.denseStiffness() * u;
   EXPECT_LT((f - ref).cwiseAbs().maxCoeff(), 1e-10 * ref.cwiseAbs().maxCoeff());
   for (int e = 0; e < d.mesh.numTets(); ++e) EXPECT_TRUE(fem.rotation(e).isIdentity(0.0));
+}
+
+TEST(FemFastPaths, NodeForcesDependOnTheThreadCountOnlyInTheLastBitsAndRepeatExactly) {
+  // The node forces are summed per thread over a static share of the batches, then over the threads
+  // in order (CorotatedTetFem::withThreadForces). An update at the same positions sums the kept
+  // element forces in the same order: the same bits. Another thread count sums in another order:
+  // round-off only. A mesh of several batches per thread and a partial last batch (90 tets).
+  const DeformedBox d = deformedBox({5, 3, 1});
+  ElasticMaterial mat;
+  mat.poisson_ratio = 0.48;
+  const int threads = omp_get_max_threads();
+  Eigen::VectorXd fresh, again, one_thread;
+  {
+    CorotatedTetFem fem(d.mesh, mat);
+    fem.setVolumeTerm(CorotatedTetFem::VolumeTerm::kDeterminant);
+    fem.update(d.x, fresh);
+    fem.update(d.x, again);  // the same positions: the kept element forces
+    ASSERT_EQ(fresh.size(), again.size());
+    for (Eigen::Index r = 0; r < fresh.size(); ++r) ASSERT_EQ(fresh[r], again[r]) << "row " << r;
+  }
+  omp_set_num_threads(1);
+  {
+    CorotatedTetFem fem(d.mesh, mat);
+    fem.setVolumeTerm(CorotatedTetFem::VolumeTerm::kDeterminant);
+    fem.update(d.x, one_thread);
+  }
+  omp_set_num_threads(threads);
+  const double scale = fresh.cwiseAbs().maxCoeff();
+  ASSERT_GT(scale, 0.0);
+  EXPECT_LT((fresh - one_thread).cwiseAbs().maxCoeff(), 1e-13 * scale);
 }
 
 TEST(FemFastPaths, SimdStiffnessGatherEqualsTheScalarOne) {

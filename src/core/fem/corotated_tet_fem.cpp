@@ -138,10 +138,12 @@ constexpr int W = kRotationBatch;
 /// (48.8k, 1 thread, process CPU time, both kernels in the same repetitions, before the roots were
 /// vectorised) gave update trace 5.3 ms portable against 4.1 ms AVX-512, determinant 6.1 against 4.5.
 template <bool kDeterminant>
-__attribute__((always_inline)) inline void batchKernel(const double* __restrict xs, const double* __restrict g, const double* __restrict sf,
-                 const double* __restrict vol, const double* __restrict root_w, int m, bool corotated, double lambda,
-                 double two_mu, double* __restrict Rb,
-                 double* __restrict f, double* __restrict rg, double* __restrict cg, double* __restrict vm2) {
+__attribute__((always_inline)) inline void batchKernel(const double* __restrict xs, const double* __restrict g,
+                                                       const double* __restrict sf, const double* __restrict vol,
+                                                       const double* __restrict root_w, int m, bool corotated,
+                                                       double lambda, double two_mu, double* __restrict Rb,
+                                                       double* __restrict f, double* __restrict rg,
+                                                       double* __restrict cg, double* __restrict vm2) {
   alignas(64) double F[9 * W];
   // F = Σ_i x_i ∇N_iᵀ, column-major: F[(r + 3c)·W + l].
   for (int r = 0; r < 3; ++r)
@@ -234,7 +236,7 @@ struct UpdateArgs {
 /// for why: no conditional expressions, square roots in loops of their own). Lanes past the last
 /// element compute on zeros and the identity and are not written back. The element forces are
 /// kept per element (for an update at the same positions, see update()) and added to the thread's
-/// node forces in element order, as scatterElementForces() does. Inline, so that each
+/// node forces in element order, as update()'s reuse path adds the kept ones. Inline, so that each
 /// instantiation below compiles it for its own instruction set.
 template <bool kDeterminant>
 __attribute__((always_inline)) inline void updateBatch(const UpdateArgs& a, int b) {
@@ -345,7 +347,8 @@ void CorotatedTetFem::withThreadForces(Eigen::VectorXd& f, BatchFn&& batch) {
   const int num_batches = (nt + kBatch - 1) / kBatch;
   const size_t n3 = 3 * static_cast<size_t>(pattern_.numNodes());
   const int max_threads = std::max(1, omp_get_max_threads());
-  if (thread_forces_.size() < n3 * static_cast<size_t>(max_threads)) thread_forces_.assign(n3 * static_cast<size_t>(max_threads), 0.0);
+  if (thread_forces_.size() < n3 * static_cast<size_t>(max_threads))
+    thread_forces_.assign(n3 * static_cast<size_t>(max_threads), 0.0);
   f.resize(static_cast<Eigen::Index>(n3));  // every entry is written below
   double* const out = f.data();
   double* const buffers = thread_forces_.data();

@@ -23,8 +23,10 @@ namespace breast_sim::core {
 /// The per-element work of update() (deformation gradient, rotation, stress, forces) runs on
 /// batches of kRotationBatch elements in structure-of-arrays form, in loops over the batch the
 /// compiler vectorises; the rotations by rotationsOf() (polar_decomposition.h).
-/// Assembly and forces run in parallel over nodes (each node gathers from its elements), so no two
-/// threads write the same entry.
+/// The stiffness assembly runs in parallel over nodes (each node gathers its rows from its
+/// elements), so no two threads write the same entry; the node forces are summed per thread, each
+/// thread over its own static share of the batches into an array of its own, and the arrays added in
+/// thread order (the sums depend on the thread count, not on timing).
 class CorotatedTetFem : public ElementFormulation {
  public:
   /// @param pattern_rings  the reach of pattern() (BlockPattern): 1, or 2 for a formulation that
