@@ -32,7 +32,8 @@ __attribute__((always_inline)) inline void rotationsOfLanes(const double* F, dou
   // rotationOf's iteration on all lanes in lock step. The arithmetic loops over l have no branch,
   // so they vectorise (a conditional expression would not: with the default -ftrapping-math GCC
   // does not if-convert floating-point code, and std::sqrt's errno check is a branch, hence the
-  // square roots in a loop of their own). A lane's result is taken when it converges, at
+  // square roots in a loop of their own, which vectorises where the file is built without errno
+  // and -frounding-math, as the core's are: CMakeLists.txt). A lane's result is taken when it converges, at
   // rotationOf's iteration and stopping rule; the lanes iterate on regardless, discarded.
   for (int it = 0; it < 20; ++it) {
     for (int l = 0; l < W; ++l) {
