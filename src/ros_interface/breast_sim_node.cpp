@@ -606,6 +606,7 @@ bool BreastSimNode::lookup(const std::string& target, const std::string& source,
   std::string err;
   const auto deadline = Clock::now() + std::chrono::duration<double>(params_.tf_wait_s);
   while (true) {
+    err.clear();  // tf2 appends its reason to the string on every failed call
     if (tf_buffer_.canTransform(target, source, stamp, &err)) {
       *t = isometryFromTransform(tf_buffer_.lookupTransform(target, source, stamp).transform);
       return true;
