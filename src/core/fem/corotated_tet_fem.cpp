@@ -212,6 +212,15 @@ __attribute__((always_inline)) inline void batchKernel(const double* __restrict 
   }
 }
 
+/// Adds element e's forces fe (12 [N]) to its four nodes in node_forces (3 per node): the one order
+/// in which both update() paths, a fresh update and one at the same positions, sum them.
+inline void addElementForces(const int* tets, size_t e, const double* fe, double* node_forces) {
+  for (int i = 0; i < 4; ++i) {
+    double* const fn = node_forces + 3 * static_cast<size_t>(tets[4 * e + i]);
+    fn[0] += fe[3 * i], fn[1] += fe[3 * i + 1], fn[2] += fe[3 * i + 2];
+  }
+}
+
 /// What one batch of CorotatedTetFem::update() reads and writes (updateBatch).
 struct UpdateArgs {
   const double* batch_grads;  // per batch, component-major
@@ -224,7 +233,6 @@ struct UpdateArgs {
   const double* x;            // row-major #N × 3 (Points) [m]
   double* von_mises;
   double* elem_forces;
-  double* node_forces;        // this thread's node-force sums (3 per node), added to
   double* records;
   int stride;                 // record length
   bool corotated;
@@ -236,10 +244,10 @@ struct UpdateArgs {
 /// for why: no conditional expressions, square roots in loops of their own). Lanes past the last
 /// element compute on zeros and the identity and are not written back. The element forces are
 /// kept per element (for an update at the same positions, see update()) and added to the thread's
-/// node forces in element order, as update()'s reuse path adds the kept ones. Inline, so that each
-/// instantiation below compiles it for its own instruction set.
+/// node forces (node_forces, 3 per node) by addElementForces, as update()'s reuse path adds the kept
+/// ones. Inline, so that each instantiation below compiles it for its own instruction set.
 template <bool kDeterminant>
-__attribute__((always_inline)) inline void updateBatch(const UpdateArgs& a, int b) {
+__attribute__((always_inline)) inline void updateBatch(const UpdateArgs& a, int b, double* node_forces) {
   const int e0 = b * W, m = std::min(W, a.num_tets - e0);
   const double* const g = a.batch_grads + 12 * W * static_cast<size_t>(b);
   double* const Rb = a.rotations + 9 * W * static_cast<size_t>(b);
@@ -265,10 +273,7 @@ __attribute__((always_inline)) inline void updateBatch(const UpdateArgs& a, int 
     double* const fe = a.elem_forces + 12 * e;
     double* const rec = a.records + a.stride * e;
     for (int k = 0; k < 12; ++k) fe[k] = f[k * W + l];
-    for (int i = 0; i < 4; ++i) {
-      double* const fn = a.node_forces + 3 * static_cast<size_t>(a.tets[4 * e + i]);
-      fn[0] += f[(3 * i) * W + l], fn[1] += f[(3 * i + 1) * W + l], fn[2] += f[(3 * i + 2) * W + l];
-    }
+    addElementForces(a.tets, e, fe, node_forces);
     for (int k = 0; k < 12; ++k) rec[k] = rg[k * W + l];
     if constexpr (kDeterminant)
       for (int k = 0; k < 12; ++k) rec[12 + k] = cg[k * W + l];
@@ -276,16 +281,16 @@ __attribute__((always_inline)) inline void updateBatch(const UpdateArgs& a, int 
 }
 
 template <bool kDeterminant>
-void updateBatchPortable(const UpdateArgs& a, int b) {
-  updateBatch<kDeterminant>(a, b);
+void updateBatchPortable(const UpdateArgs& a, int b, double* node_forces) {
+  updateBatch<kDeterminant>(a, b, node_forces);
 }
 
 #ifdef BREAST_SIM_FEM_AVX512
 /// The same batch compiled for AVX-512 (one batch of 8 doubles is one vector; the compiler may
 /// contract products and sums into fused multiply-adds, so it equals the portable one to rounding).
 template <bool kDeterminant>
-__attribute__((target("avx512f,avx512vl,avx512dq,avx2,fma"))) void updateBatchAvx512(const UpdateArgs& a, int b) {
-  updateBatch<kDeterminant>(a, b);
+__attribute__((target("avx512f,avx512vl,avx512dq,avx2,fma"))) void updateBatchAvx512(const UpdateArgs& a, int b, double* node_forces) {
+  updateBatch<kDeterminant>(a, b, node_forces);
 }
 #endif
 
@@ -322,18 +327,14 @@ void CorotatedTetFem::updateBatches(const Points& x, Eigen::VectorXd& f) {
   a.corotated = corotated_;
   a.lambda = volumeLambda();
   a.two_mu = 2.0 * mu_;
-  void (*batch)(const UpdateArgs&, int) = updateBatchPortable<kDeterminant>;
+  void (*batch)(const UpdateArgs&, int, double*) = updateBatchPortable<kDeterminant>;
 #ifdef BREAST_SIM_FEM_AVX512
   if (simd_kernels_ && updateHasSimd()) batch = updateBatchAvx512<kDeterminant>;
 #endif
   // Measured (bench_fem_assembly, 48.8k tets, 1 thread, medians of 40, old and new binaries
   // interleaved on a loaded machine): update (rotations + forces) trace 10.5–10.9 → 5.0 ms,
   // determinant 11.9 → 6.0 ms; of which rotations 7.9–8.5 → 2.8 ms.
-  withThreadForces(f, [&](double* node_forces, int b) {
-    UpdateArgs mine = a;
-    mine.node_forces = node_forces;
-    batch(mine, b);
-  });
+  withThreadForces(f, [&](double* node_forces, int b) { batch(a, b, node_forces); });
 }
 
 template <class BatchFn>
@@ -399,13 +400,8 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
   const int* const tets = tets_.data();
   withThreadForces(f, [&](double* node_forces, int b) {
     const int e0 = b * kBatch, e1 = std::min(nt, e0 + kBatch);
-    for (int e = e0; e < e1; ++e) {
-      const double* const fe = fe_all + 12 * static_cast<size_t>(e);
-      for (int i = 0; i < 4; ++i) {
-        double* const fn = node_forces + 3 * static_cast<size_t>(tets[4 * static_cast<size_t>(e) + i]);
-        fn[0] += fe[3 * i], fn[1] += fe[3 * i + 1], fn[2] += fe[3 * i + 2];
-      }
-    }
+    for (int e = e0; e < e1; ++e)
+      addElementForces(tets, static_cast<size_t>(e), fe_all + 12 * static_cast<size_t>(e), node_forces);
   });
 }
 
