@@ -4,11 +4,13 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <filesystem>
 #include <fstream>
 #include <limits>
+#include <string>
 
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/mesh/tet_quality.h"
@@ -689,6 +691,151 @@ TEST(Pipeline, PhantomWithSlidingReachesItsSupineTargetAndItsStateRestores) {
   EXPECT_LT((pipe.simulator().state().displacement_m - after_one).cwiseAbs().maxCoeff(), 1e-6);
 }
 
+// --- Cancelling: a stage that is cancelled cancels the run, and the stages after it do not run. ---
+
+namespace {
+
+/// Where a run is cancelled: the progress callback sets the flag once `step` steps of `stage` are
+/// accepted. `fine`: only for the fine model's steps (with coarse_start, the coarse one reports first).
+struct CancelAt {
+  PipelineStage stage;
+  int step;
+  bool fine = false;
+};
+
+std::string describe(const CancelAt& at) {
+  return std::string("cancelled at ") + (at.fine ? "fine " : "") + stageName(at.stage) + " step " + std::to_string(at.step);
+}
+
+PipelineProgressFn cancelAt(const ProneToSupinePipeline& pipe, CancelAt at, std::atomic<bool>& cancel) {
+  return [&pipe, at, &cancel](const PipelineProgress& pr) {
+    if (pr.stage == at.stage && pr.step >= at.step && (!at.fine || &pipe.running() == &pipe)) cancel = true;
+  };
+}
+
+/// What a stopped run leaves must be usable: finite positions, no inverted element, metrics, and a
+/// snapshot that restores to itself.
+void expectAConsistentState(ProneToSupinePipeline& pipe) {
+  EXPECT_TRUE(pipe.positions().allFinite());
+  const PipelineMetrics m = pipe.metrics();
+  EXPECT_EQ(m.inverted_elements, 0);
+  EXPECT_TRUE(std::isfinite(m.volume_change_percent));
+  const PipelineState s = pipe.state();
+  pipe.restore(s);
+  const PipelineState t = pipe.state();
+  EXPECT_EQ(t.simulation.displacement_m, s.simulation.displacement_m);
+  EXPECT_EQ(t.simulation.velocity_mps, s.simulation.velocity_mps);
+  EXPECT_EQ(t.modulus_factors, s.modulus_factors);
+  EXPECT_EQ(t.alpha.alpha_per_pa, s.alpha.alpha_per_pa);
+  EXPECT_EQ(t.sliding_targets_m, s.sliding_targets_m);
+  EXPECT_EQ(t.sliding_slip_directions, s.sliding_slip_directions);
+  EXPECT_EQ(t.morphing_forces_n, s.morphing_forces_n);
+  EXPECT_EQ(t.gravity_load_mps2, s.gravity_load_mps2);
+}
+
+/// With the flag cleared, run() goes through every stage to the end.
+void expectARunCompletes(ProneToSupinePipeline& pipe, std::atomic<bool>& cancel) {
+  cancel = false;
+  pipe.run({}, &cancel);
+  EXPECT_EQ(pipe.stage(), PipelineStage::kDone);
+  for (const StageReport* r : {&pipe.gravityReport(), &pipe.slidingReport(), &pipe.morphingReport()}) {
+    EXPECT_TRUE(r->ran);
+    EXPECT_FALSE(r->cancelled);
+  }
+  EXPECT_GT(pipe.morphingReport().steps, 0);
+  EXPECT_GE(pipe.morphingReport().surface_mean_m, 0.0);
+  EXPECT_TRUE(invertedTets(pipe.model().mesh.tets(), pipe.positions()).empty());
+}
+
+}  // namespace
+
+TEST(Pipeline, CancelDuringSlidingCancelsTheRunAndMorphingDoesNotStart) {
+  // The navigation node's sequence: runGravity, then runMorphing unless the returned report says
+  // cancelled. A cancel in the sliding stage (after the fixed-wall settle converged) must say so.
+  const SmallPhantom& p = phantom();
+  const PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  ASSERT_TRUE(s.simulation.sliding);
+  for (int at : {1, 5}) {
+    SCOPED_TRACE("cancelled at sliding step " + std::to_string(at));
+    ProneToSupinePipeline pipe(p.c, p.m, s);
+    std::atomic<bool> cancel{false};
+    const StageReport g = pipe.runGravity(cancelAt(pipe, {PipelineStage::kSliding, at}, cancel), &cancel);
+    EXPECT_TRUE(g.cancelled);
+    EXPECT_TRUE(pipe.gravityReport().converged);  // the fixed-wall settle itself ran to its end
+    EXPECT_TRUE(pipe.slidingReport().cancelled);
+    EXPECT_EQ(pipe.slidingReport().steps, at);
+    if (!g.cancelled) pipe.runMorphing({}, &cancel);
+    EXPECT_FALSE(pipe.morphingReport().ran);
+    // Asked anyway, the morphing stage stops before its first step and reports the distances where it stands.
+    const StageReport m = pipe.runMorphing({}, &cancel);
+    EXPECT_TRUE(m.cancelled);
+    EXPECT_EQ(m.steps, 0);
+    EXPECT_FALSE(m.converged);
+    EXPECT_GT(m.surface_mean_m, 0.0);
+    EXPECT_GE(m.surface_p95_m, m.surface_mean_m);
+    expectAConsistentState(pipe);
+    expectARunCompletes(pipe, cancel);
+  }
+}
+
+TEST(Pipeline, ACancelInAnyStageCancelsTheRunAndTheStagesAfterItDoNotRun) {
+  const SmallPhantom& p = phantom();
+  const PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  for (const CancelAt at : {CancelAt{PipelineStage::kGravity, 1}, CancelAt{PipelineStage::kGravity, 5},
+                            CancelAt{PipelineStage::kSliding, 1}, CancelAt{PipelineStage::kSliding, 5},
+                            CancelAt{PipelineStage::kMorphing, 1}, CancelAt{PipelineStage::kMorphing, 5}}) {
+    SCOPED_TRACE(describe(at));
+    ProneToSupinePipeline pipe(p.c, p.m, s);
+    std::atomic<bool> cancel{false};
+    pipe.run(cancelAt(pipe, at, cancel), &cancel);
+    EXPECT_NE(pipe.stage(), PipelineStage::kDone);
+    const StageReport &g = pipe.gravityReport(), &sl = pipe.slidingReport(), &mo = pipe.morphingReport();
+    const StageReport& stopped = at.stage == PipelineStage::kGravity ? g : at.stage == PipelineStage::kSliding ? sl : mo;
+    EXPECT_TRUE(stopped.ran);
+    EXPECT_TRUE(stopped.cancelled);
+    EXPECT_EQ(stopped.steps, at.step);
+    if (at.stage == PipelineStage::kGravity) {
+      EXPECT_FALSE(sl.ran);
+      EXPECT_EQ(sl.steps, 0);
+    } else {
+      EXPECT_TRUE(g.converged);
+      EXPECT_FALSE(g.cancelled);
+    }
+    if (at.stage != PipelineStage::kMorphing) {
+      EXPECT_FALSE(mo.ran);
+      EXPECT_EQ(mo.steps, 0);
+    } else {
+      EXPECT_TRUE(sl.converged);
+      EXPECT_GE(mo.surface_mean_m, 0.0);  // measured where it stopped
+    }
+    expectAConsistentState(pipe);
+    expectARunCompletes(pipe, cancel);
+  }
+}
+
+TEST(Pipeline, RunMorphingWithTheCancelFlagAlreadySetReturnsCancelledBeforeItsFirstStep) {
+  // Straight after construction: no morphing step has ever run (no force generator yet).
+  const SmallPhantom& p = phantom();
+  const PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  const std::atomic<bool> cancel{true};
+  const StageReport m = pipe.runMorphing({}, &cancel);
+  EXPECT_TRUE(m.ran);
+  EXPECT_TRUE(m.cancelled);
+  EXPECT_EQ(m.steps, 0);
+  EXPECT_TRUE(pipe.morphingReport().cancelled);
+  EXPECT_GT(m.surface_mean_m, 0.0);  // the rest shape is not the supine target
+  EXPECT_EQ(pipe.simulator().state().displacement_m.norm(), 0.0);
+  EXPECT_NE(pipe.stage(), PipelineStage::kDone);
+  // So does run(): the first stage stops before its first step, nothing after it runs.
+  pipe.run({}, &cancel);
+  EXPECT_TRUE(pipe.gravityReport().cancelled);
+  EXPECT_EQ(pipe.gravityReport().steps, 0);
+  EXPECT_FALSE(pipe.slidingReport().ran);
+  EXPECT_NE(pipe.stage(), PipelineStage::kDone);
+  expectAConsistentState(pipe);
+}
+
 // --- Nested iteration (coarse_start): a pipeline's state carried to another mesh of the same case. ---
 
 TEST(CoarseStart, FromTheSameModelTheStateIsCarriedOverExactly) {
@@ -858,4 +1005,47 @@ TEST(CoarseStart, SettingsAreReadAndCheckedByName) {
   big.morphing.enabled = true;
   big.morphing.target = "";
   EXPECT_EQ(ProneToSupinePipeline(p.c, p.m, big).coarse(), nullptr);
+}
+
+TEST(CoarseStart, ACancelInAnyStageOfTheCoarseOrTheFineModelCancelsTheRun) {
+  const SmallPhantom& p = phantom();
+  PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  s.coarse_start.elements = 900;
+  for (const CancelAt at : {CancelAt{PipelineStage::kGravity, 1}, CancelAt{PipelineStage::kSliding, 1},
+                            CancelAt{PipelineStage::kSliding, 5}, CancelAt{PipelineStage::kMorphing, 1},
+                            CancelAt{PipelineStage::kMorphing, 5}, CancelAt{PipelineStage::kMorphing, 1, true}}) {
+    SCOPED_TRACE(describe(at));
+    ProneToSupinePipeline pipe(p.c, p.m, s);
+    ASSERT_TRUE(pipe.coarse());
+    std::atomic<bool> cancel{false};
+    // The node's sequence: runGravity, then runMorphing unless the returned report says cancelled.
+    const StageReport g = pipe.runGravity(cancelAt(pipe, at, cancel), &cancel);
+    EXPECT_EQ(g.cancelled, at.stage != PipelineStage::kMorphing);
+    if (!g.cancelled) {
+      const StageReport m = pipe.runMorphing(cancelAt(pipe, at, cancel), &cancel);
+      EXPECT_TRUE(m.cancelled);
+      EXPECT_EQ(pipe.coarse()->morphingReport().cancelled, !at.fine);
+      EXPECT_EQ(at.fine ? m.steps : m.coarse_steps, at.step);
+      if (at.fine) {
+        EXPECT_GT(m.coarse_steps, 0);  // the coarse model morphed first
+      } else {
+        EXPECT_EQ(m.steps, 0);  // the fine model did not start
+      }
+    } else {
+      const StageReport& stopped = at.stage == PipelineStage::kGravity ? pipe.gravityReport() : pipe.slidingReport();
+      EXPECT_TRUE(stopped.cancelled);
+      EXPECT_EQ(stopped.steps, at.step);
+      EXPECT_EQ(pipe.slidingReport().ran, at.stage == PipelineStage::kSliding);
+      EXPECT_FALSE(pipe.morphingReport().ran);
+      // The fine model never took the coarse one's unfinished state.
+      EXPECT_EQ(pipe.simulator().state().displacement_m.norm(), 0.0);
+      // Asked anyway, the morphing stage stops before its first step, on either model.
+      const StageReport m = pipe.runMorphing({}, &cancel);
+      EXPECT_TRUE(m.cancelled);
+      EXPECT_EQ(m.steps + m.coarse_steps, 0);
+    }
+    expectAConsistentState(pipe);
+    expectARunCompletes(pipe, cancel);
+    EXPECT_GT(pipe.morphingReport().coarse_steps, 0);
+  }
 }

@@ -52,6 +52,13 @@ double logFraction(double first, double now, double tolerance) {
   return std::clamp(std::log(first / now) / std::log(first / tolerance), 0.0, 1.0);
 }
 
+/// What runGravity returns: the fixed-wall settle's report, cancelled when the settle or the sliding
+/// stage after it was (the caller must not go on to morphing).
+StageReport gravityResult(StageReport settle, const StageReport& sliding) {
+  settle.cancelled = settle.cancelled || sliding.cancelled;
+  return settle;
+}
+
 }  // namespace
 
 void ProneToSupinePipeline::closeReport(StageReport& r, const RunStats& before, double seconds) const {
@@ -287,23 +294,29 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
     // Nested iteration: the whole stage on the coarse model, its state carried to this one (the
     // fine model settles in the morphing stage).
     coarse_running_ = true;
-    coarse_->runGravity(progress, cancel);
+    const bool cancelled = coarse_->runGravity(progress, cancel).cancelled;
     coarse_running_ = false;
     gravity_ = coarse_->gravityReport();
     sliding_report_ = coarse_->slidingReport();
-    if (!(cancel && cancel->load())) {
+    // A cancelled coarse stage is not carried over (this model keeps its state).
+    if (!cancelled) {
       const auto tt = std::chrono::steady_clock::now();
       startFrom(*coarse_, settings_.coarse_start.snap_tolerance_m);
       coarse_ahead_ = true;
       (sliding_report_.ran ? sliding_report_ : gravity_).seconds += since(tt);
     }
     stage_ = PipelineStage::kIdle;
-    return gravity_;
+    return gravityResult(gravity_, sliding_report_);
   }
   const SettleOptions& so = settings_.simulation.settle;
   const double tol = so.increment_tolerance_m;
   StageReport rep;
   rep.ran = true;
+  // The sliding report is of this call: a settle that stops early leaves it "not run" (the largest
+  // slide, a state of the wall, is kept).
+  const double max_slide_m = sliding_report_.max_slide_m;
+  sliding_report_ = StageReport{};
+  sliding_report_.max_slide_m = max_slide_m;
   stage_ = PipelineStage::kGravity;
   setTimeStep(so.time_step_s > 0 ? so.time_step_s : settings_.simulation.dynamics.time_step_s);
   Eigen::VectorXd previous = simulator().state().displacement_m;
@@ -398,7 +411,7 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
     sliding_report_ = sr;
   }
   stage_ = PipelineStage::kIdle;
-  return gravity_;
+  return gravityResult(gravity_, sliding_report_);
 }
 
 SurfaceMorphing& ProneToSupinePipeline::ensureMorphing() {
@@ -512,7 +525,7 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
     rep.coarse_reversed_steps = c.reversed_steps;
     rep.coarse_friction_repeats = c.friction_repeats;
     rep.coarse_elements = coarse_model_->mesh.numTets();
-    if (cancel && cancel->load()) {
+    if (c.cancelled) {  // not carried over: this model keeps its state
       rep.cancelled = true;
       rep.seconds = since(t0);
       morphing_ = rep;
@@ -577,8 +590,8 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
       break;
     }
   }
-  // The distances at the final state.
-  const DistanceStats d = morphing_forces_->measure(simulator());
+  // The distances at the final state (the force generator too when no iteration ran: cancelled before the first).
+  const DistanceStats d = ensureMorphing().measure(simulator());
   rep.surface_mean_m = d.mean_m;
   rep.surface_p95_m = d.p95_m;
   rep.converged = rep.converged && d.mean_m <= ms.tolerance_mean_m && d.p95_m <= ms.tolerance_p95_m;
@@ -595,10 +608,10 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
 }
 
 void ProneToSupinePipeline::run(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
-  runGravity(progress, cancel);
-  if (cancel && cancel->load()) return;
-  if (settings_.morphing.enabled && field_) runMorphing(progress, cancel);
-  if (!(cancel && cancel->load())) stage_ = PipelineStage::kDone;
+  morphing_ = StageReport{};  // the reports are of this run: a cancelled gravity stage leaves morphing "not run"
+  if (runGravity(progress, cancel).cancelled) return;
+  if (settings_.morphing.enabled && field_ && runMorphing(progress, cancel).cancelled) return;
+  stage_ = PipelineStage::kDone;
 }
 
 Points ProneToSupinePipeline::displacement() const { return simulator().displacement(); }

@@ -219,6 +219,8 @@ using PipelineProgressFn = std::function<void(const PipelineProgress&)>;
 struct StageReport {
   bool ran = false;
   bool converged = false;     ///< settled (gravity, sliding) or within tolerance (morphing)
+  /// The cancel flag stopped the stage (runGravity's returned report: the settle or the sliding stage,
+  /// on the coarse model with coarse_start; runMorphing's: the coarse or the fine model's steps).
   bool cancelled = false;
   /// Stopped because several stiffening calls in a row could not advance (reversal limit each time):
   /// no α lets the state go on without inverting an element.
@@ -303,12 +305,17 @@ class ProneToSupinePipeline {
   ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model, const PipelineSettings& settings);
   ~ProneToSupinePipeline();
 
-  /// Both stages in order (the morphing stage only with a target and morphing enabled).
+  /// Both stages in order (the morphing stage only with a target and morphing enabled); a cancelled
+  /// stage ends the run (its report says cancelled, the later stages' reports say not run, stage() is
+  /// not kDone).
   /// @param cancel  polled between steps; set it to stop early (the state stays consistent)
   void run(const PipelineProgressFn& progress = {}, const std::atomic<bool>* cancel = nullptr);
-  /// Stage 1 (and the sliding continuation when sliding is on).
+  /// Stage 1 (and the sliding continuation when sliding is on). Returns the fixed-wall settle's
+  /// report (gravityReport()), but `cancelled` when any part was cancelled (the sliding stage, or with
+  /// coarse_start the coarse model's stage, whose unfinished state is then not carried over).
   StageReport runGravity(const PipelineProgressFn& progress = {}, const std::atomic<bool>* cancel = nullptr);
-  /// Stage 2. @throws std::logic_error without a target.
+  /// Stage 2. With the cancel flag already set it returns cancelled before its first step, with the
+  /// distances at the current state. @throws std::logic_error without a target.
   StageReport runMorphing(const PipelineProgressFn& progress = {}, const std::atomic<bool>* cancel = nullptr);
   /// One Figure-2 iteration against the current target (the node calls it per tracker frame).
   /// @throws std::logic_error without a target.
