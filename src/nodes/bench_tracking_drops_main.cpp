@@ -40,7 +40,7 @@ ros_interface::OfflineTrackingRun track(core::ProneToSupinePipeline& p, const co
   std::vector<bool> tracked(static_cast<size_t>(clouds), true);
   for (int k : drop)
     if (k >= 0 && k < clouds) tracked[static_cast<size_t>(k)] = false;
-  return ros_interface::trackRecordingOffline(p, precomputed, c, node.tracker, node.gravity_update_threshold_deg, clouds,
+  return ros_interface::trackRecordingOffline(p, precomputed, c, node.tracker, node.monitor, node.gravity_update_threshold_deg, clouds,
                                               10.0, tracked);
 }
 

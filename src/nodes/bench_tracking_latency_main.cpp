@@ -1,5 +1,5 @@
 // Latency of one tracker frame, from a PointCloud2 arriving to the updated mesh and lesion messages
-// serialized for publishing, done exactly as the node does it (ros_interface::SurfaceTracker), without
+// serialized for publishing, done exactly as the node does it (ros_interface::GuardedTracker: the tracker and its monitor), without
 // a ROS master:
 //   bench_tracking_latency [--case FILE] [--target-elements N] [--points N] [--frames N]
 //                          [--field-voxels-mm 1,2,3] [--loop-voxels-mm 0,2] [--iterations K] [--no-icp]
@@ -137,7 +137,7 @@ int main(int argc, char** argv) {
               << (solver_tol > 0 ? std::to_string(solver_tol) : std::string("of the case")) << ", " << frames
               << " frames (medians, p95) [ms]\n";
     std::cout << "  voxel[mm]  convert  filter     icp   field iterate  publish |   total    p95 |  rate[Hz]  surf.mean[mm]"
-                 "  ICP applied  search\n";
+                 "  ICP applied  search (valid frames)\n";
     core::Points grid_final;  // final positions of the grid run, compared with the reference run
     for (double v : loop_voxels) for (const bool reference : {false, true}) {
       if (reference && !pcl_reference) continue;
@@ -146,11 +146,12 @@ int main(int argc, char** argv) {
       if (v > 0) s.morphing.field.voxel_size_m = 1e-3 * v;
       core::ProneToSupinePipeline p(c, model, s);
       p.restore(precomputed);
-      ros_interface::SurfaceTracker tracker(to);
+      ros_interface::GuardedTracker tracker(to, ros_interface::MonitorLimits{});  // the node's: tracker and monitor
+      tracker.start(p);
       ros_interface::TrackerSimulation frame_sim(c, so);
       std::vector<double> conv, filt, icps, field, iter, pub, total;
       double last_mean = -1;
-      int icp_applied = 0;
+      int icp_applied = 0, valid_frames = 0;
       for (int k = 0; k < frames; ++k) {
         const double t = k / 30.0;
         const sensor_msgs::PointCloud2 msg =
@@ -160,12 +161,13 @@ int main(int argc, char** argv) {
         const ros_interface::CloudPoints cp = ros_interface::pointsFromCloud(msg, 300000);
         const core::Points cloud = ros_interface::transformPoints(model_from_tracker, cp.points_m);
         const double conv_s = since(f0);
-        const ros_interface::TrackResult r = tracker.track(p, cloud);
+        const ros_interface::GuardedFrame g = tracker.frame(p, cloud);
+        const ros_interface::TrackResult& r = g.track;
         const auto p0 = Clock::now();
         const core::Points xs = p.positions();
         const core::Points lesions = model.lesion_embedding.positions(xs);
         size_t bytes = serialize(ros_interface::toMessage(model.mesh, xs - model.mesh.nodes(), "breast_model", msg.header.stamp));
-        bytes += serialize(ros_interface::lesionsMessage(model.lesions, lesions, "breast_model", msg.header.stamp));
+        bytes += serialize(ros_interface::lesionsMessage(model.lesions, lesions, "breast_model", msg.header.stamp, g.valid, g.status));
         const double pub_s = since(p0);
         const double total_s = since(f0);
         (void)bytes;
@@ -177,7 +179,8 @@ int main(int argc, char** argv) {
         iter.push_back(r.iterate_s);
         pub.push_back(pub_s);
         total.push_back(total_s);
-        last_mean = r.last.surface_mean_m;
+        last_mean = r.seen_mean_m;
+        valid_frames += g.valid ? 1 : 0;
         icp_applied += r.icp_applied ? 1 : 0;
       }
       std::string search = reference ? "PCL (reference)" : "grid";
@@ -198,14 +201,15 @@ int main(int argc, char** argv) {
                 << 1e3 * bench::median(field) << std::setw(8) << 1e3 * bench::median(iter) << std::setw(9)
                 << 1e3 * bench::median(pub) << " |" << std::setw(8) << 1e3 * bench::median(total) << std::setw(7)
                 << 1e3 * p95(total) << " |" << std::setw(10) << rate << std::setw(15) << 1e3 * last_mean << std::setw(8)
-                << icp_applied << "/" << std::setw(3) << std::left << total.size() << std::right << "  " << search << "\n";
+                << icp_applied << "/" << std::setw(3) << std::left << total.size() << std::right << "  " << search << " ("
+                << valid_frames << " valid)\n";
       out["frames"].push_back({{"voxel_mm", v > 0 ? v : 1e3 * settings.morphing.field.voxel_size_m},
                                {"convert_ms", 1e3 * bench::median(conv)}, {"filter_ms", 1e3 * bench::median(filt)},
                                {"icp_ms", 1e3 * bench::median(icps)}, {"field_ms", 1e3 * bench::median(field)},
                                {"iterate_ms", 1e3 * bench::median(iter)}, {"publish_ms", 1e3 * bench::median(pub)},
                                {"total_median_ms", 1e3 * bench::median(total)}, {"total_p95_ms", 1e3 * p95(total)},
                                {"rate_hz", rate}, {"surface_mean_mm", 1e3 * last_mean},
-                               {"icp_applied", icp_applied}, {"frames_timed", total.size()},
+                               {"icp_applied", icp_applied}, {"frames_timed", total.size()}, {"valid_frames", valid_frames},
                                {"search", reference ? "pcl" : "grid"}, {"max_diff_from_grid_mm", max_diff_mm},
                                {"solver_relative_tolerance", solver_tol}});
     }

@@ -63,6 +63,9 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   p.follow_patient_pose = param(pnh, "gravity/follow_patient_pose", p.follow_patient_pose);
   p.gravity_update_threshold_deg = param(pnh, "gravity/update_threshold_deg", p.gravity_update_threshold_deg);
   p.publish_pose_tf = param(pnh, "gravity/publish_pose_tf", p.publish_pose_tf);
+  p.pose_jump.max_jump_m = param(pnh, "gravity/max_pose_jump_m", p.pose_jump.max_jump_m);
+  p.pose_jump.max_jump_deg = param(pnh, "gravity/max_pose_jump_deg", p.pose_jump.max_jump_deg);
+  p.pose_jump.window_s = param(pnh, "gravity/pose_jump_window_s", p.pose_jump.window_s);
   TrackerOptions& t = p.tracker;
   t.filter.voxel_leaf_m = param(pnh, "tracking/voxel_leaf_m", t.filter.voxel_leaf_m);
   t.filter.remove_outliers = param(pnh, "tracking/remove_outliers", t.filter.remove_outliers);
@@ -75,6 +78,8 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   t.icp.max_translation_m = param(pnh, "tracking/icp/max_translation_m", t.icp.max_translation_m);
   t.icp.max_rotation_deg = param(pnh, "tracking/icp/max_rotation_deg", t.icp.max_rotation_deg);
   t.icp.max_rms_m = param(pnh, "tracking/icp/max_rms_m", t.icp.max_rms_m);
+  t.icp.min_inlier_fraction = param(pnh, "tracking/icp/min_inlier_fraction", t.icp.min_inlier_fraction);
+  t.max_point_distance_m = param(pnh, "tracking/max_point_distance_m", t.max_point_distance_m);
   t.iterations_per_frame = param(pnh, "tracking/iterations_per_frame", t.iterations_per_frame);
   t.solver_relative_tolerance = param(pnh, "tracking/solver_relative_tolerance", t.solver_relative_tolerance);
   t.min_points = param(pnh, "tracking/min_points", t.min_points);
@@ -83,7 +88,19 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   p.max_transform_age_s = param(pnh, "tracking/max_transform_age_s", p.max_transform_age_s);
   p.tf_wait_s = param(pnh, "tracking/tf_wait_s", p.tf_wait_s);
   p.require_precomputation = param(pnh, "tracking/require_precomputation", p.require_precomputation);
-  p.degraded_after_rejected = param(pnh, "tracking/degraded_after_rejected", p.degraded_after_rejected);
+  MonitorLimits& m = p.monitor;
+  m.refused_frames = param(pnh, "tracking/degraded_after_rejected", m.refused_frames);
+  m.max_seen_mean_m = param(pnh, "tracking/monitor/max_seen_mean_m", m.max_seen_mean_m);
+  m.max_seen_p95_m = param(pnh, "tracking/monitor/max_seen_p95_m", m.max_seen_p95_m);
+  m.min_seen_fraction = param(pnh, "tracking/monitor/min_seen_fraction", m.min_seen_fraction);
+  m.max_wall_drift_m = param(pnh, "tracking/monitor/max_wall_drift_m", m.max_wall_drift_m);
+  m.max_rigid_drift_m = param(pnh, "tracking/monitor/max_rigid_drift_m", m.max_rigid_drift_m);
+  m.max_lesion_offset_m = param(pnh, "tracking/monitor/max_lesion_offset_m", m.max_lesion_offset_m);
+  m.max_lesion_jump_m = param(pnh, "tracking/monitor/max_lesion_jump_m", m.max_lesion_jump_m);
+  m.recover_frames = param(pnh, "tracking/monitor/recover_frames", m.recover_frames);
+  m.recover_fraction = param(pnh, "tracking/monitor/recover_fraction", m.recover_fraction);
+  p.stamps.max_future_s = param(pnh, "tracking/max_future_stamp_s", p.stamps.max_future_s);
+  p.stamps.max_age_s = param(pnh, "tracking/max_stamp_age_s", p.stamps.max_age_s);
   p.tracking_timeout_s = param(pnh, "tracking/timeout_s", p.tracking_timeout_s);
   p.mesh_rate_hz = param(pnh, "publish/mesh_rate_hz", p.mesh_rate_hz);
   p.marker_rate_hz = param(pnh, "publish/marker_rate_hz", p.marker_rate_hz);
@@ -105,6 +122,16 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   require(t.filter.outlier_stddev > 0, "tracking/outlier_stddev", "must be > 0");
   require(t.icp.max_iterations >= 1, "tracking/icp/max_iterations", "must be ≥ 1");
   require(t.icp.max_correspondence_m > 0, "tracking/icp/max_correspondence_m", "must be > 0 m");
+  require(t.icp.max_rms_m > 0, "tracking/icp/max_rms_m", "must be > 0 m");
+  require(t.icp.min_inlier_fraction >= 0 && t.icp.min_inlier_fraction <= 1, "tracking/icp/min_inlier_fraction",
+          "must be in [0, 1]");
+  require(t.max_point_distance_m >= 0, "tracking/max_point_distance_m", "must be ≥ 0 m (0 = keep every point)");
+  require(p.stamps.max_future_s > 0, "tracking/max_future_stamp_s", "must be > 0 s");
+  require(p.stamps.max_age_s > 0, "tracking/max_stamp_age_s", "must be > 0 s");
+  require(p.pose_jump.max_jump_m > 0, "gravity/max_pose_jump_m", "must be > 0 m");
+  require(p.pose_jump.max_jump_deg > 0, "gravity/max_pose_jump_deg", "must be > 0 deg");
+  require(p.pose_jump.window_s >= 0, "gravity/pose_jump_window_s", "must be ≥ 0 s");
+  m.validate();
   require(t.iterations_per_frame >= 1 && t.iterations_per_frame <= 100, "tracking/iterations_per_frame", "must be in [1, 100]");
   require(t.solver_relative_tolerance >= 0 && t.solver_relative_tolerance < 1, "tracking/solver_relative_tolerance",
           "must be in [0, 1) (0 = the case's simulation.solver_relative_tolerance)");
@@ -117,6 +144,7 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   require(p.marker_rate_hz > 0, "publish/marker_rate_hz", "must be > 0 Hz");
   require(p.diagnostics_period_s > 0, "publish/diagnostics_period_s", "must be > 0 s");
   require(p.progress_rate_hz > 0, "publish/progress_rate_hz", "must be > 0 Hz");
+  require(p.warn_throttle_s >= 0, "warn_throttle_s", "must be ≥ 0 s");
   return p;
 }
 
@@ -137,7 +165,8 @@ BreastSimNode::~BreastSimNode() {
 
 void BreastSimNode::initialize() {
   params_ = NodeParams::fromRos(pnh_);
-  tracker_.setOptions(params_.tracker);
+  guard_ = GuardedTracker(params_.tracker, params_.monitor);
+  throttle_.setPeriod(params_.warn_throttle_s);
   tf_listener_ = std::make_unique<tf2_ros::TransformListener>(tf_buffer_, nh_);
   mesh_pub_ = pnh_.advertise<breast_sim::TetrahedralMesh>("deformed_mesh", 1, /*latch=*/true);
   lesions_pub_ = pnh_.advertise<breast_sim::LesionArray>("lesions", 1, /*latch=*/true);
@@ -242,7 +271,7 @@ void BreastSimNode::loadCaseJob(const std::string& case_file, int target_element
   {
     std::lock_guard<std::mutex> lock(engine_mutex_);
     engine_ = std::move(e);
-    tracker_.reset();
+    restartTracking();
     {
       std::lock_guard<std::mutex> sl(state_mutex_);
       state_.case_name = engine_->model_case->name;
@@ -251,7 +280,7 @@ void BreastSimNode::loadCaseJob(const std::string& case_file, int target_element
       state_.stage = "idle";
       state_.progress = 0;
     }
-    publishModel(*engine_, ros::Time::now(), true);
+    publishModel(*engine_, ros::Time::now(), true, false, "prone rest shape: not precomputed");
   }
   ROS_INFO_STREAM("breast_sim: " << *message);
   setState(breast_sim::NodeState::IDLE, *message + "; request ~start_precomputation (or the ~precompute action)");
@@ -320,7 +349,8 @@ void BreastSimNode::precomputeJob(bool gravity_only, std::optional<PrecomputeSer
     e.gravity_load_mps2 = e.pipeline->supineGravityLoad();
     const core::StageReport g = e.pipeline->runGravity(progress, &cancel_);
     result.gravity_steps = g.steps;
-    bool cancelled = g.cancelled;
+    // A cancel in the sliding part of the stage cancels the run as well.
+    bool cancelled = g.cancelled || e.pipeline->slidingReport().cancelled;
     bool converged = g.converged;
     std::ostringstream s;
     s << "gravity: " << g.steps << " steps in " << g.seconds << " s" << (g.converged ? "" : " (not settled)");
@@ -341,14 +371,15 @@ void BreastSimNode::precomputeJob(bool gravity_only, std::optional<PrecomputeSer
     result.seconds = seconds(Clock::now() - t0);
     s << "; " << q.num_inverted << " inverted elements; " << result.seconds << " s";
     e.precomputed = !cancelled;
-    tracker_.reset();
+    restartTracking();
     {
       std::lock_guard<std::mutex> sl(state_mutex_);
       state_.precomputed = e.precomputed;
       state_.stage = cancelled ? "idle" : "done";
       state_.progress = cancelled ? state_.progress : 1.0;
     }
-    publishModel(e, ros::Time::now(), true);
+    publishModel(e, ros::Time::now(), true, e.precomputed,
+                 e.precomputed ? "precomputed" : "precomputation cancelled: the model is not precomputed");
     if (cancelled) {
       setState(breast_sim::NodeState::IDLE, "precomputation cancelled (" + s.str() + "); the model shows where it "
                "stopped; ~reset returns to the rest shape, ~start_precomputation starts again");
@@ -430,37 +461,48 @@ bool BreastSimNode::cancelSrv(std_srvs::Trigger::Request&, std_srvs::Trigger::Re
 }
 
 bool BreastSimNode::resetSrv(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
-  if (busy_) {
-    res.success = false;
-    res.message = "busy (loading or precomputing); cancel the precomputation first (~cancel_precomputation)";
-    return true;
+  {
+    std::lock_guard<std::mutex> sl(state_mutex_);
+    if (!state_.model_loaded && !busy_) {
+      res.success = false;
+      res.message = "no model is loaded";
+      return true;
+    }
   }
+  // Rebuilding the pipeline takes seconds (solver and multigrid levels): on the worker.
+  std::string why;
+  res.success = startJob([this] { resetJob(); }, &why);
+  res.message = res.success ? "resetting to the prone rest shape on the worker; ~state says when it is done"
+                            : "busy (loading or precomputing); cancel the precomputation first (~cancel_precomputation)";
+  return true;
+}
+
+void BreastSimNode::resetJob() {
+  setState(breast_sim::NodeState::LOADING, "resetting to the prone rest shape");
   std::lock_guard<std::mutex> lock(engine_mutex_);
   if (!engine_) {
-    res.success = false;
-    res.message = "no model is loaded";
-    return true;
+    setState(breast_sim::NodeState::IDLE, "reset: no model is loaded");
+    return;
   }
   try {
-    engine_->pipeline = std::make_unique<core::ProneToSupinePipeline>(*engine_->model_case, *engine_->model, engine_->settings);
+    // The new pipeline is built beside the old one and replaces it only when complete.
+    auto pipeline = std::make_unique<core::ProneToSupinePipeline>(*engine_->model_case, *engine_->model, engine_->settings);
+    engine_->pipeline.reset();
+    engine_->pipeline = std::move(pipeline);
     engine_->precomputed = false;
     engine_->gravity_load_mps2 = engine_->pipeline->supineGravityLoad();
-    tracker_.reset();
+    restartTracking();
     {
       std::lock_guard<std::mutex> sl(state_mutex_);
       state_.precomputed = false;
       state_.stage = "idle";
       state_.progress = 0;
     }
-    publishModel(*engine_, ros::Time::now(), true);
-    res.success = true;
-    res.message = "reset to the prone rest shape; request ~start_precomputation to precompute again";
-    setState(breast_sim::NodeState::IDLE, res.message);
+    publishModel(*engine_, ros::Time::now(), true, false, "prone rest shape: not precomputed");
+    setState(breast_sim::NodeState::IDLE, "reset to the prone rest shape; request ~start_precomputation to precompute again");
   } catch (const std::exception& ex) {
-    res.success = false;
-    res.message = std::string("reset failed: ") + ex.what();
+    setState(breast_sim::NodeState::IDLE, std::string("reset failed: ") + ex.what() + "; the previous state stays");
   }
-  return true;
 }
 
 bool BreastSimNode::saveStateSrv(breast_sim::StateFile::Request& req, breast_sim::StateFile::Response& res) {
@@ -503,14 +545,14 @@ bool BreastSimNode::loadStateSrv(breast_sim::StateFile::Request& req, breast_sim
     engine_->pipeline->loadState(req.path);
     engine_->gravity_load_mps2 = engine_->pipeline->gravityLoad();  // the state's, for the pose-update rule
     engine_->precomputed = true;
-    tracker_.reset();
+    restartTracking();
     {
       std::lock_guard<std::mutex> sl(state_mutex_);
       state_.precomputed = true;
       state_.stage = "done";
       state_.progress = 1.0;
     }
-    publishModel(*engine_, ros::Time::now(), true);
+    publishModel(*engine_, ros::Time::now(), true, true, "loaded state " + req.path);
     res.success = true;
     res.message = "loaded " + req.path + "; the model is precomputed and follows surface clouds";
     setState(breast_sim::NodeState::IDLE, res.message);
@@ -573,32 +615,77 @@ void BreastSimNode::cloudCb(const sensor_msgs::PointCloud2ConstPtr& msg) {
 }
 
 void BreastSimNode::poseCb(const geometry_msgs::PoseStampedConstPtr& msg) {
-  try {
-    const Eigen::Isometry3d t = isometryFromPose(msg->pose);  // validates
-    if (msg->header.frame_id.empty() || msg->header.frame_id == params_.frame_id) {
-      ROS_WARN_STREAM_THROTTLE(params_.warn_throttle_s,
-                               "breast_sim: ~patient_pose must give the pose of '" << params_.frame_id
-                               << "' in another frame (header.frame_id = '" << msg->header.frame_id
-                               << "'); ignored, gravity and transforms keep their last values");
-      return;
-    }
-    geometry_msgs::TransformStamped ts;
-    ts.header = msg->header;
-    ts.child_frame_id = params_.frame_id;
-    ts.transform = transformFromIsometry(t);
-    {
-      std::lock_guard<std::mutex> lock(pose_mutex_);
-      // Time went back (a bag played again, a simulator restarted): the kept poses are of another run.
-      if (pose_ && msg->header.stamp + ros::Duration(1.0) < pose_->header.stamp) pose_buffer_.clear();
-      // tf2 logs an error for a second pose at the same stamp; the newest still becomes pose_.
-      if (!pose_ || msg->header.stamp != pose_->header.stamp) pose_buffer_.setTransform(ts, "~patient_pose");
-      pose_ = msg;
-    }
-    if (params_.publish_pose_tf) tf_broadcaster_.sendTransform(ts);
-  } catch (const std::exception& ex) {
-    ROS_WARN_STREAM_THROTTLE(params_.warn_throttle_s, "breast_sim: ~patient_pose ignored: " << ex.what()
-                             << "; gravity and transforms keep their last values");
+  const std::string stamp_why =
+      checkStamp(msg->header.stamp.toSec(), ros::Time::now().toSec(), params_.stamps, "~patient_pose");
+  if (!stamp_why.empty()) {
+    warn("pose stamp", "breast_sim: ~patient_pose refused: " + stamp_why + "; gravity and transforms keep their last values");
+    return;
   }
+  Eigen::Isometry3d t;
+  try {
+    t = isometryFromPose(msg->pose);  // refuses non-finite values and quaternions not of unit length
+  } catch (const std::exception& ex) {
+    warn("pose value", std::string("breast_sim: ~patient_pose refused: ") + ex.what() +
+                           "; gravity and transforms keep their last values");
+    return;
+  }
+  if (msg->header.frame_id.empty() || msg->header.frame_id == params_.frame_id) {
+    warn("pose frame", "breast_sim: ~patient_pose must give the pose of '" + params_.frame_id +
+                           "' in another frame (header.frame_id = '" + msg->header.frame_id +
+                           "'); refused, gravity and transforms keep their last values");
+    return;
+  }
+  geometry_msgs::TransformStamped ts;
+  ts.header = msg->header;
+  ts.child_frame_id = params_.frame_id;
+  ts.transform = transformFromIsometry(t);
+  bool broadcast = false;
+  {
+    std::lock_guard<std::mutex> lock(pose_mutex_);
+    // Time went back (a bag played again, a simulator restarted): the kept poses are of another run.
+    if (pose_ && msg->header.stamp + ros::Duration(1.0) < pose_->header.stamp) {
+      pose_buffer_.clear();
+      pose_.reset();
+      last_pose_tf_stamp_ = ros::Time();
+      time_went_back_ = true;  // publishModel forgets its newest lesion stamp too
+    }
+    if (pose_ && msg->header.frame_id == pose_->header.frame_id) {
+      const std::string jump = checkPoseJump(pose_accepted_, pose_->header.stamp.toSec(), t, msg->header.stamp.toSec(),
+                                             params_.pose_jump);
+      if (!jump.empty()) {
+        warn("pose jump", "breast_sim: ~patient_pose refused: " + jump + "; gravity and transforms keep their last values");
+        return;
+      }
+    }
+    // tf2 logs an error for a second pose at the same stamp; only poses at new stamps are kept.
+    if (!pose_ || msg->header.stamp != pose_->header.stamp) pose_buffer_.setTransform(ts, "~patient_pose");
+    if (!pose_ || msg->header.stamp >= pose_->header.stamp) {
+      pose_ = msg;
+      pose_accepted_ = t;
+    }
+    // Every tf2 listener drops data older than what it has: broadcast only newer stamps.
+    if (params_.publish_pose_tf && msg->header.stamp > last_pose_tf_stamp_) {
+      last_pose_tf_stamp_ = msg->header.stamp;
+      broadcast = true;
+    }
+  }
+  if (broadcast) tf_broadcaster_.sendTransform(ts);
+}
+
+void BreastSimNode::warn(const std::string& key, const std::string& text) {
+  long suppressed;
+  {
+    std::lock_guard<std::mutex> lock(warn_mutex_);
+    suppressed = throttle_.suppressed(key);
+    if (!throttle_.allow(key, ros::WallTime::now().toSec())) return;
+  }
+  if (suppressed > 0) ROS_WARN_STREAM(text << " (" << suppressed << " more like it in the last " << params_.warn_throttle_s << " s)");
+  else ROS_WARN_STREAM(text);
+}
+
+void BreastSimNode::restartTracking() {
+  guard_.stop();
+  last_lesion_tf_stamp_ = ros::Time();
 }
 
 bool BreastSimNode::lookup(const std::string& target, const std::string& source, const ros::Time& stamp,
@@ -715,28 +802,21 @@ void BreastSimNode::applyGravity(Engine& e, const ros::Time& stamp) {
 }
 
 void BreastSimNode::rejectFrame(const std::string& reason) {
-  int consecutive;
   {
     std::lock_guard<std::mutex> sl(stats_mutex_);
     ++window_.rejected;
     ++total_rejected_;
-    consecutive = ++consecutive_rejected_;
     last_reject_ = reason;
   }
-  if (consecutive >= params_.degraded_after_rejected) {
-    std::lock_guard<std::mutex> sl(state_mutex_);
-    const bool tracking = state_.state == breast_sim::NodeState::TRACKING || state_.state == breast_sim::NodeState::DEGRADED;
-    if (tracking || state_.precomputed) {
-      state_.state = breast_sim::NodeState::DEGRADED;
-      state_.state_name = stateName(state_.state);
-      const std::string msg = std::to_string(consecutive) + " clouds in a row rejected, last: " + reason +
-                              "; the model keeps its last good state";
-      if (state_.message != msg) {
-        state_.message = msg;
-        state_.header.stamp = ros::Time::now();
-        state_pub_.publish(state_);
-      }
-    }
+  std::lock_guard<std::mutex> lock(engine_mutex_);
+  if (!engine_ || !engine_->precomputed) return;
+  const bool was_valid = guard_.valid();
+  guard_.refused(reason);
+  if (was_valid && !guard_.valid()) {
+    // The lesions last published were valid; say at once that they no longer are.
+    publishModel(*engine_, ros::Time::now(), false, false, guard_.reason());
+    setState(breast_sim::NodeState::DEGRADED, guard_.reason() + "; the model keeps its last good state and the "
+             "lesions are not valid until tracking recovers");
   }
 }
 
@@ -756,17 +836,25 @@ void BreastSimNode::trackingLoop() {
       processCloud(msg, received);
     } catch (const std::exception& ex) {
       // Nothing a cloud holds may stop the node: report and go on with the next one.
-      ROS_WARN_STREAM_THROTTLE(params_.warn_throttle_s, "breast_sim: a cloud could not be tracked: " << ex.what()
-                               << "; the model keeps its last good state, the next cloud is tried");
+      warn("cloud exception", std::string("breast_sim: a cloud could not be tracked: ") + ex.what() +
+                                  "; the model keeps its last good state, the next cloud is tried");
       rejectFrame(ex.what());
     }
   }
 }
 
 void BreastSimNode::processCloud(const sensor_msgs::PointCloud2ConstPtr& msg, Clock::time_point received) {
-  const double throttle = params_.warn_throttle_s;
   if (busy_) {
-    ROS_INFO_STREAM_THROTTLE(throttle, "breast_sim: a case loads or the precomputation runs; clouds are ignored until it ends");
+    ROS_INFO_STREAM_THROTTLE(params_.warn_throttle_s,
+                             "breast_sim: a job (loading, precomputing, reset) runs; clouds are ignored until it ends");
+    return;
+  }
+  // 0. When it was measured: a future stamp would be re-broadcast with the lesion frames and break
+  // every tf2 listener; a stale one no longer shows the patient.
+  const std::string stamp_why = checkStamp(msg->header.stamp.toSec(), ros::Time::now().toSec(), params_.stamps, "cloud");
+  if (!stamp_why.empty()) {
+    warn("cloud stamp", "breast_sim: cloud on ~surface_points refused: " + stamp_why + "; the model keeps its last state");
+    rejectFrame(stamp_why);
     return;
   }
   // 1. Points, in the cloud's frame.
@@ -774,105 +862,119 @@ void BreastSimNode::processCloud(const sensor_msgs::PointCloud2ConstPtr& msg, Cl
   try {
     cp = pointsFromCloud(*msg, params_.max_cloud_points);
   } catch (const std::invalid_argument& ex) {
-    ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: malformed cloud on ~surface_points: " << ex.what()
-                             << "; it is dropped and the model keeps its last state");
+    warn("cloud malformed", std::string("breast_sim: malformed cloud on ~surface_points: ") + ex.what() +
+                                "; it is dropped and the model keeps its last state");
     rejectFrame(ex.what());
     return;
   }
   if (cp.total == 0) {
-    ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: empty cloud on ~surface_points; it is dropped and the model "
-                             "keeps its last state");
+    warn("cloud empty", "breast_sim: empty cloud on ~surface_points; it is dropped and the model keeps its last state");
     rejectFrame("empty cloud");
     return;
   }
   if (cp.stride > 1)
-    ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: cloud of " << cp.total << " points, more than tracking/max_cloud_points = "
-                             << params_.max_cloud_points << "; every " << cp.stride << "th point is used");
-  if (cp.non_finite > 0) {
-    if (cp.points_m.rows() < params_.tracker.min_points) {
-      ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: " << cp.non_finite << " of " << cp.total
-                               << " cloud points are NaN/inf, too few remain; the cloud is dropped and the model keeps its last state");
-      rejectFrame("cloud of non-finite points");
-      return;
-    }
-    ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: " << cp.non_finite << " of " << cp.total
-                             << " cloud points are NaN/inf; they are left out and the rest is tracked");
+    warn("cloud large", "breast_sim: cloud of " + std::to_string(cp.total) + " points, more than tracking/max_cloud_points = " +
+                            std::to_string(params_.max_cloud_points) + "; every " + std::to_string(cp.stride) +
+                            "th point is used");
+  if (cp.non_finite > 0 && cp.points_m.rows() < params_.tracker.min_points) {
+    warn("cloud non-finite", "breast_sim: " + std::to_string(cp.non_finite) + " of " + std::to_string(cp.total) +
+                                 " cloud points are NaN/inf, too few remain; the cloud is dropped and the model keeps "
+                                 "its last state");
+    rejectFrame("cloud of non-finite points");
+    return;
   }
+  // (Finite points among NaN padding, as an organized depth image has them, are tracked as they are.)
   // 2. Into the model frame.
   Eigen::Isometry3d model_from_cloud;
   std::string why;
   if (!cloudTransform(msg->header.frame_id, msg->header.stamp, &model_from_cloud, &why)) {
-    ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: cloud in frame '" << msg->header.frame_id << "' cannot be put into '"
-                             << params_.frame_id << "': " << why << "; it is dropped and the model keeps its last state");
+    warn("cloud transform " + msg->header.frame_id,
+         "breast_sim: cloud in frame '" + msg->header.frame_id + "' cannot be put into '" + params_.frame_id + "': " + why +
+             "; it is dropped and the model keeps its last state");
     rejectFrame(why);
     return;
   }
   const core::Points cloud = transformPoints(model_from_cloud, cp.points_m);
 
-  // 3. Track.
-  std::lock_guard<std::mutex> lock(engine_mutex_);
+  // 3. Track, guarded by the monitor.
+  std::unique_lock<std::mutex> lock(engine_mutex_);
   if (!engine_) {
-    ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: no model is loaded; clouds are ignored until a case loads (~load_case)");
+    ROS_WARN_STREAM_THROTTLE(params_.warn_throttle_s, "breast_sim: no model is loaded; clouds are ignored until a case loads (~load_case)");
     return;
   }
   Engine& e = *engine_;
   if (params_.require_precomputation && !e.precomputed) {
-    ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: the model is not precomputed; clouds are ignored until "
+    ROS_WARN_STREAM_THROTTLE(params_.warn_throttle_s, "breast_sim: the model is not precomputed; clouds are ignored until "
                              "~start_precomputation (or ~load_state) has run");
     return;
   }
   applyGravity(e, msg->header.stamp);
-  const TrackResult r = tracker_.track(*e.pipeline, cloud);
-  if (!r.tracked) {
-    ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: cloud refused: " << r.reason << "; the model keeps its last state");
-    rejectFrame(r.reason);
+  const bool was_valid = guard_.valid();
+  const GuardedFrame f = guard_.frame(*e.pipeline, cloud);
+  e.gravity_load_mps2 = e.pipeline->gravityLoad();  // a frame taken back restores the load it had
+  if (!f.track.tracked) {
+    lock.unlock();
+    warn("cloud refused", "breast_sim: cloud refused: " + f.track.reason + "; the model keeps its last state");
+    {
+      std::lock_guard<std::mutex> sl(stats_mutex_);
+      ++window_.rejected;
+      ++total_rejected_;
+      last_reject_ = f.track.reason;
+    }
+    if (was_valid && !f.valid) {
+      std::lock_guard<std::mutex> relock(engine_mutex_);
+      if (engine_) publishModel(*engine_, ros::Time::now(), false, false, f.status);
+      setState(breast_sim::NodeState::DEGRADED, f.status + "; the model keeps its last good state and the lesions are "
+               "not valid until tracking recovers");
+    }
     return;
   }
-  if (!r.icp_note.empty()) ROS_WARN_STREAM_THROTTLE(throttle, "breast_sim: " << r.icp_note);
+  if (f.restored)
+    warn("monitor " + std::to_string(static_cast<int>(f.verdict.recovery)),
+         "breast_sim: tracking frame past a limit: " + f.verdict.reason + "; " +
+             (f.verdict.recovery == Recovery::kReference ? "the model is back at its precomputed state"
+                                                          : "the frame was taken back") +
+             ", the lesions are not valid until " + std::to_string(params_.monitor.recover_frames) +
+             " good frames in a row");
   // 4. Publish (header stamp = the cloud's, so consumers can match them).
-  publishModel(e, msg->header.stamp, false);
+  publishModel(e, msg->header.stamp, false, f.valid, f.status);
   const double latency = seconds(Clock::now() - received);
   const auto now = Clock::now();
-  bool quality = false;
-  if (seconds(now - last_quality_) >= params_.diagnostics_period_s) {
-    last_quality_ = now;
-    quality = true;
-    inverted_elements_ = core::qualityStats(e.model->mesh.tets(), e.pipeline->positions()).num_inverted;
-  }
+  inverted_elements_ = f.quality.inverted_elements;
   {
     std::lock_guard<std::mutex> sl(stats_mutex_);
     ++window_.tracked;
     ++total_tracked_;
-    consecutive_rejected_ = 0;
+    if (f.restored) ++total_taken_back_;
     window_.latency_sum_s += latency;
     window_.latency_max_s = std::max(window_.latency_max_s, latency);
-    window_.step_sum_s += r.iterate_s;
-    window_.field_sum_s += r.field_s;
-    window_.icp_sum_s += r.icp_s;
-    window_.filter_sum_s += r.filter_s;
-    window_.points_in += r.points_in;
-    window_.points_used += r.points_used;
-    surface_mean_m_ = r.last.surface_mean_m;
-    surface_p95_m_ = r.last.surface_p95_m;
-    alpha_ = r.last.alpha_per_pa;
-    icp_rms_m_ = r.icp_rms_m;
-    skin_seen_ = r.skin_seen;
-    skin_held_ = r.skin_held;
+    window_.step_sum_s += f.track.iterate_s;
+    window_.field_sum_s += f.track.field_s;
+    window_.icp_sum_s += f.track.icp_s;
+    window_.filter_sum_s += f.track.filter_s;
+    window_.points_in += f.track.points_in;
+    window_.points_used += f.track.points_used;
+    surface_mean_m_ = f.track.seen_mean_m;
+    surface_p95_m_ = f.track.seen_p95_m;
+    alpha_ = f.track.last.alpha_per_pa;
+    icp_rms_m_ = f.track.icp_rms_m;
+    skin_seen_ = f.track.skin_seen;
+    skin_held_ = f.track.skin_held;
+    quality_ = f.quality;
+    lesions_valid_ = f.valid;
+    lesion_status_ = f.status;
     last_tracked_ = now;
   }
-  (void)quality;
-  const bool degraded = inverted_elements_ > 0;
-  std::ostringstream s;
-  s << "tracking: surface mean " << mm(std::max(0.0, r.last.surface_mean_m)) << ", p95 "
-    << mm(std::max(0.0, r.last.surface_p95_m));
-  if (degraded) s << "; " << inverted_elements_ << " inverted elements";
-  setState(degraded ? breast_sim::NodeState::DEGRADED : breast_sim::NodeState::TRACKING, s.str(), false);
+  lock.unlock();
+  if (f.valid) setState(breast_sim::NodeState::TRACKING, "tracking: " + f.status, false);
+  else setState(breast_sim::NodeState::DEGRADED, f.status + "; the lesions are not valid", false);
 }
 
 // ------------------------------------------------------------------------------------------------
 // Publishing
 
-void BreastSimNode::publishModel(Engine& e, const ros::Time& stamp, bool force_all) {
+void BreastSimNode::publishModel(Engine& e, const ros::Time& stamp, bool force_all, bool valid,
+                                 const std::string& status) {
   const auto now = Clock::now();
   const core::Points x = e.pipeline->positions();
   const core::Points lesions = e.model->lesion_embedding.positions(x);
@@ -880,10 +982,20 @@ void BreastSimNode::publishModel(Engine& e, const ros::Time& stamp, bool force_a
     last_mesh_pub_ = now;
     mesh_pub_.publish(toMessage(e.model->mesh, x - e.model->mesh.nodes(), params_.frame_id, stamp));
   }
-  lesions_pub_.publish(lesionsMessage(e.model->lesions, lesions, params_.frame_id, stamp));
-  if (params_.publish_lesion_tf && !e.model->lesions.empty())
+  lesions_pub_.publish(lesionsMessage(e.model->lesions, lesions, params_.frame_id, stamp, valid, status));
+  if (time_went_back_.exchange(false)) last_lesion_tf_stamp_ = ros::Time();
+  // Frames only for lesions the node vouches for, and only newer stamps (a tf2 listener drops a
+  // frame older than the newest it holds and warns about one at the same stamp).
+  if (params_.publish_lesion_tf && valid && !e.model->lesions.empty() && stamp > last_lesion_tf_stamp_) {
+    last_lesion_tf_stamp_ = stamp;
     tf_broadcaster_.sendTransform(lesionTransforms(e.model->lesions, lesions, params_.frame_id,
                                                    params_.lesion_frame_prefix, stamp));
+  }
+  {
+    std::lock_guard<std::mutex> sl(stats_mutex_);
+    lesions_valid_ = valid;
+    lesion_status_ = status;
+  }
   if (force_all || seconds(now - last_marker_pub_) >= 1.0 / params_.marker_rate_hz) {
     last_marker_pub_ = now;
     surface_pub_.publish(surfaceMarker(e.display, x, params_.frame_id, stamp));
@@ -918,9 +1030,16 @@ void BreastSimNode::publishDiagnostics(const ros::WallTimerEvent&) {
   long total_tracked, total_rejected;
   double mean_m, p95_m, alpha, icp_rms;
   Clock::time_point last_tracked;
-  std::string last_reject;
+  std::string last_reject, lesion_status;
+  FrameQuality quality;
+  bool lesions_valid;
+  long taken_back;
   {
     std::lock_guard<std::mutex> sl(stats_mutex_);
+    quality = quality_;
+    lesions_valid = lesions_valid_;
+    lesion_status = lesion_status_;
+    taken_back = total_taken_back_;
     w = window_;
     window_ = Window();
     const auto now = Clock::now();
@@ -938,8 +1057,9 @@ void BreastSimNode::publishDiagnostics(const ros::WallTimerEvent&) {
   // No clouds for a while: back to idle.
   {
     std::lock_guard<std::mutex> sl(state_mutex_);
-    if ((state_.state == breast_sim::NodeState::TRACKING || state_.state == breast_sim::NodeState::DEGRADED) &&
-        w.clouds == 0 && seconds(Clock::now() - last_tracked) > params_.tracking_timeout_s) {
+    // (A degraded state stays: its reason must stay visible until tracking recovers.)
+    if (state_.state == breast_sim::NodeState::TRACKING && w.clouds == 0 &&
+        seconds(Clock::now() - last_tracked) > params_.tracking_timeout_s) {
       state_.state = breast_sim::NodeState::IDLE;
       state_.state_name = stateName(state_.state);
       state_.message = "no surface cloud for " + std::to_string(params_.tracking_timeout_s) +
@@ -956,8 +1076,11 @@ void BreastSimNode::publishDiagnostics(const ros::WallTimerEvent&) {
   diagnostic_msgs::DiagnosticStatus s;
   s.name = ros::this_node::getName() + ": navigation";
   s.hardware_id = st.case_name.empty() ? "breast_sim" : st.case_name;
-  s.level = st.state == breast_sim::NodeState::DEGRADED ? diagnostic_msgs::DiagnosticStatus::WARN
-                                                        : diagnostic_msgs::DiagnosticStatus::OK;
+  // ERROR: the node cannot vouch for its lesions; WARN: tracking, but clouds were refused or a frame
+  // taken back in this window.
+  s.level = st.state == breast_sim::NodeState::DEGRADED ? diagnostic_msgs::DiagnosticStatus::ERROR
+            : (st.state == breast_sim::NodeState::TRACKING && w.rejected > 0) ? diagnostic_msgs::DiagnosticStatus::WARN
+                                                                             : diagnostic_msgs::DiagnosticStatus::OK;
   if (!st.model_loaded && st.state != breast_sim::NodeState::LOADING) s.level = diagnostic_msgs::DiagnosticStatus::ERROR;
   s.message = st.state_name + ": " + st.message;
   auto kv = [&s](const std::string& k, const std::string& v) {
@@ -975,6 +1098,8 @@ void BreastSimNode::publishDiagnostics(const ros::WallTimerEvent&) {
   };
   const double n = std::max(1, w.tracked);
   kv("state", st.state_name);
+  kv("lesions valid", lesions_valid ? "true" : "false");
+  kv("lesion status", lesion_status);
   kv("precomputed", st.precomputed ? "true" : "false");
   kv("cloud rate in [Hz]", num(w.clouds / window_s, 2));
   kv("tracked rate [Hz]", num(w.tracked / window_s, 2));
@@ -992,9 +1117,15 @@ void BreastSimNode::publishDiagnostics(const ros::WallTimerEvent&) {
   kv("points in mean", w.tracked ? num(w.points_in / n, 0) : "-");
   kv("points used mean", w.tracked ? num(w.points_used / n, 0) : "-");
   kv("inverted elements", std::to_string(inverted_elements_));
-  // Pulled skin vertices to the target before the last step; held (unseen) vertices count as 0.
-  kv("residual surface distance mean [mm]", mean_m >= 0 ? num(1e3 * mean_m) : "-");
-  kv("residual surface distance p95 [mm]", p95_m >= 0 ? num(1e3 * p95_m) : "-");
+  // The seen skin's distance to the last tracked cloud before its step (along the skin normal).
+  kv("seen skin to cloud mean [mm]", mean_m >= 0 ? num(1e3 * mean_m) : "-");
+  kv("seen skin to cloud p95 [mm]", p95_m >= 0 ? num(1e3 * p95_m) : "-");
+  kv("seen skin share", num(quality.seen_fraction, 3));
+  kv("chest wall drift from precomputed [mm]", num(1e3 * quality.wall_drift_m));
+  kv("model drift from precomputed [mm]", num(1e3 * quality.rigid_drift_m));
+  kv("lesion offset from precomputed [mm]", num(1e3 * quality.lesion_offset_m));
+  kv("lesion move in the last frame [mm]", num(1e3 * quality.lesion_jump_m));
+  kv("frames taken back total", std::to_string(taken_back));
   kv("icp rms [mm]", icp_rms >= 0 ? num(1e3 * icp_rms) : "-");
   kv("skin vertices seen / held", std::to_string(skin_seen_) + " / " + std::to_string(skin_held_));
   kv("alpha [1/Pa]", num(alpha, 6));

@@ -7,6 +7,7 @@
 #include <unordered_map>
 #include <unordered_set>
 #include <array>
+#include <sstream>
 
 namespace breast_sim::ros_interface {
 
@@ -72,41 +73,17 @@ core::Points displacementFromMessage(const breast_sim::TetrahedralMesh& msg) {
   return Eigen::Map<const core::Points>(msg.displacements.data(), n, 3);
 }
 
-breast_sim::LesionArray toMessage(const std::vector<core::Lesion>& lesions,
-                                  const core::PointEmbedding& embedding,
-                                  const core::Points& displacement_m, const std::string& frame_id,
-                                  const ros::Time& stamp) {
-  if (static_cast<int>(lesions.size()) != embedding.size())
-    throw std::invalid_argument("toMessage: " + std::to_string(lesions.size()) + " lesions but " +
-                                std::to_string(embedding.size()) + " embedded points");
-  breast_sim::LesionArray msg;
-  msg.header.frame_id = frame_id;
-  msg.header.stamp = stamp;
-  // interpolate() checks that the field has a row per mesh node.
-  const core::Points u = displacement_m.rows() > 0 ? embedding.interpolate(displacement_m)
-                                                   : core::Points::Zero(embedding.size(), 3);
-  for (size_t i = 0; i < lesions.size(); ++i) {
-    breast_sim::Lesion l;
-    l.id = lesions[i].name;
-    l.prone_position.x = lesions[i].position_m.x();
-    l.prone_position.y = lesions[i].position_m.y();
-    l.prone_position.z = lesions[i].position_m.z();
-    l.position.x = l.prone_position.x + u(static_cast<Eigen::Index>(i), 0);
-    l.position.y = l.prone_position.y + u(static_cast<Eigen::Index>(i), 1);
-    l.position.z = l.prone_position.z + u(static_cast<Eigen::Index>(i), 2);
-    msg.lesions.push_back(l);
-  }
-  return msg;
-}
-
 breast_sim::LesionArray lesionsMessage(const std::vector<core::Lesion>& lesions, const core::Points& positions_m,
-                                       const std::string& frame_id, const ros::Time& stamp) {
+                                       const std::string& frame_id, const ros::Time& stamp, bool valid,
+                                       const std::string& status) {
   if (positions_m.rows() != static_cast<Eigen::Index>(lesions.size()))
     throw std::invalid_argument("lesionsMessage: " + std::to_string(positions_m.rows()) + " positions for " +
                                 std::to_string(lesions.size()) + " lesions");
   breast_sim::LesionArray msg;
   msg.header.frame_id = frame_id;
   msg.header.stamp = stamp;
+  msg.valid = valid;
+  msg.status = status;
   for (size_t i = 0; i < lesions.size(); ++i) {
     breast_sim::Lesion l;
     l.id = lesions[i].name;
@@ -117,6 +94,7 @@ breast_sim::LesionArray lesionsMessage(const std::vector<core::Lesion>& lesions,
     l.position.x = positions_m(r, 0);
     l.position.y = positions_m(r, 1);
     l.position.z = positions_m(r, 2);
+    l.valid = valid;
     msg.lesions.push_back(l);
   }
   return msg;
@@ -235,8 +213,12 @@ Eigen::Isometry3d isometryFromPose(const geometry_msgs::Pose& pose) {
   Eigen::Quaterniond q(pose.orientation.w, pose.orientation.x, pose.orientation.y, pose.orientation.z);
   if (!p.allFinite() || !q.coeffs().allFinite())
     throw std::invalid_argument("pose: a position or orientation value is not finite");
-  if (q.norm() < 1e-6)
-    throw std::invalid_argument("pose: the orientation quaternion is zero; give a unit quaternion (w = 1 for none)");
+  if (!(std::abs(q.norm() - 1.0) <= 1e-3)) {
+    std::ostringstream s;
+    s << "pose: the orientation quaternion (w " << q.w() << ", x " << q.x() << ", y " << q.y() << ", z " << q.z()
+      << ") has norm " << q.norm() << "; a rotation needs a unit quaternion (norm within 1 ± 0.001; w = 1 for none)";
+    throw std::invalid_argument(s.str());
+  }
   q.normalize();
   Eigen::Isometry3d t = Eigen::Isometry3d::Identity();
   t.linear() = q.toRotationMatrix();

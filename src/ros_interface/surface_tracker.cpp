@@ -8,6 +8,7 @@
 #include <cmath>
 #include <limits>
 #include <memory>
+#include <sstream>
 
 #include <Eigen/Geometry>
 #include <pcl/filters/statistical_outlier_removal.h>
@@ -18,6 +19,7 @@
 #include <pcl/registration/icp.h>
 #include <pcl/search/kdtree.h>
 
+#include "breast_sim/core/morphing/target_surface.h"
 #include "breast_sim/ros_interface/conversions.h"
 #include "breast_sim/ros_interface/point_grid.h"
 
@@ -187,25 +189,34 @@ core::Points filterCloudPcl(const core::Points& cloud_m, const CloudFilterOption
 
 namespace {
 
-/// The acceptance rules of a finished ICP run: `t` maps the cloud onto the reference.
-IcpResult judge(bool converged, double fitness_m2, const Eigen::Isometry3d& t, const IcpOptions& options) {
+/// The acceptance rules of a finished ICP run: `t` maps the cloud onto the reference; `fit` is the
+/// aligned cloud's correspondences with the reference.
+IcpResult judge(bool converged, const Correspondences& fit, const Eigen::Isometry3d& t, const IcpOptions& options) {
   IcpResult r;
   r.converged = converged;
-  r.rms_m = std::sqrt(std::max(0.0, fitness_m2));
+  r.rms_m = fit.rms_m;
+  r.inlier_fraction = fit.inlier_fraction;
   const double translation = t.translation().norm();
   const double rotation = Eigen::AngleAxisd(t.linear()).angle() * 180.0 / M_PI;
   r.transform = t;
+  std::ostringstream note;
+  note.setf(std::ios::fixed);
+  note.precision(2);
   if (!r.converged) {
-    r.note = "ICP did not converge";
+    note << "ICP did not converge";
+  } else if (!(fit.inlier_fraction >= options.min_inlier_fraction)) {
+    note << "ICP left " << 100 * fit.inlier_fraction << " % of the points within " << 1e3 * options.max_correspondence_m
+         << " mm of the skin, fewer than " << 100 * options.min_inlier_fraction << " %";
   } else if (!(r.rms_m <= options.max_rms_m)) {
-    r.note = "ICP residual " + std::to_string(1e3 * r.rms_m) + " mm above " + std::to_string(1e3 * options.max_rms_m) + " mm";
+    note << "ICP residual " << 1e3 * r.rms_m << " mm RMS above " << 1e3 * options.max_rms_m << " mm";
   } else if (translation > options.max_translation_m || rotation > options.max_rotation_deg) {
-    r.note = "ICP correction " + std::to_string(1e3 * translation) + " mm / " + std::to_string(rotation) +
-             " deg beyond the limits";
+    note << "ICP correction " << 1e3 * translation << " mm / " << rotation << " deg beyond the limits ("
+         << 1e3 * options.max_translation_m << " mm / " << options.max_rotation_deg << " deg)";
   } else {
     r.applied = true;
     return r;
   }
+  r.note = note.str();
   r.transform = Eigen::Isometry3d::Identity();
   return r;
 }
@@ -298,11 +309,79 @@ IcpResult pclIcp(const core::Points& cloud_m, const core::Points& reference_m, c
   icp.setEuclideanFitnessEpsilon(1e-12);
   pcl::PointCloud<pcl::PointXYZ> aligned;
   icp.align(aligned, guess.matrix().cast<float>());
-  const double fitness = icp.getFitnessScore(options.max_correspondence_m);  // mean squared distance [m²]
-  return judge(icp.hasConverged(), fitness, Eigen::Isometry3d(icp.getFinalTransformation().cast<double>()), options);
+  const Eigen::Isometry3d t(icp.getFinalTransformation().cast<double>());
+  const core::Points moved = transformPoints(t, cloud_m);
+  const Correspondences fit = grid_search ? correspondences(moved, reference_m, options.max_correspondence_m)
+                                          : correspondencesPcl(moved, reference_m, options.max_correspondence_m);
+  return judge(icp.hasConverged(), fit, t, options);
 }
 
 }  // namespace
+
+Correspondences correspondences(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
+  Correspondences c;
+  if (cloud_m.rows() == 0 || reference_m.rows() == 0 || !(gate_m > 0)) return c;
+  const PointGrid grid(reference_m, gate_m);
+  double sum = 0;
+  long within = 0;
+  for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
+    float d2 = 0;
+    const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
+    if (grid.nearestWithin(q, gate_m, &d2) < 0) continue;
+    sum += d2;
+    ++within;
+  }
+  c.inlier_fraction = static_cast<double>(within) / static_cast<double>(cloud_m.rows());
+  if (within > 0) c.rms_m = std::sqrt(sum / static_cast<double>(within));
+  return c;
+}
+
+Correspondences correspondencesPcl(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
+  Correspondences c;
+  if (cloud_m.rows() == 0 || reference_m.rows() == 0 || !(gate_m > 0)) return c;
+  pcl::KdTreeFLANN<pcl::PointXYZ> tree;
+  tree.setInputCloud(toPcl(reference_m));
+  std::vector<int> index(1);
+  std::vector<float> d2(1);
+  const float gate2 = static_cast<float>(gate_m * gate_m);
+  double sum = 0;
+  long within = 0;
+  for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
+    const pcl::PointXYZ p(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
+    if (tree.nearestKSearch(p, 1, index, d2) < 1 || d2[0] > gate2) continue;
+    sum += d2[0];
+    ++within;
+  }
+  c.inlier_fraction = static_cast<double>(within) / static_cast<double>(cloud_m.rows());
+  if (within > 0) c.rms_m = std::sqrt(sum / static_cast<double>(within));
+  return c;
+}
+
+std::vector<int> pointsNear(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
+  std::vector<int> kept;
+  if (reference_m.rows() == 0 || !(gate_m > 0)) return kept;
+  const PointGrid grid(reference_m, gate_m);
+  for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
+    const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
+    if (grid.anyWithin(q, gate_m)) kept.push_back(static_cast<int>(i));
+  }
+  return kept;
+}
+
+std::vector<int> pointsNearPcl(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
+  std::vector<int> kept;
+  if (reference_m.rows() == 0 || !(gate_m > 0)) return kept;
+  pcl::KdTreeFLANN<pcl::PointXYZ> tree;
+  tree.setInputCloud(toPcl(reference_m));
+  std::vector<int> index(1);
+  std::vector<float> d2(1);
+  const float gate2 = static_cast<float>(gate_m * gate_m);
+  for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
+    const pcl::PointXYZ p(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
+    if (tree.nearestKSearch(p, 1, index, d2) > 0 && d2[0] <= gate2) kept.push_back(static_cast<int>(i));
+  }
+  return kept;
+}
 
 IcpResult rigidAlign(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
                      const IcpOptions& options) {
@@ -321,48 +400,85 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
   core::Points cloud =
       options_.pcl_reference ? filterCloudPcl(cloud_m, options_.filter) : filterCloud(cloud_m, options_.filter);
   res.points_decimated = static_cast<size_t>(cloud.rows());
+  // The model does not move before iterate(): one copy of its positions serves the gate, ICP and the
+  // unseen skin.
+  const core::Points x = pipeline.positions();
+  const std::vector<int>& skin = pipeline.model().mesh.nodeSet(core::node_sets::kSkin);
+  core::Points skin_now(static_cast<Eigen::Index>(skin.size()), 3);
+  for (size_t i = 0; i < skin.size(); ++i) skin_now.row(static_cast<Eigen::Index>(i)) = x.row(skin[i]);
+  if (reference_skin_.rows() == 0) {
+    // Tracking starts here. ICP pairs cloud points with their nearest reference point: the skin's
+    // vertices, edge midpoints and face centroids, so that the pairs' distances are those to the
+    // surface within a quarter of an edge instead of half an edge.
+    const core::Triangles tris = core::skinTriangles(pipeline.model().mesh, skin);
+    reference_skin_.resize(skin_now.rows() + 4 * tris.rows(), 3);
+    reference_skin_.topRows(skin_now.rows()) = skin_now;
+    Eigen::Index r = skin_now.rows();
+    for (Eigen::Index t = 0; t < tris.rows(); ++t) {
+      const Eigen::RowVector3d a = x.row(tris(t, 0)), b = x.row(tris(t, 1)), c = x.row(tris(t, 2));
+      reference_skin_.row(r++) = (a + b + c) / 3.0;
+      reference_skin_.row(r++) = 0.5 * (a + b);
+      reference_skin_.row(r++) = 0.5 * (b + c);
+      reference_skin_.row(r++) = 0.5 * (c + a);
+    }
+  }
+  if (options_.max_point_distance_m > 0 && cloud.rows() > 0) {
+    // Against the model's skin where the last ICP correction puts the cloud.
+    const core::Points seen_as = guess_.matrix().isIdentity(0) ? cloud : transformPoints(guess_, cloud);
+    const std::vector<int> kept = options_.pcl_reference ? pointsNearPcl(seen_as, skin_now, options_.max_point_distance_m)
+                                                         : pointsNear(seen_as, skin_now, options_.max_point_distance_m);
+    res.points_gated = static_cast<size_t>(cloud.rows()) - kept.size();
+    if (res.points_gated > 0) {
+      core::Points near(static_cast<Eigen::Index>(kept.size()), 3);
+      for (size_t i = 0; i < kept.size(); ++i) near.row(static_cast<Eigen::Index>(i)) = cloud.row(kept[i]);
+      cloud = std::move(near);
+    }
+  }
   res.filter_s = since(t0);
   if (cloud.rows() < options_.min_points) {
-    res.reason = std::to_string(cloud.rows()) + " points after decimation and outlier removal, fewer than min_points = " +
+    res.reason = std::to_string(cloud.rows()) + " points after decimation, outlier removal and the " +
+                 std::to_string(1e3 * options_.max_point_distance_m).substr(0, 5) + " mm distance gate (" +
+                 std::to_string(res.points_gated) + " beyond it), fewer than min_points = " +
                  std::to_string(options_.min_points);
     return res;
   }
-  // The model does not move before iterate(): one copy of its positions serves ICP and the unseen skin.
-  const core::Points x = pipeline.positions();
-  const std::vector<int>& skin = pipeline.model().mesh.nodeSet(core::node_sets::kSkin);
   const auto align = options_.pcl_reference ? rigidAlignPcl : rigidAlign;
   if (options_.icp.enabled) {
     t0 = std::chrono::steady_clock::now();
-    core::Points reference(static_cast<Eigen::Index>(skin.size()), 3);
-    for (size_t i = 0; i < skin.size(); ++i) reference.row(static_cast<Eigen::Index>(i)) = x.row(skin[i]);
     // ICP needs far fewer points than the morphing: an even sub-sample.
     Eigen::Index stride = 1;
     if (options_.icp.max_points > 0 && cloud.rows() > options_.icp.max_points)
       stride = (cloud.rows() + options_.icp.max_points - 1) / options_.icp.max_points;
     core::Points sample((cloud.rows() + stride - 1) / stride, 3);
     for (Eigen::Index i = 0; i < sample.rows(); ++i) sample.row(i) = cloud.row(i * stride);
-    IcpResult icp = align(sample, reference, guess_, options_.icp);
+    IcpResult icp = align(sample, reference_skin_, guess_, options_.icp);
     if (!icp.applied && !guess_.matrix().isIdentity(0)) {
       // The previous correction may be what is wrong now: try once from identity.
-      IcpResult again = align(sample, reference, Eigen::Isometry3d::Identity(), options_.icp);
+      IcpResult again = align(sample, reference_skin_, Eigen::Isometry3d::Identity(), options_.icp);
       if (again.applied) icp = again;
     }
     res.icp_rms_m = icp.rms_m;
+    res.icp_inlier_fraction = icp.inlier_fraction;
     res.icp_s = since(t0);
-    if (icp.applied) {
-      cloud = transformPoints(icp.transform, cloud);
-      guess_ = icp.transform;
-      res.icp_applied = true;
-      res.icp_translation_m = icp.transform.translation().norm();
-      res.icp_rotation_deg = Eigen::AngleAxisd(icp.transform.linear()).angle() * 180.0 / M_PI;
-    } else {
+    if (!icp.applied) {
+      // A cloud that cannot be brought onto the skin by a small rigid correction is not the skin as
+      // registered (a wrong pose, another surface): it would pull the model off its shape.
       guess_ = Eigen::Isometry3d::Identity();
-      res.icp_note = icp.note + "; the cloud is used as transformed by tf";
+      res.icp_refused = true;
+      res.icp_note = icp.note;
+      res.reason = "ICP refused the cloud: " + icp.note;
+      return res;
     }
+    cloud = transformPoints(icp.transform, cloud);
+    guess_ = icp.transform;
+    res.icp_applied = true;
+    res.icp_translation_m = icp.transform.translation().norm();
+    res.icp_rotation_deg = Eigen::AngleAxisd(icp.transform.linear()).angle() * 180.0 / M_PI;
   }
   res.points_used = static_cast<size_t>(cloud.rows());
   t0 = std::chrono::steady_clock::now();
   core::TargetSurface target;
+  held_.assign(static_cast<size_t>(x.rows()), 0);
   if (options_.hold_unseen_skin_m > 0) {
     // Skin vertices the scanner did not see (no cloud point within hold_unseen_skin_m, float squared
     // distances as PCL computes them) keep their current positions as their target.
@@ -384,12 +500,14 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
         if (!grid.anyWithin(p, options_.hold_unseen_skin_m)) held.push_back(n);
       }
     }
+    for (int n : held) held_[static_cast<size_t>(n)] = 1;
     res.skin_held = static_cast<int>(held.size());
     res.skin_seen = static_cast<int>(skin.size() - held.size());
     target.vertices_m.resize(cloud.rows() + static_cast<Eigen::Index>(held.size()), 3);
     target.vertices_m.topRows(cloud.rows()) = cloud;
     for (size_t i = 0; i < held.size(); ++i) target.vertices_m.row(cloud.rows() + static_cast<Eigen::Index>(i)) = x.row(held[i]);
   } else {
+    res.skin_seen = static_cast<int>(skin.size());
     target.vertices_m = std::move(cloud);
   }
   pipeline.setTarget(target);
@@ -406,10 +524,24 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
       if (saved > 0) solver.setRelativeTolerance(saved);
     }
   } tolerance_scope(pipeline.simulator().solver(), options_.solver_relative_tolerance);
+  pipeline.setTrackingMode(true);
   for (int i = 0; i < options_.iterations_per_frame; ++i) {
     res.last = pipeline.iterate();
     ++res.iterations;
     res.reversals += res.last.reversals;
+    if (i == 0 && pipeline.morphing()) {
+      // The first iteration's distances are those of this cloud to the model as it arrived.
+      const core::SurfaceMorphing& m = *pipeline.morphing();
+      std::vector<double> seen;
+      seen.reserve(m.vertices().size());
+      for (size_t k = 0; k < m.vertices().size(); ++k)
+        if (!held_[static_cast<size_t>(m.vertices()[k])]) seen.push_back(m.lastDistances()[static_cast<Eigen::Index>(k)]);
+      if (!seen.empty()) {
+        const core::DistanceStats d = core::distanceStats(seen);
+        res.seen_mean_m = d.mean_m;
+        res.seen_p95_m = d.p95_m;
+      }
+    }
   }
   res.iterate_s = since(t0);
   res.tracked = true;

@@ -104,15 +104,52 @@ core::Points TrackerSimulation::cloudAsRecordedInModel(double t) {
   return cloud;
 }
 
+SkinScanner::SkinScanner(const core::Points& x, const core::Triangles& tris, unsigned seed) : x_(x), rng_(seed) {
+  for (Eigen::Index t = 0; t < tris.rows(); ++t) {
+    const Eigen::Vector3d a = x.row(tris(t, 0)), b = x.row(tris(t, 1)), c = x.row(tris(t, 2));
+    const Eigen::Vector3d n = (b - a).cross(c - a);
+    if (n.norm() > 0 && n.normalized().dot(Eigen::Vector3d(0, -1, 0)) > 0.2) {
+      triangles_.push_back(tris.row(t).transpose());
+      cumulative_area_.push_back((cumulative_area_.empty() ? 0.0 : cumulative_area_.back()) + 0.5 * n.norm());
+    }
+  }
+  if (triangles_.empty()) throw std::invalid_argument("SkinScanner: no skin triangle faces anterior (-y)");
+  for (Eigen::Index i = 0; i < x.rows(); ++i) depth_m_ = std::max(depth_m_, -x(i, 1));
+}
+
+core::Points SkinScanner::scan(int points, double breath_m, const Eigen::Vector3d& shift_m, double noise_m) {
+  std::uniform_real_distribution<double> u01(0, 1);
+  std::normal_distribution<double> noise(0, noise_m);
+  core::Points cloud(points, 3);
+  for (int i = 0; i < points; ++i) {
+    const double a = u01(rng_) * cumulative_area_.back();
+    const size_t t = std::min<size_t>(
+        std::lower_bound(cumulative_area_.begin(), cumulative_area_.end(), a) - cumulative_area_.begin(), triangles_.size() - 1);
+    double r1 = u01(rng_), r2 = u01(rng_);
+    if (r1 + r2 > 1) {
+      r1 = 1 - r1;
+      r2 = 1 - r2;
+    }
+    const Eigen::Vector3d A = x_.row(triangles_[t][0]), B = x_.row(triangles_[t][1]), C = x_.row(triangles_[t][2]);
+    Eigen::Vector3d p = A + r1 * (B - A) + r2 * (C - A);
+    if (depth_m_ > 0) p.y() -= breath_m * std::clamp(-p.y() / depth_m_, 0.0, 1.0);
+    p += shift_m;
+    for (int d = 0; d < 3; ++d) cloud(i, d) = p[d] + noise(rng_);
+  }
+  return cloud;
+}
+
 OfflineTrackingRun trackRecordingOffline(core::ProneToSupinePipeline& p, const core::PipelineState& start,
                                          const core::ModelCase& model_case, const TrackerOptions& options,
-                                         double gravity_update_threshold_deg, int clouds, double cloud_rate_hz,
-                                         const std::vector<bool>& tracked, const TrackerSimulationOptions& sim_options) {
+                                         const MonitorLimits& limits, double gravity_update_threshold_deg, int clouds,
+                                         double cloud_rate_hz, const std::vector<bool>& tracked,
+                                         const TrackerSimulationOptions& sim_options) {
   if (tracked.size() != static_cast<size_t>(std::max(clouds, 0)))
     throw std::invalid_argument("trackRecordingOffline: " + std::to_string(tracked.size()) + " tracked flags for " +
                                 std::to_string(clouds) + " clouds; give one per cloud");
   p.restore(start);
-  SurfaceTracker tracker(options);
+  GuardedTracker tracker(options, limits);
+  tracker.start(p);
   TrackerSimulation sim(model_case, sim_options);
   const double g = p.settings().simulation.gravity_mps2;
   const Eigen::Vector3d prone = g * model_case.prone_gravity_direction.normalized();
@@ -127,11 +164,14 @@ OfflineTrackingRun trackRecordingOffline(core::ProneToSupinePipeline& p, const c
         p.setGravityLoad(load);
         current = load;
       }
-      const TrackResult r = tracker.track(p, cloud);
-      run.reversals += r.reversals;
-      run.reverted_frames += r.reversals > 0;
+      const GuardedFrame f = tracker.frame(p, cloud);
+      current = p.gravityLoad();  // a frame taken back restores the load it had, as in the node
+      run.reversals += f.track.reversals;
+      run.reverted_frames += f.track.reversals > 0;
+      run.taken_back += f.restored;
     }
     run.lesions_m.push_back(p.lesionPositions());
+    run.valid.push_back(tracker.valid());
   }
   return run;
 }

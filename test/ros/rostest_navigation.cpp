@@ -155,7 +155,7 @@ Offline& offline() {
 /// the lesions after each cloud [m] (after a skipped cloud, those of the cloud before).
 std::vector<core::Points> trackOffline(Offline& o, const std::vector<bool>& tracked) {
   const ros_interface::NodeParams node = ros_interface::NodeParams::fromRos(ros::NodeHandle("/breast_sim"));
-  return ros_interface::trackRecordingOffline(*o.pipeline, o.precomputed, o.c, node.tracker,
+  return ros_interface::trackRecordingOffline(*o.pipeline, o.precomputed, o.c, node.tracker, node.monitor,
                                               node.gravity_update_threshold_deg, BAG_CLOUDS, BAG_CLOUD_RATE_HZ, tracked)
       .lesions_m;
 }

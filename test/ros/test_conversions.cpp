@@ -64,19 +64,6 @@ TEST(Conversions, MalformedMessagesAreRejectedWithTheField) {
   expectError(d, "displacements");
 }
 
-TEST(Conversions, LesionsMoveWithTheDisplacement) {
-  const core::TetMesh m = twoTets();
-  core::Points p(1, 3);
-  p << 0.002, 0.002, 0.002;
-  const core::PointEmbedding e(m, p, {"L1"});
-  core::Points u = core::Points::Zero(5, 3);
-  u.col(0).setConstant(0.005);  // rigid shift of 5 mm in x
-  const auto msg = ros_interface::toMessage({{"L1", p.row(0).transpose(), 0.0}}, e, u, "f", ros::Time(1));
-  ASSERT_EQ(msg.lesions.size(), 1u);
-  EXPECT_NEAR(msg.lesions[0].position.x, 0.007, 1e-12);
-  EXPECT_NEAR(msg.lesions[0].prone_position.x, 0.002, 1e-12);
-}
-
 // ---------------------------------------------------------------------------------------------------
 // Clouds, poses, gravity, display surfaces, markers.
 
@@ -168,6 +155,34 @@ TEST(Conversions, PosesAndTransformsRoundTrip) {
   EXPECT_TRUE(ros_interface::isometryFromTransform(ros_interface::transformFromIsometry(t)).isApprox(t, 1e-12));
   geometry_msgs::Pose zero;  // all-zero quaternion
   EXPECT_THROW(ros_interface::isometryFromPose(zero), std::invalid_argument);
+}
+
+TEST(Conversions, AQuaternionFarFromUnitLengthIsRefusedNotNormalised) {
+  geometry_msgs::Pose pose;
+  pose.orientation.w = 1e-5;  // would normalise to the identity; (1e-5, 0, 0, 0) as x, y, z to a 180° turn
+  EXPECT_THROW(ros_interface::isometryFromPose(pose), std::invalid_argument);
+  pose.orientation.w = 0;
+  pose.orientation.x = 1e-5;
+  try {
+    ros_interface::isometryFromPose(pose);
+    ADD_FAILURE() << "a quaternion of norm 1e-5 was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("norm 1e-05"), std::string::npos) << e.what();
+  }
+  pose.orientation.x = 0;
+  pose.orientation.w = 1.0011;  // beyond 1 ± 1e-3
+  EXPECT_THROW(ros_interface::isometryFromPose(pose), std::invalid_argument);
+  pose.orientation.w = 1.0009;  // within: normalised
+  EXPECT_TRUE(ros_interface::isometryFromPose(pose).linear().isApprox(Eigen::Matrix3d::Identity(), 1e-12));
+  geometry_msgs::Transform t;
+  t.rotation.w = 0.5;
+  EXPECT_THROW(ros_interface::isometryFromTransform(t), std::invalid_argument);
+}
+
+TEST(Conversions, PointsTransformRigidly) {
+  Eigen::Isometry3d t = Eigen::Isometry3d::Identity();
+  t.linear() = Eigen::AngleAxisd(0.3, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  t.translation() << 0.1, -0.2, 0.3;
   core::Points p(2, 3);
   p << 1, 0, 0, 0, 1, 0;
   const core::Points q = ros_interface::transformPoints(t, p);
@@ -272,8 +287,14 @@ TEST(Conversions, LesionMessagesMarkersAndFrames) {
   std::vector<core::Lesion> lesions = {{"L1", Eigen::Vector3d(0.01, 0.02, 0.03), 0.005}, {"L2", Eigen::Vector3d::Zero(), 0.0}};
   core::Points x(2, 3);
   x << 0.011, 0.022, 0.033, 0.001, 0.002, 0.003;
-  const auto msg = ros_interface::lesionsMessage(lesions, x, "breast_model", ros::Time(2));
+  const auto msg = ros_interface::lesionsMessage(lesions, x, "breast_model", ros::Time(2), true, "ok");
   ASSERT_EQ(msg.lesions.size(), 2u);
+  EXPECT_TRUE(msg.valid);
+  EXPECT_TRUE(msg.lesions[1].valid);
+  const auto invalid = ros_interface::lesionsMessage(lesions, x, "breast_model", ros::Time(2), false, "drift");
+  EXPECT_FALSE(invalid.valid);
+  EXPECT_FALSE(invalid.lesions[0].valid);
+  EXPECT_EQ(invalid.status, "drift");
   EXPECT_EQ(msg.lesions[1].id, "L2");
   EXPECT_DOUBLE_EQ(msg.lesions[0].position.y, 0.022);
   EXPECT_DOUBLE_EQ(msg.lesions[0].prone_position.y, 0.02);
@@ -285,7 +306,7 @@ TEST(Conversions, LesionMessagesMarkersAndFrames) {
   ASSERT_EQ(tfs.size(), 2u);
   EXPECT_EQ(tfs[0].child_frame_id, "lesion_L1");
   EXPECT_DOUBLE_EQ(tfs[1].transform.translation.z, 0.003);
-  EXPECT_THROW(ros_interface::lesionsMessage(lesions, core::Points(1, 3), "f", ros::Time(0)), std::invalid_argument);
+  EXPECT_THROW(ros_interface::lesionsMessage(lesions, core::Points(1, 3), "f", ros::Time(0), true, ""), std::invalid_argument);
 }
 
 TEST(Conversions, SlidingArrowsSkipShortVectorsAndRespectTheBudget) {

@@ -9,8 +9,9 @@
 /// ones are dropped, so the node never falls behind its tracker). The pipeline is guarded by one mutex;
 /// services that need it refuse with a reason while a long job runs.
 ///
-/// Every interface, parameter, frame and unit is listed in docs/ros/README_section.md and
-/// config/node.yaml.
+/// Tracking is guarded (tracking_monitor.h): the lesions carry whether the node vouches for them, and
+/// every cloud and pose is checked before it acts (input_checks.h). Every parameter is documented with
+/// its unit in config/node.yaml.
 
 #include <atomic>
 #include <chrono>
@@ -41,7 +42,9 @@
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/ros_interface/conversions.h"
+#include "breast_sim/ros_interface/input_checks.h"
 #include "breast_sim/ros_interface/surface_tracker.h"
+#include "breast_sim/ros_interface/tracking_monitor.h"
 
 namespace breast_sim::ros_interface {
 
@@ -58,13 +61,15 @@ struct NodeParams {
   bool follow_patient_pose = true;
   double gravity_update_threshold_deg = 0.5;
   bool publish_pose_tf = true;
+  PoseJumpLimits pose_jump;
   // tracking
   TrackerOptions tracker;
+  MonitorLimits monitor;              ///< monitor.refused_frames = tracking/degraded_after_rejected
+  StampLimits stamps;
   size_t max_cloud_points = 300000;
   double max_transform_age_s = 0.5;
   double tf_wait_s = 0.05;
   bool require_precomputation = true;
-  int degraded_after_rejected = 5;
   double tracking_timeout_s = 2.0;
   // publishing
   double mesh_rate_hz = 0.0;          ///< 0 = every tracked frame
@@ -112,6 +117,7 @@ class BreastSimNode {
   bool startJob(std::function<void()> job, std::string* why);
   void loadCaseJob(const std::string& case_file, int target_elements, std::string* message, bool* ok);
   void precomputeJob(bool gravity_only, std::optional<PrecomputeServer::GoalHandle> goal);
+  void resetJob();
 
   // Services and action.
   bool loadCaseSrv(breast_sim::LoadCase::Request& req, breast_sim::LoadCase::Response& res);
@@ -140,10 +146,17 @@ class BreastSimNode {
   /// Rotation of gravity-frame vectors into the model frame at `stamp` (the cloud's), if known.
   bool gravityRotation(const ros::Time& stamp, Eigen::Matrix3d* r);
   void applyGravity(Engine& e, const ros::Time& stamp);
+  /// A cloud refused before it reached the tracker (counts toward the monitor's refusals).
   void rejectFrame(const std::string& reason);
+  /// Keyed, throttled warning (tracking/warn_throttle_s per key).
+  void warn(const std::string& key, const std::string& text);
+  /// Forget the tracking reference (a new model or state); the next cloud starts from the model's state.
+  void restartTracking();
 
   // Publishing.
-  void publishModel(Engine& e, const ros::Time& stamp, bool force_all);
+  /// Mesh, lesions (marked `valid` with `status`), their tf frames (only valid ones, only newer
+  /// stamps), and at the marker rate the markers.
+  void publishModel(Engine& e, const ros::Time& stamp, bool force_all, bool valid, const std::string& status);
   void setState(uint8_t state, const std::string& message, bool force = true);
   void publishDiagnostics(const ros::WallTimerEvent&);
 
@@ -176,7 +189,7 @@ class BreastSimNode {
   std::chrono::steady_clock::time_point pending_received_;
   bool stop_ = false;
   std::thread tracking_thread_;
-  SurfaceTracker tracker_;
+  GuardedTracker guard_;  ///< used under engine_mutex_
 
   std::mutex pose_mutex_;
   geometry_msgs::PoseStampedConstPtr pose_;  ///< the newest
@@ -184,6 +197,13 @@ class BreastSimNode {
   /// at the cloud's time: a node that lags behind the stream would otherwise use a pose up to
   /// max_transform_age_s newer than the cloud (breathing, a table that moves).
   tf2::BufferCore pose_buffer_{ros::Duration(10.0)};
+  Eigen::Isometry3d pose_accepted_ = Eigen::Isometry3d::Identity();  ///< the newest accepted pose
+  ros::Time last_pose_tf_stamp_;    ///< newest ~patient_pose broadcast on tf (under pose_mutex_)
+  ros::Time last_lesion_tf_stamp_;  ///< newest lesion frames broadcast (under engine_mutex_)
+  std::atomic<bool> time_went_back_{false};
+
+  std::mutex warn_mutex_;
+  KeyedThrottle throttle_;
 
   // State and statistics.
   std::mutex state_mutex_;
@@ -197,8 +217,11 @@ class BreastSimNode {
   } window_;
   std::chrono::steady_clock::time_point window_start_;
   long total_tracked_ = 0, total_rejected_ = 0;
-  int consecutive_rejected_ = 0;
+  long total_taken_back_ = 0;
   int inverted_elements_ = 0;
+  bool lesions_valid_ = false;
+  std::string lesion_status_ = "no model";
+  FrameQuality quality_;
   double surface_mean_m_ = -1, surface_p95_m_ = -1, alpha_ = 0, icp_rms_m_ = -1;
   int skin_seen_ = 0, skin_held_ = 0;
   std::chrono::steady_clock::time_point last_tracked_;

@@ -37,16 +37,12 @@ core::TetMesh meshFromMessage(const breast_sim::TetrahedralMesh& msg);
 /// @throws std::invalid_argument when the length is not 3 × #nodes.
 core::Points displacementFromMessage(const breast_sim::TetrahedralMesh& msg);
 
-/// Lesions at their prone positions and at the positions given by the mesh displacement.
-breast_sim::LesionArray toMessage(const std::vector<core::Lesion>& lesions,
-                                  const core::PointEmbedding& embedding,
-                                  const core::Points& displacement_m, const std::string& frame_id,
-                                  const ros::Time& stamp);
-
-/// Lesions at given current positions (#lesions×3 [m], e.g. ProneToSupinePipeline::lesionPositions()).
+/// Lesions at given current positions (#lesions×3 [m], e.g. ProneToSupinePipeline::lesionPositions()),
+/// each and the array marked `valid` or not, with the `status` that says why.
 /// @throws std::invalid_argument when the row count differs from the number of lesions.
 breast_sim::LesionArray lesionsMessage(const std::vector<core::Lesion>& lesions, const core::Points& positions_m,
-                                       const std::string& frame_id, const ros::Time& stamp);
+                                       const std::string& frame_id, const ros::Time& stamp, bool valid,
+                                       const std::string& status);
 
 /// The points of a PointCloud2 and what was left out.
 struct CloudPoints {
@@ -67,8 +63,10 @@ CloudPoints pointsFromCloud(const sensor_msgs::PointCloud2& msg, size_t max_poin
 sensor_msgs::PointCloud2 cloudToMessage(const core::Points& points_m, const std::string& frame_id,
                                         const ros::Time& stamp);
 
-/// Rigid transform of a pose (position [m] + quaternion, normalised here).
-/// @throws std::invalid_argument for a non-finite value or a zero quaternion.
+/// Rigid transform of a pose (position [m] + quaternion). A quaternion whose norm is within 1 ± 1e-3
+/// is normalised; any other is refused, not normalised (a nearly zero one would become an arbitrary
+/// rotation).
+/// @throws std::invalid_argument for a non-finite value or a quaternion that is not of unit length.
 Eigen::Isometry3d isometryFromPose(const geometry_msgs::Pose& pose);
 geometry_msgs::Pose poseFromIsometry(const Eigen::Isometry3d& t);
 /// As isometryFromPose, for a geometry_msgs/Transform.

@@ -3,16 +3,20 @@
 /// One tracker frame, from a cloud in the model frame to an updated model, without ROS transport:
 ///   1. PCL voxel-grid decimation (the scanner delivers far more points than the skin has vertices),
 ///   2. statistical outlier removal (drapes, instruments, stray returns), PCL's rule,
-///   3. rigid pre-alignment by point-to-point ICP (PCL's algorithm) against the current model skin
-///      (small residual registration errors of the tracker; a large or poorly fitting correction is
-///      refused and the cloud used as it is),
-///   4. unseen skin (farther than hold_unseen_skin_m from the cloud) is added to the target at its
+///   3. the distance gate: points farther than max_point_distance_m from the model's skin (a hand, an
+///      instrument, the torso beyond the breast) are left out,
+///   4. rigid pre-alignment by point-to-point ICP (PCL's algorithm) against the reference skin (the
+///      model's skin where tracking started, after a reset(): the precomputed state), which corrects
+///      the tracker's registration without following the model it feeds; a correction that is too
+///      large or fits poorly refuses the frame,
+///   5. unseen skin (farther than hold_unseen_skin_m from the cloud) is added to the target at its
 ///      current position, so only what the scanner sees pulls the model,
-///   5. ProneToSupinePipeline::setTarget (the distance field of the cloud) and a few Figure-2
-///      iterations (iterate()).
+///   6. ProneToSupinePipeline::setTarget (the distance field of the cloud) and a few Figure-2
+///      iterations (iterate()) in the pipeline's tracking mode: the chest wall held where it is and
+///      the skin pulled along its normal (ProneToSupinePipeline::setTrackingMode).
 /// The node and the latency benchmark both call this, so the benchmark measures what the node does.
 ///
-/// Steps 2–4 compute what PCL's StatisticalOutlierRemoval, IterativeClosestPoint and KdTreeFLANN
+/// Steps 2–5 compute what PCL's StatisticalOutlierRemoval, IterativeClosestPoint and KdTreeFLANN
 /// compute, but their neighbour searches use a hashed uniform grid (point_grid.h) instead of PCL's
 /// FLANN kd-tree, which is slow on voxel-decimated (lattice-like) clouds. The PCL versions are kept
 /// (`*Pcl`, TrackerOptions::pcl_reference) as the slow reference the tests and the benchmark compare
@@ -40,9 +44,18 @@ struct IcpOptions {
   int max_iterations = 10;
   int max_points = 500;                ///< the cloud is sub-sampled (evenly) to this many points for ICP
   double max_correspondence_m = 0.01;  ///< pairs farther apart are ignored [m]
-  double max_translation_m = 0.01;     ///< a larger correction is refused [m]
-  double max_rotation_deg = 5.0;       ///< a larger correction is refused [deg]
-  double max_rms_m = 0.004;            ///< a correction whose RMS residual is above this is refused [m]
+  /// A larger correction refuses the cloud [m]. The correction is what the tracker's registration of
+  /// the cloud to the model frame may be off by: the lesions, published in the model frame, are off by
+  /// as much in the tracker's frame, so this bounds that error.
+  double max_translation_m = 0.003;
+  double max_rotation_deg = 2.0;       ///< ... and a larger rotation [deg] (2° turns a point 60 mm away by 2.1 mm)
+  /// A correction whose RMS distance over the pairs within max_correspondence_m is above this is
+  /// refused [m]. A cloud on the skin gives 0.9 mm at 20k elements and 1.7 mm at 2.2k (0.5 mm noise;
+  /// the reference is sampled at a quarter edge), bench_tracking_drift.
+  double max_rms_m = 0.0025;
+  /// ... and so is one that leaves fewer than this share of the points within max_correspondence_m
+  /// of the reference [-] (a small RMS over a few pairs is no fit).
+  double min_inlier_fraction = 0.5;
 };
 
 struct TrackerOptions {
@@ -61,7 +74,11 @@ struct TrackerOptions {
   /// are instead of pulling them onto the rim of the seen patch [m]. 0 = off (every skin vertex is
   /// pulled to the cloud).
   double hold_unseen_skin_m = 0.005;
-  int min_points = 50;           ///< fewer points after filtering: the frame is refused
+  /// Cloud points farther than this from the nearest skin vertex of the model (after the last ICP
+  /// correction) are left out before ICP and morphing: a hand, an instrument, the torso beyond the
+  /// breast [m]; 0 = keep every point.
+  double max_point_distance_m = 0.02;
+  int min_points = 50;           ///< fewer points after filtering and the gate: the frame is refused
   /// Outlier removal, ICP and the unseen-skin test with PCL's own classes (StatisticalOutlierRemoval,
   /// IterativeClosestPoint, KdTreeFLANN): the slow reference, for tests and benchmarks only.
   bool pcl_reference = false;
@@ -72,13 +89,20 @@ struct TrackResult {
   bool tracked = false;       ///< false: refused (see reason); the model was not touched
   std::string reason;
   size_t points_in = 0, points_decimated = 0, points_used = 0;
+  size_t points_gated = 0;    ///< left out by the distance gate (max_point_distance_m)
   bool icp_applied = false;
-  double icp_rms_m = -1;
+  bool icp_refused = false;   ///< ICP ran and refused its correction, so the frame was refused
+  double icp_rms_m = -1;      ///< RMS over the pairs within the correspondence distance [m]
+  double icp_inlier_fraction = -1;
   double icp_translation_m = 0, icp_rotation_deg = 0;
   std::string icp_note;       ///< why a correction was refused
   double filter_s = 0, icp_s = 0, field_s = 0, iterate_s = 0;
   int iterations = 0, reversals = 0;
   int skin_seen = 0, skin_held = 0;  ///< skin vertices near the cloud / held where they are
+  /// The seen skin vertices' distances to the cloud before the step (their component along the skin
+  /// normal, which the tracking pulls on) [m]: how well the model explained this cloud. −1 when
+  /// none is seen.
+  double seen_mean_m = -1, seen_p95_m = -1;
   core::IterationReport last;  ///< the last iteration
 };
 
@@ -101,18 +125,36 @@ struct IcpResult {
   bool applied = false;
   bool converged = false;
   Eigen::Isometry3d transform = Eigen::Isometry3d::Identity();
-  double rms_m = -1;
+  double rms_m = -1;               ///< over the pairs within max_correspondence_m [m]
+  double inlier_fraction = -1;     ///< share of the points with such a pair
   std::string note;
 };
+
+/// How closely `cloud_m` lies on `reference_m` (both #×3 [m]): the share of the cloud points whose
+/// nearest reference point is within gate_m [m] (squared float distances ≤ gate², as FLANN computes
+/// them), and the RMS of those distances [m] (−1 when none is).
+struct Correspondences {
+  double inlier_fraction = 0.0;
+  double rms_m = -1;
+};
+Correspondences correspondences(const core::Points& cloud_m, const core::Points& reference_m, double gate_m);
+/// The same from PCL's getFitnessScore(gate²) (which compares squared distances with its argument)
+/// and a KdTreeFLANN count (the slow reference).
+Correspondences correspondencesPcl(const core::Points& cloud_m, const core::Points& reference_m, double gate_m);
+
+/// Indices (increasing) of the points of `cloud_m` within `gate_m` [m] of some point of `reference_m`
+/// (squared float distances, as PCL computes them): the tracker's distance gate.
+std::vector<int> pointsNear(const core::Points& cloud_m, const core::Points& reference_m, double gate_m);
+/// The same with PCL's KdTreeFLANN (the slow reference).
+std::vector<int> pointsNearPcl(const core::Points& cloud_m, const core::Points& reference_m, double gate_m);
 
 /// Rigid alignment of `cloud_m` onto `reference_m` (both #×3 [m]) starting from `guess`: PCL's
 /// IterativeClosestPoint (point-to-point, pairs within max_correspondence_m, PCL's default convergence
 /// criteria with 1e-10 transformation and 1e-12 fitness epsilons), its nearest-neighbour queries
 /// answered by a PointGrid (point_grid.h) instead of FLANN — the same pairs, so the same transform.
-/// The residual is PCL's getFitnessScore(max_correspondence_m): the mean squared nearest distance of
-/// the cloud points whose SQUARED distance [m²] is at most that value (PCL compares the squared
-/// distance with it: 0.01 counts every point within 0.1 m). The correction is applied when ICP
-/// converged, its RMS is at most max_rms_m and it is within max_translation_m / max_rotation_deg.
+/// The fit is judged in metres by correspondences() of the aligned cloud with max_correspondence_m
+/// as the gate. The correction is applied when ICP converged, the RMS is at most max_rms_m, the
+/// inlier share at least min_inlier_fraction, and it is within max_translation_m / max_rotation_deg.
 IcpResult rigidAlign(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
                      const IcpOptions& options);
 /// The same with PCL's IterativeClosestPoint (the slow reference).
@@ -122,16 +164,23 @@ IcpResult rigidAlignPcl(const core::Points& cloud_m, const core::Points& referen
 class SurfaceTracker {
  public:
   explicit SurfaceTracker(const TrackerOptions& options = {}) : options_(options) {}
-  /// One frame: `cloud_m` in the model frame [m]. Throws only what the pipeline throws.
+  /// One frame: `cloud_m` in the model frame [m]. A refused frame (too few points, ICP refused)
+  /// leaves the model untouched. Throws only what the pipeline throws.
   TrackResult track(core::ProneToSupinePipeline& pipeline, const core::Points& cloud_m);
-  /// Forgets the last ICP correction (a new model or a reset).
-  void reset() { guess_ = Eigen::Isometry3d::Identity(); }
+  /// Forgets the last ICP correction and the reference skin (a new model, a precomputation, a loaded
+  /// state or a reset): the next frame's model skin becomes the reference ICP aligns to.
+  void reset() {
+    guess_ = Eigen::Isometry3d::Identity();
+    reference_skin_.resize(0, 3);
+  }
   const TrackerOptions& options() const { return options_; }
   void setOptions(const TrackerOptions& o) { options_ = o; }
 
  private:
   TrackerOptions options_;
   Eigen::Isometry3d guess_ = Eigen::Isometry3d::Identity();
+  core::Points reference_skin_;  ///< skin where tracking started: vertices, edge midpoints, face centroids [m]
+  std::vector<char> held_;       ///< per mesh node, for the seen residual (kept buffer)
 };
 
 }  // namespace breast_sim::ros_interface

@@ -21,6 +21,7 @@
 #include "breast_sim/core/morphing/target_surface.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/ros_interface/surface_tracker.h"
+#include "breast_sim/ros_interface/tracking_monitor.h"
 
 namespace breast_sim::ros_interface {
 
@@ -68,24 +69,48 @@ class TrackerSimulation {
   std::mt19937 rng_;
 };
 
+/// Scans of a given skin surface, as a scanner above a supine patient sees it: the skin triangles
+/// facing anterior (−y in the model frame, normal within 78° of it) sampled uniformly by area, with
+/// Gaussian noise; breathing lifts the anterior skin (zero at the wall, full at the apex). For tests
+/// and studies whose truth is the skin itself (tracking the model's own precomputed skin).
+class SkinScanner {
+ public:
+  /// @param positions_m  #N×3 node positions [m]; @param triangles  skin triangles (outward) into them
+  /// @throws std::invalid_argument when no triangle faces anterior.
+  SkinScanner(const core::Points& positions_m, const core::Triangles& triangles, unsigned seed = 1);
+  /// `points` samples [m], the anterior skin lifted by `breath_m` at the apex, the whole scan moved by
+  /// `shift_m`, noise of σ `noise_m`.
+  core::Points scan(int points, double breath_m, const Eigen::Vector3d& shift_m, double noise_m);
+
+ private:
+  core::Points x_;
+  std::vector<Eigen::Vector3i> triangles_;
+  std::vector<double> cumulative_area_;
+  double depth_m_ = 0.0;
+  std::mt19937 rng_;
+};
+
 /// What an offline tracking run of a recording did.
 struct OfflineTrackingRun {
   std::vector<core::Points> lesions_m;  ///< after each cloud [m] (after a skipped one, those before it)
+  std::vector<char> valid;              ///< per cloud: the monitor vouched for the lesions after it
   int reverted_frames = 0;              ///< tracked clouds whose step reverted at least once
   int reversals = 0;                    ///< time-step reversals in all
+  int taken_back = 0;                   ///< frames the monitor took back
 };
 
 /// The clouds of a recording (make_test_bags: TrackerSimulation with `sim`'s options, `clouds` clouds
 /// at `cloud_rate_hz` from t = 0) tracked offline as the node tracks them, without ROS in between:
 /// from the state `start`, for each cloud k with tracked[k] the gravity load of the table's pose at
-/// the cloud's time (gravityLoadChanged, `gravity_update_threshold_deg`), then the SurfaceTracker
-/// with `options` on the cloud as recorded (cloudAsRecordedInModel). Every cloud is drawn, tracked
+/// the cloud's time (gravityLoadChanged, `gravity_update_threshold_deg`), then the GuardedTracker
+/// with `options` and `limits` on the cloud as recorded (cloudAsRecordedInModel). Every cloud is drawn, tracked
 /// or not: the noise comes from one random stream. The navigation rostest's reference and
 /// bench_tracking_drops.
 /// @throws std::invalid_argument when `tracked` does not hold `clouds` entries.
 OfflineTrackingRun trackRecordingOffline(core::ProneToSupinePipeline& pipeline, const core::PipelineState& start,
                                          const core::ModelCase& model_case, const TrackerOptions& options,
-                                         double gravity_update_threshold_deg, int clouds, double cloud_rate_hz,
-                                         const std::vector<bool>& tracked, const TrackerSimulationOptions& sim = {});
+                                         const MonitorLimits& limits, double gravity_update_threshold_deg, int clouds,
+                                         double cloud_rate_hz, const std::vector<bool>& tracked,
+                                         const TrackerSimulationOptions& sim = {});
 
 }  // namespace breast_sim::ros_interface

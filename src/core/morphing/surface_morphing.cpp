@@ -39,8 +39,10 @@ SurfaceMorphing::SurfaceMorphing(const TetMesh& mesh, std::shared_ptr<const Surf
   // Area share: a third of each boundary face with all three nodes on the skin, to each node.
   Eigen::VectorXd node_area = Eigen::VectorXd::Zero(nn);
   const Triangles& b = mesh.boundary().triangles;
+  std::vector<Eigen::Index> skin_faces;
   for (Eigen::Index f = 0; f < b.rows(); ++f) {
     if (!is_skin[b(f, 0)] || !is_skin[b(f, 1)] || !is_skin[b(f, 2)]) continue;
+    skin_faces.push_back(f);
     const Eigen::Vector3d p0 = rest_.row(b(f, 0)), p1 = rest_.row(b(f, 1)), p2 = rest_.row(b(f, 2));
     const double a = 0.5 * (p1 - p0).cross(p2 - p0).norm() / 3.0;
     for (int k = 0; k < 3; ++k) node_area[b(f, k)] += a;
@@ -55,6 +57,11 @@ SurfaceMorphing::SurfaceMorphing(const TetMesh& mesh, std::shared_ptr<const Surf
   distance_ = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(vertices_.size()));
   anchor_ = total_;
   normal_ = total_;
+  vertex_normals_ = total_;
+  slot_.assign(static_cast<size_t>(nn), -1);
+  for (size_t i = 0; i < vertices_.size(); ++i) slot_[static_cast<size_t>(vertices_[i])] = static_cast<int>(i);
+  skin_faces_.resize(static_cast<Eigen::Index>(skin_faces.size()), 3);
+  for (size_t i = 0; i < skin_faces.size(); ++i) skin_faces_.row(static_cast<Eigen::Index>(i)) = b.row(skin_faces[i]);
 }
 
 void SurfaceMorphing::springs(std::vector<int>& nodes, std::vector<Eigen::Matrix3d>& k, Points& anchors) const {
@@ -109,12 +116,32 @@ DistanceStats SurfaceMorphing::lastStats() const {
 double SurfaceMorphing::addForces(DynamicSimulator& sim) {
   const Eigen::VectorXd& u = sim.state().displacement_m;
   const int nv = static_cast<int>(vertices_.size());
+  if (along_normal_) {
+    // Area-weighted vertex normals at the current positions: each face adds its (b−a)×(c−a).
+    vertex_normals_.setZero();
+    for (Eigen::Index f = 0; f < skin_faces_.rows(); ++f) {
+      Eigen::Vector3d p[3];
+      for (int k = 0; k < 3; ++k) p[k] = rest_.row(skin_faces_(f, k)).transpose() + u.segment<3>(3 * skin_faces_(f, k));
+      const Eigen::RowVector3d n = (p[1] - p[0]).cross(p[2] - p[0]).transpose();
+      for (int k = 0; k < 3; ++k) {
+        const int slot = slot_[static_cast<size_t>(skin_faces_(f, k))];
+        if (slot >= 0) vertex_normals_.row(slot) += n;
+      }
+    }
+  }
   double sum = 0.0;
 #pragma omp parallel for schedule(static) reduction(+ : sum) if (nv > 2000)
   for (int i = 0; i < nv; ++i) {
     const int n = vertices_[i];
     const Eigen::Vector3d x = rest_.row(n).transpose() + u.segment<3>(3 * n);
-    const Eigen::Vector3d v = field_->vectorToSurface(x);
+    Eigen::Vector3d v = field_->vectorToSurface(x);
+    if (along_normal_) {
+      const double len = vertex_normals_.row(i).norm();
+      if (len > 0) {
+        const Eigen::Vector3d nrm = vertex_normals_.row(i).transpose() / len;
+        v = nrm * nrm.dot(v);
+      }
+    }
     const double d = v.norm();
     distance_[i] = d;
     anchor_.row(i) = (x + v).transpose();

@@ -279,7 +279,7 @@ void ProneToSupinePipeline::attachSliding() {
 }
 
 bool ProneToSupinePipeline::slideAfter(const StiffeningStepResult& r, int* stalls) {
-  if (!sliding_ || !sliding_attached_) return false;
+  if (!sliding_ || !sliding_attached_ || tracking_) return false;  // tracking: the constraints stay
   // Moves the constraints after an accepted step; after a call that could not advance it takes the
   // last move back (the move may be what inverts), holding the wall once that does not help.
   const SlidingStepStats ss = sliding_->afterStep(*stiff_, r);
@@ -290,6 +290,7 @@ bool ProneToSupinePipeline::slideAfter(const StiffeningStepResult& r, int* stall
 
 StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
   const auto t0 = std::chrono::steady_clock::now();
+  setTrackingMode(false);
   if (coarse_ && field_) {
     // Nested iteration: the whole stage on the coarse model, its state carried to this one (the
     // fine model settles in the morphing stage).
@@ -422,8 +423,15 @@ SurfaceMorphing& ProneToSupinePipeline::ensureMorphing() {
       if (dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2]) constrained.push_back(n);
     morphing_forces_ = std::make_unique<SurfaceMorphing>(model_.mesh, field_, model_.mesh.nodeSet(node_sets::kSkin),
                                                          constrained, settings_.morphing.forces);
+    morphing_forces_->setAlongNormal(tracking_);
   }
   return *morphing_forces_;
+}
+
+void ProneToSupinePipeline::setTrackingMode(bool on) {
+  tracking_ = on;
+  if (slip_ && sliding_attached_) slip_->setHeld(on, simulator());
+  if (morphing_forces_) morphing_forces_->setAlongNormal(on);
 }
 
 IterationReport ProneToSupinePipeline::iterate() {
@@ -511,6 +519,7 @@ IterationReport ProneToSupinePipeline::iterate() {
 }
 
 StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
+  setTrackingMode(false);
   if (!field_) throw std::logic_error("ProneToSupinePipeline::runMorphing: no target surface (setTarget first)");
   const auto t0 = std::chrono::steady_clock::now();
   const MorphingStageSettings& ms = settings_.morphing;

@@ -118,6 +118,22 @@ void WallSlip::setStickPoints(const Points& stick_m, const Points& slip_directio
   }
 }
 
+void WallSlip::setHeld(bool held, const DynamicSimulator& sim) {
+  held_ = held;
+  if (!held) return;
+  const ChestWallSurface& wall = geometry_->surface();
+  const Eigen::VectorXd& u = sim.state().displacement_m;
+  for (size_t i = 0; i < nodes_.size(); ++i) {
+    if (!slipping_[i]) continue;
+    const int v = nodes_[i];
+    const Eigen::Index r = static_cast<Eigen::Index>(i);
+    const Eigen::Vector3d x = mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v);
+    const WallProjection pr = wall.project(x, h0_[r]);
+    stick_.row(r) = (pr.converged ? pr.point_m : x).transpose();
+    slipping_[i] = 0;
+  }
+}
+
 void WallSlip::beforeStep(DynamicSimulator& sim, const NodeSprings* extra) {
   const ChestWallSurface& wall = geometry_->surface();
   const Eigen::VectorXd& u = sim.state().displacement_m;
@@ -260,6 +276,7 @@ WallSlipStats WallSlip::afterStep(const DynamicSimulator& sim) {
       stick_.row(r) = (pr.converged ? pr.point_m : x).transpose();
       continue;
     }
+    if (held_) continue;
     // Sticking: the stick spring's force against the static limit.
     const Eigen::Vector3d t = p * (x - stick_.row(r).transpose());
     const double ft = area_[r] * kf * t.norm();

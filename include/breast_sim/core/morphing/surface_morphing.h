@@ -58,7 +58,8 @@ class SurfaceMorphing {
   /// The distances of the pulled vertices to the target at the simulator's current positions,
   /// without adding forces (also stored in lastDistances()). count is the number of vertices.
   DistanceStats measure(const DynamicSimulator& sim);
-  /// Distance of each pulled vertex to the target [m] at the last addForces() or measure().
+  /// Distance of each pulled vertex to the target [m] at the last addForces() or measure() (addForces
+  /// with alongNormal(): its component along the normal).
   const Eigen::VectorXd& lastDistances() const { return distance_; }
   /// Statistics of lastDistances() (mean, 95th percentile, max).
   DistanceStats lastStats() const;
@@ -69,6 +70,15 @@ class SurfaceMorphing {
   /// exactly these on the pulled vertices (any other external force is cleared).
   /// @throws std::invalid_argument when the size is not #vertices × 3.
   void restoreForces(DynamicSimulator& sim, const Points& accumulated_n);
+
+  /// Along the normal: each step's force keeps only the component of the vector to the target along
+  /// the vertex's current outward skin normal (area-weighted over its skin faces). A surface scan
+  /// tells how far the skin is from the surface, not where along it a vertex lies: the nearest point
+  /// of a noisy, decimated cloud lies off the normal by a random tangential offset, which the
+  /// accumulated forces would sum into a slide of the skin along itself. Off by default (a target
+  /// surface's nearest point is where a vertex belongs).
+  void setAlongNormal(bool on) { along_normal_ = on; }
+  bool alongNormal() const { return along_normal_; }
 
   const std::vector<int>& vertices() const { return vertices_; }
   /// Area share of each pulled vertex [m²] (rest configuration).
@@ -92,6 +102,10 @@ class SurfaceMorphing {
   Eigen::VectorXd distance_;
   Points anchor_;  // nearest target point per vertex at the last addForces() [m]
   Points normal_;  // unit direction to it (the last known one while the vertex sits on the target)
+  bool along_normal_ = false;
+  Triangles skin_faces_;        // boundary faces with all three nodes on the skin (outward)
+  std::vector<int> slot_;       // per mesh node: its row in vertices_, −1 for none
+  Points vertex_normals_;       // per pulled vertex, summed face normals at the current positions (kept buffer)
 };
 
 }  // namespace breast_sim::core

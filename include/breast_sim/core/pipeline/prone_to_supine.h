@@ -330,6 +330,17 @@ class ProneToSupinePipeline {
   const TargetSurface& target() const { return target_; }
   const SurfaceVectorField* field() const { return field_.get(); }
 
+  /// Tracking a surface scan (iterate() per frame; the stages switch it off): the chest wall is held
+  /// where it is (implicit sliding: no wall node starts to slip, WallSlip::setHeld; explicit: the
+  /// constraints are not moved) and the skin is pulled along its normal only
+  /// (SurfaceMorphing::setAlongNormal). A scan sees part of the anterior skin and only its distance
+  /// to the surface: measured on the phantom (5.0k elements, its own precomputed skin scanned at
+  /// 10 Hz with ±2 mm breathing and 0.5 mm noise), free sliding and the nearest-point pull moved the
+  /// lesions 8–17 mm within a minute, the wall up to 140 mm; held and along the normal, 0.6 mm over
+  /// five minutes (docs/tracking.md).
+  void setTrackingMode(bool on);
+  bool trackingMode() const { return tracking_; }
+
   /// Sets the gravity load [m/s²] (e.g. a table tilt: g_now − g_prone); a direction change beyond
   /// StiffeningParams::gravity_direction_tolerance_deg restarts the α search.
   void setGravityLoad(const Eigen::Vector3d& g_mps2);
@@ -355,6 +366,8 @@ class ProneToSupinePipeline {
   Eigen::VectorXd modulusFactors() const;
 
   PipelineState state() const;
+  /// state() into `s`, reusing its storage (no allocation once `s` has the sizes).
+  void copyState(PipelineState& s) const { fillState(s); }
   /// @throws std::invalid_argument when the snapshot does not fit this model (sizes).
   void restore(const PipelineState& s);
   /// Nested iteration: takes the state of a pipeline on a coarser model of the same case (another
@@ -453,7 +466,8 @@ class ProneToSupinePipeline {
   int diverged_run_ = 0;       // iterate(): run-away steps in a row (the attempt count for α)
   long friction_repeats_ = 0;  // stepWithSliding(): steps repeated with reversed wall nodes sticking
   Eigen::VectorXd iterate_previous_;  // iterate(): displacement before the step (kept to avoid a per-frame allocation)
-  bool sliding_attached_ = false;  // the wall nodes are moving constraints (after the fixed-wall settle)
+  bool sliding_attached_ = false;
+  bool tracking_ = false;  // setTrackingMode  // the wall nodes are moving constraints (after the fixed-wall settle)
   // coarse_start: the coarse case (a copy with its own target element count), model and pipeline;
   // coarse_ahead_: runGravity took the coarse state, so runMorphing starts on the coarse model too.
   std::unique_ptr<ModelCase> coarse_case_;

@@ -130,6 +130,12 @@ class WallSlip {
   /// @throws std::invalid_argument when u_start_m does not have 3N entries.
   int stickReversed(const DynamicSimulator& sim, const Eigen::VectorXd& u_start_m);
 
+  /// Held: no wall node starts to slip, and the slipping ones stick where they are now (put on their
+  /// wall level); each stays within its elastic pre-slip of its stick point (force / (A κ_f)). For
+  /// tracking a surface scan, which sees the anterior skin and cannot observe a slide along the wall.
+  void setHeld(bool held, const DynamicSimulator& sim);
+  bool held() const { return held_; }
+
   const std::vector<int>& nodes() const { return nodes_; }
   const WallSlipSettings& settings() const { return settings_; }
   const ChestWallSliding& geometry() const { return *geometry_; }
@@ -161,6 +167,7 @@ class WallSlip {
   std::vector<int> contact_candidates_;
   double contact_area_m2_ = 0.0;      // nominal area of a skin node (the mean wall-node area)
   int last_contacts_ = 0;
+  bool held_ = false;
   std::vector<int> spring_slot_;      // per mesh node: its row in beforeStep's springs, −1 = none (kept at −1 between steps)
 };
 
