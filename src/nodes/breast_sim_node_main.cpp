@@ -4,6 +4,7 @@
 #include <ros/ros.h>
 
 #include "breast_sim/ros_interface/breast_sim_node.h"
+#include "breast_sim/ros_interface/logger_services.h"
 
 int main(int argc, char** argv) {
   ros::init(argc, argv, "breast_sim");
@@ -13,7 +14,10 @@ int main(int argc, char** argv) {
              "then gets 10-100x slower whenever another process holds a core. Start the node with "
              "OMP_WAIT_POLICY=passive (launch/breast_sim.launch sets it).");
   try {
-    breast_sim::ros_interface::BreastSimNode node(ros::NodeHandle(), ros::NodeHandle("~"));
+    const ros::NodeHandle nh, pnh("~");
+    // roscpp's ~get_loggers deletes log4cxx's loggers (logger_services.h): replaced before anything slow.
+    const breast_sim::ros_interface::LoggerServices logger_services(pnh);
+    breast_sim::ros_interface::BreastSimNode node(nh, pnh);
     node.initialize();
     ros::AsyncSpinner spinner(4);  // services, clouds, poses and the action answer while jobs run
     spinner.start();
