@@ -7,7 +7,7 @@
 // --slide-frames frames, from --slide-start on: a drift the monitor must catch. Prints per block of
 // frames the largest lesion error from the precomputed positions, the chest-wall drift, the model's
 // drift, the seen skin's residual, frames taken back and frames whose lesions were valid:
-//   bench_tracking_drift [--case FILE] [--target-elements N] [--frames N] [--rate-hz R] [--breath-mm A]
+//   bench_tracking_drift [--case FILE] [--settings FILE] [--target-elements N] [--frames N] [--rate-hz R] [--breath-mm A]
 //                        [--points N] [--noise-mm S] [--slide-mm D] [--slide-start K] [--slide-frames K]
 //                        [--block N] [--no-icp] [--json FILE]
 // (--no-icp: without the rigid pre-alignment, so that the monitor alone has to catch the slide.)
@@ -31,7 +31,7 @@ using namespace breast_sim;
 
 int main(int argc, char** argv) {
   ros::Time::init();
-  std::string case_file = ros::package::getPath("breast_sim") + "/config/phantom_default.yaml", json_path;
+  std::string case_file = ros::package::getPath("breast_sim") + "/config/phantom_default.yaml", settings_file, json_path;
   int target = 5000, frames = 3000, points = 2500, slide_start = -1, slide_frames = 20, block = 300;
   double rate_hz = 10.0, breath_mm = 2.0, noise_mm = 0.5, slide_mm = 0.0;
   bool icp = true;
@@ -39,6 +39,7 @@ int main(int argc, char** argv) {
     const std::string a = argv[i];
     auto next = [&]() -> std::string { return i + 1 < argc ? argv[++i] : ""; };
     if (a == "--case") case_file = next();
+    else if (a == "--settings") settings_file = next();
     else if (a == "--target-elements") target = std::stoi(next());
     else if (a == "--frames") frames = std::stoi(next());
     else if (a == "--rate-hz") rate_hz = std::stod(next());
@@ -61,10 +62,13 @@ int main(int argc, char** argv) {
     core::ModelCase c = core::loadModelCase(case_file);
     c.meshing.target_elements = target;
     const core::SimulationModel model = core::buildSimulationModel(c);
-    core::PipelineSettings settings = core::loadPipelineSettings(case_file);
+    core::PipelineSettings settings = core::loadPipelineSettings(settings_file.empty() ? case_file : settings_file);
     settings.morphing.field.voxel_size_m = 0.003;  // the node's field_voxel_size_m
     core::ProneToSupinePipeline p(c, model, settings);
     p.run();
+    std::cout << "precomputed: gravity " << p.gravityReport().steps << " + sliding " << p.slidingReport().steps
+              << " + morphing " << p.morphingReport().steps << " steps, pulled skin to target mean "
+              << 1e3 * p.morphingReport().surface_mean_m << " mm, p95 " << 1e3 * p.morphingReport().surface_p95_m << " mm\n";
     const core::Points x0 = p.positions(), l0 = p.lesionPositions();
     const std::vector<int>& wall = model.mesh.nodeSet(core::node_sets::kChestWall);
     ros_interface::SkinScanner scanner(x0, core::skinTriangles(model.mesh, model.mesh.nodeSet(core::node_sets::kSkin)), 1);

@@ -351,7 +351,8 @@ void BreastSimNode::precomputeJob(bool gravity_only, std::optional<PrecomputeSer
     result.gravity_steps = g.steps;
     // A cancel in the sliding part of the stage cancels the run as well.
     bool cancelled = g.cancelled || e.pipeline->slidingReport().cancelled;
-    bool converged = g.converged;
+    const core::StageReport& sl = e.pipeline->slidingReport();
+    bool converged = g.converged && (!sl.ran || sl.converged);
     std::ostringstream s;
     s << "gravity: " << g.steps << " steps in " << g.seconds << " s" << (g.converged ? "" : " (not settled)");
     result.surface_mean_m = result.surface_p95_m = -1;
