@@ -2,6 +2,7 @@
 #include "breast_sim/ros_interface/breast_sim_node.h"
 
 #include <cmath>
+#include <malloc.h>
 #include <limits>
 #include <sstream>
 
@@ -244,7 +245,17 @@ bool BreastSimNode::startJob(std::function<void()> job, std::string* why) {
     } catch (const std::exception& e) {
       ROS_ERROR_STREAM("breast_sim: a job failed: " << e.what());
     }
+    // A job frees a whole pipeline or model (hundreds of MB at 20k elements) that glibc keeps in the
+    // worker thread's arena; give it back, so that resets and reloads do not grow the node.
+    malloc_trim(0);
+    std::optional<std::pair<uint8_t, std::string>> end;
+    {
+      std::lock_guard<std::mutex> sl(state_mutex_);
+      end.swap(job_end_);
+    }
     busy_ = false;
+    // Only now: a client that sees the job's end on ~state may start the next job at once.
+    if (end) setState(end->first, end->second);
   });
   return true;
 }
@@ -259,7 +270,7 @@ void BreastSimNode::loadCaseJob(const std::string& case_file, int target_element
     *ok = false;
     *message = std::string("cannot load case '") + case_file + "': " + ex.what();
     std::lock_guard<std::mutex> lock(engine_mutex_);
-    setState(breast_sim::NodeState::IDLE, *message + (engine_ ? "; the previous model stays" : "; no model loaded"));
+    endJob(breast_sim::NodeState::IDLE, *message + (engine_ ? "; the previous model stays" : "; no model loaded"));
     return;
   }
   std::ostringstream s;
@@ -283,7 +294,7 @@ void BreastSimNode::loadCaseJob(const std::string& case_file, int target_element
     publishModel(*engine_, ros::Time::now(), true, false, "prone rest shape: not precomputed");
   }
   ROS_INFO_STREAM("breast_sim: " << *message);
-  setState(breast_sim::NodeState::IDLE, *message + "; request ~start_precomputation (or the ~precompute action)");
+  endJob(breast_sim::NodeState::IDLE, *message + "; request ~start_precomputation (or the ~precompute action)");
 }
 
 void BreastSimNode::precomputeJob(bool gravity_only, std::optional<PrecomputeServer::GoalHandle> goal) {
@@ -382,11 +393,11 @@ void BreastSimNode::precomputeJob(bool gravity_only, std::optional<PrecomputeSer
     publishModel(e, ros::Time::now(), true, e.precomputed,
                  e.precomputed ? "precomputed" : "precomputation cancelled: the model is not precomputed");
     if (cancelled) {
-      setState(breast_sim::NodeState::IDLE, "precomputation cancelled (" + s.str() + "); the model shows where it "
+      endJob(breast_sim::NodeState::IDLE, "precomputation cancelled (" + s.str() + "); the model shows where it "
                "stopped; ~reset returns to the rest shape, ~start_precomputation starts again");
       finish(false, true, "cancelled: " + s.str());
     } else {
-      setState(breast_sim::NodeState::IDLE, "precomputed (" + s.str() + "); waiting for surface clouds");
+      endJob(breast_sim::NodeState::IDLE, "precomputed (" + s.str() + "); waiting for surface clouds");
       finish(true, false, s.str() + (converged ? "" : " (finished without meeting every tolerance)"));
     }
     ROS_INFO_STREAM("breast_sim: precomputation " << (cancelled ? "cancelled" : "done") << ": " << s.str());
@@ -394,7 +405,7 @@ void BreastSimNode::precomputeJob(bool gravity_only, std::optional<PrecomputeSer
     const std::string msg = std::string("precomputation failed: ") + ex.what() + "; ~reset returns to the rest shape";
     ROS_ERROR_STREAM("breast_sim: " << msg);
     e.precomputed = false;
-    setState(breast_sim::NodeState::DEGRADED, msg);
+    endJob(breast_sim::NodeState::DEGRADED, msg);
     finish(false, false, msg);
   }
 }
@@ -482,7 +493,7 @@ void BreastSimNode::resetJob() {
   setState(breast_sim::NodeState::LOADING, "resetting to the prone rest shape");
   std::lock_guard<std::mutex> lock(engine_mutex_);
   if (!engine_) {
-    setState(breast_sim::NodeState::IDLE, "reset: no model is loaded");
+    endJob(breast_sim::NodeState::IDLE, "reset: no model is loaded");
     return;
   }
   try {
@@ -500,9 +511,9 @@ void BreastSimNode::resetJob() {
       state_.progress = 0;
     }
     publishModel(*engine_, ros::Time::now(), true, false, "prone rest shape: not precomputed");
-    setState(breast_sim::NodeState::IDLE, "reset to the prone rest shape; request ~start_precomputation to precompute again");
+    endJob(breast_sim::NodeState::IDLE, "reset to the prone rest shape; request ~start_precomputation to precompute again");
   } catch (const std::exception& ex) {
-    setState(breast_sim::NodeState::IDLE, std::string("reset failed: ") + ex.what() + "; the previous state stays");
+    endJob(breast_sim::NodeState::IDLE, std::string("reset failed: ") + ex.what() + "; the previous state stays");
   }
 }
 
@@ -1008,6 +1019,11 @@ void BreastSimNode::publishModel(Engine& e, const ros::Time& stamp, bool force_a
     else if (force_all)
       sliding_pub_.publish(slidingMarkers(x, core::Points::Zero(x.rows(), 3), {}, 1.0, 1.0, 0, params_.frame_id, stamp));
   }
+}
+
+void BreastSimNode::endJob(uint8_t state, const std::string& message) {
+  std::lock_guard<std::mutex> sl(state_mutex_);
+  job_end_ = std::make_pair(state, message);
 }
 
 void BreastSimNode::setState(uint8_t state, const std::string& message, bool force) {

@@ -158,6 +158,8 @@ class BreastSimNode {
   /// stamps), and at the marker rate the markers.
   void publishModel(Engine& e, const ros::Time& stamp, bool force_all, bool valid, const std::string& status);
   void setState(uint8_t state, const std::string& message, bool force = true);
+  /// The state a job ends in, published by the worker once the node is free for the next job.
+  void endJob(uint8_t state, const std::string& message);
   void publishDiagnostics(const ros::WallTimerEvent&);
 
   ros::NodeHandle nh_, pnh_;
@@ -208,6 +210,7 @@ class BreastSimNode {
   // State and statistics.
   std::mutex state_mutex_;
   breast_sim::NodeState state_;
+  std::optional<std::pair<uint8_t, std::string>> job_end_;  ///< under state_mutex_
   std::chrono::steady_clock::time_point last_progress_pub_, last_marker_pub_, last_mesh_pub_, last_quality_;
   std::mutex stats_mutex_;
   struct Window {
