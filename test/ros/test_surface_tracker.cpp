@@ -16,6 +16,7 @@
 #include "breast_sim/ros_interface/point_grid.h"
 #include "breast_sim/ros_interface/surface_tracker.h"
 #include "breast_sim/ros_interface/tracker_simulation.h"
+#include "rest_phantom.h"
 
 using namespace breast_sim;
 using ros_interface::PointGrid;
@@ -276,37 +277,14 @@ TEST(SurfaceTrackerSearch, IcpGivesPclsTransformAndDecision) {
   EXPECT_EQ(none.note, none_pcl.note);
 }
 
-/// A small phantom at rest (2000 elements) and pipeline settings for tracking it: no case target, a
-/// 3 mm distance field; scans of its rest skin (the anterior dome, 0.5 mm noise) breathing 2 mm.
-struct SmallPhantom {
-  core::ModelCase model_case;
-  core::SimulationModel model;
-  core::PipelineSettings settings;
-  std::unique_ptr<ros_interface::SkinScanner> scanner;
-  SmallPhantom() {
-    model_case = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
-    model_case.meshing.target_elements = 2000;
-    model = core::buildSimulationModel(model_case);
-    settings.morphing.target = "";
-    settings.morphing.field.voxel_size_m = 0.003;
-    scanner = std::make_unique<ros_interface::SkinScanner>(
-        model.mesh.nodes(), core::skinTriangles(model.mesh, model.mesh.nodeSet(core::node_sets::kSkin)), 7);
-  }
-  core::Points scan(int k, int points = 4000) {
-    return scanner->scan(points, 2e-3 * std::sin(2 * M_PI * k / 40.0), Eigen::Vector3d::Zero(), 0.5e-3);
-  }
-};
+using SmallPhantom = test_fixtures::RestPhantom;
 
 TEST(SurfaceTrackerSearch, TrackedFramesAreThoseOfThePclReference) {
   // A small phantom at rest, followed through simulated tracker frames by two trackers: the grid
   // searches and PCL's (the reference). Every frame's decisions and the model agree.
   SmallPhantom small;
-  const core::ModelCase& c = small.model_case;
-  const core::SimulationModel& model = small.model;
-  const core::PipelineSettings& s = small.settings;
-  core::ProneToSupinePipeline fast_pipe(c, model, s), slow_pipe(c, model, s);
-  fast_pipe.setGravityLoad(Eigen::Vector3d::Zero());  // the rest shape is the equilibrium the scans show
-  slow_pipe.setGravityLoad(Eigen::Vector3d::Zero());
+  auto fast_owner = small.pipeline(), slow_owner = small.pipeline();
+  core::ProneToSupinePipeline &fast_pipe = *fast_owner, &slow_pipe = *slow_owner;
   ros_interface::TrackerOptions to;
   ros_interface::SurfaceTracker fast(to);
   to.pcl_reference = true;
@@ -349,12 +327,8 @@ TEST(SurfaceTracker, FramesSolveAtTheTrackingToleranceAndGiveTheCasesBack) {
   // to the tight one (later frames correct it), and the solver has the case's tolerance again after
   // every frame (a precomputation after tracking is not loosened).
   SmallPhantom small;
-  const core::ModelCase& c = small.model_case;
-  const core::SimulationModel& model = small.model;
-  const core::PipelineSettings& s = small.settings;
-  core::ProneToSupinePipeline case_pipe(c, model, s), loose_pipe(c, model, s);
-  case_pipe.setGravityLoad(Eigen::Vector3d::Zero());
-  loose_pipe.setGravityLoad(Eigen::Vector3d::Zero());
+  auto case_owner = small.pipeline(), loose_owner = small.pipeline();
+  core::ProneToSupinePipeline &case_pipe = *case_owner, &loose_pipe = *loose_owner;
   const double case_tolerance = case_pipe.simulator().solver().relativeTolerance();
   ASSERT_GT(case_tolerance, 0.0) << "needs an iterative solver";
   ros_interface::TrackerOptions to;
@@ -463,8 +437,8 @@ TEST(SurfaceTracker, AHandAndTheTorsoInViewAreGatedAndIcpStillCorrectsTheRegistr
   core::Points scene_lesions, clean_lesions;
   for (const bool scene : {true, false}) {
     SCOPED_TRACE(scene ? "hand and torso in view" : "the skin alone");
-    core::ProneToSupinePipeline p(small.model_case, small.model, small.settings);
-    p.setGravityLoad(Eigen::Vector3d::Zero());  // the rest shape is the equilibrium the scans show
+    auto owner = small.pipeline();
+    core::ProneToSupinePipeline& p = *owner;
     ros_interface::SurfaceTracker tracker;
     SmallPhantom scans;  // the same skin samples in both runs
     for (int k = 0; k < 8; ++k) {
@@ -501,8 +475,8 @@ TEST(SurfaceTracker, ACloudIcpCannotBringOntoTheSkinIsRefusedAndTheModelIsUntouc
   // (Not a turn about the chest: the phantom's dome is nearly a sphere about its base centre, and a
   // turned scan of it still lies on its skin.)
   SmallPhantom small;
-  core::ProneToSupinePipeline p(small.model_case, small.model, small.settings);
-  p.setGravityLoad(Eigen::Vector3d::Zero());
+  auto owner = small.pipeline();
+  core::ProneToSupinePipeline& p = *owner;
   ros_interface::SurfaceTracker tracker;
   ASSERT_TRUE(tracker.track(p, small.scan(0)).tracked);
   const core::Points before = p.positions();

@@ -9,6 +9,7 @@
 #include "breast_sim/ros_interface/input_checks.h"
 #include "breast_sim/ros_interface/tracker_simulation.h"
 #include "breast_sim/ros_interface/tracking_monitor.h"
+#include "rest_phantom.h"
 
 using namespace breast_sim;
 using ros_interface::FrameQuality;
@@ -83,31 +84,13 @@ TEST(TrackingMonitor, LimitsOutOfRangeNameTheParameter) {
 
 namespace {
 
-/// The phantom at rest without load (2000 elements) tracked by the node's GuardedTracker on scans of its own rest
-/// skin: the truth is known (the lesions stay at rest, up to what 2 mm of breathing moves).
-struct Scene {
-  core::ModelCase model_case;
-  core::SimulationModel model;
-  core::PipelineSettings settings;
-  std::unique_ptr<core::ProneToSupinePipeline> pipeline;
-  std::unique_ptr<ros_interface::SkinScanner> scanner;
-  core::Points rest_lesions;
-  Scene() {
-    model_case = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
-    model_case.meshing.target_elements = 2000;
-    model = core::buildSimulationModel(model_case);
-    settings.morphing.target = "";
-    settings.morphing.field.voxel_size_m = 0.003;
-    pipeline = std::make_unique<core::ProneToSupinePipeline>(model_case, model, settings);
-    pipeline->setGravityLoad(Eigen::Vector3d::Zero());  // the rest shape is the equilibrium
-    scanner = std::make_unique<ros_interface::SkinScanner>(
-        model.mesh.nodes(), core::skinTriangles(model.mesh, model.mesh.nodeSet(core::node_sets::kSkin)), 3);
-    rest_lesions = pipeline->lesionPositions();
-  }
-  core::Points scan(int k, double slide_m = 0) {
-    return scanner->scan(3000, 2e-3 * std::sin(2 * M_PI * k / 40.0), Eigen::Vector3d(slide_m, 0, 0), 0.5e-3);
-  }
-  double lesionErrorMm() const { return 1e3 * (pipeline->lesionPositions() - rest_lesions).rowwise().norm().maxCoeff(); }
+/// The rest phantom (rest_phantom.h) and one pipeline on it.
+struct Scene : test_fixtures::RestPhantom {
+  std::unique_ptr<core::ProneToSupinePipeline> pipeline_owner = pipeline();
+  core::ProneToSupinePipeline* const pipeline_ptr = pipeline_owner.get();
+  Scene() : test_fixtures::RestPhantom(3) {}
+  core::Points scan(int k, double slide_m = 0) { return RestPhantom::scan(k, 3000, slide_m); }
+  double lesionErrorMm() const { return RestPhantom::lesionErrorMm(*pipeline_ptr); }
 };
 
 }  // namespace
@@ -117,11 +100,11 @@ TEST(GuardedTracker, OwnSkinStaysValidAScanSlidAlongTheWallTurnsItInvalidAndItRe
   ros_interface::TrackerOptions to;
   to.icp.enabled = false;  // the monitor alone must catch the slide (ICP would refuse the scans)
   ros_interface::GuardedTracker g(to);
-  g.start(*s.pipeline);
+  g.start(*s.pipeline_ptr);
   // 1. The skin as it is: valid throughout, nothing taken back, lesions within 1 mm.
   double worst = 0;
   for (int k = 0; k < 40; ++k) {
-    const auto f = g.frame(*s.pipeline, s.scan(k));
+    const auto f = g.frame(*s.pipeline_ptr, s.scan(k));
     ASSERT_TRUE(f.track.tracked) << f.track.reason;
     EXPECT_TRUE(f.valid) << "frame " << k << ": " << f.status;
     EXPECT_FALSE(f.restored) << f.verdict.reason;
@@ -136,10 +119,12 @@ TEST(GuardedTracker, OwnSkinStaysValidAScanSlidAlongTheWallTurnsItInvalidAndItRe
   const MonitorLimits limits;
   for (int k = 0; k < 40; ++k) {
     const double slide = 0.02 * std::min(1.0, (k + 1) / 10.0);
-    const auto f = g.frame(*s.pipeline, s.scan(40 + k, slide));
+    const auto f = g.frame(*s.pipeline_ptr, s.scan(40 + k, slide));
     if (!f.valid && first_invalid < 0) first_invalid = k;
-    if (first_invalid >= 0) EXPECT_FALSE(f.valid) << "frame " << k << " of the slid scans: " << f.status;
-    const core::Points x = s.pipeline->positions();
+    if (first_invalid >= 0) {
+      EXPECT_FALSE(f.valid) << "frame " << k << " of the slid scans: " << f.status;
+    }
+    const core::Points x = s.pipeline_ptr->positions();
     EXPECT_LT((x.colwise().mean() - s.model.mesh.nodes().colwise().mean()).norm(), limits.max_rigid_drift_m + 1e-9);
   }
   std::printf("[ measure  ] scan slid 20 mm: lesions invalid %d frames after the slide began; reason: %s\n", first_invalid,
@@ -149,7 +134,7 @@ TEST(GuardedTracker, OwnSkinStaysValidAScanSlidAlongTheWallTurnsItInvalidAndItRe
   // 3. Back to the true skin: valid again after at least recover_frames good frames.
   int valid_after = -1;
   for (int k = 0; k < 40 && valid_after < 0; ++k)
-    if (g.frame(*s.pipeline, s.scan(80 + k)).valid) valid_after = k + 1;
+    if (g.frame(*s.pipeline_ptr, s.scan(80 + k)).valid) valid_after = k + 1;
   std::printf("[ measure  ] back on the true skin: valid after %d frames\n", valid_after);
   EXPECT_GE(valid_after, limits.recover_frames);
   EXPECT_LE(valid_after, 30);
@@ -161,31 +146,31 @@ TEST(GuardedTracker, AFrameTakenBackLeavesTheLastGoodStateBitForBit) {
   MonitorLimits l;
   l.max_lesion_jump_m = 1e-9;  // every step moves the lesions more than this: every frame is taken back
   ros_interface::GuardedTracker g(ros_interface::TrackerOptions{}, l);
-  g.start(*s.pipeline);
-  const core::PipelineState before = s.pipeline->state();
+  g.start(*s.pipeline_ptr);
+  const core::PipelineState before = s.pipeline_ptr->state();
   for (int k = 0; k < 3; ++k) {
-    const auto f = g.frame(*s.pipeline, s.scan(k));
+    const auto f = g.frame(*s.pipeline_ptr, s.scan(k));
     ASSERT_TRUE(f.track.tracked) << f.track.reason;
     EXPECT_TRUE(f.restored);
     EXPECT_EQ(f.verdict.recovery, Recovery::kLastGood);
     EXPECT_FALSE(f.valid);
-    EXPECT_EQ(s.pipeline->state().simulation.displacement_m, before.simulation.displacement_m);
-    EXPECT_EQ(s.pipeline->state().morphing_forces_n, before.morphing_forces_n);
+    EXPECT_EQ(s.pipeline_ptr->state().simulation.displacement_m, before.simulation.displacement_m);
+    EXPECT_EQ(s.pipeline_ptr->state().morphing_forces_n, before.morphing_forces_n);
   }
 }
 
 TEST(GuardedTracker, RefusedCloudsInARowMakeTheLesionsInvalidUntilAFrameIsTracked) {
   Scene s;
   ros_interface::GuardedTracker g;
-  g.start(*s.pipeline);
-  ASSERT_TRUE(g.frame(*s.pipeline, s.scan(0)).valid);
+  g.start(*s.pipeline_ptr);
+  ASSERT_TRUE(g.frame(*s.pipeline_ptr, s.scan(0)).valid);
   for (int k = 0; k < g.limits().refused_frames - 1; ++k) g.refused("malformed");
   EXPECT_TRUE(g.valid());
-  const auto empty = g.frame(*s.pipeline, core::Points(0, 3));  // refused by the tracker: too few points
+  const auto empty = g.frame(*s.pipeline_ptr, core::Points(0, 3));  // refused by the tracker: too few points
   EXPECT_FALSE(empty.track.tracked);
   EXPECT_FALSE(g.valid());
   EXPECT_NE(g.reason().find("in a row refused"), std::string::npos) << g.reason();
-  EXPECT_TRUE(g.frame(*s.pipeline, s.scan(1)).valid);
+  EXPECT_TRUE(g.frame(*s.pipeline_ptr, s.scan(1)).valid);
 }
 
 TEST(InputChecks, StampsInTheFutureOrTooOldAreRefused) {
