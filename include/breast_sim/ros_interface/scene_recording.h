@@ -21,8 +21,9 @@
 ///    centre.
 ///
 /// What is in the bag (all stamps on the scene's clock, t = start_s + offset; "at t" means header
-/// stamp t; each message is written at its stamp plus sensor_latency_s, except the tf messages,
-/// which are written at their stamps):
+/// stamp t; a good cloud is written at its stamp plus sensor_latency_s, as a driver publishes it
+/// after the exposure; tf and the bad messages are written at their stamps, the mis-stamped ones at
+/// the time their stamp misstates):
 ///  - /tf_static (latched): world → camera_frame, once at start_s.
 ///  - /tf: world → model_frame every 1/tf_rate_hz for the whole scene; world → scanner_frame at the
 ///    same times from scanner_start − 0.2 s to scanner_end + 0.2 s.
