@@ -651,26 +651,46 @@ void BreastSimNode::poseCb(const geometry_msgs::PoseStampedConstPtr& msg) {
   ts.header = msg->header;
   ts.child_frame_id = params_.frame_id;
   ts.transform = transformFromIsometry(t);
+  const double stamp = msg->header.stamp.toSec();
   bool broadcast = false;
   {
     std::lock_guard<std::mutex> lock(pose_mutex_);
-    // Time went back (a bag played again, a simulator restarted): the kept poses are of another run.
-    if (pose_ && msg->header.stamp + ros::Duration(1.0) < pose_->header.stamp) {
-      pose_buffer_.clear();
+    // Time went back (a bag played again, a simulator restarted), or another frame: the kept poses
+    // are of another run.
+    if (pose_ && (msg->header.stamp + ros::Duration(1.0) < pose_->header.stamp ||
+                  msg->header.frame_id != pose_->header.frame_id)) {
+      pose_history_.clear();
       pose_.reset();
       last_pose_tf_stamp_ = ros::Time();
       time_went_back_ = true;  // publishModel forgets its newest lesion stamp too
     }
-    if (pose_ && msg->header.frame_id == pose_->header.frame_id) {
-      const std::string jump = checkPoseJump(pose_accepted_, pose_->header.stamp.toSec(), t, msg->header.stamp.toSec(),
-                                             params_.pose_jump);
+    // A jump is measured from the last accepted pose, or, without one close in time, from the pose
+    // tf2 has for the model frame (another source of the same pose: they must agree).
+    Eigen::Isometry3d reference;
+    double reference_stamp = 0;
+    bool have_reference = false;
+    if (pose_ && std::abs(stamp - pose_->header.stamp.toSec()) <= params_.pose_jump.window_s) {
+      reference = pose_accepted_;
+      reference_stamp = pose_->header.stamp.toSec();
+      have_reference = true;
+    } else {
+      for (const ros::Time& at : {msg->header.stamp, ros::Time(0)}) {
+        if (!tf_buffer_.canTransform(msg->header.frame_id, params_.frame_id, at)) continue;
+        const geometry_msgs::TransformStamped tf = tf_buffer_.lookupTransform(msg->header.frame_id, params_.frame_id, at);
+        reference = isometryFromTransform(tf.transform);
+        reference_stamp = tf.header.stamp.isZero() ? stamp : tf.header.stamp.toSec();
+        have_reference = true;
+        break;
+      }
+    }
+    if (have_reference) {
+      const std::string jump = checkPoseJump(reference, reference_stamp, t, stamp, params_.pose_jump);
       if (!jump.empty()) {
         warn("pose jump", "breast_sim: ~patient_pose refused: " + jump + "; gravity and transforms keep their last values");
         return;
       }
     }
-    // tf2 logs an error for a second pose at the same stamp; only poses at new stamps are kept.
-    if (!pose_ || msg->header.stamp != pose_->header.stamp) pose_buffer_.setTransform(ts, "~patient_pose");
+    pose_history_.add(stamp, t);
     if (!pose_ || msg->header.stamp >= pose_->header.stamp) {
       pose_ = msg;
       pose_accepted_ = t;
@@ -765,16 +785,8 @@ bool BreastSimNode::poseAt(const ros::Time& stamp, double max_age_s, Eigen::Isom
   std::lock_guard<std::mutex> lock(pose_mutex_);
   if (!pose_) return false;
   *frame = pose_->header.frame_id;
-  try {
-    // Between two poses (or at one): tf2's interpolation (linear, slerp).
-    *frame_from_model = isometryFromTransform(pose_buffer_.lookupTransform(*frame, params_.frame_id, stamp).transform);
-    return true;
-  } catch (const tf2::TransformException&) {
-    // Before the first kept pose or after the newest: the newest, if close enough in time.
-  }
-  if (std::abs((stamp - pose_->header.stamp).toSec()) > max_age_s) return false;
-  *frame_from_model = isometryFromPose(pose_->pose);
-  return true;
+  // Between two poses at most twice the allowed age apart, else the nearest within the age.
+  return pose_history_.at(stamp.toSec(), 2 * params_.max_transform_age_s, max_age_s, frame_from_model);
 }
 
 bool BreastSimNode::gravityRotation(const ros::Time& stamp, Eigen::Matrix3d* r) {

@@ -1,6 +1,7 @@
 // Checks of message stamps and poses before the node acts on them (see input_checks.h).
 #include "breast_sim/ros_interface/input_checks.h"
 
+#include <algorithm>
 #include <cmath>
 #include <sstream>
 
@@ -41,6 +42,46 @@ std::string checkPoseJump(const Eigen::Isometry3d& previous, double previous_sta
     << " s (limits " << 1e3 * limits.max_jump_m << " mm / " << limits.max_jump_deg << " deg within " << limits.window_s
     << " s, gravity/max_pose_jump_m, gravity/max_pose_jump_deg)";
   return s.str();
+}
+
+void PoseHistory::add(double stamp_s, const Eigen::Isometry3d& pose) {
+  auto it = std::lower_bound(poses_.begin(), poses_.end(), stamp_s,
+                             [](const std::pair<double, Eigen::Isometry3d>& p, double s) { return p.first < s; });
+  if (it != poses_.end() && it->first == stamp_s) it->second = pose;
+  else poses_.insert(it, {stamp_s, pose});
+  const double oldest = poses_.back().first - span_s_;
+  size_t drop = 0;
+  while (drop < poses_.size() && poses_[drop].first < oldest) ++drop;
+  poses_.erase(poses_.begin(), poses_.begin() + static_cast<std::ptrdiff_t>(drop));
+}
+
+bool PoseHistory::at(double stamp_s, double max_gap_s, double max_age_s, Eigen::Isometry3d* pose) const {
+  if (poses_.empty()) return false;
+  auto after = std::lower_bound(poses_.begin(), poses_.end(), stamp_s,
+                                [](const std::pair<double, Eigen::Isometry3d>& p, double s) { return p.first < s; });
+  if (after != poses_.end() && after->first == stamp_s) {
+    *pose = after->second;
+    return true;
+  }
+  if (after != poses_.begin() && after != poses_.end()) {
+    const auto before = after - 1;
+    const double gap = after->first - before->first;
+    if (gap <= max_gap_s) {
+      const double w = (stamp_s - before->first) / gap;
+      const Eigen::Quaterniond qa(before->second.linear()), qb(after->second.linear());
+      *pose = Eigen::Isometry3d::Identity();
+      pose->linear() = qa.slerp(w, qb).toRotationMatrix();
+      pose->translation() = (1 - w) * before->second.translation() + w * after->second.translation();
+      return true;
+    }
+  }
+  // The nearest pose, if close enough in time.
+  const auto nearest = (after == poses_.end()) ? poses_.end() - 1
+                       : (after == poses_.begin()) ? after
+                       : (stamp_s - (after - 1)->first <= after->first - stamp_s ? after - 1 : after);
+  if (std::abs(nearest->first - stamp_s) > max_age_s) return false;
+  *pose = nearest->second;
+  return true;
 }
 
 bool KeyedThrottle::allow(const std::string& key, double now_s) {

@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <map>
 #include <memory>
 #include <sstream>
 
@@ -318,22 +319,35 @@ IcpResult pclIcp(const core::Points& cloud_m, const core::Points& reference_m, c
 
 }  // namespace
 
+namespace {
+
+/// Inlier share and trimmed RMS from the squared distances [m²] of the pairs within the gate.
+Correspondences trimmedFit(std::vector<float> d2s, Eigen::Index points) {
+  Correspondences c;
+  c.inlier_fraction = points > 0 ? static_cast<double>(d2s.size()) / static_cast<double>(points) : 0.0;
+  if (d2s.empty()) return c;
+  std::sort(d2s.begin(), d2s.end());
+  const size_t keep = std::max<size_t>(1, static_cast<size_t>(std::ceil(kFitShare * static_cast<double>(d2s.size()))));
+  double sum = 0;
+  for (size_t i = 0; i < keep; ++i) sum += d2s[i];
+  c.rms_m = std::sqrt(sum / static_cast<double>(keep));
+  return c;
+}
+
+}  // namespace
+
 Correspondences correspondences(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
   Correspondences c;
   if (cloud_m.rows() == 0 || reference_m.rows() == 0 || !(gate_m > 0)) return c;
   const PointGrid grid(reference_m, gate_m);
-  double sum = 0;
-  long within = 0;
+  std::vector<float> d2s;
+  d2s.reserve(static_cast<size_t>(cloud_m.rows()));
   for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
     float d2 = 0;
     const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
-    if (grid.nearestWithin(q, gate_m, &d2) < 0) continue;
-    sum += d2;
-    ++within;
+    if (grid.nearestWithin(q, gate_m, &d2) >= 0) d2s.push_back(d2);
   }
-  c.inlier_fraction = static_cast<double>(within) / static_cast<double>(cloud_m.rows());
-  if (within > 0) c.rms_m = std::sqrt(sum / static_cast<double>(within));
-  return c;
+  return trimmedFit(std::move(d2s), cloud_m.rows());
 }
 
 Correspondences correspondencesPcl(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
@@ -344,41 +358,43 @@ Correspondences correspondencesPcl(const core::Points& cloud_m, const core::Poin
   std::vector<int> index(1);
   std::vector<float> d2(1);
   const float gate2 = static_cast<float>(gate_m * gate_m);
-  double sum = 0;
-  long within = 0;
+  std::vector<float> d2s;
   for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
     const pcl::PointXYZ p(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
-    if (tree.nearestKSearch(p, 1, index, d2) < 1 || d2[0] > gate2) continue;
-    sum += d2[0];
-    ++within;
+    if (tree.nearestKSearch(p, 1, index, d2) > 0 && d2[0] <= gate2) d2s.push_back(d2[0]);
   }
-  c.inlier_fraction = static_cast<double>(within) / static_cast<double>(cloud_m.rows());
-  if (within > 0) c.rms_m = std::sqrt(sum / static_cast<double>(within));
-  return c;
+  return trimmedFit(std::move(d2s), cloud_m.rows());
 }
 
-std::vector<int> pointsNear(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
+std::vector<int> pointsNear(const core::Points& cloud_m, const core::Points& skin_m, const std::vector<char>& rim,
+                            double gate_m) {
   std::vector<int> kept;
-  if (reference_m.rows() == 0 || !(gate_m > 0)) return kept;
-  const PointGrid grid(reference_m, gate_m);
+  if (skin_m.rows() == 0 || !(gate_m > 0)) return kept;
+  const PointGrid grid(skin_m, gate_m);
   for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
     const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
-    if (grid.anyWithin(q, gate_m)) kept.push_back(static_cast<int>(i));
+    float d2 = 0;
+    const int n = grid.nearestWithin(q, gate_m, &d2);
+    if (n < 0 || rim[static_cast<size_t>(n)]) continue;
+    kept.push_back(static_cast<int>(i));
   }
   return kept;
 }
 
-std::vector<int> pointsNearPcl(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
+std::vector<int> pointsNearPcl(const core::Points& cloud_m, const core::Points& skin_m, const std::vector<char>& rim,
+                               double gate_m) {
   std::vector<int> kept;
-  if (reference_m.rows() == 0 || !(gate_m > 0)) return kept;
+  if (skin_m.rows() == 0 || !(gate_m > 0)) return kept;
   pcl::KdTreeFLANN<pcl::PointXYZ> tree;
-  tree.setInputCloud(toPcl(reference_m));
+  tree.setInputCloud(toPcl(skin_m));
   std::vector<int> index(1);
   std::vector<float> d2(1);
   const float gate2 = static_cast<float>(gate_m * gate_m);
   for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
     const pcl::PointXYZ p(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
-    if (tree.nearestKSearch(p, 1, index, d2) > 0 && d2[0] <= gate2) kept.push_back(static_cast<int>(i));
+    if (tree.nearestKSearch(p, 1, index, d2) < 1 || d2[0] > gate2) continue;
+    if (rim[static_cast<size_t>(index[0])]) continue;
+    kept.push_back(static_cast<int>(i));
   }
   return kept;
 }
@@ -411,22 +427,48 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
     // vertices, edge midpoints and face centroids, so that the pairs' distances are those to the
     // surface within a quarter of an edge instead of half an edge.
     const core::Triangles tris = core::skinTriangles(pipeline.model().mesh, skin);
-    reference_skin_.resize(skin_now.rows() + 4 * tris.rows(), 3);
+    // The rim: skin edges that only one skin triangle has (the skin's boundary), and their nodes.
+    std::map<std::pair<int, int>, int> edges;
+    for (Eigen::Index t = 0; t < tris.rows(); ++t)
+      for (int k = 0; k < 3; ++k) {
+        const int a = tris(t, k), b = tris(t, (k + 1) % 3);
+        ++edges[{std::min(a, b), std::max(a, b)}];
+      }
+    std::vector<char> rim_node(static_cast<size_t>(x.rows()), 0);
+    for (const auto& [e, count] : edges)
+      if (count == 1) rim_node[static_cast<size_t>(e.first)] = rim_node[static_cast<size_t>(e.second)] = 1;
+    // The rim band: the rim nodes, and the centroids and edge midpoints of the skin triangles that
+    // touch one. Every sample once (ties between equal points would make the band depend on the search).
+    std::vector<char> band_tri(static_cast<size_t>(tris.rows()), 0);
+    std::map<std::pair<int, int>, char> edge_band;
+    for (Eigen::Index t = 0; t < tris.rows(); ++t) {
+      for (int k = 0; k < 3; ++k) band_tri[static_cast<size_t>(t)] |= rim_node[static_cast<size_t>(tris(t, k))];
+      for (int k = 0; k < 3; ++k) {
+        const int a = tris(t, k), b = tris(t, (k + 1) % 3);
+        edge_band[{std::min(a, b), std::max(a, b)}] |= band_tri[static_cast<size_t>(t)];
+      }
+    }
+    reference_skin_.resize(skin_now.rows() + tris.rows() + static_cast<Eigen::Index>(edge_band.size()), 3);
+    rim_.assign(static_cast<size_t>(reference_skin_.rows()), 0);
     reference_skin_.topRows(skin_now.rows()) = skin_now;
+    for (size_t i = 0; i < skin.size(); ++i) rim_[i] = rim_node[static_cast<size_t>(skin[i])];
     Eigen::Index r = skin_now.rows();
     for (Eigen::Index t = 0; t < tris.rows(); ++t) {
-      const Eigen::RowVector3d a = x.row(tris(t, 0)), b = x.row(tris(t, 1)), c = x.row(tris(t, 2));
-      reference_skin_.row(r++) = (a + b + c) / 3.0;
-      reference_skin_.row(r++) = 0.5 * (a + b);
-      reference_skin_.row(r++) = 0.5 * (b + c);
-      reference_skin_.row(r++) = 0.5 * (c + a);
+      rim_[static_cast<size_t>(r)] = band_tri[static_cast<size_t>(t)];
+      reference_skin_.row(r++) = (x.row(tris(t, 0)) + x.row(tris(t, 1)) + x.row(tris(t, 2))) / 3.0;
+    }
+    for (const auto& [e, band] : edge_band) {
+      rim_[static_cast<size_t>(r)] = band;
+      reference_skin_.row(r++) = 0.5 * (x.row(e.first) + x.row(e.second));
     }
   }
   if (options_.max_point_distance_m > 0 && cloud.rows() > 0) {
-    // Against the model's skin where the last ICP correction puts the cloud.
+    // Against the skin where tracking started (which ICP aligns to), where the last ICP correction
+    // puts the cloud.
     const core::Points seen_as = guess_.matrix().isIdentity(0) ? cloud : transformPoints(guess_, cloud);
-    const std::vector<int> kept = options_.pcl_reference ? pointsNearPcl(seen_as, skin_now, options_.max_point_distance_m)
-                                                         : pointsNear(seen_as, skin_now, options_.max_point_distance_m);
+    const std::vector<int> kept =
+        options_.pcl_reference ? pointsNearPcl(seen_as, reference_skin_, rim_, options_.max_point_distance_m)
+                               : pointsNear(seen_as, reference_skin_, rim_, options_.max_point_distance_m);
     res.points_gated = static_cast<size_t>(cloud.rows()) - kept.size();
     if (res.points_gated > 0) {
       core::Points near(static_cast<Eigen::Index>(kept.size()), 3);
@@ -436,8 +478,7 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
   }
   res.filter_s = since(t0);
   if (cloud.rows() < options_.min_points) {
-    res.reason = std::to_string(cloud.rows()) + " points after decimation, outlier removal and the " +
-                 std::to_string(1e3 * options_.max_point_distance_m).substr(0, 5) + " mm distance gate (" +
+    res.reason = std::to_string(cloud.rows()) + " points after decimation, outlier removal and the distance gate (" +
                  std::to_string(res.points_gated) + " beyond it), fewer than min_points = " +
                  std::to_string(options_.min_points);
     return res;

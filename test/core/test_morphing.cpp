@@ -14,6 +14,7 @@
 #include "breast_sim/core/morphing/surface_field.h"
 #include "breast_sim/core/morphing/surface_morphing.h"
 #include "breast_sim/core/morphing/target_surface.h"
+#include "sliding_block.h"
 
 using namespace breast_sim::core;
 
@@ -290,4 +291,39 @@ TEST(SurfaceVectorField, MaxVoxelsPerAxisCapsTheLongestAxis) {
   const SurfaceVectorField f(s, region, o);
   EXPECT_EQ(f.voxelSize(), 5e-3);
   EXPECT_EQ(f.size(), Eigen::Vector3i(21, 13, 13));
+}
+
+TEST(SurfaceMorphing, AlongTheNormalEachStepsForceIsTheNormalComponentOfTheVectorToTheTarget) {
+  // A 40 × 40 × 20 mm block, its top face (z = 20 mm, the only skin) pulled towards a 1 mm lattice of
+  // points 2 mm above it and offset 0.4 mm in x and y: each top vertex's nearest target point lies
+  // (0.4, 0.4, 2) mm away. To the nearest point the force is gain × area × that vector; along the
+  // normal (+z, the top face's outward normal) only its 2 mm part.
+  const TetMesh mesh = makeBoxMesh(Eigen::Vector3i(4, 4, 2), Eigen::Vector3d(0.04, 0.04, 0.02));
+  TargetSurface target;
+  target.vertices_m.resize(61 * 61, 3);
+  for (int i = 0; i < 61; ++i)
+    for (int j = 0; j < 61; ++j) target.vertices_m.row(61 * i + j) << -0.0096 + 0.001 * i, -0.0096 + 0.001 * j, 0.022;
+  auto field = std::make_shared<SurfaceVectorField>(
+      target, Eigen::AlignedBox3d(Eigen::Vector3d::Zero(), Eigen::Vector3d(0.04, 0.04, 0.025)), SurfaceFieldOptions{0.5e-3, 0.01, 256});
+  MorphingOptions o;
+  o.max_traction_pa = 0;
+  for (const bool along : {false, true}) {
+    SCOPED_TRACE(along ? "along the normal" : "to the nearest point");
+    auto sim = test_fixtures::blockSimulator(mesh, Eigen::Vector3d::Zero(), 0.033);
+    SurfaceMorphing m(mesh, field, mesh.nodeSet("z_max"), {}, o);
+    m.setAlongNormal(along);
+    m.addForces(*sim);
+    const Eigen::VectorXd& f = sim->externalForces();
+    ASSERT_EQ(m.vertices().size(), 25u);
+    for (size_t k = 0; k < m.vertices().size(); ++k) {
+      const int v = m.vertices()[k];
+      const Eigen::Vector3d to = field->vectorToSurface(mesh.nodes().row(v).transpose());
+      ASSERT_NEAR(to.x(), 0.4e-3, 1e-6);
+      ASSERT_NEAR(to.z(), 2e-3, 1e-6);
+      const Eigen::Vector3d pull = along ? Eigen::Vector3d(0, 0, to.z()) : to;
+      const Eigen::Vector3d expected = o.gain_pa_per_m * m.vertexAreas()[static_cast<Eigen::Index>(k)] * pull;
+      EXPECT_LT((f.segment<3>(3 * v) - expected).norm(), 1e-9 * expected.norm()) << "vertex " << v;
+      EXPECT_NEAR(m.lastDistances()[static_cast<Eigen::Index>(k)], pull.norm(), 1e-12);
+    }
+  }
 }

@@ -356,7 +356,14 @@ TEST(SurfaceTrackerSearch, GateAndCorrespondencesAreThoseOfPcl) {
       SCOPED_TRACE("gate " + std::to_string(gate) + ", seed " + std::to_string(seed));
       core::Points cloud = latticeCloud(3000, seed, 50);
       cloud.col(2).array() += 0.004;  // 4 mm above the reference surface
-      EXPECT_EQ(ros_interface::pointsNear(cloud, reference, gate), ros_interface::pointsNearPcl(cloud, reference, gate));
+      // Every fifth reference point in the rim band: the points nearest to one are left out.
+      std::vector<char> rim(static_cast<size_t>(reference.rows()), 0), none = rim;
+      for (size_t i = 0; i < rim.size(); i += 5) rim[i] = 1;
+      const auto near = ros_interface::pointsNear(cloud, reference, none, gate);
+      EXPECT_EQ(near, ros_interface::pointsNearPcl(cloud, reference, none, gate));
+      const auto near_rim = ros_interface::pointsNear(cloud, reference, rim, gate);
+      EXPECT_EQ(near_rim, ros_interface::pointsNearPcl(cloud, reference, rim, gate));
+      EXPECT_LT(near_rim.size(), near.size());  // the rim rule bites
       const auto fast = ros_interface::correspondences(cloud, reference, gate);
       const auto slow = ros_interface::correspondencesPcl(cloud, reference, gate);
       EXPECT_EQ(fast.inlier_fraction, slow.inlier_fraction);

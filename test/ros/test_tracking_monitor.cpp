@@ -206,3 +206,26 @@ TEST(InputChecks, TheThrottleLetsEachKindOfWarningThroughOncePerPeriod) {
   EXPECT_TRUE(t.allow("cloud stamp", 5.1));
   EXPECT_EQ(t.suppressed("cloud stamp"), 0);
 }
+
+TEST(InputChecks, PoseHistoryInterpolatesOnlyAcrossShortGaps) {
+  ros_interface::PoseHistory h(10.0);
+  Eigen::Isometry3d a = Eigen::Isometry3d::Identity(), b = a, c = a;
+  b.translation() << 0.01, 0, 0;
+  b.linear() = Eigen::AngleAxisd(0.2, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  c.translation() << 0.05, 0, 0;
+  h.add(10.0, a);
+  h.add(10.1, b);
+  h.add(17.0, c);  // after a 6.9 s gap
+  Eigen::Isometry3d p;
+  ASSERT_TRUE(h.at(10.05, 1.0, 0.5, &p));  // between two poses 0.1 s apart: interpolated
+  EXPECT_NEAR(p.translation().x(), 0.005, 1e-12);
+  EXPECT_NEAR(Eigen::AngleAxisd(p.linear()).angle(), 0.1, 1e-9);
+  ASSERT_TRUE(h.at(10.3, 1.0, 0.5, &p));  // across the long gap: the nearest, 0.2 s away
+  EXPECT_TRUE(p.isApprox(b, 1e-12));
+  EXPECT_FALSE(h.at(13.5, 1.0, 0.5, &p));  // nothing within 0.5 s, and the gap is not bridged
+  ASSERT_TRUE(h.at(17.0, 1.0, 0.5, &p));
+  EXPECT_TRUE(p.isApprox(c, 1e-12));
+  h.add(25.0, a);  // the span: poses older than 15 s are forgotten
+  EXPECT_FALSE(h.at(10.0, 1.0, 0.5, &p));
+  EXPECT_EQ(h.newestStamp(), 25.0);
+}

@@ -28,7 +28,6 @@
 #include <ros/ros.h>
 #include <sensor_msgs/PointCloud2.h>
 #include <std_srvs/Trigger.h>
-#include <tf2/buffer_core.h>
 #include <tf2_ros/buffer.h>
 #include <tf2_ros/transform_broadcaster.h>
 #include <tf2_ros/transform_listener.h>
@@ -139,9 +138,9 @@ class BreastSimNode {
   bool cloudTransform(const std::string& frame, const ros::Time& stamp, Eigen::Isometry3d* t, std::string* why);
   bool lookup(const std::string& target, const std::string& source, const ros::Time& stamp, Eigen::Isometry3d* t,
               std::string* why);
-  /// The patient pose at `stamp` (the model's pose in *frame): tf2's interpolation between the poses
-  /// received around it, else the newest pose when it is within max_age_s [s] of `stamp`. False
-  /// without such a pose.
+  /// The patient pose at `stamp` (the model's pose in *frame): interpolated between the accepted poses
+  /// around it (at most 2 max_transform_age_s apart), else the nearest within max_age_s [s] of
+  /// `stamp`. False without such a pose.
   bool poseAt(const ros::Time& stamp, double max_age_s, Eigen::Isometry3d* frame_from_model, std::string* frame);
   /// Rotation of gravity-frame vectors into the model frame at `stamp` (the cloud's), if known.
   bool gravityRotation(const ros::Time& stamp, Eigen::Matrix3d* r);
@@ -198,7 +197,7 @@ class BreastSimNode {
   /// The poses of the last seconds, so that a cloud is put into the model frame, and gravity taken,
   /// at the cloud's time: a node that lags behind the stream would otherwise use a pose up to
   /// max_transform_age_s newer than the cloud (breathing, a table that moves).
-  tf2::BufferCore pose_buffer_{ros::Duration(10.0)};
+  PoseHistory pose_history_{10.0};
   Eigen::Isometry3d pose_accepted_ = Eigen::Isometry3d::Identity();  ///< the newest accepted pose
   ros::Time last_pose_tf_stamp_;    ///< newest ~patient_pose broadcast on tf (under pose_mutex_)
   ros::Time last_lesion_tf_stamp_;  ///< newest lesion frames broadcast (under engine_mutex_)

@@ -10,6 +10,8 @@
 
 #include <map>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include <Eigen/Geometry>
 
@@ -39,6 +41,28 @@ struct PoseJumpLimits {
 /// A pose at `stamp_s` against the last accepted one at `previous_stamp_s` [s].
 std::string checkPoseJump(const Eigen::Isometry3d& previous, double previous_stamp_s, const Eigen::Isometry3d& pose,
                           double stamp_s, const PoseJumpLimits& limits);
+
+/// The accepted patient poses of the last seconds, for the pose at a cloud's stamp. Interpolates
+/// (linear translation, slerp rotation) only between two poses at most `max_gap_s` apart: across a
+/// longer gap (a tracker that lost the patient) nothing is known in between.
+class PoseHistory {
+ public:
+  explicit PoseHistory(double span_s = 10.0) : span_s_(span_s) {}
+  /// Adds a pose at `stamp_s` [s]; one at a stamp already held replaces it; poses older than the
+  /// newest by more than the span are forgotten.
+  void add(double stamp_s, const Eigen::Isometry3d& pose);
+  void clear() { poses_.clear(); }
+  bool empty() const { return poses_.empty(); }
+  double newestStamp() const { return poses_.empty() ? 0.0 : poses_.back().first; }
+  const Eigen::Isometry3d& newest() const { return poses_.back().second; }
+  /// The pose at `stamp_s`: interpolated between its neighbours when they are at most `max_gap_s`
+  /// apart, else the nearest pose when it is within `max_age_s` of the stamp; false without either.
+  bool at(double stamp_s, double max_gap_s, double max_age_s, Eigen::Isometry3d* pose) const;
+
+ private:
+  double span_s_;
+  std::vector<std::pair<double, Eigen::Isometry3d>> poses_;  ///< by increasing stamp
+};
 
 /// One warning per key and period: a stream of the same bad input is logged once per period, each
 /// distinct kind of bad input (its key) on its own.

@@ -4,7 +4,8 @@
 ///   1. PCL voxel-grid decimation (the scanner delivers far more points than the skin has vertices),
 ///   2. statistical outlier removal (drapes, instruments, stray returns), PCL's rule,
 ///   3. the distance gate: points farther than max_point_distance_m from the model's skin (a hand, an
-///      instrument, the torso beyond the breast) are left out,
+///      instrument), or nearest to its rim band (where the chest skin around the breast begins), are
+///      left out,
 ///   4. rigid pre-alignment by point-to-point ICP (PCL's algorithm) against the reference skin (the
 ///      model's skin where tracking started, after a reset(): the precomputed state), which corrects
 ///      the tracker's registration without following the model it feeds; a correction that is too
@@ -49,8 +50,8 @@ struct IcpOptions {
   /// as much in the tracker's frame, so this bounds that error.
   double max_translation_m = 0.003;
   double max_rotation_deg = 2.0;       ///< ... and a larger rotation [deg] (2° turns a point 60 mm away by 2.1 mm)
-  /// A correction whose RMS distance over the pairs within max_correspondence_m is above this is
-  /// refused [m]. A cloud on the skin gives 0.9 mm at 20k elements and 1.7 mm at 2.2k (0.5 mm noise;
+  /// A correction whose RMS distance over the best 90 % of the pairs within max_correspondence_m
+  /// (correspondences()) is above this is refused [m]. A cloud on the skin gives 0.9 mm at 20k elements and 1.7 mm at 2.2k (0.5 mm noise;
   /// the reference is sampled at a quarter edge), bench_tracking_drift.
   double max_rms_m = 0.0025;
   /// ... and so is one that leaves fewer than this share of the points within max_correspondence_m
@@ -74,9 +75,11 @@ struct TrackerOptions {
   /// are instead of pulling them onto the rim of the seen patch [m]. 0 = off (every skin vertex is
   /// pulled to the cloud).
   double hold_unseen_skin_m = 0.005;
-  /// Cloud points farther than this from the nearest skin vertex of the model (after the last ICP
-  /// correction) are left out before ICP and morphing: a hand, an instrument, the torso beyond the
-  /// breast [m]; 0 = keep every point.
+  /// Cloud points farther than this from the skin where tracking started (vertices, edge midpoints
+  /// and centroids, after the last ICP correction) are left out before ICP and morphing: a hand, an
+  /// instrument [m]; 0 = keep every point. Points nearest to the skin's rim band (the triangles on
+  /// its edge at the chest wall) are left out too: there the breast's skin and the chest's around it
+  /// cannot be told apart.
   double max_point_distance_m = 0.02;
   int min_points = 50;           ///< fewer points after filtering and the gate: the frame is refused
   /// Outlier removal, ICP and the unseen-skin test with PCL's own classes (StatisticalOutlierRemoval,
@@ -92,7 +95,7 @@ struct TrackResult {
   size_t points_gated = 0;    ///< left out by the distance gate (max_point_distance_m)
   bool icp_applied = false;
   bool icp_refused = false;   ///< ICP ran and refused its correction, so the frame was refused
-  double icp_rms_m = -1;      ///< RMS over the pairs within the correspondence distance [m]
+  double icp_rms_m = -1;      ///< RMS over the best 90 % of the pairs within the correspondence distance [m]
   double icp_inlier_fraction = -1;
   double icp_translation_m = 0, icp_rotation_deg = 0;
   std::string icp_note;       ///< why a correction was refused
@@ -125,14 +128,17 @@ struct IcpResult {
   bool applied = false;
   bool converged = false;
   Eigen::Isometry3d transform = Eigen::Isometry3d::Identity();
-  double rms_m = -1;               ///< over the pairs within max_correspondence_m [m]
+  double rms_m = -1;               ///< over the best 90 % of the pairs within max_correspondence_m [m]
   double inlier_fraction = -1;     ///< share of the points with such a pair
   std::string note;
 };
 
 /// How closely `cloud_m` lies on `reference_m` (both #×3 [m]): the share of the cloud points whose
 /// nearest reference point is within gate_m [m] (squared float distances ≤ gate², as FLANN computes
-/// them), and the RMS of those distances [m] (−1 when none is).
+/// them), and the RMS [m] over the kFitShare of those pairs that fit best (−1 when there is none):
+/// trimmed, as trimmed ICP judges a partial overlap, so a rim of chest skin or a stray patch the
+/// gate kept does not decide the fit; a misregistration moves every pair.
+constexpr double kFitShare = 0.9;
 struct Correspondences {
   double inlier_fraction = 0.0;
   double rms_m = -1;
@@ -142,11 +148,16 @@ Correspondences correspondences(const core::Points& cloud_m, const core::Points&
 /// and a KdTreeFLANN count (the slow reference).
 Correspondences correspondencesPcl(const core::Points& cloud_m, const core::Points& reference_m, double gate_m);
 
-/// Indices (increasing) of the points of `cloud_m` within `gate_m` [m] of some point of `reference_m`
-/// (squared float distances, as PCL computes them): the tracker's distance gate.
-std::vector<int> pointsNear(const core::Points& cloud_m, const core::Points& reference_m, double gate_m);
+/// The tracker's distance gate: indices (increasing) of the points of `cloud_m` whose nearest point of
+/// `skin_m` (squared float distances, as PCL computes them) is within `gate_m` [m] and not in the rim
+/// band (`rim[i]` != 0: the skin's edge, where it meets the chest wall, and the triangles on it). There
+/// a scan cannot tell the breast's skin from the chest's around it, which would pull the rim outward
+/// and lift ICP's residual; the band's skin is held as unseen.
+std::vector<int> pointsNear(const core::Points& cloud_m, const core::Points& skin_m, const std::vector<char>& rim,
+                            double gate_m);
 /// The same with PCL's KdTreeFLANN (the slow reference).
-std::vector<int> pointsNearPcl(const core::Points& cloud_m, const core::Points& reference_m, double gate_m);
+std::vector<int> pointsNearPcl(const core::Points& cloud_m, const core::Points& skin_m, const std::vector<char>& rim,
+                               double gate_m);
 
 /// Rigid alignment of `cloud_m` onto `reference_m` (both #×3 [m]) starting from `guess`: PCL's
 /// IterativeClosestPoint (point-to-point, pairs within max_correspondence_m, PCL's default convergence
@@ -180,6 +191,7 @@ class SurfaceTracker {
   TrackerOptions options_;
   Eigen::Isometry3d guess_ = Eigen::Isometry3d::Identity();
   core::Points reference_skin_;  ///< skin where tracking started: vertices, edge midpoints, face centroids [m]
+  std::vector<char> rim_;        ///< per reference sample: in the rim band (pointsNear)
   std::vector<char> held_;       ///< per mesh node, for the seen residual (kept buffer)
 };
 
