@@ -285,25 +285,20 @@ class GridSearch : public pcl::search::KdTree<pcl::PointXYZ> {
   std::vector<int> map_;  ///< grid index → cloud index when indices were given
 };
 
-/// PCL's ICP with the given target search (null: PCL's own kd-tree).
-IcpResult pclIcp(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
-                 const IcpOptions& options, bool grid_search) {
-  if (cloud_m.rows() < 10 || reference_m.rows() < 10) {
+/// PCL's ICP onto `target` with `search` as its target search (null: PCL's own kd-tree), judged by `fit`.
+template <typename Fit>
+IcpResult pclIcp(const core::Points& cloud_m, const pcl::PointCloud<pcl::PointXYZ>::Ptr& target,
+                 const pcl::search::KdTree<pcl::PointXYZ>::Ptr& search, const Eigen::Isometry3d& guess,
+                 const IcpOptions& options, Fit&& fit) {
+  if (cloud_m.rows() < 10 || target->size() < 10) {
     IcpResult r;
     r.note = "too few points for ICP";
     return r;
   }
   pcl::IterativeClosestPoint<pcl::PointXYZ, pcl::PointXYZ> icp;
   icp.setInputSource(toPcl(cloud_m));
-  const auto target = toPcl(reference_m);
   icp.setInputTarget(target);
-  if (grid_search) {
-    // Cell = the correspondence distance (PCL squares it and takes the root: |max_correspondence_m|).
-    const double radius = std::abs(options.max_correspondence_m);
-    GridSearch::Ptr search(new GridSearch(radius > 0 ? radius : 0.01));
-    search->setInputCloud(target);
-    icp.setSearchMethodTarget(search, true);  // built here, once
-  }
+  if (search) icp.setSearchMethodTarget(search, true);  // already built on `target`
   icp.setMaximumIterations(options.max_iterations);
   icp.setMaxCorrespondenceDistance(options.max_correspondence_m);
   icp.setTransformationEpsilon(1e-10);
@@ -311,10 +306,7 @@ IcpResult pclIcp(const core::Points& cloud_m, const core::Points& reference_m, c
   pcl::PointCloud<pcl::PointXYZ> aligned;
   icp.align(aligned, guess.matrix().cast<float>());
   const Eigen::Isometry3d t(icp.getFinalTransformation().cast<double>());
-  const core::Points moved = transformPoints(t, cloud_m);
-  const Correspondences fit = grid_search ? correspondences(moved, reference_m, options.max_correspondence_m)
-                                          : correspondencesPcl(moved, reference_m, options.max_correspondence_m);
-  return judge(icp.hasConverged(), fit, t, options);
+  return judge(icp.hasConverged(), fit(transformPoints(t, cloud_m), options.max_correspondence_m), t, options);
 }
 
 }  // namespace
@@ -336,18 +328,83 @@ Correspondences trimmedFit(std::vector<float> d2s, Eigen::Index points) {
 
 }  // namespace
 
-Correspondences correspondences(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
-  Correspondences c;
-  if (cloud_m.rows() == 0 || reference_m.rows() == 0 || !(gate_m > 0)) return c;
-  const PointGrid grid(reference_m, gate_m);
+struct SkinIndex::Impl {
+  core::Points points;
+  std::vector<char> rim;
+  double gate_m = 0;
+  std::unique_ptr<PointGrid> fine;    // cells of about the points' spacing: the nearest in the first rings
+  pcl::PointCloud<pcl::PointXYZ>::Ptr cloud;
+  GridSearch::Ptr search;             // ICP's target search on `cloud`, built once
+};
+
+SkinIndex::SkinIndex(const core::Points& skin_m, std::vector<char> rim, double gate_m) {
+  if (rim.size() != static_cast<size_t>(skin_m.rows()))
+    throw std::invalid_argument("SkinIndex: " + std::to_string(rim.size()) + " rim flags for " +
+                                std::to_string(skin_m.rows()) + " points");
+  auto impl = std::make_shared<Impl>();
+  impl->points = skin_m;
+  impl->rim = std::move(rim);
+  impl->gate_m = gate_m;
+  std::vector<Eigen::Vector3f> p = toFloat(skin_m);
+  const double cell = neighbourCell(p, 1);
+  impl->fine = std::make_unique<PointGrid>(std::move(p), cell);
+  impl->cloud = toPcl(skin_m);
+  impl->search.reset(new GridSearch(cell));
+  impl->search->setInputCloud(impl->cloud);
+  impl_ = std::move(impl);
+}
+
+const core::Points& SkinIndex::points() const {
+  static const core::Points none(0, 3);
+  return impl_ ? impl_->points : none;
+}
+
+const std::vector<char>& SkinIndex::rim() const {
+  static const std::vector<char> none;
+  return impl_ ? impl_->rim : none;
+}
+
+std::vector<int> SkinIndex::near(const core::Points& cloud_m) const {
+  std::vector<int> kept;
+  if (!impl_ || impl_->points.rows() == 0 || !(impl_->gate_m > 0)) return kept;
+  const double gate2 = static_cast<double>(static_cast<float>(impl_->gate_m * impl_->gate_m));
+  for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
+    const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
+    float d2 = 0;
+    int n = -1;
+    if (impl_->fine->nearestK(q, 1, &n, &d2, gate2) < 1 || impl_->rim[static_cast<size_t>(n)]) continue;
+    kept.push_back(static_cast<int>(i));
+  }
+  return kept;
+}
+
+Correspondences SkinIndex::fit(const core::Points& cloud_m, double gate_m) const {
+  if (!impl_ || cloud_m.rows() == 0 || impl_->points.rows() == 0 || !(gate_m > 0)) return Correspondences{};
   std::vector<float> d2s;
   d2s.reserve(static_cast<size_t>(cloud_m.rows()));
+  const double gate2 = static_cast<double>(static_cast<float>(gate_m * gate_m));
   for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
     float d2 = 0;
+    int index = -1;
     const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
-    if (grid.nearestWithin(q, gate_m, &d2) >= 0) d2s.push_back(d2);
+    if (impl_->fine->nearestK(q, 1, &index, &d2, gate2) > 0) d2s.push_back(d2);
   }
   return trimmedFit(std::move(d2s), cloud_m.rows());
+}
+
+IcpResult SkinIndex::align(const core::Points& cloud_m, const Eigen::Isometry3d& guess, const IcpOptions& options) const {
+  if (!impl_) {
+    IcpResult r;
+    r.note = "too few points for ICP";
+    return r;
+  }
+  return pclIcp(cloud_m, impl_->cloud, impl_->search, guess, options,
+                [this](const core::Points& moved, double gate) { return fit(moved, gate); });
+}
+
+Correspondences correspondences(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
+  if (cloud_m.rows() == 0 || reference_m.rows() == 0 || !(gate_m > 0)) return Correspondences{};
+  return SkinIndex(reference_m, std::vector<char>(static_cast<size_t>(reference_m.rows()), 0), gate_m).fit(cloud_m, gate_m);
 }
 
 Correspondences correspondencesPcl(const core::Points& cloud_m, const core::Points& reference_m, double gate_m) {
@@ -368,17 +425,8 @@ Correspondences correspondencesPcl(const core::Points& cloud_m, const core::Poin
 
 std::vector<int> pointsNear(const core::Points& cloud_m, const core::Points& skin_m, const std::vector<char>& rim,
                             double gate_m) {
-  std::vector<int> kept;
-  if (skin_m.rows() == 0 || !(gate_m > 0)) return kept;
-  const PointGrid grid(skin_m, gate_m);
-  for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
-    const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
-    float d2 = 0;
-    const int n = grid.nearestWithin(q, gate_m, &d2);
-    if (n < 0 || rim[static_cast<size_t>(n)]) continue;
-    kept.push_back(static_cast<int>(i));
-  }
-  return kept;
+  if (skin_m.rows() == 0 || !(gate_m > 0)) return {};
+  return SkinIndex(skin_m, rim, gate_m).near(cloud_m);
 }
 
 std::vector<int> pointsNearPcl(const core::Points& cloud_m, const core::Points& skin_m, const std::vector<char>& rim,
@@ -401,12 +449,20 @@ std::vector<int> pointsNearPcl(const core::Points& cloud_m, const core::Points& 
 
 IcpResult rigidAlign(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
                      const IcpOptions& options) {
-  return pclIcp(cloud_m, reference_m, guess, options, true);
+  if (reference_m.rows() < 10) {
+    IcpResult r;
+    r.note = "too few points for ICP";
+    return r;
+  }
+  // The grid's cell: the correspondence distance at most (the old choice), the points' spacing at least.
+  return SkinIndex(reference_m, std::vector<char>(static_cast<size_t>(reference_m.rows()), 0), options.max_correspondence_m)
+      .align(cloud_m, guess, options);
 }
 
 IcpResult rigidAlignPcl(const core::Points& cloud_m, const core::Points& reference_m, const Eigen::Isometry3d& guess,
                         const IcpOptions& options) {
-  return pclIcp(cloud_m, reference_m, guess, options, false);
+  return pclIcp(cloud_m, toPcl(reference_m), nullptr, guess, options,
+                [&reference_m](const core::Points& moved, double gate) { return correspondencesPcl(moved, reference_m, gate); });
 }
 
 TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const core::Points& cloud_m) {
@@ -422,7 +478,7 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
   const std::vector<int>& skin = pipeline.model().mesh.nodeSet(core::node_sets::kSkin);
   core::Points skin_now(static_cast<Eigen::Index>(skin.size()), 3);
   for (size_t i = 0; i < skin.size(); ++i) skin_now.row(static_cast<Eigen::Index>(i)) = x.row(skin[i]);
-  if (reference_skin_.rows() == 0) {
+  if (reference_.empty()) {
     // Tracking starts here. ICP pairs cloud points with their nearest reference point: the skin's
     // vertices, edge midpoints and face centroids, so that the pairs' distances are those to the
     // surface within a quarter of an edge instead of half an edge.
@@ -448,27 +504,28 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
         edge_band[{std::min(a, b), std::max(a, b)}] |= band_tri[static_cast<size_t>(t)];
       }
     }
-    reference_skin_.resize(skin_now.rows() + tris.rows() + static_cast<Eigen::Index>(edge_band.size()), 3);
-    rim_.assign(static_cast<size_t>(reference_skin_.rows()), 0);
-    reference_skin_.topRows(skin_now.rows()) = skin_now;
-    for (size_t i = 0; i < skin.size(); ++i) rim_[i] = rim_node[static_cast<size_t>(skin[i])];
+    core::Points samples(skin_now.rows() + tris.rows() + static_cast<Eigen::Index>(edge_band.size()), 3);
+    std::vector<char> rim(static_cast<size_t>(samples.rows()), 0);
+    samples.topRows(skin_now.rows()) = skin_now;
+    for (size_t i = 0; i < skin.size(); ++i) rim[i] = rim_node[static_cast<size_t>(skin[i])];
     Eigen::Index r = skin_now.rows();
     for (Eigen::Index t = 0; t < tris.rows(); ++t) {
-      rim_[static_cast<size_t>(r)] = band_tri[static_cast<size_t>(t)];
-      reference_skin_.row(r++) = (x.row(tris(t, 0)) + x.row(tris(t, 1)) + x.row(tris(t, 2))) / 3.0;
+      rim[static_cast<size_t>(r)] = band_tri[static_cast<size_t>(t)];
+      samples.row(r++) = (x.row(tris(t, 0)) + x.row(tris(t, 1)) + x.row(tris(t, 2))) / 3.0;
     }
     for (const auto& [e, band] : edge_band) {
-      rim_[static_cast<size_t>(r)] = band;
-      reference_skin_.row(r++) = 0.5 * (x.row(e.first) + x.row(e.second));
+      rim[static_cast<size_t>(r)] = band;
+      samples.row(r++) = 0.5 * (x.row(e.first) + x.row(e.second));
     }
+    reference_ = SkinIndex(samples, std::move(rim), options_.max_point_distance_m);
   }
   if (options_.max_point_distance_m > 0 && cloud.rows() > 0) {
     // Against the skin where tracking started (which ICP aligns to), where the last ICP correction
     // puts the cloud.
     const core::Points seen_as = guess_.matrix().isIdentity(0) ? cloud : transformPoints(guess_, cloud);
     const std::vector<int> kept =
-        options_.pcl_reference ? pointsNearPcl(seen_as, reference_skin_, rim_, options_.max_point_distance_m)
-                               : pointsNear(seen_as, reference_skin_, rim_, options_.max_point_distance_m);
+        options_.pcl_reference ? pointsNearPcl(seen_as, reference_.points(), reference_.rim(), options_.max_point_distance_m)
+                               : reference_.near(seen_as);
     res.points_gated = static_cast<size_t>(cloud.rows()) - kept.size();
     if (res.points_gated > 0) {
       core::Points near(static_cast<Eigen::Index>(kept.size()), 3);
@@ -483,7 +540,10 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
                  std::to_string(options_.min_points);
     return res;
   }
-  const auto align = options_.pcl_reference ? rigidAlignPcl : rigidAlign;
+  const auto align = [this](const core::Points& c, const Eigen::Isometry3d& guess) {
+    return options_.pcl_reference ? rigidAlignPcl(c, reference_.points(), guess, options_.icp)
+                                  : reference_.align(c, guess, options_.icp);
+  };
   if (options_.icp.enabled) {
     t0 = std::chrono::steady_clock::now();
     // ICP needs far fewer points than the morphing: an even sub-sample.
@@ -492,10 +552,10 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
       stride = (cloud.rows() + options_.icp.max_points - 1) / options_.icp.max_points;
     core::Points sample((cloud.rows() + stride - 1) / stride, 3);
     for (Eigen::Index i = 0; i < sample.rows(); ++i) sample.row(i) = cloud.row(i * stride);
-    IcpResult icp = align(sample, reference_skin_, guess_, options_.icp);
+    IcpResult icp = align(sample, guess_);
     if (!icp.applied && !guess_.matrix().isIdentity(0)) {
       // The previous correction may be what is wrong now: try once from identity.
-      IcpResult again = align(sample, reference_skin_, Eigen::Isometry3d::Identity(), options_.icp);
+      IcpResult again = align(sample, Eigen::Isometry3d::Identity());
       if (again.applied) icp = again;
     }
     res.icp_rms_m = icp.rms_m;

@@ -147,7 +147,7 @@ GuardedFrame GuardedTracker::frame(core::ProneToSupinePipeline& p, const core::P
   const core::Points lesions = p.model().lesion_embedding.positions(x);
   q.lesion_offset_m = maxRowDistance(lesions, reference_lesions_);
   q.lesion_jump_m = maxRowDistance(lesions, last_good_lesions_);
-  q.inverted_elements = core::qualityStats(p.model().mesh.tets(), x).num_inverted;
+  q.inverted_elements = static_cast<int>(core::invertedTets(p.model().mesh.tets(), x, 0.0).size());
   f.verdict = judgeFrame(q, limits_);
   std::string recovering;
   if (f.verdict.good) {

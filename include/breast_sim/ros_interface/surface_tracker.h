@@ -23,6 +23,7 @@
 /// (`*Pcl`, TrackerOptions::pcl_reference) as the slow reference the tests and the benchmark compare
 /// with.
 
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -159,6 +160,26 @@ std::vector<int> pointsNear(const core::Points& cloud_m, const core::Points& ski
 std::vector<int> pointsNearPcl(const core::Points& cloud_m, const core::Points& skin_m, const std::vector<char>& rim,
                                double gate_m);
 
+/// A fixed skin (the reference tracking started from) indexed once for the per-frame queries of the
+/// gate (pointsNear), the fit (correspondences) and ICP (rigidAlign), which the free functions
+/// answer by building one of these for their call. Copies share the index.
+class SkinIndex {
+ public:
+  SkinIndex() = default;
+  /// @param skin_m #×3 [m]; @param rim per point, in the rim band; @param gate_m the distance gate [m]
+  SkinIndex(const core::Points& skin_m, std::vector<char> rim, double gate_m);
+  bool empty() const { return !impl_; }
+  const core::Points& points() const;
+  const std::vector<char>& rim() const;
+  std::vector<int> near(const core::Points& cloud_m) const;                  ///< pointsNear
+  Correspondences fit(const core::Points& cloud_m, double gate_m) const;     ///< correspondences
+  IcpResult align(const core::Points& cloud_m, const Eigen::Isometry3d& guess, const IcpOptions& options) const;
+
+ private:
+  struct Impl;
+  std::shared_ptr<const Impl> impl_;
+};
+
 /// Rigid alignment of `cloud_m` onto `reference_m` (both #×3 [m]) starting from `guess`: PCL's
 /// IterativeClosestPoint (point-to-point, pairs within max_correspondence_m, PCL's default convergence
 /// criteria with 1e-10 transformation and 1e-12 fitness epsilons), its nearest-neighbour queries
@@ -182,7 +203,7 @@ class SurfaceTracker {
   /// state or a reset): the next frame's model skin becomes the reference ICP aligns to.
   void reset() {
     guess_ = Eigen::Isometry3d::Identity();
-    reference_skin_.resize(0, 3);
+    reference_ = SkinIndex();
   }
   const TrackerOptions& options() const { return options_; }
   void setOptions(const TrackerOptions& o) { options_ = o; }
@@ -190,8 +211,8 @@ class SurfaceTracker {
  private:
   TrackerOptions options_;
   Eigen::Isometry3d guess_ = Eigen::Isometry3d::Identity();
-  core::Points reference_skin_;  ///< skin where tracking started: vertices, edge midpoints, face centroids [m]
-  std::vector<char> rim_;        ///< per reference sample: in the rim band (pointsNear)
+  /// The skin where tracking started (vertices, edge midpoints, face centroids [m]) with its rim band.
+  SkinIndex reference_;
   std::vector<char> held_;       ///< per mesh node, for the seen residual (kept buffer)
 };
 
