@@ -52,8 +52,8 @@ struct IcpOptions {
   double max_translation_m = 0.003;
   double max_rotation_deg = 2.0;       ///< ... and a larger rotation [deg] (2° turns a point 60 mm away by 2.1 mm)
   /// A correction whose RMS distance over the best 90 % of the pairs within max_correspondence_m
-  /// (correspondences()) is above this is refused [m]. A cloud on the skin gives 0.9 mm at 20k elements and 1.7 mm at 2.2k (0.5 mm noise;
-  /// the reference is sampled at a quarter edge), bench_tracking_drift.
+  /// (correspondences()) is above this is refused [m]. A cloud on the skin gives 0.8 mm at 20.8k
+  /// elements and 1.6 mm at 2.2k (0.5 mm noise), bench_tracking_drift.
   double max_rms_m = 0.0025;
   /// ... and so is one that leaves fewer than this share of the points within max_correspondence_m
   /// of the reference [-] (a small RMS over a few pairs is no fit).
