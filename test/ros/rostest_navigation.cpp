@@ -29,7 +29,6 @@
 #include <actionlib/client/simple_action_client.h>
 #include <diagnostic_msgs/DiagnosticArray.h>
 #include <ros/ros.h>
-#include <rosgraph_msgs/Clock.h>
 #include <sensor_msgs/PointCloud2.h>
 #include <std_srvs/Trigger.h>
 
@@ -41,6 +40,7 @@
 #include <breast_sim/StateFile.h>
 #include <breast_sim/TetrahedralMesh.h>
 
+#include "simulated_clock.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/ros_interface/breast_sim_node.h"
@@ -83,7 +83,7 @@ struct Recorder {
   int feedbacks = 0;
 };
 Recorder rec;
-std::atomic<bool> drive_clock{true};
+breast_sim::test_fixtures::SimulatedClock* sim_clock = nullptr;  ///< set in main()
 
 template <typename F>
 bool waitUntil(F condition, double timeout_s) {
@@ -325,7 +325,7 @@ TEST(Navigation, FollowsTheRecordedTrackerAndSurvivesMalformedClouds) {
     rec.lesion_times.clear();
     rec.lesion_history.clear();
   }
-  drive_clock = false;  // rosbag play --clock takes over
+  sim_clock->stop();  // rosbag play --clock takes over
   std::this_thread::sleep_for(std::chrono::milliseconds(200));
   std::atomic<bool> played{false};
   int play_status = -1;
@@ -502,21 +502,12 @@ int main(int argc, char** argv) {
   ros::Subscriber s2 = nh.subscribe("/breast_sim/deformed_mesh", 200, onMesh);
   ros::Subscriber s3 = nh.subscribe("/breast_sim/lesions", 200, onLesions);
   ros::Subscriber s4 = nh.subscribe("/diagnostics", 5, onDiagnostics);
-  ros::Publisher clock = nh.advertise<rosgraph_msgs::Clock>("/clock", 10);
-  std::thread clock_thread([&] {
-    const auto t0 = Clock::now();
-    while (ros::ok() && drive_clock) {
-      rosgraph_msgs::Clock c;
-      c.clock = ros::Time(1.0 + 0.1 * since(t0));
-      clock.publish(c);
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-  });
+  breast_sim::test_fixtures::SimulatedClock clock(nh);
+  sim_clock = &clock;
   ros::AsyncSpinner spinner(2);
   spinner.start();
   offline();  // while the node loads its case
   const int status = RUN_ALL_TESTS();
-  drive_clock = false;
-  clock_thread.join();
+  clock.stop();
   return status;
 }

@@ -25,7 +25,6 @@
 #include <thread>
 
 #include <ros/ros.h>
-#include <rosgraph_msgs/Clock.h>
 #include <rosgraph_msgs/Log.h>
 #include <std_srvs/Trigger.h>
 
@@ -34,6 +33,7 @@
 #include <breast_sim/StartPrecomputation.h>
 #include <breast_sim/TetrahedralMesh.h>
 
+#include "simulated_clock.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/morphing/target_surface.h"
 #include "breast_sim/ros_interface/conversions.h"
@@ -84,7 +84,7 @@ struct Recorder {
   std::vector<rosgraph_msgs::Log::ConstPtr> warnings;  ///< WARN and above from the node
 };
 Recorder rec;
-std::atomic<bool> drive_clock{true};
+breast_sim::test_fixtures::SimulatedClock* sim_clock = nullptr;  ///< set in main()
 
 template <typename F>
 bool waitUntil(F condition, double timeout_s) {
@@ -214,7 +214,7 @@ TEST(Scene, Plays) {
     rec.warnings.clear();
     rec.recording = true;
   }
-  drive_clock = false;  // rosbag play --clock takes over
+  sim_clock->stop();  // rosbag play --clock takes over
   std::this_thread::sleep_for(std::chrono::milliseconds(200));
   const auto t0 = Clock::now();
   const int status =
@@ -435,20 +435,11 @@ int main(int argc, char** argv) {
   // Longer than the scene: an array lost here would read as a cloud the node did not track.
   ros::Subscriber s3 = nh.subscribe("/breast_sim/lesions", 2000, onLesions);
   ros::Subscriber s4 = nh.subscribe("/rosout", 1000, onLog);
-  ros::Publisher clock = nh.advertise<rosgraph_msgs::Clock>("/clock", 10);
-  std::thread clock_thread([&] {
-    const auto t0 = Clock::now();
-    while (ros::ok() && drive_clock) {
-      rosgraph_msgs::Clock c;
-      c.clock = ros::Time(1.0 + 0.1 * since(t0));
-      clock.publish(c);
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-  });
+  breast_sim::test_fixtures::SimulatedClock clock(nh);
+  sim_clock = &clock;
   ros::AsyncSpinner spinner(2);
   spinner.start();
   const int status = RUN_ALL_TESTS();
-  drive_clock = false;
-  clock_thread.join();
+  clock.stop();
   return status;
 }
