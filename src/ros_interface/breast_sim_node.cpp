@@ -360,8 +360,7 @@ void BreastSimNode::precomputeJob(bool gravity_only, std::optional<PrecomputeSer
     e.gravity_load_mps2 = e.pipeline->supineGravityLoad();
     const core::StageReport g = e.pipeline->runGravity(progress, &cancel_);
     result.gravity_steps = g.steps;
-    // A cancel in the sliding part of the stage cancels the run as well.
-    bool cancelled = g.cancelled || e.pipeline->slidingReport().cancelled;
+    bool cancelled = g.cancelled;  // of the settle or the sliding stage after it
     const core::StageReport& sl = e.pipeline->slidingReport();
     bool converged = g.converged && (!sl.ran || sl.converged);
     std::ostringstream s;
@@ -499,7 +498,6 @@ void BreastSimNode::resetJob() {
   try {
     // The new pipeline is built beside the old one and replaces it only when complete.
     auto pipeline = std::make_unique<core::ProneToSupinePipeline>(*engine_->model_case, *engine_->model, engine_->settings);
-    engine_->pipeline.reset();
     engine_->pipeline = std::move(pipeline);
     engine_->precomputed = false;
     engine_->gravity_load_mps2 = engine_->pipeline->supineGravityLoad();
@@ -825,13 +823,15 @@ void BreastSimNode::applyGravity(Engine& e, const ros::Time& stamp) {
   }
 }
 
+void BreastSimNode::countRejected(const std::string& reason) {
+  std::lock_guard<std::mutex> sl(stats_mutex_);
+  ++window_.rejected;
+  ++total_rejected_;
+  last_reject_ = reason;
+}
+
 void BreastSimNode::rejectFrame(const std::string& reason) {
-  {
-    std::lock_guard<std::mutex> sl(stats_mutex_);
-    ++window_.rejected;
-    ++total_rejected_;
-    last_reject_ = reason;
-  }
+  countRejected(reason);
   std::lock_guard<std::mutex> lock(engine_mutex_);
   if (!engine_ || !engine_->precomputed) return;
   const bool was_valid = guard_.valid();
@@ -939,12 +939,7 @@ void BreastSimNode::processCloud(const sensor_msgs::PointCloud2ConstPtr& msg, Cl
   if (!f.track.tracked) {
     lock.unlock();
     warn("cloud refused", "breast_sim: cloud refused: " + f.track.reason + "; the model keeps its last state");
-    {
-      std::lock_guard<std::mutex> sl(stats_mutex_);
-      ++window_.rejected;
-      ++total_rejected_;
-      last_reject_ = f.track.reason;
-    }
+    countRejected(f.track.reason);
     if (was_valid && !f.valid) {
       std::lock_guard<std::mutex> relock(engine_mutex_);
       if (engine_) publishModel(*engine_, ros::Time::now(), false, false, f.status);

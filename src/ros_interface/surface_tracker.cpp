@@ -465,6 +465,52 @@ IcpResult rigidAlignPcl(const core::Points& cloud_m, const core::Points& referen
                 [&reference_m](const core::Points& moved, double gate) { return correspondencesPcl(moved, reference_m, gate); });
 }
 
+namespace {
+
+/// The skin at positions `x_m` as ICP's reference and the gate's: its vertices, face centroids and
+/// edge midpoints (ICP pairs a cloud point with its nearest sample, so the pairs' distances are those
+/// to the surface within a quarter of an edge instead of half an edge), each sample once, with the
+/// rim band flagged: the rim nodes (of skin edges only one skin triangle has) and the centroids and
+/// midpoints of the triangles that touch one.
+SkinIndex referenceSkin(const core::TetMesh& mesh, const std::vector<int>& skin, const core::Points& x_m, double gate_m) {
+  const core::Triangles tris = core::skinTriangles(mesh, skin);
+  struct Edge {
+    int triangles = 0;
+    char band = 0;
+  };
+  std::map<std::pair<int, int>, Edge> edges;
+  auto edge = [&edges](int a, int b) -> Edge& { return edges[{std::min(a, b), std::max(a, b)}]; };
+  for (Eigen::Index t = 0; t < tris.rows(); ++t)
+    for (int k = 0; k < 3; ++k) ++edge(tris(t, k), tris(t, (k + 1) % 3)).triangles;
+  std::vector<char> rim_node(static_cast<size_t>(x_m.rows()), 0);
+  for (const auto& [e, info] : edges)
+    if (info.triangles == 1) rim_node[static_cast<size_t>(e.first)] = rim_node[static_cast<size_t>(e.second)] = 1;
+  std::vector<char> band_tri(static_cast<size_t>(tris.rows()), 0);
+  for (Eigen::Index t = 0; t < tris.rows(); ++t) {
+    for (int k = 0; k < 3; ++k) band_tri[static_cast<size_t>(t)] |= rim_node[static_cast<size_t>(tris(t, k))];
+    for (int k = 0; k < 3; ++k) edge(tris(t, k), tris(t, (k + 1) % 3)).band |= band_tri[static_cast<size_t>(t)];
+  }
+  const Eigen::Index nv = static_cast<Eigen::Index>(skin.size());
+  core::Points samples(nv + tris.rows() + static_cast<Eigen::Index>(edges.size()), 3);
+  std::vector<char> rim(static_cast<size_t>(samples.rows()), 0);
+  Eigen::Index r = 0;
+  for (int n : skin) {
+    rim[static_cast<size_t>(r)] = rim_node[static_cast<size_t>(n)];
+    samples.row(r++) = x_m.row(n);
+  }
+  for (Eigen::Index t = 0; t < tris.rows(); ++t) {
+    rim[static_cast<size_t>(r)] = band_tri[static_cast<size_t>(t)];
+    samples.row(r++) = (x_m.row(tris(t, 0)) + x_m.row(tris(t, 1)) + x_m.row(tris(t, 2))) / 3.0;
+  }
+  for (const auto& [e, info] : edges) {
+    rim[static_cast<size_t>(r)] = info.band;
+    samples.row(r++) = 0.5 * (x_m.row(e.first) + x_m.row(e.second));
+  }
+  return SkinIndex(samples, std::move(rim), gate_m);
+}
+
+}  // namespace
+
 TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const core::Points& cloud_m) {
   TrackResult res;
   res.points_in = static_cast<size_t>(cloud_m.rows());
@@ -476,49 +522,8 @@ TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const c
   // unseen skin.
   const core::Points x = pipeline.positions();
   const std::vector<int>& skin = pipeline.model().mesh.nodeSet(core::node_sets::kSkin);
-  core::Points skin_now(static_cast<Eigen::Index>(skin.size()), 3);
-  for (size_t i = 0; i < skin.size(); ++i) skin_now.row(static_cast<Eigen::Index>(i)) = x.row(skin[i]);
-  if (reference_.empty()) {
-    // Tracking starts here. ICP pairs cloud points with their nearest reference point: the skin's
-    // vertices, edge midpoints and face centroids, so that the pairs' distances are those to the
-    // surface within a quarter of an edge instead of half an edge.
-    const core::Triangles tris = core::skinTriangles(pipeline.model().mesh, skin);
-    // The rim: skin edges that only one skin triangle has (the skin's boundary), and their nodes.
-    std::map<std::pair<int, int>, int> edges;
-    for (Eigen::Index t = 0; t < tris.rows(); ++t)
-      for (int k = 0; k < 3; ++k) {
-        const int a = tris(t, k), b = tris(t, (k + 1) % 3);
-        ++edges[{std::min(a, b), std::max(a, b)}];
-      }
-    std::vector<char> rim_node(static_cast<size_t>(x.rows()), 0);
-    for (const auto& [e, count] : edges)
-      if (count == 1) rim_node[static_cast<size_t>(e.first)] = rim_node[static_cast<size_t>(e.second)] = 1;
-    // The rim band: the rim nodes, and the centroids and edge midpoints of the skin triangles that
-    // touch one. Every sample once (ties between equal points would make the band depend on the search).
-    std::vector<char> band_tri(static_cast<size_t>(tris.rows()), 0);
-    std::map<std::pair<int, int>, char> edge_band;
-    for (Eigen::Index t = 0; t < tris.rows(); ++t) {
-      for (int k = 0; k < 3; ++k) band_tri[static_cast<size_t>(t)] |= rim_node[static_cast<size_t>(tris(t, k))];
-      for (int k = 0; k < 3; ++k) {
-        const int a = tris(t, k), b = tris(t, (k + 1) % 3);
-        edge_band[{std::min(a, b), std::max(a, b)}] |= band_tri[static_cast<size_t>(t)];
-      }
-    }
-    core::Points samples(skin_now.rows() + tris.rows() + static_cast<Eigen::Index>(edge_band.size()), 3);
-    std::vector<char> rim(static_cast<size_t>(samples.rows()), 0);
-    samples.topRows(skin_now.rows()) = skin_now;
-    for (size_t i = 0; i < skin.size(); ++i) rim[i] = rim_node[static_cast<size_t>(skin[i])];
-    Eigen::Index r = skin_now.rows();
-    for (Eigen::Index t = 0; t < tris.rows(); ++t) {
-      rim[static_cast<size_t>(r)] = band_tri[static_cast<size_t>(t)];
-      samples.row(r++) = (x.row(tris(t, 0)) + x.row(tris(t, 1)) + x.row(tris(t, 2))) / 3.0;
-    }
-    for (const auto& [e, band] : edge_band) {
-      rim[static_cast<size_t>(r)] = band;
-      samples.row(r++) = 0.5 * (x.row(e.first) + x.row(e.second));
-    }
-    reference_ = SkinIndex(samples, std::move(rim), options_.max_point_distance_m);
-  }
+  // Tracking starts here: the reference, indexed once.
+  if (reference_.empty()) reference_ = referenceSkin(pipeline.model().mesh, skin, x, options_.max_point_distance_m);
   if (options_.max_point_distance_m > 0 && cloud.rows() > 0) {
     // Against the skin where tracking started (which ICP aligns to), where the last ICP correction
     // puts the cloud.

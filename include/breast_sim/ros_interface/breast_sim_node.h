@@ -147,6 +147,8 @@ class BreastSimNode {
   void applyGravity(Engine& e, const ros::Time& stamp);
   /// A cloud refused before it reached the tracker (counts toward the monitor's refusals).
   void rejectFrame(const std::string& reason);
+  /// The statistics of a refused cloud (diagnostics).
+  void countRejected(const std::string& reason);
   /// Keyed, throttled warning (tracking/warn_throttle_s per key).
   void warn(const std::string& key, const std::string& text);
   /// Forget the tracking reference (a new model or state); the next cloud starts from the model's state.

@@ -44,7 +44,8 @@ std::string checkPoseJump(const Eigen::Isometry3d& previous, double previous_sta
 
 /// The accepted patient poses of the last seconds, for the pose at a cloud's stamp. Interpolates
 /// (linear translation, slerp rotation) only between two poses at most `max_gap_s` apart: across a
-/// longer gap (a tracker that lost the patient) nothing is known in between.
+/// longer gap (a tracker that lost the patient) nothing is known in between, where tf2::BufferCore
+/// would interpolate across any gap within its cache.
 class PoseHistory {
  public:
   explicit PoseHistory(double span_s = 10.0) : span_s_(span_s) {}

@@ -333,11 +333,8 @@ class ProneToSupinePipeline {
   /// Tracking a surface scan (iterate() per frame; the stages switch it off): the chest wall is held
   /// where it is (implicit sliding: no wall node starts to slip, WallSlip::setHeld; explicit: the
   /// constraints are not moved) and the skin is pulled along its normal only
-  /// (SurfaceMorphing::setAlongNormal). A scan sees part of the anterior skin and only its distance
-  /// to the surface: measured on the phantom (5.0k elements, its own precomputed skin scanned at
-  /// 10 Hz with ±2 mm breathing and 0.5 mm noise), free sliding and the nearest-point pull moved the
-  /// lesions 8–17 mm within a minute, the wall up to 140 mm; held and along the normal, 0.6 mm over
-  /// five minutes (docs/tracking.md).
+  /// (SurfaceMorphing::setAlongNormal): a scan sees part of the anterior skin and only its distance
+  /// to the surface, so tracking must not move what it cannot observe (measured: docs/tracking.md).
   void setTrackingMode(bool on);
   bool trackingMode() const { return tracking_; }
 
@@ -466,8 +463,8 @@ class ProneToSupinePipeline {
   int diverged_run_ = 0;       // iterate(): run-away steps in a row (the attempt count for α)
   long friction_repeats_ = 0;  // stepWithSliding(): steps repeated with reversed wall nodes sticking
   Eigen::VectorXd iterate_previous_;  // iterate(): displacement before the step (kept to avoid a per-frame allocation)
-  bool sliding_attached_ = false;
-  bool tracking_ = false;  // setTrackingMode  // the wall nodes are moving constraints (after the fixed-wall settle)
+  bool sliding_attached_ = false;  // the wall nodes are moving constraints (after the fixed-wall settle)
+  bool tracking_ = false;          // setTrackingMode
   // coarse_start: the coarse case (a copy with its own target element count), model and pipeline;
   // coarse_ahead_: runGravity took the coarse state, so runMorphing starts on the coarse model too.
   std::unique_ptr<ModelCase> coarse_case_;
