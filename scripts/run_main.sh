@@ -14,7 +14,7 @@ log "main job: phantom model, supine gravity and morphing to the supine target â
 status=0
 "${tool}" --case "${BREAST_SIM_SRC}/config/phantom_default.yaml" --out "${out}" "$@" || status=$?
 if [ "${status}" -eq 3 ]; then
-  # Every output is written; a stage stopped at its step limit (see metrics.json and README Status).
+  # Every output is written; a stage stopped at its step limit (see metrics.json and docs/status.md).
   log "NOTE: a stage did not converge or reach its tolerance (exit 3); the results are written, see ${out}/metrics.json"
   exit 0
 fi

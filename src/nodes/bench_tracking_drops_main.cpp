@@ -11,7 +11,7 @@
 // The defaults are the navigation rostest's (test/ros/navigation.test): the phantom at 3000 target
 // elements, test/data/navigation_settings.yaml (CHOLMOD, morphing stopped at 80 steps), a 3 mm
 // field, the bag's 100 clouds at 10 Hz; "--settings case" takes the case file's own settings.
-// README, "Tracking at the cloud's time, and how sensitive tracking is".
+// docs/tracking.md, "Dropped clouds".
 #include <fstream>
 #include <iomanip>
 #include <iostream>

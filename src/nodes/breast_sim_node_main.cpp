@@ -8,7 +8,7 @@
 
 int main(int argc, char** argv) {
   ros::init(argc, argv, "breast_sim");
-  // libgomp reads its wait policy before main(); all the node can do is say so (README, "Threads").
+  // libgomp reads its wait policy before main(); all the node can do is say so (docs/benchmarks.md, "Threads").
   if (!std::getenv("OMP_WAIT_POLICY") && !std::getenv("GOMP_SPINCOUNT"))
     ROS_WARN("breast_sim: OMP_WAIT_POLICY is not set, so OpenMP threads spin while they wait; a simulation step "
              "then gets 10-100x slower whenever another process holds a core. Start the node with "

@@ -90,7 +90,7 @@ void AlphaController::onReversed(int attempt) {
     // undo at ρ = 1e-3, moved the skin 9 mm in one tracking frame, and the tracked lesions ended
     // 5.4 mm from where the same clouds led with one cloud fewer; ×1.01 was enough. Doubling the
     // increment on every repeated reversal instead cost 96 reverted steps of the morphing stage
-    // against 6; this costs 15. README, "Tracking at the cloud's time".)
+    // against 6; this costs 15. docs/tracking.md, "Dropped clouds".)
     const double k = (params_.increase_factor - 1.0) / (1.0 - params_.decrease_factor);
     f = 1.0 + k * s_.rate * attempt;
   }

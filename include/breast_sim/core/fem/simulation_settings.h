@@ -38,7 +38,7 @@ struct SolverSettings {
   /// elements, 25 steps of supine gravity: 2 renewals and 14.8 PCG iterations per step (every 4th
   /// step: 7 and 14.3; every 16th: 2 and 15.7); with at most 3 iterations per step 1 renewal
   /// instead of 7. The main job: the same steps' cost as every 4th step, where every 16th step made
-  /// its sliding stage 1.7× slower (README "Renewing the coarse operators").
+  /// its sliding stage 1.7× slower (docs/benchmarks.md, "Renewing the coarse operators").
   MultigridOptions multigrid = [] {
     MultigridOptions o;
     o.coarse_update_interval = 50;
