@@ -1,37 +1,47 @@
 #pragma once
 /// @file aggregation_multigrid.h
-/// Smoothed-aggregation algebraic multigrid [Vaněk, Mandel, Brezina 1996] for the 3×3-block SPD
-/// system of an implicit step of 3-D elasticity, as a PCG preconditioner: an experiment beside the
-/// geometric multigrid of multigrid.h (non-nested coarse meshes), to see whether NESTED coarse spaces
-/// that contain the six rigid-body modes exactly converge faster per second.
+/// Smoothed-aggregation algebraic multigrid [VMB96] as a PCG preconditioner for the 3×3-block
+/// symmetric positive definite system of an implicit step of 3-D elasticity, and PCG with it (the
+/// LinearSolver "pcg-sa-multigrid").
 ///
-/// The science. Elasticity's operator annihilates the rigid-body motions (three translations, three
-/// infinitesimal rotations) apart from the mass term M/dt² and the Dirichlet rows; errors that are
-/// locally rigid are "smooth" for a point or block smoother and must be removed by the coarse space.
-/// Smoothed aggregation builds that space algebraically:
-///  1. nodes are grouped into aggregates on the block graph, keeping only strong connections
-///     ‖A_ij‖_F > θ √(‖A_ii‖_F ‖A_jj‖_F);
-///  2. per aggregate the six rigid modes (from the node coordinates on the fine level, from the
-///     previous level's coarse basis below it) are orthonormalised by a local QR, B_agg = Q R: Q
-///     is the aggregate's block of the tentative prolongator P̂ (6 coarse DOFs per aggregate), R
-///     the aggregate's rows of the coarse near-null space, so P̂ B_c = B exactly;
-///  3. P = (I − ω_P D⁻¹A) P̂ with ω_P = (4/3)/λ_max(D⁻¹A) (one damped block-Jacobi step) lowers the
-///     energy of the coarse basis functions, which is what makes the method converge independently
-///     of the mesh size;
-///  4. A_c = Pᵀ A P (Galerkin), recursively until the coarsest level is small; that one is
-///     factorized by CHOLMOD.
-/// The spaces are nested (range P_l ⊂ level l), so the V-cycle with a symmetric smoother is a fixed
-/// SPD operator and the coarse correction is an A-orthogonal projection.
+/// What it is: a symmetric V-cycle, damped block Jacobi V(ν,ν) on every level and CHOLMOD on the
+/// coarsest, over coarse spaces built from the matrix and the fine nodes' coordinates alone. The
+/// spaces are nested and contain the six rigid-body modes exactly, so the V-cycle is a fixed SPD
+/// operator and its coarse correction an A-orthogonal projection.
 ///
-/// For a time step the matrix's values change every step but not its pattern. Two modes:
-/// full set-up in every factorize() (aggregation, P̂, P, Galerkin, CHOLMOD), or, with
-/// AggregationMultigridOptions::reuse_prolongators, the aggregates and P from the first
-/// factorize() are kept and only the Galerkin products and the coarsest factorization are redone.
+/// When to use it: where no coarse meshes are at hand. It needs no MeshHierarchy, so no label image to
+/// mesh coarser levels from (the geometric multigrid of multigrid.h needs both), and works on any
+/// tetrahedral mesh, e.g. one read from a file. Where a hierarchy can be built, the geometric multigrid
+/// is faster (the two are compared in docs/benchmarks.md).
 ///
-/// Fixed DOFs (decoupled rows, the LinearSolver contract) are masked out of the near-null space and
-/// of P (their rows of P are zero), so a coarse correction never moves them; a coarse DOF with an
-/// empty row (a rigid mode an aggregate cannot represent, e.g. a rotation about the line through a
-/// two-node aggregate) gets a unit diagonal and stays decoupled.
+/// Units and shapes: N nodes, 3 DOFs each in the order x0 y0 z0 x1 …; the matrix is 3N × 3N in the
+/// block layout of fem/block_pattern.h (a step system A = M/dt² + K in N/m), the coordinates N × 3 [m],
+/// apply() maps a residual of 3N values to a correction of 3N in the units of the solution. Coarse
+/// levels have 6 DOFs per aggregate (6×6 blocks). Fixed DOFs are decoupled rows (the LinearSolver
+/// contract); they are masked out of the near-null space and of the prolongators (zero rows), so a
+/// coarse correction never moves them, and a coarse DOF with an empty row (a rigid mode an aggregate
+/// cannot carry, e.g. a rotation about the line through a two-node aggregate) gets a unit diagonal.
+///
+/// Errors: std::invalid_argument for options out of range, coordinates of another node count, or a
+/// matrix of the wrong size or not in block layout; std::logic_error for factorize() before
+/// analyzePattern() or with another pattern, apply() before a successful factorize();
+/// std::runtime_error "sa-multigrid: …" when a diagonal block is not positive definite or CHOLMOD
+/// fails on the coarsest level.
+///
+/// The method. Elasticity's operator annihilates the rigid-body motions apart from the mass term
+/// M/dt² and the Dirichlet rows, so locally rigid errors are smooth for a block smoother and must be
+/// removed by the coarse space. Per level: (1) nodes are aggregated on the strong block graph,
+/// ‖A_ij‖_F > θ √(‖A_ii‖_F ‖A_jj‖_F); (2) per aggregate the rigid modes (from the coordinates on the
+/// fine level, from the previous level's coarse basis below) are orthonormalised, B_agg = Q R, Q
+/// giving the tentative prolongator P̂ and R the coarse near-null space, so P̂ B_c = B exactly;
+/// (3) one damped block-Jacobi step, P = (I − ω_P D⁻¹A) P̂ with ω_P λ_max(D⁻¹A) = prolongator_damping
+/// (4/3), lowers the energy of the coarse basis; (4) A_c = Pᵀ A P, recursively until a level is
+/// small enough for CHOLMOD (max_coarsest_dofs). factorize() does all of this every time, or with
+/// AggregationMultigridOptions::reuse_prolongators keeps the aggregates and P of the first call and
+/// redoes only the Galerkin products, the smoothers and the coarsest factorization.
+///
+/// [VMB96] P. Vaněk, J. Mandel, M. Brezina: Algebraic multigrid by smoothed aggregation for second
+///         and fourth order elliptic problems. Computing 56 (1996) 179–196.
 
 #include <memory>
 #include <string>

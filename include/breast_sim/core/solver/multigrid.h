@@ -74,7 +74,7 @@ struct CoarseningOptions {
   double size_factor = 2.0;         ///< interior element size ratio between consecutive levels
   /// Stop once a level has at most this many tetrahedra. The Galerkin operator of the coarsest
   /// level is nearly dense (its Cholesky factor is), so its factorization grows with the cube of
-  /// its size: ~300 tetrahedra (~100 nodes) keep it near 1 ms.
+  /// its size.
   int max_coarsest_elements = 300;
   int max_coarse_levels = 5;        ///< never more coarse levels than this
 };
@@ -138,18 +138,10 @@ class GalerkinProduct {
 
 /// Options of the V-cycle.
 struct MultigridOptions {
-  /// Measured on the phantom at 48k elements, 2 threads (bench_solvers --morton, float block sweeps):
-  /// Gauss–Seidel V(1,1) needs about 2/3 of the PCG iterations of Jacobi V(1,1) (29 against 46 to
-  /// 1e-8) but costs 2.7× as much per V-cycle on the fine level (1.65 against 0.61 ms: a barrier per
-  /// colour), so Jacobi is faster overall. A hybrid (one part per thread, ℓ1) Gauss–Seidel in
-  /// Cuthill–McKee order was tried too: 36 iterations at 1.78 ms, no better. More sweeps do not pay
-  /// either: Jacobi(8,8) still needs 18 iterations, and 16 with an exact coarse solve. The bound is
-  /// near-incompressibility, not the non-nested coarse meshes: at ν = 0.3 the same V-cycle needs 24
-  /// iterations (Jacobi(8,8): 9), and nested coarse spaces of smoothed aggregation with the six
-  /// rigid-body modes (aggregation_multigrid.h) need 52 at ν = 0.48 (bench_solvers --poisson, sa).
-  /// Chebyshev(2,2) needs 26 (8 instead of 14 to the step tolerance 1e-2) but its V-cycle costs
-  /// twice as much: the same CPU time per step within ±10 % at 20k and 48k; a vertex-star Schwarz
-  /// smoother was ten times slower (docs/benchmarks/multigrid_chebyshev.md).
+  /// The smoother of every level but the coarsest. Jacobi is the default, the fastest per solve on
+  /// the phantom: Gauss–Seidel needs fewer PCG iterations but costs more per V-cycle (a barrier per
+  /// colour), Chebyshev needs fewer still at about the same time per step (the measurements:
+  /// docs/benchmarks.md, docs/benchmarks/multigrid_chebyshev.md).
   enum class Smoother {
     kJacobi,      ///< damped 3×3-block Jacobi (parallel; 2 matrix passes per V(1,1) level visit)
     kGaussSeidel, ///< multicoloured 3×3-block Gauss–Seidel: forward before, backward after the
@@ -176,7 +168,7 @@ struct MultigridOptions {
   double chebyshev_eigenvalue_safety = 1.1;
   /// ω of the Jacobi smoother; ω λ_max(D⁻¹A) < 2 keeps the smoother, and so the V-cycle,
   /// convergent. 0 = automatic: on the fine level 1.8 / fine_eigenvalue_bound; on Galerkin levels
-  /// (λ_max near 5 here) 1.2 / λ, λ estimated by power iteration at every coarse update.
+  /// 1.2 / λ, λ estimated by power iteration at every coarse update.
   /// > 0 = this ω on every level (the caller's responsibility).
   double jacobi_damping = 0.0;
   /// An upper bound of λ_max(D⁻¹A) on the fine level, D its 3×3 block diagonal: 4 for any matrix
@@ -193,11 +185,10 @@ struct MultigridOptions {
   /// that null space and P removes it again, so the shift only keeps the factorization defined.
   double coarsest_diagonal_shift = 1e-9;
   /// The coarsest level of a hierarchy is solved by a dense Cholesky factorization (Eigen's LLT)
-  /// when it has at most this many DOFs, by CHOLMOD otherwise. Its Galerkin operator is nearly dense
-  /// (78 nodes with 61 blocks per row at 48k elements), where CHOLMOD's supernodal machinery and
-  /// its permuted copy cost more than the arithmetic: 234 DOFs, 2.0–2.6 ms to factorize against
-  /// 0.28 ms dense (solve 0.02–0.03 against 0.01 ms). A dense factorization grows with the cube of
-  /// the size (492 DOFs 2.2 ms, 1266 DOFs 37 ms). 0 = always CHOLMOD.
+  /// when it has at most this many DOFs, by CHOLMOD otherwise. Its Galerkin operator is nearly
+  /// dense, where CHOLMOD's supernodal machinery and its permuted copy cost more than the
+  /// arithmetic. A dense factorization grows with the cube of the size, which bounds this
+  /// (docs/benchmarks.md). 0 = always CHOLMOD.
   int dense_coarsest_max_dofs = 600;
   /// The residuals of the V-cycle by the AVX2/FMA kernel when the processor has it
   /// (solver/block_kernels.h); false = the portable scalar kernel everywhere.
@@ -220,9 +211,10 @@ struct MultigridOptions {
   /// start) lost all its iterations; a non-finite one renews at once. The rule reads residuals
   /// only, never the clock, so a run is reproducible.
   bool coarse_update_adaptive = false;
-  /// The price of a renewal in PCG iterations for the adaptive rule (> 0). Measured at 48k elements
-  /// (bench_solvers, 2 threads): Galerkin products, coarse set-up, damping and the coarsest
-  /// factorization 5.5–6.6 ms against 1.1 ms per PCG iteration, about 5; both grow with the mesh.
+  /// The price of a renewal in PCG iterations for the adaptive rule (> 0): the time of the Galerkin
+  /// products, the coarse set-up, the damping and the coarsest factorization over the time of one
+  /// PCG iteration; both grow with the mesh. The default is that ratio as measured on the phantom
+  /// (docs/benchmarks.md).
   double coarse_update_cost_iterations = 5.0;
 };
 
@@ -236,15 +228,11 @@ struct MultigridOptions {
 ///
 /// The sweeps of the V-cycle (residuals, smoothing) read a copy of each level's operator in 3×3
 /// blocks of floats, made in factorize(): one column index per block and 4-byte values move 2.7×
-/// fewer bytes than the CSR matrix (fine level 0.96 → 0.61 ms per V-cycle at 48k elements with a
-/// Morton-ordered mesh, bench_solvers). The sweeps are bound by instructions, not by memory: at
-/// 0.6 ms per fine V-cycle they read ~20 GB/s where this machine reads 150–190 GB/s from cache
-/// (bench_simulation's first line), so their residuals run in the AVX2/FMA kernel of
-/// solver/block_kernels.h (fine level 0.62–0.67 → 0.40–0.44 ms, level 1 0.27–0.32 → 0.16–0.19 ms,
-/// docs/benchmarks/solver_kernels_ab.txt). The
-/// preconditioner stays a fixed symmetric linear operator (the values are rounded once, the
-/// arithmetic is in double); PCG itself multiplies by the caller's double matrix, so the solution
-/// is as exact as before.
+/// fewer bytes than the CSR matrix. The sweeps are then bound by instructions rather than memory, so
+/// their residuals run in the AVX2/FMA kernel of solver/block_kernels.h (the measurements:
+/// docs/benchmarks.md). The preconditioner stays a fixed symmetric linear operator (the values are
+/// rounded once, the arithmetic is in double); PCG itself multiplies by the caller's double matrix,
+/// so the solution is as exact as with the double operator.
 ///
 /// Fixed DOFs are found in every factorize() as the decoupled rows (no nonzero off the diagonal) of
 /// each level; their prolongation rows are zero, so a coarse correction never moves them, and a
