@@ -17,7 +17,8 @@
 ///           no:  decrease α — unless the surface distance already meets the tolerance, then α is
 ///                held (the material is "soft enough", seed 2.6) — and move the sliding constraints.
 ///     The stage ends when the mean and 95th-percentile distances of the pulled skin vertices to the
-///     target are within tolerance and no node moves more than the increment tolerance in a step.
+///     target are within tolerance and the step's move (MorphingStageSettings::increment_measure) is
+///     within the increment tolerance.
 ///
 /// Every part can be switched on or off and parameterised (PipelineSettings, from one YAML file).
 /// Units: SI inside (m, Pa, s); YAML keys say theirs.
@@ -41,118 +42,94 @@
 
 namespace breast_sim::core {
 
-/// The morphing stage (YAML map `morphing:`).
+/// The morphing stage (YAML map `morphing:`; keys with their units in config/phantom_default.yaml).
+/// The measurements behind the defaults: docs/pipeline.md, "Settings: the morphing stage".
 struct MorphingStageSettings {
-  bool enabled = true;
-  /// "auto": the phantom's supine skin surface for a phantom case, none for an image case;
-  /// "phantom": the phantom's (an error for an image case); otherwise a surface file (.obj, .stl,
-  /// .ply, .vtp, .vtk; relative paths from the case file); "" = no target (the stage is skipped).
+  bool enabled = true;  ///< false: run() skips the stage (iterate() and runMorphing() still work with a target)
+  /// The target surface, read by the pipeline's constructor: "auto" = the phantom's supine skin
+  /// surface for a phantom case, none for an image case; "phantom" = the phantom's (for an image case
+  /// the constructor throws std::invalid_argument); otherwise a surface file (.obj, .stl, .ply, .vtp,
+  /// .vtk; relative paths from the case file); "" = no target (the stage is skipped).
   std::string target = "auto";
-  double target_length_unit_m = 1e-3;  ///< metres per unit of a target file (1e-3: the file is in mm)
-  /// Gain, implicit pull, cap, outlier distance, which vertices. The stage's gain is 40 Pa/mm
-  /// (MorphingOptions' 20 took 1.8× the steps to the same tolerances: 190 against 99 at 48.8k elements,
-  /// 138 against 77 at 10.9k, bench_pipeline_steps). The implicit pull (spring_pa_per_m) stays off by
-  /// default: 100–1000 Pa/mm reach the tolerances in 12–30 steps, but with a gain equal to the spring
-  /// (the augmented-Lagrangian update) of 1000 Pa/mm single vertices oscillate by millimetres where
-  /// the nearest target point jumps (2.2k elements, stretched target; 48.8k: mean 0.53 mm, p95 2.4 mm
-  /// after 300 steps), and its runs stopped by increment_measure kPulledP95 end with the volume 0.5–0.9 %
-  /// down (it recovers over the next ~100 steps; see the report of issue 7).
+  double target_length_unit_m = 1e-3;  ///< metres per unit of a target file, > 0 (1e-3: the file is in mm)
+  /// The morphing forces (MorphingOptions: gain and implicit pull spring_pa_per_m [Pa/m], traction
+  /// cap [Pa], outlier distance [m], which vertices). The stage doubles MorphingOptions' gain to
+  /// 4e4 Pa/m, which reaches the tolerances in fewer steps; the implicit pull stays off (0).
   MorphingOptions forces = [] {
     MorphingOptions o;
     o.gain_pa_per_m = 4e4;
     return o;
   }();
-  SurfaceFieldOptions field;           ///< the distance-field grid
-  double time_step_s = 0.1;            ///< dynamics time step while morphing [s]
-  double tolerance_mean_m = 0.5e-3;    ///< mean distance of the pulled vertices to reach [m]
-  double tolerance_p95_m = 1.5e-3;     ///< 95th percentile to reach [m]
-  /// Ends once the tolerances hold and no node moves more than this in a step [m].
+  SurfaceFieldOptions field;           ///< the distance-field grid (voxel size [m], voxels per axis)
+  double time_step_s = 0.1;            ///< dynamics time step while morphing [s], in (0, 10]
+  double tolerance_mean_m = 0.5e-3;    ///< mean distance of the pulled vertices to the target to reach [m], > 0
+  double tolerance_p95_m = 1.5e-3;     ///< 95th percentile of those distances to reach [m], > 0
+  /// The stage has converged when, for 3 accepted steps in a row, the tolerances hold and the step's
+  /// move (increment_measure) is at most this [m], > 0.
   double increment_tolerance_m = 1e-4;
-  /// What the increment criterion watches: kAllMax, the largest move of any node (the wall nodes'
-  /// stick–slip creep and a single vertex chattering between two nearest target points count too), or
-  /// kPulledP95, the 95th percentile of the pulled skin vertices' moves (the surface the tolerances
-  /// are about, with the same percentile as tolerance_p95_m).
-  /// kPulledP95 stops much earlier (35 instead of 115 steps at 10.9k elements), but the volume is
-  /// then still 1.4 % down and recovering (the issue's target is 1 %).
-  /// kOffWall (the default): the largest move of a node off the wall band (wallBandNodes(): the
-  /// sliding nodes and the first layer of tissue on them), and the 95th percentile of the band's
-  /// moves (both must be within the tolerance): the whole tissue has come to rest,
-  /// but single wall nodes' stick–slip jumps (the largest move in 76 of 77 morphing steps at 10.9k
-  /// elements) do not hold the stage; without sliding it is kAllMax. Measured on the phantom against
-  /// kAllMax (bench_pipeline_steps): 48.8k elements 99 → 53 morphing steps, volume −0.18 → −0.61 %,
-  /// skin → target mean / p95 0.075 / 0.196 → 0.144 / 0.311 mm, lesions within 0.07 mm; 10.9k: 77 → 32
-  /// steps, −0.17 → −0.87 %, 0.122 / 0.343 → 0.242 / 0.532 mm, lesions within 0.10 mm.
+  /// The move compared with increment_tolerance_m:
+  ///  - kAllMax: the largest move of any node;
+  ///  - kPulledP95: the 95th percentile of the pulled skin vertices' moves;
+  ///  - kOffWall: the largest move of a node off the wall band (wallBandNodes()) and the 95th
+  ///    percentile of the band's moves, both; without sliding the band is empty and this is kAllMax.
+  /// kOffWall (default): the tissue must be at rest, but single wall nodes' stick–slip jumps do not hold the stage.
   enum class IncrementMeasure { kAllMax, kPulledP95, kOffWall } increment_measure = IncrementMeasure::kOffWall;
-  /// Volume-aware stop: besides the tolerances and the increment, |V − V0| / V0 must be within this
-  /// [%] (the morphing pull compresses the tissue, which recovers its volume over the following
-  /// steps, with the skin's mean distance: −1.0 → −0.5 % in ~20 steps at 10.9k elements). Only for a
-  /// target that encloses the model's rest volume (the phantom's supine surface: its case file sets
-  /// 0.5); 0 = no volume condition (the default: a measured surface need not have that volume).
+  /// Volume condition of the stop: also |V − V0| / V0 within this [%], in [0, 100]; 0 = none. For a
+  /// target that encloses the model's rest volume (the phantom's case file sets 0.5); off by
+  /// default because a measured surface need not have that volume.
   double volume_tolerance_percent = 0.0;
-  /// Divergence guard: a step in which a node moves more than this counts as a failed step, like one
-  /// that inverts an element (the state before it is restored, α raised, the step repeated without
-  /// new forces) [m]; 0 = no bound. Steps that converge move up to 23 mm on the phantom (the first
-  /// pull of a skin vertex); a run-away wall slide moved 78 mm, then 205 and 1378 mm (7.1k elements,
-  /// sliding stage at 0.33 s, before WallSlip::stickReversed).
+  /// Divergence guard: a step in which a node moves more than this [m] (≥ 0; 0 = no bound) is a
+  /// failed step like one that inverts an element: the state before it is restored, α raised, and
+  /// the step repeated without new forces. The bound lies between the largest converging move and a run-away's.
   double max_step_move_m = 0.04;
-  /// ... and so does a step that changes the volume by more than this [percentage points]; 0 = no
-  /// bound. Converging steps: up to 3.6 on the phantom (the first pull), but more than 10 with the
-  /// implicit pull of 100 Pa/mm towards a target 8 % taller than the model (2.2k elements: a bound of
-  /// 10 rejected its good steps); the run-away: 23, 45, then 9650 (its moves hit max_step_move_m first).
+  /// ... and so is a step that changes the volume by more than this [percentage points], ≥ 0; 0 = no bound.
   double max_step_volume_change_percent = 30.0;
-  int max_steps = 300;                 ///< accepted steps at most
-  /// AlphaControllerParams::reversal_growth during this stage, ≥ 1 (1: the preset's doubling per
-  /// repeated reversal). The stage starts with the α the gravity stage left, at the floor after a long
-  /// settle, and its first steps invert elements until α has climbed ~×3000: 12 reverted solves at ×2.
-  /// 2: 9 instead of 16 reversals at 10.9k elements with the implicit pull.
+  int max_steps = 300;                 ///< accepted steps at most, ≥ 1 (and 2 × max_steps calls at most)
+  /// AlphaControllerParams::reversal_growth during this stage, ≥ 1 (1: each repeated reversal
+  /// multiplies α by increase_factor only); the controller's own value is back after the stage.
+  /// Above 1 because the stage starts at the α the settle left, far below what its first pulls need.
   double alpha_reversal_growth = 2.0;
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
 };
 
-/// The sliding stage after the fixed-wall settle (YAML keys in `sliding:`: time_step_s, alpha_restart).
+/// The sliding stage after the fixed-wall settle (YAML keys in `sliding:`: time_step_s,
+/// alpha_restart, settle_increment_tolerance_mm, settle_increment_measure). The measurements behind
+/// the defaults: docs/pipeline.md, "Settings: the sliding stage".
 struct SlidingStageSettings {
-  /// Time step of the sliding stage [s]; 0 = the dynamics time step (simulation.time_step_s). Only
-  /// the settled state counts, and backward Euler is stable for any step, so a long step (the
-  /// settle's 0.33 s) takes the wall and the tissue to rest in fewer steps (measured on the phantom:
-  /// 38 instead of 56 steps at 10.9k elements), but it changed the friction path: at 4.8k elements
-  /// the breast then slid 66–157 mm off its base instead of 42–46 mm, and at 7.1k elements its
-  /// morphing stage ran away (measured before WallSlip::stickReversed, which stops kinetic friction
-  /// from driving a stopping wall node back within a long step: since then 7.1k elements slide
-  /// 15.5 mm at 0.33 s against 15.1 mm at the dynamics step). The default stays the dynamics step
-  /// until the long step is measured again.
+  /// Time step of the sliding stage [s], in [0, 10]; 0 = the dynamics time step
+  /// (simulation.time_step_s). The default is the dynamics step: a long step changes the friction path.
   double time_step_s = 0.0;
-  /// α when the wall is released (a boundary-condition change: the seed finds a new α). kInitial:
-  /// the search starts again from StiffeningParams' initial α (1e-2 /Pa, "knowingly too high": ~50
-  /// steps at ×0.8 to come down to the floor, each softening the tissue, so the stage cannot settle
-  /// before). kCurrent: the search starts from the α the fixed-wall settle ended at (still a search:
-  /// ×0.8 after good steps, ×2 on a reversal).
+  /// Where the α search starts when the wall is released (a boundary-condition change: the seed
+  /// searches α again). kInitial: at StiffeningParams' initial α; kCurrent: at the α the fixed-wall
+  /// settle ended at (still a search: decreased after good steps, increased on a reversal).
+  /// kCurrent (default): the initial α is knowingly too high, and coming down from it softens the tissue.
   enum class AlphaRestart { kInitial, kCurrent } alpha_restart = AlphaRestart::kCurrent;
-  /// Settled when no node moves more than this in a step, 3 steps in a row [m]; 0 = the gravity
-  /// stage's simulation.settle_increment_tolerance_mm (0.01 mm). What is left near 0.01 mm is the
-  /// wall nodes' stick–slip creep (with 0.33 s steps, 0.1 mm gave 32–36 instead of 38–48 steps at
-  /// 10k–20k elements, the final surface match unchanged).
+  /// Settled when the step's move (increment_measure) is at most this [m], ≥ 0, for 3 accepted steps
+  /// in a row (explicit method: and the constraints have stopped moving); 0 = the gravity stage's
+  /// simulation.settle_increment_tolerance_mm.
   double increment_tolerance_m = 0.0;
-  /// What the increment tolerance watches: kAllMax, the largest move of any node; kOffWall, the
-  /// largest move of a node off the wall band and the 95th percentile of the band's moves (the wall's
-  /// stick–slip creep of single nodes, the largest move in 53 of 56 sliding steps at 10k elements, no
-  /// longer holds the stage).
+  /// The move compared with increment_tolerance_m: kAllMax, the largest move of any node; kOffWall,
+  /// the largest move of a node off the wall band (wallBandNodes()) and the 95th percentile of the
+  /// band's moves, both (single wall nodes' stick–slip creep does not hold the stage).
   enum class IncrementMeasure { kAllMax, kOffWall } increment_measure = IncrementMeasure::kAllMax;
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
 };
 
 /// Nested iteration (YAML map `coarse_start:`): gravity, sliding and most of the morphing run on a
-/// coarser mesh of the same case, and the fine model takes that state (startFrom) and only finishes
-/// the morphing stage, which is its settle (so only with the morphing stage and a target). Off by default.
+/// coarser mesh of the same case, and the model takes that state (startFrom) and only finishes the
+/// morphing stage, which is its settle. Off by default: the lesions then land where the coarse mesh
+/// puts them (docs/pipeline.md, "Nested iteration").
 struct CoarseStartSettings {
-  /// Target element count of the coarse mesh (meshing.target_elements of the coarse model); 0 = off.
-  /// Used only for a model of at least twice as many elements (a case file serves models of any
-  /// size) and with the morphing stage on and a target set when the pipeline is built; else the
-  /// model runs alone.
+  /// Target element count of the coarse mesh (its meshing.target_elements), in [0, 1e8]; 0 = off.
+  /// Used only when, at construction, the model has at least twice as many elements, the morphing
+  /// stage is enabled and a target is set; otherwise the model runs alone (a case file serves models
+  /// of any size).
   int elements = 0;
-  /// A fine rest node may lie this far outside the coarse mesh [m] (the two meshes' surfaces differ by
-  /// up to the meshing's facet distance).
+  /// How far outside the coarse rest mesh a rest node or element centroid of the model may lie [m],
+  /// in (0, 0.1]; such a point takes the value at the closest point of the coarse mesh. The two
+  /// meshes' surfaces differ by up to the meshing's facet distance.
   double snap_tolerance_m = 5e-3;
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
@@ -171,30 +148,33 @@ struct PipelineSettings {
   /// The implicit method's springs (`sliding:`); its friction coefficients and threshold are taken
   /// from `sliding` (static_friction, kinetic_friction, static_threshold_pa).
   WallSlipSettings wall_slip;
-  SlidingStageSettings sliding_stage;  ///< the sliding stage's time step and α restart (`sliding:`)
+  SlidingStageSettings sliding_stage;  ///< the sliding stage's time step, α restart and settle rule (`sliding:`)
   MorphingStageSettings morphing;  ///< `morphing:`
   CoarseStartSettings coarse_start;  ///< `coarse_start:`
+  /// Every part's validate(); sliding also needs simulation.stiffening and a fixed_node_set.
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
 };
 
-/// Reads `simulation:`, `stiffening:`, `sliding:` and `morphing:` of a case file (absent maps and keys =
-/// defaults). The keys, their units and defaults are documented in config/phantom_default.yaml.
-/// `stiffening:` (StiffeningParams; used when simulation.stiffening is true), with accepted ranges:
+/// Reads `simulation:`, `stiffening:`, `sliding:`, `morphing:` and `coarse_start:` of a case file
+/// (absent maps and keys = the structs' defaults). The keys, their units and defaults are documented
+/// in config/phantom_default.yaml. `stiffening:` (StiffeningParams; used when simulation.stiffening
+/// is true), with accepted ranges:
 ///   initial_alpha_per_pa   α at the start and at every restart of the search [1/Pa], in
-///                          [min_alpha_per_pa, max_alpha_per_pa]; default 1e-2
-///   min_alpha_per_pa       floor of α [1/Pa], > 0; default 1e-7
-///   max_alpha_per_pa       ceiling of α [1/Pa], ≥ min_alpha_per_pa; default 1e4
-///   decrease_factor        α ← α · this after an accepted step (search phase), in (0, 1); default 0.8
-///   increase_factor        α ← α · this on a reversal, > 1; default 2
+///                          [min_alpha_per_pa, max_alpha_per_pa]
+///   min_alpha_per_pa       floor of α [1/Pa], > 0
+///   max_alpha_per_pa       ceiling of α [1/Pa], ≥ min_alpha_per_pa
+///   decrease_factor        α ← α · this after an accepted step (search phase), in (0, 1)
+///   increase_factor        α ← α · this on a reversal, > 1
 ///   reversal_growth        the k-th repeated reversal of one step multiplies α by increase_factor ·
 ///                          this^(k−1), in [1, 100] (gravity and sliding stages; the morphing stage
-///                          uses morphing.alpha_reversal_growth); default 1
-///   rate_halving           settling phase: the rate is multiplied by this per oscillation, in (0, 1); default 0.5
-///   min_rate               settling phase: smallest rate, in [0, 1 − decrease_factor]; default 1e-3
-///   max_reversals_per_step a step still inverting after this many reversals is not taken, [1, 1000]; default 10
-///   settle_max_speed_mm_per_s     fixed-wall settle: every free node slower than this [mm/s], > 0; default 1
-///   settle_max_relative_residual  ... and the relative static residual below this, in (0, 1]; default 1e-2
-///   settle_consecutive_steps      ... for this many accepted steps in a row, [1, 1000]; default 3
+///                          uses morphing.alpha_reversal_growth)
+///   rate_halving           settling phase: the rate is multiplied by this per oscillation, in (0, 1)
+///   min_rate               settling phase: smallest rate, in [0, 1 − decrease_factor]
+///   max_reversals_per_step a step still inverting after this many reversals is not taken, [1, 1000]
+///   settle_max_speed_mm_per_s     fixed-wall settle: every free node slower than this [mm/s], > 0
+///   settle_max_relative_residual  ... and the relative static residual below this, in (0, 1]
+///   settle_consecutive_steps      ... for this many accepted steps in a row, [1, 1000]
 /// @throws std::runtime_error naming the file, the key, its value and the accepted range.
 PipelineSettings loadPipelineSettings(const std::string& yaml_path);
 
@@ -422,6 +402,9 @@ class ProneToSupinePipeline {
   /// Reversal counts since `before`, the final α and the wall time of a stage.
   void closeReport(StageReport& r, const RunStats& before, double seconds) const;
   bool slideAfter(const StiffeningStepResult& r, int* stalls);
+  // The sliding stage after a converged fixed-wall settle: releases the wall and steps until it has
+  // settled; sets sliding_report_. `previous`: the displacement at the settle's end (kept per step).
+  void runSlidingStage(Eigen::VectorXd& previous, const PipelineProgressFn& progress, const std::atomic<bool>* cancel);
   // One stiffening call with the sliding around it: the implicit springs set from the current
   // state before, the explicit constraint update or the friction update after. *moving: the wall
   // still moves (explicit: by more than the increment tolerance).
