@@ -44,8 +44,8 @@ TEST(SimulationSettings, DefaultsWithoutASimulationMap) {
   EXPECT_DOUBLE_EQ(s.material.youngs_modulus_pa, 2000.0);
   EXPECT_EQ(s.fixed_node_set, "chest_wall");
   EXPECT_TRUE(s.stiffening);
-  EXPECT_EQ(s.volume_term, CorotatedTetFem::VolumeTerm::kTrace);  // the seed's
-  EXPECT_FALSE(s.sliding);
+  EXPECT_EQ(s.volume_term, CorotatedTetFem::VolumeTerm::kDeterminant);
+  EXPECT_TRUE(s.sliding);
 }
 
 TEST(SimulationSettings, ReadsEveryKeyWithItsUnit) {

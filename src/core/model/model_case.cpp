@@ -139,6 +139,15 @@ ModelCase loadModelCase(const std::string& yaml_path) {
   return c;
 }
 
+MeshingOptions loadMeshingOptions(const std::string& yaml_path, double* lesion_snap_tolerance_m) {
+  const YAML::Node root = yaml_fields::loadFile(yaml_path);
+  double snap_m = ModelCase{}.lesion_snap_tolerance_m;
+  MeshingOptions o;
+  if (root.IsMap() && root["meshing"]) o = parseMeshing(root["meshing"], yaml_path, &snap_m);
+  if (lesion_snap_tolerance_m) *lesion_snap_tolerance_m = snap_m;
+  return o;
+}
+
 SimulationModel buildSimulationModel(const ModelCase& model_case) {
   std::vector<RefinementPoint> refine;
   for (const auto& l : model_case.lesions) refine.push_back({l.position_m, l.radius_m});

@@ -81,12 +81,10 @@ struct SimulationSettings {
   /// Von Mises stiffening with time-step reversal (material/stiffening.h) while settling: no element
   /// ends inverted. false = co-rotated FEM with fixed E (faster; soft loads only).
   bool stiffening = true;
-  /// Volumetric term of the co-rotated tetrahedra (fem/corotated_tet_fem.h): kTrace, the seed's
-  /// linear tr(S) − 3 (at ν 0.48 it lets elements at the clamped rim flatten and invert under the
-  /// supine load: docs/corotated), or kDeterminant, the "fixed co-rotated" J − 1 term (Stomakhin
-  /// et al. 2012), identical at small strain, measured 0.2–0.7 mm mean error against CalculiX
-  /// instead of 3.6–5.8 mm without stiffening.
-  CorotatedTetFem::VolumeTerm volume_term = CorotatedTetFem::VolumeTerm::kTrace;
+  /// Volumetric term of the co-rotated tetrahedra (fem/corotated_tet_fem.h): kDeterminant, the
+  /// "fixed co-rotated" J − 1 term (Stomakhin et al. 2012), or kTrace, the seed's linear tr(S) − 3,
+  /// which lets elements at the clamped rim flatten and invert under the supine load (docs/speed_accuracy.md).
+  CorotatedTetFem::VolumeTerm volume_term = CorotatedTetFem::kDefaultVolumeTerm;
   /// The element formulation. kLinearTet: co-rotated linear tetrahedra with `volume_term`
   /// (CorotatedTetFem). kAnpTet: average-nodal-pressure tetrahedra (AnpTetFem, fem/anp_tet_fem.h),
   /// which do not lock as ν → 0.5 (volume_term is then not used: ANP has its own nodal J − 1
@@ -101,11 +99,9 @@ struct SimulationSettings {
   double anp_inversion_barrier = 0.0;
   /// Its stiffness as a multiple of the bulk modulus (c of AnpTetFem::setInversionBarrier).
   double anp_inversion_barrier_stiffness = 100.0;
-  /// Sliding of the chest-wall nodes on the wall (sliding/chest_wall_sliding.h) after the fixed-wall
-  /// settling; needs stiffening and a fixed node set. Off by default: as the supine breast spreads
-  /// beyond its prone footprint, the skin next to the rim falls onto the chest wall and the elements
-  /// there collapse whatever α (measured with bench_sliding --diagnose); skin–wall contact is needed.
-  bool sliding = false;
+  /// Sliding of the chest-wall nodes on the wall (prone_to_supine.h, `sliding:` of a case file)
+  /// after the fixed-wall settle; needs stiffening and a fixed node set.
+  bool sliding = true;
   /// Young's modulus per tissue [Pa], keyed by the elements' region label (the tissue class of
   /// model/tissue_labels.h: 1 fat, 2 fibroglandular, 3 skin, 4 lesion), e.g. {4: 20000}: a lesion
   /// ten times stiffer than 2 kPa tissue. Regions not listed take material.youngs_modulus_pa (E0).

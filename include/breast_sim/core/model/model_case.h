@@ -51,6 +51,11 @@ struct ModelCase {
 /// @throws std::runtime_error naming the file, the key and what is expected.
 ModelCase loadModelCase(const std::string& yaml_path);
 
+/// The `meshing:` map of a case file alone (absent = the defaults of MeshingOptions), and its
+/// lesion_snap_tolerance_mm [m] into *lesion_snap_tolerance_m; reads no image.
+/// @throws std::runtime_error as loadModelCase does for that map.
+MeshingOptions loadMeshingOptions(const std::string& yaml_path, double* lesion_snap_tolerance_m);
+
 /// The simulation model: the tissue mesh with its node sets and the embedded lesions.
 struct SimulationModel {
   TetMesh mesh;                  ///< node sets: chest_wall, skin, nipple (if nipples given)

@@ -44,7 +44,7 @@ enum class ChestWallShape { kPlanar, kCylindrical };
 enum class BreastSide { kLeft, kRight };
 
 /// Parameters of the software phantom. SI units (m, rad, m/s²); the YAML case file uses mm and
-/// degrees (see loadPhantomParams and config/phantom_default.yaml, whose values equal these defaults).
+/// degrees (see loadPhantomParams; docs/case_files.md lists every key with these defaults).
 struct PhantomParams {
   int num_breasts = 1;                       ///< 1 (centred at x = 0) or 2 (centred at x = ±separation/2)
   BreastSide side = BreastSide::kLeft;       ///< single breast only: which side it is

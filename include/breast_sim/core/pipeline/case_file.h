@@ -1,0 +1,19 @@
+#pragma once
+/// @file case_file.h
+/// The settings a case runs with, written back as a case file: every key the case readers accept
+/// (model_case.h, phantom.h, simulation_settings.h, prone_to_supine.h), each with the value the run
+/// uses, in the file's units (mm, degrees, Pa, s). A run's output holds it, so the run can be repeated
+/// and every default it took can be read; loading the text again gives the same settings.
+
+#include <string>
+
+namespace breast_sim::core {
+
+/// The case file `case_path` (with its `base:` files) with every setting filled in: `phantom:` (all
+/// parameters) or `image:` (as given, its path made absolute), `lesions:` as given, and the complete
+/// `meshing:`, `simulation:`, `stiffening:`, `sliding:`, `morphing:` and `coarse_start:` maps. Numbers
+/// carry 12 significant digits. Does not read the image or build a model.
+/// @throws std::runtime_error as the case readers do for a case they reject.
+std::string effectiveCaseYaml(const std::string& case_path);
+
+}  // namespace breast_sim::core
