@@ -1,5 +1,5 @@
 // Why do co-rotated linear tetrahedra invert elements under the supine load, and why does their
-// error against a finite-strain reference grow with refinement? (issue 9; docs/corotated/)
+// error against a finite-strain reference grow with refinement? (docs/speed_accuracy.md)
 //
 // The phantom of a case is meshed at --target elements (cached with the references, so reruns use
 // the same mesh), loaded with g_supine − g_prone (or --load hanging) and settled like

@@ -1,4 +1,4 @@
-// Speed against accuracy (issue 9): our settled gravity states against an independent CalculiX
+// Speed against accuracy: our settled gravity states against an independent CalculiX
 // reference (neo-Hookean, NLGEOM; reference/calculix.h), two studies:
 //
 //  locking  at one mesh, error against Poisson's ratio ν: our formulations (--locking-methods,

@@ -1,5 +1,5 @@
 #pragma once
-// Small helpers shared by the benchmarks: wall time, medians and means of repeated runs, and
+// Small functions shared by the benchmarks: wall time, medians and means of repeated runs, and
 // comma-separated number lists from the command line.
 #include <algorithm>
 #include <chrono>

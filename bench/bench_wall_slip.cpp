@@ -1,5 +1,5 @@
 // bench_wall_slip: the cost of implicit sliding (sliding/wall_slip.h) per step beside the simulation
-// step, at the seed's Table-1 size (issue 6: the seed's update/sliding column is 35 ms at 47,895
+// step, at the seed's Table-1 size (the seed's update/sliding column is 35 ms at 47,895
 // elements on 2012 hardware; target ≤ 2 ms). The phantom settles under supine gravity with the wall
 // fixed, then the wall is released onto implicit sliding and `--steps` steps of the pipeline's loop
 // run at the dynamics time step:

@@ -461,7 +461,7 @@ TEST(CorotatedTetFem, TraceVolumeTermResistsFlatteningOnlyWithTheShearModulus) {
   // The classic co-rotated volumetric term λ (tr S − 3) vanishes for stretches (1.5, 1.5, 0): the
   // element has zero volume but tr S = 3, so only μ resists its collapse, and through inversion
   // (1.6, 1.6, −0.2) as well. The J − 1 term resists with λ (here λ/μ = 24). This is what let the
-  // supine phantom collapse and invert elements (issue 9).
+  // supine phantom collapse and invert elements.
   const TetMesh m = singleTet();
   const ElasticMaterial mat;  // ν = 0.48
   const double lambda = mat.lameLambda(), mu = mat.lameMu();
@@ -568,7 +568,7 @@ TEST(DynamicSimulator, NearlyIncompressibleBlockPressedOntoItsClampKeepsItsVolum
   // and loaded by a body force towards that base, as large as the phantom's (ρ g h / E ≈ 0.7).
   // The tissue must bulge sideways at constant volume. With the J − 1 volume term it does; the
   // classic tr S − 3 term lets the elements at the clamped rim flatten and invert instead (the
-  // failure measured on the phantom in issue 9).
+  // failure measured on the phantom).
   const TetMesh m = makeBoxMesh({4, 4, 4}, {0.04, 0.04, 0.04});
   ElasticMaterial mat;  // 2 kPa, ν = 0.48
   DynamicsParams p;

@@ -28,7 +28,7 @@ using breast_sim::core::readLabelImage;
 using breast_sim::core::writeLabelImage;
 
 // ---------------------------------------------------------------------------------------------------
-// Helpers
+// Test utilities
 
 std::string tempPath(const std::string& name) {
   static const std::filesystem::path dir = [] {

@@ -1,4 +1,4 @@
-// Von Mises stiffening with time-step reversal (issue 5): the α controller, the reversal loop on a
+// Von Mises stiffening with time-step reversal: the α controller, the reversal loop on a
 // case that inverts, the undo history, the settle criterion, explicit Euler and the trimmed
 // stability grid.
 #include <gtest/gtest.h>

@@ -143,7 +143,7 @@ void writeLabelImage(const std::string& path, const LabelImage& image) {
 }
 
 // ---------------------------------------------------------------------------------------------------
-// Shared helpers of the readers and writers
+// Shared by the readers and writers
 
 namespace image_io {
 

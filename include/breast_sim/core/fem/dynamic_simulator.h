@@ -163,7 +163,7 @@ class DynamicSimulator {
   std::vector<int> saved_start_;           // per constrained row: offset into saved_values_ (+1)
   std::vector<double> saved_values_, saved_rhs_;  // constrained rows before elimination
   Points x_;
-  // Per-step assembly helpers (the pattern of A_ is fixed): position of each row's diagonal in
+  // Per-step assembly data (the pattern of A_ is fixed): position of each row's diagonal in
   // A_'s value array, and the elimination lists for the constraint set `elim_for_` they were built
   // for (rebuilt in step() when constrained_ differs): constrained rows, and per free row that has
   // constrained columns the value positions of those columns (CSR: elim_row_, elim_start_, elim_pos_).

@@ -1,6 +1,6 @@
 #pragma once
 /// @file image_io_detail.h
-/// Internal helpers shared by the label-image readers and writers (label_image.cpp, nrrd_io.cpp,
+/// Internal functions shared by the label-image readers and writers (label_image.cpp, nrrd_io.cpp,
 /// metaimage_io.cpp, nifti_io.cpp). Not part of the public API: include label_image.h instead.
 
 #include <cstddef>

@@ -1,6 +1,6 @@
 #pragma once
 /// @file stability_map.h
-/// "Test stability where methods fail" (issue 5): one load case run by five methods over a grid of
+/// "Test stability where methods fail": one load case run by five methods over a grid of
 /// Poisson ratio, Young's modulus, time step and initial α, with an outcome per run. The command is
 /// breast_sim_stability_map (src/tools); the results and their plots are in docs/stability_map.
 
