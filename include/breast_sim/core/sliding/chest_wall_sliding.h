@@ -323,6 +323,13 @@ class ChestWallSliding {
   const std::vector<char>& rimFlags() const { return rim_flag_; }
 
  private:
+  // Limiting factors at construction (sliding_limits.cpp), from rest_: thickness_m_ and
+  // thickness_factor_ (ray marching in `labels`; 0 and 1 with the limit off); the chest-wall plane
+  // frame, the Gaussian centres, σ and gaussian_factor_ (1 with the limit off). slot: the slot of
+  // each mesh node, −1 outside the sliding set.
+  void measureThickness(const LabelImage* labels, const TissueLabels& tissue);
+  void placeGaussian(const TetMesh& mesh, const std::vector<int>& slot, const std::vector<Eigen::Vector3d>& nipples_m,
+                     const Eigen::Vector3d& anterior);
   // Contact: frees pulled-off contact nodes and adds the free skin nodes that touch the wall as
   // slots (slot arrays compacted, graph rebuilt, constraints re-imposed on a release). Fills the
   // contact counts of st; returns whether a node was freed.
