@@ -11,7 +11,10 @@
 ///
 /// Tracking is guarded (tracking_monitor.h): the lesions carry whether the node vouches for them, and
 /// every cloud and pose is checked before it acts (input_checks.h). Every parameter is documented with
-/// its unit in config/node.yaml.
+/// its unit in config/node.yaml (node_params.h).
+///
+/// The class is implemented in src/ros_interface: breast_sim_node.cpp (set-up), _jobs, _services,
+/// _tracking, _poses and _publishing (breast_sim_node_*.cpp), one file per group below.
 
 #include <atomic>
 #include <chrono>
@@ -42,51 +45,11 @@
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/ros_interface/conversions.h"
 #include "breast_sim/ros_interface/input_checks.h"
+#include "breast_sim/ros_interface/node_params.h"
 #include "breast_sim/ros_interface/surface_tracker.h"
 #include "breast_sim/ros_interface/tracking_monitor.h"
 
 namespace breast_sim::ros_interface {
-
-/// Parameters of the node (config/node.yaml documents each with unit and default).
-struct NodeParams {
-  std::string case_file;
-  int target_elements = 0;
-  std::string settings_file;          ///< "" = the case file's simulation/sliding/morphing maps
-  double field_voxel_size_m = 0.003;  ///< [m]; 0 = the settings' morphing.voxel_size_mm
-  std::string frame_id = "breast_model";
-  bool precompute_on_start = false;
-  // gravity
-  std::string gravity_frame = "world";
-  bool follow_patient_pose = true;
-  double gravity_update_threshold_deg = 0.5;
-  bool publish_pose_tf = true;
-  PoseJumpLimits pose_jump;
-  // tracking
-  TrackerOptions tracker;
-  MonitorLimits monitor;              ///< monitor.refused_frames = tracking/degraded_after_rejected
-  StampLimits stamps;
-  size_t max_cloud_points = 300000;
-  double max_transform_age_s = 0.5;
-  double tf_wait_s = 0.05;
-  bool require_precomputation = true;
-  double tracking_timeout_s = 2.0;
-  // publishing
-  double mesh_rate_hz = 0.0;          ///< 0 = every tracked frame
-  double marker_rate_hz = 10.0;
-  int marker_max_triangles = 4000;
-  bool publish_lesion_tf = true;
-  std::string lesion_frame_prefix = "lesion_";
-  double sliding_arrow_scale = 5.0;
-  double sliding_min_length_m = 1e-4;
-  int sliding_max_arrows = 300;
-  double diagnostics_period_s = 1.0;
-  double progress_rate_hz = 5.0;
-  double warn_throttle_s = 5.0;
-
-  /// Reads every parameter from the private namespace (missing keys keep the defaults above).
-  /// @throws std::invalid_argument naming the parameter for a value out of range.
-  static NodeParams fromRos(const ros::NodeHandle& pnh);
-};
 
 class BreastSimNode {
  public:
@@ -111,14 +74,16 @@ class BreastSimNode {
   };
   using PrecomputeServer = actionlib::ActionServer<breast_sim::PrecomputeAction>;
 
-  // Long jobs.
+  // Long jobs (breast_sim_node_jobs.cpp).
   std::unique_ptr<Engine> buildEngine(const std::string& case_file, int target_elements) const;
   bool startJob(std::function<void()> job, std::string* why);
   void loadCaseJob(const std::string& case_file, int target_elements, std::string* message, bool* ok);
   void precomputeJob(bool gravity_only, std::optional<PrecomputeServer::GoalHandle> goal);
   void resetJob();
+  /// The state a job ends in, published by the worker once the node is free for the next job.
+  void endJob(uint8_t state, const std::string& message);
 
-  // Services and action.
+  // Services and action (breast_sim_node_services.cpp).
   bool loadCaseSrv(breast_sim::LoadCase::Request& req, breast_sim::LoadCase::Response& res);
   bool startPrecomputationSrv(breast_sim::StartPrecomputation::Request& req,
                               breast_sim::StartPrecomputation::Response& res);
@@ -129,11 +94,19 @@ class BreastSimNode {
   void goalCb(PrecomputeServer::GoalHandle goal);
   void cancelGoalCb(PrecomputeServer::GoalHandle goal);
 
-  // Tracking.
+  // Tracking (breast_sim_node_tracking.cpp).
   void cloudCb(const sensor_msgs::PointCloud2ConstPtr& msg);
-  void poseCb(const geometry_msgs::PoseStampedConstPtr& msg);
   void trackingLoop();
   void processCloud(const sensor_msgs::PointCloud2ConstPtr& msg, std::chrono::steady_clock::time_point received);
+  /// A cloud refused before it reached the tracker (counts toward the monitor's refusals).
+  void rejectFrame(const std::string& reason);
+  /// The statistics of a refused cloud (diagnostics).
+  void countRejected(const std::string& reason);
+  /// Forget the tracking reference (a new model or state); the next cloud starts from the model's state.
+  void restartTracking();
+
+  // The patient pose, transforms and gravity (breast_sim_node_poses.cpp).
+  void poseCb(const geometry_msgs::PoseStampedConstPtr& msg);
   /// model ← cloud frame at `stamp`; false with the reason when unknown or stale.
   bool cloudTransform(const std::string& frame, const ros::Time& stamp, Eigen::Isometry3d* t, std::string* why);
   bool lookup(const std::string& target, const std::string& source, const ros::Time& stamp, Eigen::Isometry3d* t,
@@ -145,23 +118,15 @@ class BreastSimNode {
   /// Rotation of gravity-frame vectors into the model frame at `stamp` (the cloud's), if known.
   bool gravityRotation(const ros::Time& stamp, Eigen::Matrix3d* r);
   void applyGravity(Engine& e, const ros::Time& stamp);
-  /// A cloud refused before it reached the tracker (counts toward the monitor's refusals).
-  void rejectFrame(const std::string& reason);
-  /// The statistics of a refused cloud (diagnostics).
-  void countRejected(const std::string& reason);
-  /// Keyed, throttled warning (tracking/warn_throttle_s per key).
-  void warn(const std::string& key, const std::string& text);
-  /// Forget the tracking reference (a new model or state); the next cloud starts from the model's state.
-  void restartTracking();
 
-  // Publishing.
+  // Publishing, state and diagnostics (breast_sim_node_publishing.cpp).
   /// Mesh, lesions (marked `valid` with `status`), their tf frames (only valid ones, only newer
   /// stamps), and at the marker rate the markers.
   void publishModel(Engine& e, const ros::Time& stamp, bool force_all, bool valid, const std::string& status);
   void setState(uint8_t state, const std::string& message, bool force = true);
-  /// The state a job ends in, published by the worker once the node is free for the next job.
-  void endJob(uint8_t state, const std::string& message);
   void publishDiagnostics(const ros::WallTimerEvent&);
+  /// Keyed, throttled warning (tracking/warn_throttle_s per key).
+  void warn(const std::string& key, const std::string& text);
 
   ros::NodeHandle nh_, pnh_;
   NodeParams params_;

@@ -1,0 +1,175 @@
+// BreastSimNode's services and the ~precompute action: each answers at once (loading a case waits
+// for the model) and hands long work to the worker; while a job runs they refuse with the reason.
+#include "breast_sim/ros_interface/breast_sim_node.h"
+
+#include <condition_variable>
+#include <mutex>
+
+namespace breast_sim::ros_interface {
+
+bool BreastSimNode::loadCaseSrv(breast_sim::LoadCase::Request& req, breast_sim::LoadCase::Response& res) {
+  // Answers when the model is built (seconds); other callbacks keep being served meanwhile.
+  std::string message, why;
+  bool ok = false;
+  std::mutex m;
+  std::condition_variable cv;
+  bool done = false;
+  const std::string file = req.case_file;
+  const int target = req.target_elements;
+  if (!startJob([&, file, target] {
+        loadCaseJob(file, target, &message, &ok);
+        std::lock_guard<std::mutex> l(m);
+        done = true;
+        cv.notify_all();
+      }, &why)) {
+    res.success = false;
+    res.message = why;
+    return true;
+  }
+  std::unique_lock<std::mutex> l(m);
+  cv.wait(l, [&] { return done; });
+  res.success = ok;
+  res.message = message;
+  if (!ok) ROS_WARN_STREAM("breast_sim: " << message << "; keeping the previous model");
+  return true;
+}
+
+bool BreastSimNode::startPrecomputationSrv(breast_sim::StartPrecomputation::Request& req,
+                                           breast_sim::StartPrecomputation::Response& res) {
+  {
+    std::lock_guard<std::mutex> sl(state_mutex_);
+    if (!state_.model_loaded && !busy_) {
+      res.accepted = false;
+      res.message = "no model is loaded; load a case first (~load_case)";
+      return true;
+    }
+  }
+  const bool gravity_only = req.gravity_only;
+  std::string why;
+  res.accepted = startJob([this, gravity_only] { precomputeJob(gravity_only, std::nullopt); }, &why);
+  res.message = res.accepted ? std::string("precomputation started (") + (gravity_only ? "gravity only" : "gravity and morphing") +
+                                   "); progress on ~state"
+                             : why;
+  return true;
+}
+
+bool BreastSimNode::cancelSrv(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  std::lock_guard<std::mutex> sl(state_mutex_);
+  if (state_.state != breast_sim::NodeState::PRECOMPUTING) {
+    res.success = false;
+    res.message = std::string("no precomputation is running (state: ") + state_.state_name + ")";
+    return true;
+  }
+  cancel_ = true;
+  res.success = true;
+  res.message = "cancelling: the precomputation stops after its current step; ~state says when";
+  return true;
+}
+
+bool BreastSimNode::resetSrv(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  {
+    std::lock_guard<std::mutex> sl(state_mutex_);
+    if (!state_.model_loaded && !busy_) {
+      res.success = false;
+      res.message = "no model is loaded";
+      return true;
+    }
+  }
+  // Rebuilding the pipeline takes seconds (solver and multigrid levels): on the worker.
+  std::string why;
+  res.success = startJob([this] { resetJob(); }, &why);
+  res.message = res.success ? "resetting to the prone rest shape on the worker; ~state says when it is done"
+                            : "busy (loading or precomputing); cancel the precomputation first (~cancel_precomputation)";
+  return true;
+}
+
+bool BreastSimNode::saveStateSrv(breast_sim::StateFile::Request& req, breast_sim::StateFile::Response& res) {
+  if (busy_) {
+    res.success = false;
+    res.message = "busy (loading or precomputing); save when ~state is idle or tracking";
+    return true;
+  }
+  std::lock_guard<std::mutex> lock(engine_mutex_);
+  if (!engine_) {
+    res.success = false;
+    res.message = "no model is loaded";
+    return true;
+  }
+  try {
+    engine_->pipeline->saveState(req.path);
+    res.success = true;
+    res.message = "saved the state of case '" + engine_->model_case->name + "' (" +
+                  std::to_string(engine_->model->mesh.numNodes()) + " nodes) to " + req.path;
+  } catch (const std::exception& ex) {
+    res.success = false;
+    res.message = ex.what();
+  }
+  return true;
+}
+
+bool BreastSimNode::loadStateSrv(breast_sim::StateFile::Request& req, breast_sim::StateFile::Response& res) {
+  if (busy_) {
+    res.success = false;
+    res.message = "busy (loading or precomputing); load when ~state is idle or tracking";
+    return true;
+  }
+  std::lock_guard<std::mutex> lock(engine_mutex_);
+  if (!engine_) {
+    res.success = false;
+    res.message = "no model is loaded; load the case the state belongs to first (~load_case)";
+    return true;
+  }
+  try {
+    engine_->pipeline->loadState(req.path);
+    engine_->gravity_load_mps2 = engine_->pipeline->gravityLoad();  // the state's, for the pose-update rule
+    engine_->precomputed = true;
+    restartTracking();
+    {
+      std::lock_guard<std::mutex> sl(state_mutex_);
+      state_.precomputed = true;
+      state_.stage = "done";
+      state_.progress = 1.0;
+    }
+    publishModel(*engine_, ros::Time::now(), true, true, "loaded state " + req.path);
+    res.success = true;
+    res.message = "loaded " + req.path + "; the model is precomputed and follows surface clouds";
+    setState(breast_sim::NodeState::IDLE, res.message);
+  } catch (const std::exception& ex) {
+    res.success = false;
+    res.message = std::string(ex.what()) + "; the previous state is kept";
+  }
+  return true;
+}
+
+void BreastSimNode::goalCb(PrecomputeServer::GoalHandle goal) {
+  const bool gravity_only = goal.getGoal()->gravity_only;
+  std::string why;
+  bool loaded;
+  {
+    std::lock_guard<std::mutex> sl(state_mutex_);
+    loaded = state_.model_loaded;
+  }
+  breast_sim::PrecomputeResult r;
+  if (!loaded && !busy_) {
+    r.message = "no model is loaded; load a case first (~load_case)";
+    goal.setRejected(r, r.message);
+    return;
+  }
+  if (busy_) {
+    r.message = "the node is busy loading a case or precomputing; send the goal when ~state is idle";
+    goal.setRejected(r, r.message);
+    return;
+  }
+  goal.setAccepted("accepted");
+  if (!startJob([this, gravity_only, goal] { precomputeJob(gravity_only, goal); }, &why)) {
+    r.message = why;
+    goal.setAborted(r, why);
+  }
+}
+
+void BreastSimNode::cancelGoalCb(PrecomputeServer::GoalHandle goal) {
+  std::lock_guard<std::mutex> lock(goal_mutex_);
+  if (goal_ && *goal_ == goal) cancel_ = true;
+}
+
+}  // namespace breast_sim::ros_interface
