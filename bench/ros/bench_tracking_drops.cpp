@@ -22,10 +22,10 @@
 #include <ros/package.h>
 #include <ros/time.h>
 
-#include "../../bench/bench_util.h"
+#include "../bench_util.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
-#include "breast_sim/ros_interface/breast_sim_node.h"
 #include "breast_sim/ros_interface/conversions.h"
+#include "breast_sim/ros_interface/node_params.h"
 #include "breast_sim/ros_interface/surface_tracker.h"
 #include "breast_sim/ros_interface/tracker_simulation.h"
 

@@ -20,7 +20,7 @@
 #include <ros/package.h>
 #include <ros/time.h>
 
-#include "../../bench/bench_util.h"
+#include "../bench_util.h"
 #include "breast_sim/core/morphing/target_surface.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/ros_interface/tracker_simulation.h"

@@ -21,7 +21,7 @@
 #include <ros/serialization.h>
 #include <ros/time.h>
 
-#include "../../bench/bench_util.h"
+#include "../bench_util.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/ros_interface/conversions.h"
 #include "breast_sim/ros_interface/surface_tracker.h"
