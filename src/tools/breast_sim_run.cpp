@@ -377,7 +377,12 @@ int main(int argc, char** argv) {
                             {"alpha_per_pa", pm.final_alpha_per_pa}};
         if (pm.has_target) {
           auto d = [](const DistanceStats& st) { return nlohmann::json{{"mean", st.mean_m * 1e3}, {"p95", st.p95_m * 1e3}, {"max", st.max_m * 1e3}}; };
-          j["surface_distance_mm"] = {{"skin_to_target", d(pm.surface.model_to_target)}, {"target_to_skin", d(pm.surface.target_to_model)}};
+          // Target → skin over the target's skin only: its samples on the model's chest wall are left out.
+          j["surface_distance_mm"] = {{"skin_to_target", d(pm.surface.model_to_target)},
+                                      {"target_skin_to_skin", d(pm.surface.target_to_model)}};
+          j["surface_samples"] = {{"skin", pm.surface.model_to_target.count},
+                                  {"target", pm.surface.target_samples},
+                                  {"target_on_chest_wall_left_out", pm.surface.target_on_chest_wall}};
         }
         return j;
       };
@@ -482,9 +487,12 @@ int main(int argc, char** argv) {
         std::printf("  %-26s %d inverted, volume %+.2f%%, max displacement %.1f mm", name, d["inverted_elements"].get<int>(),
                     d["volume_change_percent"].get<double>(), d["max_displacement_mm"].get<double>());
         if (d.contains("surface_distance_mm"))
-          std::printf(", surface distance mean/p95 %.2f/%.2f mm (skin->target), %.2f/%.2f mm (target->skin)",
+          std::printf(", surface distance mean/p95 %.2f/%.2f mm (skin->target), %.2f/%.2f mm (target skin->skin; "
+                      "%d of %d target samples on the chest wall left out)",
                       d["surface_distance_mm"]["skin_to_target"]["mean"].get<double>(), d["surface_distance_mm"]["skin_to_target"]["p95"].get<double>(),
-                      d["surface_distance_mm"]["target_to_skin"]["mean"].get<double>(), d["surface_distance_mm"]["target_to_skin"]["p95"].get<double>());
+                      d["surface_distance_mm"]["target_skin_to_skin"]["mean"].get<double>(),
+                      d["surface_distance_mm"]["target_skin_to_skin"]["p95"].get<double>(),
+                      d["surface_samples"]["target_on_chest_wall_left_out"].get<int>(), d["surface_samples"]["target"].get<int>());
         std::printf("\n");
       };
       deformed("after gravity", metrics["after_gravity"]);

@@ -186,12 +186,16 @@ DistanceStats distanceStats(std::vector<double> d) {
 
 Points surfaceSamples(const TargetSurface& surface) {
   if (surface.isPointCloud()) return surface.vertices_m;
-  Points p(surface.vertices_m.rows() + surface.triangles.rows(), 3);
-  p.topRows(surface.vertices_m.rows()) = surface.vertices_m;
+  std::vector<char> used(static_cast<size_t>(surface.vertices_m.rows()), 0);
+  for (Eigen::Index i = 0; i < surface.triangles.size(); ++i) used[static_cast<size_t>(surface.triangles.data()[i])] = 1;
+  const Eigen::Index nv = static_cast<Eigen::Index>(std::count(used.begin(), used.end(), 1));
+  Points p(nv + surface.triangles.rows(), 3);
+  Eigen::Index r = 0;
+  for (Eigen::Index v = 0; v < surface.vertices_m.rows(); ++v)
+    if (used[static_cast<size_t>(v)]) p.row(r++) = surface.vertices_m.row(v);
   for (Eigen::Index f = 0; f < surface.triangles.rows(); ++f)
-    p.row(surface.vertices_m.rows() + f) = (surface.vertices_m.row(surface.triangles(f, 0)) +
-                                             surface.vertices_m.row(surface.triangles(f, 1)) +
-                                             surface.vertices_m.row(surface.triangles(f, 2))) / 3.0;
+    p.row(nv + f) = (surface.vertices_m.row(surface.triangles(f, 0)) + surface.vertices_m.row(surface.triangles(f, 1)) +
+                     surface.vertices_m.row(surface.triangles(f, 2))) / 3.0;
   return p;
 }
 
@@ -208,29 +212,43 @@ Triangles skinTriangles(const TetMesh& mesh, const std::vector<int>& skin_nodes)
 }
 
 SurfaceMatch surfaceMatch(const TetMesh& mesh, const Points& x_m, const std::vector<int>& skin_nodes,
-                          const SurfaceDistance& target, const TargetSurface& target_surface) {
+                          const SurfaceDistance& target, const TargetSurface& target_surface,
+                          double chest_wall_tolerance_m) {
   TargetSurface skin;
   skin.vertices_m = x_m;
   skin.triangles = skinTriangles(mesh, skin_nodes);
   if (skin.triangles.rows() == 0) throw std::invalid_argument("surfaceMatch: the model has no skin triangles");
   // Only the skin's own vertices count on the model side.
-  std::vector<int> used;
-  {
-    std::vector<char> u(static_cast<size_t>(x_m.rows()), 0);
-    for (Eigen::Index f = 0; f < skin.triangles.rows(); ++f)
-      for (int k = 0; k < 3; ++k) u[static_cast<size_t>(skin.triangles(f, k))] = 1;
-    for (size_t i = 0; i < u.size(); ++i)
-      if (u[i]) used.push_back(static_cast<int>(i));
-  }
-  Points model_samples(static_cast<Eigen::Index>(used.size()) + skin.triangles.rows(), 3);
-  for (size_t i = 0; i < used.size(); ++i) model_samples.row(static_cast<Eigen::Index>(i)) = x_m.row(used[i]);
-  for (Eigen::Index f = 0; f < skin.triangles.rows(); ++f)
-    model_samples.row(static_cast<Eigen::Index>(used.size()) + f) =
-        (x_m.row(skin.triangles(f, 0)) + x_m.row(skin.triangles(f, 1)) + x_m.row(skin.triangles(f, 2))) / 3.0;
   SurfaceMatch m;
-  m.model_to_target = target.stats(model_samples);
-  const SurfaceDistance to_model(skin);
-  m.target_to_model = to_model.stats(surfaceSamples(target_surface));
+  m.model_to_target = target.stats(surfaceSamples(skin));
+  // Target → skin, without the target's chest-wall part.
+  const Points samples = surfaceSamples(target_surface);
+  const int n = static_cast<int>(samples.rows());
+  m.target_samples = n;
+  const SurfaceDistance to_skin(skin);
+  std::vector<double> d_skin(static_cast<size_t>(n));
+#pragma omp parallel for schedule(static)
+  for (int i = 0; i < n; ++i) d_skin[static_cast<size_t>(i)] = to_skin.distance(samples.row(i).transpose());
+  std::vector<char> on_wall(static_cast<size_t>(n), 0);
+  if (mesh.hasNodeSet(node_sets::kChestWall) && chest_wall_tolerance_m > 0) {
+    TargetSurface wall;
+    wall.vertices_m = x_m;
+    wall.triangles = skinTriangles(mesh, mesh.nodeSet(node_sets::kChestWall));  // boundary faces on the wall
+    if (wall.triangles.rows() > 0) {
+      const SurfaceDistance to_wall(wall);
+#pragma omp parallel for schedule(static)
+      for (int i = 0; i < n; ++i) {
+        const double dw = to_wall.distance(samples.row(i).transpose());
+        on_wall[static_cast<size_t>(i)] = dw <= chest_wall_tolerance_m && dw < d_skin[static_cast<size_t>(i)];
+      }
+    }
+  }
+  std::vector<double> kept;
+  kept.reserve(static_cast<size_t>(n));
+  for (int i = 0; i < n; ++i)
+    if (!on_wall[static_cast<size_t>(i)]) kept.push_back(d_skin[static_cast<size_t>(i)]);
+  m.target_on_chest_wall = n - static_cast<int>(kept.size());
+  m.target_to_model = distanceStats(std::move(kept));
   return m;
 }
 

@@ -60,18 +60,34 @@ class SurfaceDistance {
   std::unique_ptr<Impl> impl_;
 };
 
-/// Points spread over a triangle surface: its vertices and the centroids of its triangles (a point
-/// cloud is returned as it is). Used to measure target → model distances with area coverage.
+/// Points spread over a triangle surface: the vertices its triangles use and the centroids of its
+/// triangles (a point cloud is returned as it is; vertices no triangle uses are not on the surface
+/// and left out). Used to measure target → model distances with area coverage.
 Points surfaceSamples(const TargetSurface& surface);
 
+/// How far [m] from the model's chest-wall surface a target sample may lie and still count as the
+/// target's chest-wall part (see surfaceMatch): about one element of the finest models, so a target's
+/// base on the wall is left out while its skin, and any skin that misses the model's, is not.
+inline constexpr double kTargetChestWallTolerance_m = 2e-3;
+
 /// Surface distance both ways between a model's skin (boundary triangles touching `skin_nodes` with
-/// all three nodes, at positions `x_m`) and a target.
+/// all three nodes, at positions `x_m`) and the part of a target that should match it. A target may
+/// include its base on the chest wall (a closed phantom surface, a segmentation); the model's skin
+/// does not, so target samples on the chest wall would count as misses of up to the breast's radius.
+/// A target sample is left out of target → skin when it lies within `chest_wall_tolerance_m` of the
+/// model's chest-wall surface (boundary faces whose three nodes are in the mesh's "chest_wall" node
+/// set, at `x_m`) and nearer to it than to the skin. A rule on distances, so it serves triangle and
+/// point-cloud targets alike; a mesh without chest-wall faces leaves every sample in.
 struct SurfaceMatch {
-  DistanceStats model_to_target;  ///< skin vertices and face centroids → target
-  DistanceStats target_to_model;  ///< target samples → skin surface
+  DistanceStats model_to_target;  ///< skin vertices and face centroids → the whole target
+  DistanceStats target_to_model;  ///< target samples off the chest wall → skin surface (count = kept)
+  int target_samples = 0;         ///< target samples in all (surfaceSamples)
+  int target_on_chest_wall = 0;   ///< of those, left out as the target's chest-wall part
 };
+/// @throws std::invalid_argument when the model has no skin triangles.
 SurfaceMatch surfaceMatch(const TetMesh& mesh, const Points& x_m, const std::vector<int>& skin_nodes,
-                          const SurfaceDistance& target, const TargetSurface& target_surface);
+                          const SurfaceDistance& target, const TargetSurface& target_surface,
+                          double chest_wall_tolerance_m = kTargetChestWallTolerance_m);
 
 /// The skin triangles of a mesh: boundary faces whose three nodes are all in `skin_nodes`.
 Triangles skinTriangles(const TetMesh& mesh, const std::vector<int>& skin_nodes);
