@@ -1,6 +1,6 @@
 #pragma once
 /// @file sliding_internal.h
-/// Helpers shared by the translation units of ChestWallSliding (chest_wall_sliding.h); private to
+/// Functions shared by the translation units of ChestWallSliding (chest_wall_sliding.h); private to
 /// src/core/sliding.
 #include <chrono>
 #include <sstream>
