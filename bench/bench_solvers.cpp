@@ -9,8 +9,8 @@
 // with that smoother and sweeps (Chebyshev: polynomial degree) before and after the coarse correction,
 // coarse operators recomputed every <interval> factorizations; R = MultigridOptions::chebyshev_ratio,
 // B = fine_eigenvalue_bound (0: power iteration on the fine level too), S = chebyshev_eigenvalue_safety.
-// (The vertex-star Schwarz and coarse-degree prototypes measured in docs/benchmarks/multigrid_chebyshev.md
-// are in docs/benchmarks/multigrid_smoother_prototypes.patch, with their ":patches=1" and ":coarse=K".)
+// (The vertex-star Schwarz and coarse-degree prototypes are not in the tree; their measured rows are in
+// docs/benchmarks/multigrid_chebyshev.md.)
 // "sa[:theta=T][:nu=S][:coarse=N][:unsmoothed]": smoothed-aggregation multigrid-PCG
 // (solver/aggregation_multigrid.h) with strength threshold T, S block-Jacobi sweeps, at most N coarsest
 // DOFs; it gives two rows: "full" redoes the whole set-up in every factorize, "keep P" keeps the

@@ -80,7 +80,7 @@ class CorotatedTetFem : public ElementFormulation {
   /// the SUM of the principal stretches, not their product: an element can flatten (stretches
   /// 1.5, 1.5, 0 keep tr S = 3 at J = 0) and pass through inversion (1.6, 1.6, −0.2) resisted by μ
   /// alone. Near the clamped rim under the supine load this makes spurious collapsed and inverted
-  /// equilibria (docs/corotated/README.md). kDeterminant penalises J − 1 itself, so flattening and
+  /// equilibria (docs/speed_accuracy.md, "Why co-rotated tetrahedra invert under the supine load"). kDeterminant penalises J − 1 itself, so flattening and
   /// inversion cost λ, as in the neo-Hookean reference.
   /// \note Stiffness: kTrace uses R K_e0 Rᵀ (it omits ∂R/∂x). kDeterminant replaces its λ part by
   /// the Gauss–Newton term λ V E_r (∂J/∂x)(∂J/∂x)ᵀ (∂J/∂x_i = cof F ∇N_i), dropping the indefinite

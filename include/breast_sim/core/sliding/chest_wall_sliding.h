@@ -43,7 +43,7 @@
 /// under supine gravity, the free skin next to the rim falls onto the chest wall; a free node that
 /// reaches the wall (or the plane of a rim triangle that lies on it) flattens and inverts the
 /// elements between it and the wall, which no α and no constraint move prevents (measured, see
-/// docs/sliding/README_section.md). So after every accepted step each free skin node (node set
+/// docs/sliding.md, "The explicit update"). So after every accepted step each free skin node (node set
 /// "skin", not yet constrained) whose signed wall distance, predicted two steps ahead along its
 /// approach velocity, h_pred = h(x) + 2 dt min(0, ∇h·u̇) (two: a falling node still accelerates),
 /// or h(x) itself, is at most contact_tolerance_m becomes a contact node: a
