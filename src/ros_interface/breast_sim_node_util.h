@@ -1,6 +1,6 @@
 #pragma once
 /// @file breast_sim_node_util.h
-/// Small helpers shared by the files that implement BreastSimNode (private to the ROS layer).
+/// Clock and formatting functions shared by the files that implement BreastSimNode (private to the ROS layer).
 
 #include <chrono>
 #include <sstream>
