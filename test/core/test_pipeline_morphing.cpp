@@ -1,0 +1,274 @@
+// The pipeline's morphing stage: the zero-distance target, the pull onto a reachable target, the
+// implicit pull against the forces alone, the step's move measures (pulled vertices' 95th
+// percentile, off the wall band) and the stop rules that use them, with the volume condition.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <array>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "breast_sim/core/fem/equilibrium.h"
+#include "breast_sim/core/mesh/tet_quality.h"
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "pipeline_fixtures.h"
+
+using namespace breast_sim::core;
+using namespace breast_sim::core::test_fixtures;
+
+TEST(Pipeline, AZeroDistanceTargetLeavesTheModelUnchanged) {
+  // No gravity and the model's own skin as the target: every pulled vertex is on the target, no
+  // force is ever added, and the model does not move.
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.simulation.gravity_mps2 = 0.0;
+  s.morphing.target = "";
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  EXPECT_NEAR(pipe.supineGravityLoad().norm(), 0.0, 1e-12);
+  TargetSurface own;
+  own.vertices_m = p.m.mesh.nodes();
+  own.triangles = skinTriangles(p.m.mesh, p.m.mesh.nodeSet(node_sets::kSkin));
+  pipe.setTarget(own);
+  // A bad frame (no points) is refused and the last good target stays.
+  EXPECT_THROW(pipe.setTarget(TargetSurface{}), std::invalid_argument);
+  ASSERT_TRUE(pipe.hasTarget());
+  EXPECT_EQ(pipe.target().vertices_m.rows(), own.vertices_m.rows());
+  pipe.setTarget(own);  // the same target again: an in-place rebuild
+  for (int k = 0; k < 10; ++k) {
+    const IterationReport it = pipe.iterate();
+    EXPECT_TRUE(it.advanced);
+    EXPECT_LT(it.surface_mean_m, 1e-6);
+    EXPECT_TRUE(it.alpha_held);  // within tolerance from the start
+  }
+  EXPECT_LT(maxNodalNorm(pipe.simulator().state().displacement_m), 1e-7);
+  const PipelineMetrics m = pipe.metrics();
+  EXPECT_LT(m.surface.model_to_target.max_m, 1e-6);
+  EXPECT_EQ(m.inverted_elements, 0);
+  EXPECT_NEAR(m.volume_change_percent, 0.0, 1e-6);
+}
+
+TEST(Pipeline, MorphingPullsTheSkinOntoAReachableTarget) {
+  // The model's own skin stretched 8 % anteriorly away from the fixed wall (y = 0 stays, so the
+  // base needs no sliding): the pulled vertices reach the tolerance, no element inverts.
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.simulation.gravity_mps2 = 0.0;
+  s.morphing.target = "";
+  s.morphing.max_steps = 200;  // converges in 40-90 steps on the meshes seen (meshing varies run to run)
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  TargetSurface stretched;
+  stretched.vertices_m = p.m.mesh.nodes();
+  stretched.vertices_m.col(1) *= 1.08;
+  stretched.triangles = skinTriangles(p.m.mesh, p.m.mesh.nodeSet(node_sets::kSkin));
+  pipe.setTarget(stretched);
+  const StageReport r = pipe.runMorphing();
+  const PipelineMetrics m = pipe.metrics();
+  // The distances reach the tolerance; the stage's stop criterion (also no node moving more than
+  // 0.1 mm per step) is not asserted: on some meshes a few nodes keep moving.
+  SCOPED_TRACE("after " + std::to_string(r.steps) + " steps");
+  EXPECT_LT(r.surface_mean_m, s.morphing.tolerance_mean_m);
+  EXPECT_LT(r.surface_p95_m, s.morphing.tolerance_p95_m);
+  // The whole skin, constrained rim nodes included, exactly: close too.
+  EXPECT_LT(m.surface.model_to_target.mean_m, 2 * s.morphing.tolerance_mean_m);
+  EXPECT_EQ(m.inverted_elements, 0);
+  EXPECT_GT(m.max_displacement_m, 3e-3);  // the nipple moved ~5.6 mm
+}
+
+TEST(Pipeline, TheImplicitPullReachesTheToleranceInFewerStepsThanTheForcesAlone) {
+  // The same reachable target as above, morphed by the seed's accumulated forces alone (the slow
+  // reference: MorphingOptions' gain of 20 Pa/mm, 0.1 s steps, α doubling per reversal) and with the
+  // implicit pull (augmented Lagrangian: a spring of 100 Pa/mm to the target point solved with the
+  // step, the accumulated force updated with the same gain). Counted: accepted steps until the pulled
+  // vertices' mean and p95 distances first meet the tolerances. The forces alone end within tolerance
+  // without an inverted element; the pull has no inverted element when it first meets the tolerance.
+  // Not asserted: the pull's stop criterion and where it ends. On this mesh a few vertices keep moving
+  // by more than 0.1 mm per step where their nearest target point jumps, so the pull runs on to the
+  // step limit and its final state follows the path: solver changes at round-off level moved its
+  // final mean between 0.28 and 4.4 mm (while it met the tolerance at step 10 each time). Why the
+  // pull is off by default.
+  const SmallPhantom& p = phantom();
+  TargetSurface stretched;
+  stretched.vertices_m = p.m.mesh.nodes();
+  stretched.vertices_m.col(1) *= 1.08;
+  stretched.triangles = skinTriangles(p.m.mesh, p.m.mesh.nodeSet(node_sets::kSkin));
+  auto run = [&](bool pull, Points* x, StageReport* r) {
+    PipelineSettings s;
+    s.simulation.gravity_mps2 = 0.0;
+    s.morphing.target = "";
+    s.morphing.max_steps = 120;
+    s.morphing.time_step_s = 0.1;
+    if (pull) {
+      s.morphing.forces.spring_pa_per_m = 1e5;
+      s.morphing.forces.gain_pa_per_m = 1e5;
+    } else {  // the seed's forces alone: MorphingOptions' defaults, reversal growth 1
+      s.morphing.forces = MorphingOptions{};
+      ASSERT_EQ(s.morphing.forces.spring_pa_per_m, 0.0);
+      s.morphing.alpha_reversal_growth = 1.0;
+    }
+    ProneToSupinePipeline pipe(p.c, p.m, s);
+    pipe.setTarget(stretched);
+    int to_tolerance = -1;
+    size_t inverted_at_tolerance = 0;
+    *r = pipe.runMorphing([&](const PipelineProgress& pr) {
+      if (to_tolerance < 0 && pr.surface_mean_m <= s.morphing.tolerance_mean_m && pr.surface_p95_m <= s.morphing.tolerance_p95_m) {
+        to_tolerance = pr.step;
+        inverted_at_tolerance = invertedTets(p.m.mesh.tets(), pipe.positions()).size();
+        *x = pipe.positions();
+      }
+    });
+    r->steps = to_tolerance;  // reused below: steps until the tolerance was first met
+    EXPECT_EQ(inverted_at_tolerance, 0u) << (pull ? "pull" : "forces alone");
+    if (pull) {
+      EXPECT_FALSE(pipe.simulator().springNodes().empty());  // the springs were set
+      std::printf("[ measure  ] implicit pull at its step limit: mean %.3f mm, p95 %.3f mm, %d inverted\n",
+                  1e3 * r->surface_mean_m, 1e3 * r->surface_p95_m, pipe.metrics().inverted_elements);
+    } else {
+      *x = pipe.positions();
+      EXPECT_EQ(pipe.metrics().inverted_elements, 0);
+      EXPECT_LT(r->surface_mean_m, s.morphing.tolerance_mean_m);
+      EXPECT_LT(r->surface_p95_m, s.morphing.tolerance_p95_m);
+    }
+  };
+  Points x_forces, x_pull;
+  StageReport r_forces, r_pull;
+  run(false, &x_forces, &r_forces);
+  run(true, &x_pull, &r_pull);
+  ASSERT_GT(r_forces.steps, 0);
+  ASSERT_GT(r_pull.steps, 0);
+  std::printf("[ measure  ] %d tets, stretched target, steps to the tolerance: forces alone %d (%ld reversed, final mean %.3f "
+              "mm), implicit pull %d (%ld reversed, final mean %.3f mm); largest node difference (forces at the end, pull "
+              "where it met the tolerance) %.3f mm\n",
+              p.m.mesh.numTets(), r_forces.steps, r_forces.reversed_steps, 1e3 * r_forces.surface_mean_m, r_pull.steps,
+              r_pull.reversed_steps, 1e3 * r_pull.surface_mean_m, 1e3 * (x_pull - x_forces).rowwise().norm().maxCoeff());
+  EXPECT_LE(2 * r_pull.steps, r_forces.steps);
+  // Where the pull first meets the tolerance, it has the shape the forces reach (within the p95 tolerance).
+  EXPECT_LT((x_pull - x_forces).rowwise().norm().maxCoeff(), 1.5e-3);
+}
+
+TEST(Pipeline, ThePulledVerticesIncrementIsTheirNinetyFifthPercentileMove) {
+  // IterationReport::pulled_increment_p95_m against a brute-force percentile of the pulled vertices'
+  // moves over each Figure-2 iteration, and never above the largest move of any node; the morphing
+  // stage's reversal growth is its own (the controller's preset is back after the stage).
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.simulation.gravity_mps2 = 0.0;
+  s.morphing.target = "";
+  s.morphing.max_steps = 5;
+  s.morphing.alpha_reversal_growth = 3.0;
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  TargetSurface stretched;
+  stretched.vertices_m = p.m.mesh.nodes();
+  stretched.vertices_m.col(1) *= 1.08;
+  stretched.triangles = skinTriangles(p.m.mesh, p.m.mesh.nodeSet(node_sets::kSkin));
+  pipe.setTarget(stretched);
+  pipe.runMorphing();
+  EXPECT_EQ(pipe.stiffening().controller().params().reversal_growth, AlphaControllerParams{}.reversal_growth);
+  for (int k = 0; k < 4; ++k) {
+    const Eigen::VectorXd before = pipe.simulator().state().displacement_m;
+    const IterationReport it = pipe.iterate();
+    const Eigen::VectorXd& after = pipe.simulator().state().displacement_m;
+    std::vector<double> moves;
+    for (int v : pipe.morphing()->vertices()) moves.push_back((after.segment<3>(3 * v) - before.segment<3>(3 * v)).norm());
+    std::sort(moves.begin(), moves.end());
+    const size_t rank = static_cast<size_t>(std::ceil(0.95 * static_cast<double>(moves.size())));  // ⌈0.95 n⌉-th smallest
+    EXPECT_NEAR(it.pulled_increment_p95_m, moves[rank - 1], 1e-15) << "iteration " << k;
+    EXPECT_LE(it.pulled_increment_p95_m, it.increment_m);
+    EXPECT_GT(it.pulled_increment_p95_m, 0.0);
+  }
+}
+
+namespace {
+/// Largest move of a node off the wall band and the ⌈0.95 n⌉-th smallest move of the band's nodes, brute force.
+void offWallMoves(const Eigen::VectorXd& before, const Eigen::VectorXd& after, const std::vector<int>& wall_nodes,
+                  double* off_wall_max, double* wall_p95) {
+  std::vector<char> wall(before.size() / 3, 0);
+  for (int n : wall_nodes) wall[static_cast<size_t>(n)] = 1;
+  std::vector<double> moves;
+  *off_wall_max = 0;
+  for (Eigen::Index n = 0; n < before.size() / 3; ++n) {
+    const double d = (after.segment<3>(3 * n) - before.segment<3>(3 * n)).norm();
+    if (wall[static_cast<size_t>(n)]) moves.push_back(d);
+    else *off_wall_max = std::max(*off_wall_max, d);
+  }
+  std::sort(moves.begin(), moves.end());
+  *wall_p95 = moves.empty() ? 0.0 : moves[static_cast<size_t>(std::ceil(0.95 * static_cast<double>(moves.size()))) - 1];
+}
+}  // namespace
+
+TEST(Pipeline, TheOffWallMeasuresAndTheVolumeConditionStopTheStagesAsStated) {
+  // sliding.settle_increment_measure off_wall: the sliding stage settles when the largest move off the
+  // wall and the wall nodes' 95th-percentile move are within the tolerance for 3 steps (checked by brute
+  // force on the last three steps; the largest move of all nodes may then be above it). morphing
+  // off_wall + volume_tolerance_percent: the stage ends within tolerance and within the volume bound,
+  // and each iteration reports the two moves as a brute-force count gives them.
+  const SmallPhantom& p = phantom();
+  PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  ASSERT_TRUE(s.simulation.sliding);
+  s.sliding_stage.increment_measure = SlidingStageSettings::IncrementMeasure::kOffWall;
+  s.sliding_stage.increment_tolerance_m = 0.05e-3;
+  s.morphing.increment_measure = MorphingStageSettings::IncrementMeasure::kOffWall;
+  s.morphing.volume_tolerance_percent = 0.5;
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  ASSERT_NE(pipe.wallSlip(), nullptr);
+  // The band: the wall nodes and every node of an element touching one (brute force here).
+  std::vector<int> wall;
+  {
+    std::vector<char> on(static_cast<size_t>(p.m.mesh.numNodes()), 0), band(on.size(), 0);
+    for (int n : pipe.wallSlip()->nodes()) on[static_cast<size_t>(n)] = 1;
+    for (int t = 0; t < p.m.mesh.numTets(); ++t)
+      for (int i = 0; i < 4; ++i)
+        if (on[static_cast<size_t>(p.m.mesh.tets()(t, i))])
+          for (int j = 0; j < 4; ++j) band[static_cast<size_t>(p.m.mesh.tets()(t, j))] = 1;
+    for (int n = 0; n < p.m.mesh.numNodes(); ++n)
+      if (band[static_cast<size_t>(n)]) wall.push_back(n);
+  }
+  EXPECT_EQ(pipe.wallBandNodes(), wall);
+  EXPECT_GT(wall.size(), pipe.wallSlip()->nodes().size());
+  Eigen::VectorXd previous = pipe.simulator().state().displacement_m;
+  std::vector<std::array<double, 3>> sliding_moves;  // off-wall max, wall p95, all max
+  pipe.runGravity([&](const PipelineProgress& pr) {
+    const Eigen::VectorXd& u = pipe.simulator().state().displacement_m;
+    if (pr.stage == PipelineStage::kSliding) {
+      double off = 0, wp95 = 0;
+      offWallMoves(previous, u, wall, &off, &wp95);
+      sliding_moves.push_back({off, wp95, pr.increment_m});
+    }
+    previous = u;
+  });
+  const StageReport& sl = pipe.slidingReport();
+  ASSERT_TRUE(sl.converged);
+  ASSERT_GE(sliding_moves.size(), 3u);
+  for (size_t k = sliding_moves.size() - 3; k < sliding_moves.size(); ++k) {
+    EXPECT_LE(sliding_moves[k][0], 0.05e-3) << "step " << k + 1;
+    EXPECT_LE(sliding_moves[k][1], 0.05e-3) << "step " << k + 1;
+  }
+  const StageReport mo = pipe.runMorphing();
+  const PipelineMetrics m = pipe.metrics();
+  std::printf("[ measure  ] %d tets, off_wall measures: sliding %d steps, morphing %d steps (%ld reversed), volume %.3f %%, "
+              "pulled mean %.3f / p95 %.3f mm, inverted %d\n",
+              p.m.mesh.numTets(), sl.steps, mo.steps, mo.reversed_steps, m.volume_change_percent, 1e3 * mo.surface_mean_m,
+              1e3 * mo.surface_p95_m, m.inverted_elements);
+  EXPECT_TRUE(mo.converged);
+  EXPECT_LE(std::abs(mo.volume_change_percent), 0.5);
+  EXPECT_NEAR(mo.volume_change_percent, m.volume_change_percent, 1e-9);
+  EXPECT_EQ(m.inverted_elements, 0);
+  for (int k = 0; k < 3; ++k) {
+    const Eigen::VectorXd before = pipe.simulator().state().displacement_m;
+    const IterationReport it = pipe.iterate();
+    double off = 0, wp95 = 0;
+    offWallMoves(before, pipe.simulator().state().displacement_m, wall, &off, &wp95);
+    EXPECT_NEAR(it.off_wall_increment_m, off, 1e-15) << "iteration " << k;
+    EXPECT_NEAR(it.wall_increment_p95_m, wp95, 1e-15) << "iteration " << k;
+    EXPECT_LE(it.off_wall_increment_m, it.increment_m);
+    EXPECT_GT(it.wall_increment_p95_m, 0.0);  // the wall slides with the morphing
+  }
+}
