@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Memory soak of the navigation node (not part of the test command): starts a ROS master and the node
-# (config/node.yaml, the phantom at TARGET elements), then src/nodes/tracking_soak_main.cpp, which
+# (config/node.yaml, the phantom at TARGET elements), then bench/ros/tracking_soak.cpp, which
 # resets and precomputes the node RESETS times and tracks the phantom tracker's clouds at RATE Hz
 # for MINUTES, and prints the node's resident memory (docs/tracking.md, "Memory").
 # Usage: scripts/soak_tracking.sh [MINUTES=30] [RATE=30] [TARGET=20000] [RESETS=8] [JSON]

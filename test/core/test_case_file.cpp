@@ -86,7 +86,7 @@ std::vector<std::string> alternatives(const YAML::Node& value) {
   } catch (const std::exception&) {
   }
   std::vector<std::string> words = {"right", "left", "cylindrical", "planar", "anp", "linear", "trace", "determinant",
-                                    "cholmod", "jacobi-pcg", "multigrid", "chebyshev", "gauss-seidel", "jacobi",
+                                    "aggregation", "cholmod", "jacobi-pcg", "multigrid", "chebyshev", "gauss-seidel", "jacobi",
                                     "explicit", "implicit", "initial", "current", "off_wall", "all_max", "pulled_p95",
                                     "skin", "phantom", "auto", ""};
   words.erase(std::remove(words.begin(), words.end(), v), words.end());

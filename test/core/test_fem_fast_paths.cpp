@@ -187,7 +187,7 @@ TEST(FemFastPaths, BatchedUpdateEqualsElementByElementReferenceWithInvertedEleme
       CorotatedTetFem fem(d.mesh, mat);
       fem.setSimdKernels(simd);
       fem.setModulusFactors(factors);
-      if (determinant) fem.setVolumeTerm(CorotatedTetFem::VolumeTerm::kDeterminant);
+      fem.setVolumeTerm(determinant ? CorotatedTetFem::VolumeTerm::kDeterminant : CorotatedTetFem::VolumeTerm::kTrace);
       Eigen::VectorXd f;
       fem.update(d.x, f);
       const Reference ref = referenceUpdate(d.mesh, mat, factors, d.x, determinant);
@@ -278,7 +278,7 @@ TEST(FemFastPaths, SimdStiffnessGatherEqualsTheScalarOne) {
     SCOPED_TRACE(determinant ? "determinant" : "trace");
     CorotatedTetFem fem(d.mesh, mat);
     fem.setModulusFactors(Eigen::VectorXd::LinSpaced(d.mesh.numTets(), 0.5, 3.0));
-    if (determinant) fem.setVolumeTerm(CorotatedTetFem::VolumeTerm::kDeterminant);
+    fem.setVolumeTerm(determinant ? CorotatedTetFem::VolumeTerm::kDeterminant : CorotatedTetFem::VolumeTerm::kTrace);
     Eigen::VectorXd f;
     fem.update(d.x, f);
     SparseMatrix simd = fem.pattern().matrix(), scalar = fem.pattern().matrix();

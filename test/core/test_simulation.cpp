@@ -137,7 +137,7 @@ TEST(SimulationSettings, BadValuesNameTheKeyAndTheAcceptedRange) {
   EXPECT_NE(errorOf("simulation: {poisson_ratio: 0.5}").find("'simulation.poisson_ratio': expected a value in (-1, 0.5)"),
             std::string::npos)
       << errorOf("simulation: {poisson_ratio: 0.5}");
-  EXPECT_NE(errorOf("simulation: {solver: lu}").find("expected one of cholmod, jacobi-pcg, multigrid, got 'lu'"),
+  EXPECT_NE(errorOf("simulation: {solver: lu}").find("expected one of aggregation, cholmod, jacobi-pcg, multigrid, got 'lu'"),
             std::string::npos);
   EXPECT_NE(errorOf("simulation: {time_stepp_s: 0.1}").find("'simulation.time_stepp_s': unknown key"), std::string::npos);
   EXPECT_NE(errorOf("simulation: {youngs_modulus_pa: -2}").find("Pa"), std::string::npos);
@@ -237,6 +237,51 @@ TEST(Settle, MultigridWithLooseStepToleranceReachesTheCholmodEquilibrium) {
   const double scale = maxNodalNorm(u[0]);
   EXPECT_GT(scale, 3e-3);
   EXPECT_LT(maxNodalNorm(u[1] - u[0]), 1e-3 * scale);
+}
+
+// Smoothed aggregation needs no coarse meshes and reaches the same equilibrium as CHOLMOD.
+TEST(Settle, AggregationMultigridReachesTheCholmodEquilibrium) {
+  ModelCase c = loadModelCase(kPhantomCase);
+  c.meshing.target_elements = 4000;
+  const SimulationModel model = buildSimulationModel(c);
+  SimulationSettings s;
+  s.sliding = false;
+  s.dynamics.gravity_mps2 = c.phantom->gravity_supine_mps2;
+  s.settle.increment_tolerance_m = 1e-7;
+  Eigen::VectorXd u[2];
+  int k = 0;
+  for (auto kind : {SolverSettings::Kind::kCholmod, SolverSettings::Kind::kAggregation}) {
+    s.solver.kind = kind;
+    SimulatorBuild b = buildSimulator(c, model, s);
+    const SettleResult r = settle(*b.simulator, s.settle);
+    EXPECT_TRUE(r.settled) << SolverSettings::kindName(kind);
+    u[k++] = b.simulator->state().displacement_m;
+  }
+  const double scale = maxNodalNorm(u[0]);
+  EXPECT_GT(scale, 3e-3);
+  EXPECT_LT(maxNodalNorm(u[1] - u[0]), 1e-3 * scale);
+}
+
+// A mesh not meshed from an image (no coarse meshes for the geometric multigrid): the error says
+// what to choose instead, and that choice builds and settles.
+TEST(SimulationSettings, AMeshWithoutAnImageNamesTheSolversThatNeedNoCoarseMeshes) {
+  SimulationModel model;
+  model.mesh = makeBoxMesh({6, 2, 2}, {0.06, 0.02, 0.02});
+  const ModelCase c;
+  SimulationSettings s;
+  s.fixed_node_set = "x_min";
+  s.material.youngs_modulus_pa = 20e3;
+  s.dynamics.gravity_mps2 = {0, 0, -9.81};
+  try {
+    buildSimulator(c, model, s);
+    FAIL() << "the geometric multigrid was built without coarse meshes";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("choose the solver 'aggregation'"), std::string::npos) << e.what();
+  }
+  s.solver.kind = SolverSettings::Kind::kAggregation;
+  SimulatorBuild b = buildSimulator(c, model, s);
+  EXPECT_TRUE(settle(*b.simulator, s.settle).settled);
+  EXPECT_GT(maxNodalNorm(b.simulator->state().displacement_m), 1e-4);
 }
 
 // The constraint reactions balance the loads: at rest, their sum is minus the total weight, and

@@ -10,6 +10,7 @@
 #include "breast_sim/core/fem/corotated_tet_fem.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/tissue_labels.h"
+#include "breast_sim/core/solver/aggregation_multigrid.h"
 #include "breast_sim/core/solver/cholmod_solver.h"
 #include "breast_sim/core/solver/pcg_solver.h"
 #include "../util/yaml_fields.h"
@@ -33,6 +34,7 @@ std::string SolverSettings::kindName(Kind k) {
     case Kind::kMultigrid: return "multigrid";
     case Kind::kCholmod: return "cholmod";
     case Kind::kJacobiPcg: return "jacobi-pcg";
+    case Kind::kAggregation: return "aggregation";
   }
   return "?";
 }
@@ -41,7 +43,8 @@ SolverSettings::Kind SolverSettings::kindFromName(const std::string& name) {
   if (name == "multigrid") return Kind::kMultigrid;
   if (name == "cholmod") return Kind::kCholmod;
   if (name == "jacobi-pcg") return Kind::kJacobiPcg;
-  throw std::invalid_argument("unknown solver '" + name + "': expected multigrid, cholmod or jacobi-pcg");
+  if (name == "aggregation") return Kind::kAggregation;
+  throw std::invalid_argument("unknown solver '" + name + "': expected multigrid, aggregation, cholmod or jacobi-pcg");
 }
 
 void SettleOptions::validate() const {
@@ -113,7 +116,7 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
   if (m["time_step_s"]) s.dynamics.time_step_s = numberIn(m["time_step_s"], f, key("time_step_s"), 0, 100, true, false, "s");
   if (m["mass_damping_per_s"]) s.dynamics.mass_damping_per_s = numberIn(m["mass_damping_per_s"], f, key("mass_damping_per_s"), 0, inf, false, false, "1/s");
   if (m["stiffness_damping_s"]) s.dynamics.stiffness_damping_s = numberIn(m["stiffness_damping_s"], f, key("stiffness_damping_s"), 0, inf, false, false, "s");
-  if (m["solver"]) s.solver.kind = SolverSettings::kindFromName(choice(m["solver"], f, key("solver"), {"multigrid", "cholmod", "jacobi-pcg"}));
+  if (m["solver"]) s.solver.kind = SolverSettings::kindFromName(choice(m["solver"], f, key("solver"), {"multigrid", "aggregation", "cholmod", "jacobi-pcg"}));
   if (m["solver_relative_tolerance"]) s.solver.relative_tolerance = numberIn(m["solver_relative_tolerance"], f, key("solver_relative_tolerance"), 0, 1, true, true);
   if (m["solver_max_iterations"]) s.solver.max_iterations = static_cast<int>(integer(m["solver_max_iterations"], f, key("solver_max_iterations"), 1, 100000));
   if (m["multigrid_smoother"]) {
@@ -202,6 +205,9 @@ SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel
   switch (settings.solver.kind) {
     case SolverSettings::Kind::kCholmod: solver = std::make_unique<CholmodSolver>(); break;
     case SolverSettings::Kind::kJacobiPcg: solver = std::make_unique<PcgSolver>(pcg); break;
+    case SolverSettings::Kind::kAggregation:
+      solver = std::make_unique<AggregationMultigridPcgSolver>(model.mesh.nodes(), pcg);
+      break;
     case SolverSettings::Kind::kMultigrid: {
       const MeshHierarchy h = buildMeshHierarchy(model_case, model, settings.solver.coarsening);
       b.multigrid_levels = h.numLevels();

@@ -1,5 +1,5 @@
 // A case's effective settings written back as a case file (pipeline/case_file.h). Each map below
-// names the keys its reader (model_case.cpp, phantom.cpp, simulation_settings.cpp,
+// names the keys its reader (model_case.cpp, phantom_io.cpp, simulation_settings.cpp,
 // pipeline_settings.cpp) accepts, in the same units; test_case_file changes every key in turn and
 // checks that the reader reads back exactly that change.
 #include "breast_sim/core/pipeline/case_file.h"

@@ -94,8 +94,10 @@ std::vector<TetMesh> buildCoarseMeshes(const ModelCase& model_case, const Simula
     throw std::invalid_argument("buildCoarseMeshes: size_factor = " + std::to_string(options.size_factor) +
                                 " must be > 1");
   if (!(fine.meshing.interior_size_m > 0.0))
-    throw std::invalid_argument("buildCoarseMeshes: the fine model has no interior size in its meshing report; "
-                                "build it with buildSimulationModel()");
+    throw std::invalid_argument("the geometric multigrid needs coarse meshes of the model, meshed from its label "
+                                "image: this model was not meshed from an image (no meshing report). Build it "
+                                "with buildSimulationModel(), or choose the solver 'aggregation' (smoothed "
+                                "aggregation, no coarse meshes) or 'cholmod' (direct)");
   std::vector<RefinementPoint> refine;
   for (const auto& l : model_case.lesions) refine.push_back({l.position_m, l.radius_m});
   MeshingOptions m = model_case.meshing;

@@ -22,9 +22,12 @@ struct SimulationModel;
 /// Which linear solver takes the implicit step, and how far it iterates.
 struct SolverSettings {
   enum class Kind {
-    kMultigrid,  ///< PCG with the geometric multigrid V-cycle (the default; solver/multigrid.h)
-    kCholmod,    ///< sparse direct Cholesky (exact; the reference)
-    kJacobiPcg   ///< PCG with block-free diagonal scaling (a slow baseline)
+    kMultigrid,    ///< PCG with the geometric multigrid V-cycle (the default; solver/multigrid.h);
+                   ///< needs the coarse meshes of an image or phantom case
+    kCholmod,      ///< sparse direct Cholesky (exact; the reference)
+    kJacobiPcg,    ///< PCG with diagonal scaling (no set-up; slow on fine meshes)
+    kAggregation   ///< PCG with smoothed-aggregation multigrid (solver/aggregation_multigrid.h):
+                   ///< needs no coarse meshes, so it suits any mesh
   };
   Kind kind = Kind::kMultigrid;
   /// PCG stops when ‖b − A v‖ ≤ this · ‖b‖ (b = M v_t + dt f: it shrinks as the model settles, so a
@@ -48,7 +51,7 @@ struct SolverSettings {
   CoarseningOptions coarsening;
 
   static std::string kindName(Kind k);
-  /// "multigrid", "cholmod" or "jacobi-pcg". @throws std::invalid_argument naming the choices.
+  /// "multigrid", "aggregation", "cholmod" or "jacobi-pcg". @throws std::invalid_argument naming the choices.
   static Kind kindFromName(const std::string& name);
 };
 
@@ -118,7 +121,7 @@ Eigen::VectorXd elementYoungsModuli(const TetMesh& mesh, const SimulationSetting
 
 /// Reads the `simulation:` map of a case file (absent = defaults). Keys, with units:
 ///   youngs_modulus_pa, poisson_ratio, density_kg_per_m3, time_step_s, mass_damping_per_s,
-///   stiffness_damping_s, solver (multigrid | cholmod | jacobi-pcg), solver_relative_tolerance,
+///   stiffness_damping_s, solver (multigrid | aggregation | cholmod | jacobi-pcg), solver_relative_tolerance,
 ///   solver_max_iterations, multigrid_smoother (jacobi | gauss-seidel | chebyshev),
 ///   multigrid_chebyshev_ratio, multigrid_smoothing_steps,
 ///   multigrid_coarse_update_interval, multigrid_max_coarsest_elements, fixed_node_set, gravity_mps2, stiffening,

@@ -1,6 +1,6 @@
 #pragma once
 /// @file mesh_io_detail.h
-/// Internal functions shared by the mesh readers and writers (src/core/mesh/*_io.cpp). Not part of the
+/// Internal functions shared by the mesh readers and writers (src/core/mesh/*.cpp). Not part of the
 /// public API: include mesh_io.h instead.
 
 #include <cstddef>
