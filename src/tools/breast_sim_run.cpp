@@ -21,6 +21,7 @@
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/pipeline/case_file.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/core/reference/model_choice.h"
 #include "breast_sim/core/render/cross_section.h"
@@ -31,14 +32,14 @@ using namespace breast_sim::core;
 namespace {
 
 const char* kUsage = R"(usage: breast_sim_run --case CASE.yaml --out DIR [--target-elements N] [--model-only]
-                      [--solver multigrid|cholmod|jacobi-pcg] [--no-sliding] [--no-morphing]
+                      [--solver multigrid|aggregation|cholmod|jacobi-pcg] [--no-sliding] [--no-morphing]
                       [--coarse-elements N]
                       [--frames N] [--json FILE] [--quiet]
 
 Builds the tetrahedral simulation model of a case and runs the prone-to-supine pipeline on it: gravity
 of the supine position with von Mises stiffening and sliding on the chest wall until it settles, then
 morphing to the target surface (the case's `simulation:`, `sliding:` and `morphing:` maps, see
-config/phantom_default.yaml). Writes to DIR:
+docs/case_files.md). Writes to DIR:
   model.vtu             prone mesh with region labels, node sets and element quality (ParaView, 3D Slicer)
   model.inp             the same mesh for CalculiX / Abaqus (C3D4, mm)
   supine_gravity.vtu    after gravity (and sliding): displacement_mm, sliding_mm; von_mises_pa, modulus_factor
@@ -50,9 +51,10 @@ config/phantom_default.yaml). Writes to DIR:
   metrics.json          steps, reversals, alpha, timings, surface distances, volume change, inverted elements
   cross_sections.png    axial / coronal / sagittal cuts: prone, after gravity, after morphing (target in red)
   model_summary.json    counts, timings, quality and volumes of the model
+  case_effective.yaml   the case as it ran: every key with the value used (command-line overrides included)
   prone_labels.nrrd, prone_surface.obj, supine_target.obj   (phantom cases only)
 Options:
-  --case FILE            YAML case file (see config/phantom_default.yaml)
+  --case FILE            YAML case file (docs/case_files.md)
   --out DIR              output folder (created)
   --target-elements N    overrides meshing.target_elements of the case
   --model-only           build and write the model, do not simulate
@@ -435,6 +437,9 @@ int main(int argc, char** argv) {
       lesions.push_back(j);
     }
     std::ofstream(out / "lesions.json") << lesions.dump(2) << '\n';
+    std::ofstream(out / "case_effective.yaml")
+        << "# The case as this run used it: every key with its value (docs/case_files.md).\n"
+        << effectiveCaseYaml(args.case_file, c.meshing, c.lesion_snap_tolerance_m, settings);
     s["lesions"] = lesions;
     s["seconds"]["total"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     std::ofstream(out / "model_summary.json") << s.dump(2) << '\n';

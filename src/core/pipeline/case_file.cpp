@@ -247,6 +247,13 @@ YAML::Node coarseStartMap(const CoarseStartSettings& c) {
 }  // namespace
 
 std::string effectiveCaseYaml(const std::string& case_path) {
+  double snap_m = 0.0;
+  const MeshingOptions meshing = loadMeshingOptions(case_path, &snap_m);
+  return effectiveCaseYaml(case_path, meshing, snap_m, loadPipelineSettings(case_path));
+}
+
+std::string effectiveCaseYaml(const std::string& case_path, const MeshingOptions& meshing,
+                              double lesion_snap_tolerance_m, const PipelineSettings& settings) {
   namespace fs = std::filesystem;
   const YAML::Node root = yaml_fields::loadFile(case_path);
   if (!root.IsMap()) throw std::runtime_error(case_path + ": expected a map with 'phantom:' or 'image:' at the top");
@@ -255,10 +262,6 @@ std::string effectiveCaseYaml(const std::string& case_path) {
   if (has_phantom == has_image)
     throw std::runtime_error(case_path + ": give exactly one of 'phantom:' (the software phantom) or 'image:' "
                                          "(a label image), found " + (has_phantom ? "both" : "neither"));
-  double snap_m = 0.0;
-  const MeshingOptions meshing = loadMeshingOptions(case_path, &snap_m);
-  const PipelineSettings settings = loadPipelineSettings(case_path);
-
   YAML::Node out(YAML::NodeType::Map);
   if (has_phantom) {
     out["phantom"] = phantomMap(loadPhantomParams(case_path));
@@ -272,7 +275,7 @@ std::string effectiveCaseYaml(const std::string& case_path) {
     out["image"] = image;
   }
   if (root["lesions"]) out["lesions"] = YAML::Clone(root["lesions"]);
-  out["meshing"] = meshingMap(meshing, snap_m);
+  out["meshing"] = meshingMap(meshing, lesion_snap_tolerance_m);
   out["simulation"] = simulationMap(settings.simulation);
   out["stiffening"] = stiffeningMap(settings.stiffening);
   out["sliding"] = slidingMap(settings);

@@ -7,6 +7,9 @@
 
 #include <string>
 
+#include "breast_sim/core/model/image_mesher.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+
 namespace breast_sim::core {
 
 /// The case file `case_path` (with its `base:` files) with every setting filled in: `phantom:` (all
@@ -15,5 +18,11 @@ namespace breast_sim::core {
 /// carry 12 significant digits. Does not read the image or build a model.
 /// @throws std::runtime_error as the case readers do for a case they reject.
 std::string effectiveCaseYaml(const std::string& case_path);
+
+/// The same with the settings maps taken from the given settings (e.g. after command-line
+/// overrides) instead of the file; `phantom:`, `image:` and `lesions:` still come from the file.
+/// @throws std::invalid_argument for settings a case file cannot express.
+std::string effectiveCaseYaml(const std::string& case_path, const MeshingOptions& meshing,
+                              double lesion_snap_tolerance_m, const PipelineSettings& settings);
 
 }  // namespace breast_sim::core
