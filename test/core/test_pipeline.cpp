@@ -50,13 +50,12 @@ TEST(PipelineSettings, ReadsSlidingAndMorphingMapsWithTheirUnits) {
 
 TEST(PipelineSettings, ReadsTheStageStepKeysWithTheirUnits) {
   const std::string f = writeTemp("breast_sim_pipeline_steps.yaml",
-                                  "sliding: {time_step_s: 0.5, alpha_restart: initial, settle_increment_tolerance_mm: 0.05,\n"
+                                  "sliding: {time_step_s: 0.5, settle_increment_tolerance_mm: 0.05,\n"
                                   "          settle_increment_measure: off_wall}\n"
                                   "morphing: {spring_pa_per_mm: 700, increment_measure: all_max, alpha_reversal_growth: 1.5,\n"
                                   "           volume_tolerance_percent: 0.4}\n");
   const PipelineSettings s = loadPipelineSettings(f);
   EXPECT_DOUBLE_EQ(s.sliding_stage.time_step_s, 0.5);
-  EXPECT_EQ(s.sliding_stage.alpha_restart, SlidingStageSettings::AlphaRestart::kInitial);
   EXPECT_DOUBLE_EQ(s.sliding_stage.increment_tolerance_m, 5e-5);
   EXPECT_DOUBLE_EQ(s.morphing.forces.spring_pa_per_m, 7e5);
   EXPECT_EQ(s.morphing.increment_measure, MorphingStageSettings::IncrementMeasure::kAllMax);
@@ -67,8 +66,7 @@ TEST(PipelineSettings, ReadsTheStageStepKeysWithTheirUnits) {
                 .morphing.increment_measure,
             MorphingStageSettings::IncrementMeasure::kOffWall);
   const PipelineSettings t = loadPipelineSettings(writeTemp("breast_sim_pipeline_steps2.yaml",
-                                                            "sliding: {alpha_restart: current}\nmorphing: {increment_measure: pulled_p95}\n"));
-  EXPECT_EQ(t.sliding_stage.alpha_restart, SlidingStageSettings::AlphaRestart::kCurrent);
+                                                            "morphing: {increment_measure: pulled_p95}\n"));
   EXPECT_EQ(t.morphing.increment_measure, MorphingStageSettings::IncrementMeasure::kPulledP95);
 }
 
@@ -77,7 +75,6 @@ TEST(PipelineSettings, BadKeysAndValuesAreNamed) {
   EXPECT_NE(message("morphing: {tolerance_p95_mm: -1}\n").find("morphing.tolerance_p95_mm"), std::string::npos);
   EXPECT_NE(message("sliding: {max_slide_mm: [1, 2]}\n").find("sliding.max_slide_mm"), std::string::npos);
   EXPECT_NE(message("simulation: {sliding: true, stiffening: false}\n").find("needs 'stiffening: true'"), std::string::npos);
-  EXPECT_NE(message("sliding: {alpha_restart: never}\n").find("sliding.alpha_restart"), std::string::npos);
   EXPECT_NE(message("sliding: {time_step_s: -1}\n").find("sliding.time_step_s"), std::string::npos);
   EXPECT_NE(message("sliding: {settle_increment_tolerance_mm: -1}\n").find("sliding.settle_increment_tolerance_mm"), std::string::npos);
   EXPECT_NE(message("morphing: {spring_pa_per_mm: -5}\n").find("morphing.spring_pa_per_mm"), std::string::npos);
@@ -182,35 +179,28 @@ TEST(Pipeline, TheSlidingStageUsesItsOwnTimeStepAndSettleTolerance) {
 }
 
 TEST(Pipeline, TheSlidingStageSearchesAlphaFromWhereTheFixedWallSettleLeftIt) {
-  // alpha_restart current: releasing the wall starts the new α search at the gravity stage's final α
-  // (the first sliding step then has at most 2× it, one reversal), not at the initial 1e-2 /Pa, which
-  // is ×0.8 per step ~50 steps above the floor and stiffens the tissue again (kInitial, the reference:
-  // its first sliding step has α ≥ 0.8 · 1e-2 /Pa). The wall slides and the stage settles either way.
+  // Releasing the wall starts the new α search at the gravity stage's final α: the first sliding
+  // step has at most 2× it (one reversal), not the initial 1e-2 /Pa, which is ×0.8 per step ~50 steps
+  // above the floor and would stiffen the tissue again.
   const SmallPhantom& p = phantom();
-  for (auto restart : {SlidingStageSettings::AlphaRestart::kCurrent, SlidingStageSettings::AlphaRestart::kInitial}) {
-    PipelineSettings s = loadPipelineSettings(kPhantomCase);
-    s.morphing.enabled = false;
-    s.sliding_stage.alpha_restart = restart;
-    ProneToSupinePipeline pipe(p.c, p.m, s);
-    double first_sliding_alpha = -1;
-    pipe.runGravity([&](const PipelineProgress& pr) {
-      if (pr.stage == PipelineStage::kSliding && first_sliding_alpha < 0) first_sliding_alpha = pr.alpha_per_pa;
-    });
-    const double gravity_alpha = pipe.gravityReport().final_alpha_per_pa;
-    const StageReport& sl = pipe.slidingReport();
-    std::printf("[ measure  ] alpha restart %s: gravity ends at alpha %.3g /Pa (%d steps), first sliding step %.3g /Pa, "
-                "sliding %d steps (%ld reversed)\n",
-                restart == SlidingStageSettings::AlphaRestart::kCurrent ? "current" : "initial", gravity_alpha,
-                pipe.gravityReport().steps, first_sliding_alpha, sl.steps, sl.reversed_steps);
-    ASSERT_TRUE(pipe.gravityReport().converged);
-    EXPECT_TRUE(sl.converged);
-    EXPECT_EQ(pipe.metrics().inverted_elements, 0);
-    ASSERT_LT(gravity_alpha, 1e-3);  // else the two cases could not be told apart
-    if (restart == SlidingStageSettings::AlphaRestart::kCurrent)
-      EXPECT_LE(first_sliding_alpha, 2.0 * gravity_alpha);
-    else
-      EXPECT_GE(first_sliding_alpha, 0.8 * StiffeningParams{}.alpha.initial_alpha_per_pa * (1 - 1e-12));
-  }
+  PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  s.morphing.enabled = false;
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  double first_sliding_alpha = -1;
+  pipe.runGravity([&](const PipelineProgress& pr) {
+    if (pr.stage == PipelineStage::kSliding && first_sliding_alpha < 0) first_sliding_alpha = pr.alpha_per_pa;
+  });
+  const double gravity_alpha = pipe.gravityReport().final_alpha_per_pa;
+  const StageReport& sl = pipe.slidingReport();
+  std::printf("[ measure  ] gravity ends at alpha %.3g /Pa (%d steps), first sliding step %.3g /Pa, "
+              "sliding %d steps (%ld reversed)\n",
+              gravity_alpha, pipe.gravityReport().steps, first_sliding_alpha, sl.steps, sl.reversed_steps);
+  ASSERT_TRUE(pipe.gravityReport().converged);
+  EXPECT_TRUE(sl.converged);
+  EXPECT_EQ(pipe.metrics().inverted_elements, 0);
+  ASSERT_LT(gravity_alpha, 1e-3);  // far below the initial α: the two starts can be told apart
+  EXPECT_GT(first_sliding_alpha, 0.0);
+  EXPECT_LE(first_sliding_alpha, 2.0 * gravity_alpha);
 }
 
 TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
@@ -345,7 +335,6 @@ TEST(PipelineSettings, TheDocumentedDefaultsOfTheCaseFileAreTheCodeDefaults) {
   EXPECT_DOUBLE_EQ(m.max_step_move_m, n.max_step_move_m);
   EXPECT_DOUBLE_EQ(m.max_step_volume_change_percent, n.max_step_volume_change_percent);
   EXPECT_DOUBLE_EQ(file.sliding_stage.time_step_s, code.sliding_stage.time_step_s);
-  EXPECT_EQ(file.sliding_stage.alpha_restart, code.sliding_stage.alpha_restart);
   EXPECT_DOUBLE_EQ(file.sliding_stage.increment_tolerance_m, code.sliding_stage.increment_tolerance_m);
   EXPECT_EQ(file.sliding_stage.increment_measure, code.sliding_stage.increment_measure);
   // The one documented exception ("Here: 0.5"): the phantom's target has the prone volume, so its case

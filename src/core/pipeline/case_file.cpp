@@ -203,7 +203,6 @@ YAML::Node slidingMap(const PipelineSettings& s) {
       .n("gaussian_sigma_mm", mm(d.gaussian_sigma_m))
       .n("gaussian_sigma_fraction", d.gaussian_sigma_fraction)
       .n("time_step_s", st.time_step_s)
-      .s("alpha_restart", st.alpha_restart == SlidingStageSettings::AlphaRestart::kCurrent ? "current" : "initial")
       .n("settle_increment_tolerance_mm", mm(st.increment_tolerance_m))
       .s("settle_increment_measure",
          st.increment_measure == SlidingStageSettings::IncrementMeasure::kAllMax ? "all_max" : "off_wall");

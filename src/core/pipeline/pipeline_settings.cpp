@@ -93,7 +93,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
                "inertia", "max_step_mm", "max_slide_mm", "thickness_limit", "gaussian_limit", "gaussian_amplitude",
                "gaussian_sigma_mm", "gaussian_sigma_fraction", "method", "normal_stiffness_pa_per_mm",
                "friction_stiffness_pa_per_mm", "tether_stiffness_pa_per_mm", "stick_speed_mm_per_s", "contact",
-               "contact_gap_mm", "time_step_s", "alpha_restart", "settle_increment_tolerance_mm", "settle_increment_measure"},
+               "contact_gap_mm", "time_step_s", "settle_increment_tolerance_mm", "settle_increment_measure"},
               f, "sliding");
     auto key = [](const char* k) { return std::string("sliding.") + k; };
     SlidingSettings& d = s.sliding;
@@ -129,12 +129,6 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
       if (measure == "all_max") s.sliding_stage.increment_measure = SlidingStageSettings::IncrementMeasure::kAllMax;
       else if (measure == "off_wall") s.sliding_stage.increment_measure = SlidingStageSettings::IncrementMeasure::kOffWall;
       else throw std::runtime_error(f + ": sliding.settle_increment_measure is '" + measure + "'; expected all_max or off_wall");
-    }
-    if (m["alpha_restart"]) {
-      const std::string restart = text(m["alpha_restart"], f, key("alpha_restart"));
-      if (restart == "initial") s.sliding_stage.alpha_restart = SlidingStageSettings::AlphaRestart::kInitial;
-      else if (restart == "current") s.sliding_stage.alpha_restart = SlidingStageSettings::AlphaRestart::kCurrent;
-      else throw std::runtime_error(f + ": sliding.alpha_restart is '" + restart + "'; expected initial or current");
     }
     if (m["contact_gap_mm"]) w.contact_gap_m = 1e-3 * numberIn(m["contact_gap_mm"], f, key("contact_gap_mm"), 0, 10, false, false, "mm");
   }

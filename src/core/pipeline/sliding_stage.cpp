@@ -69,11 +69,9 @@ void ProneToSupinePipeline::attachSliding() {
   else if (sliding_) sliding_->attach(simulator());
   else return;
   sliding_attached_ = true;
-  // A new α search (the boundary conditions changed), from the initial α or from where it is.
-  if (settings_.sliding_stage.alpha_restart == SlidingStageSettings::AlphaRestart::kCurrent)
-    stiff_->controller().restart(stiff_->controller().alpha());
-  else
-    stiff_->restartAlphaSearch();
+  // A new α search (the boundary conditions changed), from the α the fixed-wall settle ended at:
+  // the initial α is knowingly too high, and coming down from it would soften the tissue again.
+  stiff_->controller().restart(stiff_->controller().alpha());
 }
 
 bool ProneToSupinePipeline::slideAfter(const StiffeningStepResult& r, int* stalls) {

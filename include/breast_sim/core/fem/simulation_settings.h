@@ -30,18 +30,12 @@ struct SolverSettings {
                    ///< needs no coarse meshes, so it suits any mesh
   };
   Kind kind = Kind::kMultigrid;
-  /// PCG stops when ‖b − A v‖ ≤ this · ‖b‖ (b = M v_t + dt f: it shrinks as the model settles, so a
-  /// loose per-step tolerance still converges to the exact equilibrium). bench_simulation at 48k
-  /// elements: 1e-2 takes 14 PCG iterations and leaves the dynamic path within 0.002 mm of exact
-  /// solves after 3 steps (1e-3: 19 iterations, 0.00007 mm; 1e-1: 8 iterations, 0.005 mm).
+  /// PCG stops when ‖b − A v‖ ≤ this · ‖b‖, in (0, 1) (b = M v_t + dt f shrinks as the model settles,
+  /// so a loose per-step tolerance still converges to the exact equilibrium; docs/benchmarks.md).
   double relative_tolerance = 1e-2;
   int max_iterations = 200;  ///< per step; a step that hits it is used anyway and counted
-  /// Coarse operators renewed when the PCG iterations lost to their age are worth a renewal
-  /// (MultigridOptions::coarse_update_adaptive), at least every 50th step. bench_simulation at 48k
-  /// elements, 25 steps of supine gravity: 2 renewals and 14.8 PCG iterations per step (every 4th
-  /// step: 7 and 14.3; every 16th: 2 and 15.7); with at most 3 iterations per step 1 renewal
-  /// instead of 7. The main job: the same steps' cost as every 4th step, where every 16th step made
-  /// its sliding stage 1.7× slower (docs/benchmarks.md, "Renewing the coarse operators").
+  /// The geometric multigrid; its coarse operators are renewed when the PCG iterations lost to their
+  /// age are worth a renewal, at least every 50th step (docs/benchmarks.md, "Renewing the coarse operators").
   MultigridOptions multigrid = [] {
     MultigridOptions o;
     o.coarse_update_interval = 50;
@@ -57,11 +51,9 @@ struct SolverSettings {
 
 /// When a quasi-static loading counts as settled (fem/equilibrium.h).
 struct SettleOptions {
-  /// Time step of the settling run [s]; 0 = the dynamics time step. Backward Euler is stable for any
-  /// step: with a step much longer than the Rayleigh α_K each step is nearly a Newton step of the
-  /// co-rotated static problem, so a long step settles in a few steps. bench_simulation at 48k
-  /// elements under supine gravity: 8 steps (0.8 s) at 0.1–1 s against 20 steps (1.8 s) at 0.033 s,
-  /// all within 0.005 mm of a tightly settled CHOLMOD reference.
+  /// Time step of the settling run [s], ≥ 0; 0 = the dynamics time step. Backward Euler is stable for
+  /// any step, and a step much longer than α_K is nearly a Newton step of the static problem, so long
+  /// steps settle in a few (docs/benchmarks.md).
   double time_step_s = 0.33;
   /// Settled when the largest nodal displacement change of a step is at most this [m] …
   double increment_tolerance_m = 1e-5;

@@ -94,17 +94,13 @@ struct MorphingStageSettings {
 };
 
 /// The sliding stage after the fixed-wall settle (YAML keys in `sliding:`: time_step_s,
-/// alpha_restart, settle_increment_tolerance_mm, settle_increment_measure). The measurements behind
+/// settle_increment_tolerance_mm, settle_increment_measure). Releasing the wall starts a new α search
+/// at the α the fixed-wall settle ended at. The measurements behind
 /// the defaults: docs/pipeline.md, "Settings: the sliding stage".
 struct SlidingStageSettings {
   /// Time step of the sliding stage [s], in [0, 10]; 0 = the dynamics time step
   /// (simulation.time_step_s). The default is the dynamics step: a long step changes the friction path.
   double time_step_s = 0.0;
-  /// Where the α search starts when the wall is released (a boundary-condition change: the seed
-  /// searches α again). kInitial: at StiffeningParams' initial α; kCurrent: at the α the fixed-wall
-  /// settle ended at (still a search: decreased after good steps, increased on a reversal).
-  /// kCurrent (default): the initial α is knowingly too high, and coming down from it softens the tissue.
-  enum class AlphaRestart { kInitial, kCurrent } alpha_restart = AlphaRestart::kCurrent;
   /// Settled when the step's move (increment_measure) is at most this [m], ≥ 0, for 3 accepted steps
   /// in a row (explicit method: and the constraints have stopped moving); 0 = the gravity stage's
   /// simulation.settle_increment_tolerance_mm.
