@@ -3,10 +3,13 @@
 # and following it, rviz with rviz/breast_sim.rviz) on a virtual X server (Xvfb, software OpenGL) and
 # saves a screenshot. Usage: bash scripts/rviz_screenshot.sh [OUT.png] (default docs/ros/rviz.png).
 # Environment: RVIZ_SCREENSHOT_WAIT_S (seconds of demo before the shot, default 60),
-# BREAST_SIM_WORK (the catkin workspace, as the other scripts). Needs the workspace built
-# (scripts/run_main.sh or run_tests.sh) and the Debian packages rviz and xvfb (scripts/install_deps.sh).
+# BREAST_SIM_WORK (where builds and logs live, as for the other scripts), RVIZ_SCREENSHOT_WS (a catkin
+# workspace to run instead of ${BREAST_SIM_WORK}/catkin_ws), RVIZ_SCREENSHOT_PORT (the demo's ROS
+# master port; default 11400 + the display number). Needs the workspace built (scripts/run_main.sh
+# or run_tests.sh) and the Debian packages rviz and xvfb (scripts/install_deps.sh).
 set -euo pipefail
 source "$(dirname "$0")/common.sh"
+BREAST_SIM_WS="${RVIZ_SCREENSHOT_WS:-${BREAST_SIM_WS}}"
 out="${1:-${BREAST_SIM_SRC}/docs/ros/rviz.png}"
 wait_s="${RVIZ_SCREENSHOT_WAIT_S:-60}"
 [ -f "${BREAST_SIM_WS}/devel/setup.bash" ] || { log "no catkin workspace at ${BREAST_SIM_WS}; run scripts/run_main.sh first"; exit 1; }
@@ -16,7 +19,7 @@ command -v rviz >/dev/null || { log "rviz is missing: apt-get install rviz"; exi
 # A free display number and a master of our own, so a running ROS graph is not disturbed.
 display=90
 while [ -e "/tmp/.X${display}-lock" ]; do display=$((display + 1)); done
-port=$((11400 + display))
+port="${RVIZ_SCREENSHOT_PORT:-$((11400 + display))}"
 export ROS_MASTER_URI="http://127.0.0.1:${port}"
 mkdir -p "${ROS_LOG_DIR}" "$(dirname "${out}")"
 

@@ -11,6 +11,16 @@
 
 namespace breast_sim::ros_interface {
 
+namespace {
+// The skin marker's look: skin tone, seen-through alpha, and the light of its face shading (model
+// frame; anterior of the phantom is −y, z up).
+constexpr float kSkinColour[3] = {0.96f, 0.76f, 0.64f};
+constexpr float kSkinAlpha = 0.45f;
+constexpr double kSkinLight[3] = {-0.3, -1.0, 0.6};
+// A clustered triangle within ~80° of edge-on to the surface's normal over its cells is a fold.
+constexpr double kFinCosine = 0.17;
+}  // namespace
+
 breast_sim::TetrahedralMesh toMessage(const core::TetMesh& mesh, const core::Points& displacement_m,
                                       const std::string& frame_id, const ros::Time& stamp) {
   breast_sim::TetrahedralMesh msg;
@@ -307,7 +317,17 @@ DisplaySurface decimateSurface(const core::Points& positions_m, const core::Tria
         rep[static_cast<size_t>(v)] = first.emplace(key, v).first->second;
       }
   };
-  auto collapse = [&](const std::vector<int>& rep, DisplaySurface& out) {
+  auto collapse = [&](const std::vector<int>& rep, DisplaySurface& out, bool clustered) {
+    // Area-weighted normal of the input surface over each cell (indexed by the cell's representative).
+    std::vector<Eigen::RowVector3d> cell_normal;
+    if (clustered) {
+      cell_normal.assign(static_cast<size_t>(nv), Eigen::RowVector3d::Zero());
+      for (Eigen::Index t = 0; t < triangles.rows(); ++t) {
+        const Eigen::RowVector3d n = (positions_m.row(triangles(t, 1)) - positions_m.row(triangles(t, 0)))
+                                         .cross(positions_m.row(triangles(t, 2)) - positions_m.row(triangles(t, 0)));
+        for (int k = 0; k < 3; ++k) cell_normal[static_cast<size_t>(rep[static_cast<size_t>(triangles(t, k))])] += n;
+      }
+    }
     std::unordered_map<int, int> index;
     std::unordered_set<std::string> seen;
     std::vector<Eigen::Vector3i> tris;
@@ -319,7 +339,20 @@ DisplaySurface decimateSurface(const core::Points& positions_m, const core::Tria
       std::sort(key.begin(), key.end());
       if (!seen.insert(std::to_string(key[0]) + ',' + std::to_string(key[1]) + ',' + std::to_string(key[2])).second) continue;
       Eigen::Vector3i tri;
-      const int abc[3] = {a, b, c};
+      // A clustered triangle may have turned over: wind it with the surface's own normal over its
+      // three cells (the input winding where nothing was clustered). One standing edge-on to that
+      // normal is a fin clustering folded out of the surface (e.g. across a meridian of a sphere): it
+      // faces neither way and is dropped.
+      bool flip = false;
+      if (!cell_normal.empty()) {
+        const Eigen::RowVector3d n = (positions_m.row(b) - positions_m.row(a)).cross(positions_m.row(c) - positions_m.row(a));
+        const Eigen::RowVector3d s = cell_normal[static_cast<size_t>(a)] + cell_normal[static_cast<size_t>(b)] +
+                                     cell_normal[static_cast<size_t>(c)];
+        const double d = n.dot(s), ns = n.norm() * s.norm();
+        if (std::abs(d) < kFinCosine * ns) continue;
+        flip = d < 0.0;
+      }
+      const int abc[3] = {a, flip ? c : b, flip ? b : c};
       for (int k = 0; k < 3; ++k) {
         auto it = index.find(abc[k]);
         if (it == index.end()) {
@@ -337,7 +370,7 @@ DisplaySurface decimateSurface(const core::Points& positions_m, const core::Tria
   std::vector<int> rep;
   if (max_triangles <= 0 || triangles.rows() <= max_triangles) {
     cluster(0.0, rep);
-    collapse(rep, out);
+    collapse(rep, out, false);
     return out;
   }
   double edge = 0.0;
@@ -347,7 +380,7 @@ DisplaySurface decimateSurface(const core::Points& positions_m, const core::Tria
   for (int attempt = 0; attempt < 30; ++attempt, cell *= 1.5) {
     out = DisplaySurface();
     cluster(cell, rep);
-    collapse(rep, out);
+    collapse(rep, out, true);
     out.cell_m = cell;
     if (out.triangles.rows() <= max_triangles) break;
   }
@@ -365,19 +398,33 @@ visualization_msgs::Marker surfaceMarker(const DisplaySurface& surface, const co
   m.action = visualization_msgs::Marker::ADD;
   m.pose.orientation.w = 1.0;
   m.scale.x = m.scale.y = m.scale.z = 1.0;
-  m.color.r = 0.96f;
-  m.color.g = 0.76f;
-  m.color.b = 0.64f;
-  m.color.a = 0.85f;
+  m.color.r = kSkinColour[0];
+  m.color.g = kSkinColour[1];
+  m.color.b = kSkinColour[2];
+  m.color.a = kSkinAlpha;
+  const Eigen::Vector3d light = Eigen::Vector3d(kSkinLight[0], kSkinLight[1], kSkinLight[2]).normalized();
   m.points.resize(static_cast<size_t>(3 * surface.triangles.rows()));
-  for (Eigen::Index t = 0; t < surface.triangles.rows(); ++t)
+  m.colors.resize(static_cast<size_t>(surface.triangles.rows()));
+  for (Eigen::Index t = 0; t < surface.triangles.rows(); ++t) {
+    Eigen::Vector3d c[3];
     for (int k = 0; k < 3; ++k) {
       const int node = surface.vertices[static_cast<size_t>(surface.triangles(t, k))];
+      c[k] = positions_m.row(node).transpose();
       auto& p = m.points[static_cast<size_t>(3 * t + k)];
-      p.x = positions_m(node, 0);
-      p.y = positions_m(node, 1);
-      p.z = positions_m(node, 2);
+      p.x = c[k].x();
+      p.y = c[k].y();
+      p.z = c[k].z();
     }
+    // Two-sided shading: the same shade seen from outside or inside.
+    const Eigen::Vector3d n = (c[1] - c[0]).cross(c[2] - c[0]);
+    const double nn = n.norm();
+    const double shade = 0.55 + 0.45 * (nn > 0 ? std::abs(n.dot(light)) / nn : 0.0);
+    auto& col = m.colors[static_cast<size_t>(t)];
+    col.r = static_cast<float>(shade * kSkinColour[0]);
+    col.g = static_cast<float>(shade * kSkinColour[1]);
+    col.b = static_cast<float>(shade * kSkinColour[2]);
+    col.a = 1.0f;  // rviz multiplies by color.a
+  }
   return m;
 }
 
@@ -483,12 +530,12 @@ visualization_msgs::MarkerArray slidingMarkers(const core::Points& positions_m, 
     p1.y = p0.y + scale * vectors_m(n, 1);
     p1.z = p0.z + scale * vectors_m(n, 2);
     a.points = {p0, p1};
-    a.scale.x = 0.0006;  // shaft diameter [m]
-    a.scale.y = 0.0012;  // head diameter [m]
-    a.scale.z = 0.0015;  // head length [m]
-    a.color.r = 0.1f;
-    a.color.g = 0.5f;
-    a.color.b = 1.0f;
+    a.scale.x = 0.0010;  // shaft diameter [m]
+    a.scale.y = 0.0022;  // head diameter [m]
+    a.scale.z = 0.0030;  // head length [m]
+    a.color.r = 0.2f;    // yellow-green: apart from the skin, the red lesions and a blue tracker cloud
+    a.color.g = 0.95f;
+    a.color.b = 0.2f;
     a.color.a = 1.0f;
     out.markers.push_back(a);
   }

@@ -283,6 +283,109 @@ TEST(Conversions, DecimatedSurfaceFitsTheBudgetAndKeepsValidIndices) {
   EXPECT_THROW(ros_interface::decimateSurface(x, bad, 10), std::invalid_argument);
 }
 
+namespace {
+// A UV sphere of radius r about the origin, triangles wound outward (right-hand rule).
+void uvSphere(double r, int n_lat, int n_lon, core::Points& x, core::Triangles& t) {
+  x.resize(2 + (n_lat - 1) * n_lon, 3);
+  x.row(0) << 0, 0, r;
+  for (int i = 1; i < n_lat; ++i)
+    for (int j = 0; j < n_lon; ++j) {
+      const double th = M_PI * i / n_lat, ph = 2 * M_PI * j / n_lon;
+      x.row(1 + (i - 1) * n_lon + j) << r * std::sin(th) * std::cos(ph), r * std::sin(th) * std::sin(ph), r * std::cos(th);
+    }
+  const int south = static_cast<int>(x.rows()) - 1;
+  x.row(south) << 0, 0, -r;
+  auto ring = [&](int i, int j) { return 1 + (i - 1) * n_lon + (j % n_lon); };
+  std::vector<Eigen::Vector3i> f;
+  for (int j = 0; j < n_lon; ++j) f.emplace_back(0, ring(1, j), ring(1, j + 1));
+  for (int i = 1; i < n_lat - 1; ++i)
+    for (int j = 0; j < n_lon; ++j) {
+      f.emplace_back(ring(i, j), ring(i + 1, j), ring(i + 1, j + 1));
+      f.emplace_back(ring(i, j), ring(i + 1, j + 1), ring(i, j + 1));
+    }
+  for (int j = 0; j < n_lon; ++j) f.emplace_back(south, ring(n_lat - 1, j + 1), ring(n_lat - 1, j));
+  t.resize(static_cast<Eigen::Index>(f.size()), 3);
+  for (size_t i = 0; i < f.size(); ++i) t.row(static_cast<Eigen::Index>(i)) = f[i].transpose();
+}
+
+Eigen::Vector3d markerPoint(const visualization_msgs::Marker& m, size_t i) {
+  return Eigen::Vector3d(m.points[i].x, m.points[i].y, m.points[i].z);
+}
+}  // namespace
+
+TEST(Conversions, SkinMarkerIsWoundOutwardSeeThroughAndShadedTheSameOnBothSides) {
+  core::Points x;
+  core::Triangles t;
+  uvSphere(0.05, 40, 80, x, t);
+  // The input is outward: every face normal points away from the centre.
+  for (Eigen::Index f = 0; f < t.rows(); ++f) {
+    const Eigen::Vector3d a = x.row(t(f, 0)), b = x.row(t(f, 1)), c = x.row(t(f, 2));
+    ASSERT_GT((b - a).cross(c - a).dot(a + b + c), 0.0) << "test sphere face " << f;
+  }
+  // Down to 1/8 of the sphere's 6240 faces (the node keeps 4000 of a skin's); far coarser clusters of a
+  // UV sphere leave a few fins along meridians that face neither way.
+  for (int budget : {0, 3000, 800}) {
+    const auto surface = ros_interface::decimateSurface(x, t, budget);
+    const auto m = ros_interface::surfaceMarker(surface, x, "m", ros::Time(1));
+    const size_t nt = m.points.size() / 3;
+    ASSERT_GT(nt, 50u);
+    int inward = 0;
+    for (size_t f = 0; f < nt; ++f) {
+      const Eigen::Vector3d a = markerPoint(m, 3 * f), b = markerPoint(m, 3 * f + 1), c = markerPoint(m, 3 * f + 2);
+      inward += (b - a).cross(c - a).dot((a + b + c) / 3.0) <= 0.0;  // centroid of the sphere: the origin
+    }
+    EXPECT_EQ(inward, 0) << "budget " << budget << ": " << inward << " of " << nt << " marker triangles face inward";
+    // See-through, one opaque colour per face (rviz then draws the faces unlit: no black back faces).
+    EXPECT_GT(m.color.a, 0.2f);
+    EXPECT_LT(m.color.a, 0.9f);
+    ASSERT_EQ(m.colors.size(), nt);
+    for (const auto& col : m.colors) {
+      EXPECT_EQ(col.a, 1.0f);
+      EXPECT_GT(col.r + col.g + col.b, 0.5f);  // no face is drawn near black
+    }
+  }
+  // The same surface wound inward is drawn inward, in the same shades.
+  core::Triangles rev = t;
+  rev.col(1).swap(rev.col(2));
+  const auto out = ros_interface::surfaceMarker(ros_interface::decimateSurface(x, t, 0), x, "m", ros::Time(1));
+  const auto in = ros_interface::surfaceMarker(ros_interface::decimateSurface(x, rev, 0), x, "m", ros::Time(1));
+  ASSERT_EQ(in.colors.size(), out.colors.size());
+  for (size_t f = 0; f < in.colors.size(); ++f) {
+    const Eigen::Vector3d a = markerPoint(in, 3 * f), b = markerPoint(in, 3 * f + 1), c = markerPoint(in, 3 * f + 2);
+    ASSERT_LT((b - a).cross(c - a).dot(a + b + c), 0.0);
+    ASSERT_FLOAT_EQ(in.colors[f].r, out.colors[f].r);
+  }
+}
+
+TEST(Conversions, DecimatedPhantomSkinKeepsItsOutwardWinding) {
+  // The phantom's skin (outward faces) decimated to the node's default budget: each display triangle
+  // faces the way the skin faces at its three vertices (the area-weighted vertex normals).
+  const core::ModelCase c = core::loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
+  ASSERT_TRUE(c.phantom);
+  const core::TargetSurface skin = core::skinTarget(c.phantom->prone_surface);
+  const core::Points& x = skin.vertices_m;
+  core::Points vn = core::Points::Zero(x.rows(), 3);
+  for (Eigen::Index f = 0; f < skin.triangles.rows(); ++f) {
+    const Eigen::RowVector3d a = x.row(skin.triangles(f, 0)), b = x.row(skin.triangles(f, 1)), c3 = x.row(skin.triangles(f, 2));
+    const Eigen::RowVector3d n = (b - a).cross(c3 - a);
+    for (int k = 0; k < 3; ++k) vn.row(skin.triangles(f, k)) += n;
+  }
+  for (int budget : {4000, 1000}) {
+    const auto surface = ros_interface::decimateSurface(x, skin.triangles, budget);
+    ASSERT_GT(surface.triangles.rows(), budget / 4);
+    int against = 0;
+    for (Eigen::Index f = 0; f < surface.triangles.rows(); ++f) {
+      const int i = surface.vertices[static_cast<size_t>(surface.triangles(f, 0))],
+                j = surface.vertices[static_cast<size_t>(surface.triangles(f, 1))],
+                k = surface.vertices[static_cast<size_t>(surface.triangles(f, 2))];
+      const Eigen::RowVector3d n = (x.row(j) - x.row(i)).cross(x.row(k) - x.row(i));
+      against += n.dot(vn.row(i) + vn.row(j) + vn.row(k)) <= 0.0;
+    }
+    EXPECT_EQ(against, 0) << "budget " << budget << ": " << against << " of " << surface.triangles.rows()
+                          << " display triangles face inward";
+  }
+}
+
 TEST(Conversions, LesionMessagesMarkersAndFrames) {
   std::vector<core::Lesion> lesions = {{"L1", Eigen::Vector3d(0.01, 0.02, 0.03), 0.005}, {"L2", Eigen::Vector3d::Zero(), 0.0}};
   core::Points x(2, 3);

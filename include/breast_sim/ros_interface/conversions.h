@@ -91,7 +91,9 @@ double angleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b);
 bool gravityLoadChanged(const Eigen::Vector3d& load, const Eigen::Vector3d& current, double threshold_deg, double g_mps2);
 
 /// A surface decimated for display by vertex clustering on a grid: vertices falling into one cell
-/// collapse onto one representative vertex; triangles that degenerate or repeat are dropped.
+/// collapse onto one representative vertex; triangles that degenerate or repeat are dropped. A
+/// clustered triangle is wound to agree with the input's area-weighted normal over its three cells
+/// (undecimated, the input winding is kept), so an outward input (TetMesh::boundary()) stays outward.
 struct DisplaySurface {
   std::vector<int> vertices;  ///< mesh node of each display vertex
   core::Triangles triangles;  ///< indices into `vertices`
@@ -103,7 +105,11 @@ struct DisplaySurface {
 /// @throws std::invalid_argument for an index out of range.
 DisplaySurface decimateSurface(const core::Points& positions_m, const core::Triangles& triangles, int max_triangles);
 
-/// A TRIANGLE_LIST marker of a display surface at nodal positions `positions_m` (#nodes×3 [m]).
+/// A TRIANGLE_LIST marker of a display surface at nodal positions `positions_m` (#nodes×3 [m]), the
+/// triangles in the surface's winding. Drawn see-through (color.a < 1) so lesions inside show, and
+/// with one colour per face (`colors`, a two-sided shade of the skin tone by the face's angle to a
+/// fixed light): rviz then draws the faces unlit, so a face seen from inside (the skin's open base,
+/// the far side through the near one) is not drawn black as an unlit back face.
 visualization_msgs::Marker surfaceMarker(const DisplaySurface& surface, const core::Points& positions_m,
                                          const std::string& frame_id, const ros::Time& stamp);
 
