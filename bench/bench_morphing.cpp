@@ -88,8 +88,8 @@ int main(int argc, char** argv) {
       rows.push_back({{"time_step_s", dt}, {"gain_pa_per_mm", gain}, {"steps", r.steps}, {"converged", r.converged},
                       {"reversed_steps", r.reversed_steps}, {"skin_to_target_mean_mm", pm.surface.model_to_target.mean_m * 1e3},
                       {"skin_to_target_p95_mm", pm.surface.model_to_target.p95_m * 1e3},
-                      {"target_to_skin_mean_mm", pm.surface.target_to_model.mean_m * 1e3},
-                      {"target_to_skin_p95_mm", pm.surface.target_to_model.p95_m * 1e3},
+                      {"target_skin_to_skin_mean_mm", pm.surface.target_to_model.mean_m * 1e3},
+                      {"target_skin_to_skin_p95_mm", pm.surface.target_to_model.p95_m * 1e3},
                       {"volume_change_percent", pm.volume_change_percent}, {"inverted_elements", pm.inverted_elements},
                       {"seconds", r.seconds}});
     }

@@ -43,7 +43,7 @@ struct NodeParams {
   int marker_max_triangles = 4000;
   bool publish_lesion_tf = true;
   std::string lesion_frame_prefix = "lesion_";
-  double sliding_arrow_scale = 5.0;
+  double sliding_arrow_scale = 1.0;
   double sliding_min_length_m = 1e-4;
   int sliding_max_arrows = 300;
   double diagnostics_period_s = 1.0;
