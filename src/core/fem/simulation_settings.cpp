@@ -205,9 +205,15 @@ SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel
   switch (settings.solver.kind) {
     case SolverSettings::Kind::kCholmod: solver = std::make_unique<CholmodSolver>(); break;
     case SolverSettings::Kind::kJacobiPcg: solver = std::make_unique<PcgSolver>(pcg); break;
-    case SolverSettings::Kind::kAggregation:
-      solver = std::make_unique<AggregationMultigridPcgSolver>(model.mesh.nodes(), pcg);
+    case SolverSettings::Kind::kAggregation: {
+      // The matrix's pattern is fixed and its values change every step: the aggregates and
+      // prolongators of the first step are kept, each step redoes only the Galerkin products and
+      // the coarsest factorization.
+      AggregationMultigridOptions sa;
+      sa.reuse_prolongators = true;
+      solver = std::make_unique<AggregationMultigridPcgSolver>(model.mesh.nodes(), pcg, sa);
       break;
+    }
     case SolverSettings::Kind::kMultigrid: {
       const MeshHierarchy h = buildMeshHierarchy(model_case, model, settings.solver.coarsening);
       b.multigrid_levels = h.numLevels();
