@@ -67,6 +67,8 @@ void SimulationSettings::validate() const {
     invalid("solver.multigrid.coarse_update_interval", solver.multigrid.coarse_update_interval, "≥ 1");
   if (!(solver.multigrid.coarse_update_cost_iterations > 0) || !std::isfinite(solver.multigrid.coarse_update_cost_iterations))
     invalid("solver.multigrid.coarse_update_cost_iterations", solver.multigrid.coarse_update_cost_iterations, "> 0, e.g. 5");
+  if (solver.cholmod.blas_threads < 0)
+    invalid("solver.cholmod.blas_threads", solver.cholmod.blas_threads, "≥ 0 (0 = as configured)");
   if (!(gravity_mps2 >= 0) || !std::isfinite(gravity_mps2)) invalid("gravity_mps2", gravity_mps2, "≥ 0 m/s², e.g. 9.81");
   if (solver.coarsening.max_coarsest_elements < 10)
     invalid("solver.coarsening.max_coarsest_elements", solver.coarsening.max_coarsest_elements, "≥ 10");
@@ -183,27 +185,49 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
   return s;
 }
 
-SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel& model,
-                              const SimulationSettings& settings) {
-  settings.validate();
-  SimulatorBuild b;
-  std::vector<int> fixed;
-  if (!settings.fixed_node_set.empty()) {
-    if (!model.mesh.hasNodeSet(settings.fixed_node_set)) {
-      std::string have;
-      for (const auto& kv : model.mesh.nodeSets()) have += (have.empty() ? "" : ", ") + kv.first;
-      throw std::invalid_argument("simulation: fixed_node_set '" + settings.fixed_node_set +
-                                  "' is not a node set of the model (it has: " + have + ")");
-    }
-    fixed = model.mesh.nodeSet(settings.fixed_node_set);
+namespace {
+
+// The nodes of settings.fixed_node_set (none for ""); `owner` names the mesh's origin in the message.
+std::vector<int> fixedNodes(const TetMesh& mesh, const SimulationSettings& settings, const char* owner) {
+  if (settings.fixed_node_set.empty()) return {};
+  if (!mesh.hasNodeSet(settings.fixed_node_set)) {
+    const std::string have = mesh.nodeSetNames();
+    const std::string near = mesh.nearestNodeSetName(settings.fixed_node_set);
+    std::string msg = "simulation: fixed_node_set '" + settings.fixed_node_set + "' is not a node set of the " + owner;
+    if (have.empty())
+      msg += " (it has none): add the held nodes as a node set (TetMesh::setNodeSet, *NSET of an .inp file), or "
+             "set fixed_node_set to \"\" to hold none";
+    else
+      msg += " (it has: " + have + ")" + (near.empty() ? "" : "; did you mean '" + near + "'?");
+    throw std::invalid_argument(msg);
   }
+  return mesh.nodeSet(settings.fixed_node_set);
+}
+
+// The one build of both overloads. `coarse_from_case`: the coarse meshes were meshed from a case
+// (possibly none: the fine mesh is small enough), `meshing_seconds` what that took.
+SimulatorBuild build(const TetMesh& mesh, const SimulationSettings& settings, std::vector<TetMesh> coarse_meshes,
+                     bool coarse_from_case, double meshing_seconds, const char* owner) {
+  settings.validate();
+  const bool multigrid = settings.solver.kind == SolverSettings::Kind::kMultigrid;
+  if (!multigrid && !coarse_meshes.empty())
+    throw std::invalid_argument("buildSimulator: " + std::to_string(coarse_meshes.size()) +
+                                " coarse meshes given, but they are used only by the solver 'multigrid' (the solver is '" +
+                                SolverSettings::kindName(settings.solver.kind) + "')");
+  if (multigrid && coarse_meshes.empty() && !coarse_from_case)
+    throw std::invalid_argument(
+        "buildSimulator: the geometric multigrid needs coarse levels: give coarse meshes of the same domain "
+        "(buildSimulator's coarse_meshes, coarsest last), or choose the solver 'aggregation' (smoothed "
+        "aggregation, no coarse meshes) or 'cholmod' (direct)");
+  SimulatorBuild b;
+  const std::vector<int> fixed = fixedNodes(mesh, settings, owner);
   PcgOptions pcg;
   pcg.relative_tolerance = settings.solver.relative_tolerance;
   pcg.max_iterations = settings.solver.max_iterations;
   std::unique_ptr<LinearSolver> solver;
   const auto t0 = std::chrono::steady_clock::now();
   switch (settings.solver.kind) {
-    case SolverSettings::Kind::kCholmod: solver = std::make_unique<CholmodSolver>(); break;
+    case SolverSettings::Kind::kCholmod: solver = std::make_unique<CholmodSolver>(settings.solver.cholmod); break;
     case SolverSettings::Kind::kJacobiPcg: solver = std::make_unique<PcgSolver>(pcg); break;
     case SolverSettings::Kind::kAggregation: {
       // The matrix's pattern is fixed and its values change every step: the aggregates and
@@ -211,11 +235,15 @@ SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel
       // the coarsest factorization.
       AggregationMultigridOptions sa;
       sa.reuse_prolongators = true;
-      solver = std::make_unique<AggregationMultigridPcgSolver>(model.mesh.nodes(), pcg, sa);
+      solver = std::make_unique<AggregationMultigridPcgSolver>(mesh.nodes(), pcg, sa);
       break;
     }
     case SolverSettings::Kind::kMultigrid: {
-      const MeshHierarchy h = buildMeshHierarchy(model_case, model, settings.solver.coarsening);
+      std::vector<TetMesh> meshes;
+      meshes.reserve(coarse_meshes.size() + 1);
+      meshes.push_back(mesh);
+      for (TetMesh& m : coarse_meshes) meshes.push_back(std::move(m));
+      const MeshHierarchy h(std::move(meshes));
       b.multigrid_levels = h.numLevels();
       for (int l = 0; l < h.numLevels(); ++l) b.level_nodes.push_back(h.mesh(l).numNodes());
       MultigridOptions mg = settings.solver.multigrid;
@@ -226,26 +254,48 @@ SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel
       break;
     }
   }
-  b.hierarchy_seconds = since(t0);
+  b.hierarchy_seconds = meshing_seconds + since(t0);
   const auto t1 = std::chrono::steady_clock::now();
   std::unique_ptr<ElementFormulation> elements;
   if (settings.element == SimulationSettings::Element::kAnpTet) {
-    auto anp = std::make_unique<AnpTetFem>(model.mesh, settings.material);
-    anp->setElementYoungsModuli(elementYoungsModuli(model.mesh, settings));  // empty: E0 everywhere
+    auto anp = std::make_unique<AnpTetFem>(mesh, settings.material);
+    anp->setElementYoungsModuli(elementYoungsModuli(mesh, settings));  // empty: E0 everywhere
     anp->setElementVolumeFraction(settings.anp_element_volume_fraction);
     anp->setInversionBarrier(settings.anp_inversion_barrier, settings.anp_inversion_barrier_stiffness);
     elements = std::move(anp);
   } else {
-    auto tet = std::make_unique<CorotatedTetFem>(model.mesh, settings.material);
+    auto tet = std::make_unique<CorotatedTetFem>(mesh, settings.material);
     tet->setVolumeTerm(settings.volume_term);
-    tet->setElementYoungsModuli(elementYoungsModuli(model.mesh, settings));
+    tet->setElementYoungsModuli(elementYoungsModuli(mesh, settings));
     elements = std::move(tet);
   }
-  b.simulator = std::make_unique<DynamicSimulator>(model.mesh, std::move(elements), settings.material, settings.dynamics,
+  b.simulator = std::make_unique<DynamicSimulator>(mesh, std::move(elements), settings.material, settings.dynamics,
                                                    std::move(solver));
   if (!fixed.empty()) b.simulator->fixNodes(fixed);
   b.setup_seconds = since(t1);
   return b;
+}
+
+}  // namespace
+
+SimulatorBuild buildSimulator(const TetMesh& mesh, const SimulationSettings& settings,
+                              std::vector<TetMesh> coarse_meshes) {
+  return build(mesh, settings, std::move(coarse_meshes), false, 0.0, "mesh");
+}
+
+SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel& model,
+                              const SimulationSettings& settings) {
+  // Invalid settings and a missing node set are reported before the (slow) coarse meshing.
+  settings.validate();
+  fixedNodes(model.mesh, settings, "model");
+  std::vector<TetMesh> coarse;
+  double meshing_seconds = 0.0;
+  if (settings.solver.kind == SolverSettings::Kind::kMultigrid) {
+    const auto t = std::chrono::steady_clock::now();
+    coarse = buildCoarseMeshes(model_case, model, settings.solver.coarsening);
+    meshing_seconds = since(t);
+  }
+  return build(model.mesh, settings, std::move(coarse), true, meshing_seconds, "model");
 }
 
 }  // namespace breast_sim::core

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cctype>
 #include <cmath>
 #include <cstdint>
 #include <sstream>
@@ -78,12 +79,56 @@ void TetMesh::setNodeSet(const std::string& name, std::vector<int> node_indices)
 const std::vector<int>& TetMesh::nodeSet(const std::string& name) const {
   auto it = node_sets_.find(name);
   if (it == node_sets_.end()) {
-    std::string have;
-    for (const auto& kv : node_sets_) have += (have.empty() ? "" : ", ") + kv.first;
+    const std::string have = nodeSetNames();
+    const std::string near = nearestNodeSetName(name);
     throw std::out_of_range("TetMesh: no node set named '" + name + "' (present: " +
-                            (have.empty() ? "none" : have) + ")");
+                            (have.empty() ? "none" : have) + ")" +
+                            (near.empty() ? "" : "; did you mean '" + near + "'?"));
   }
   return it->second;
+}
+
+std::string TetMesh::nodeSetNames() const {
+  std::string have;
+  for (const auto& kv : node_sets_) have += (have.empty() ? "" : ", ") + kv.first;
+  return have;
+}
+
+namespace {
+std::string lowerCase(std::string s) {
+  for (char& c : s) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  return s;
+}
+
+// Optimal string alignment distance (Levenshtein with transpositions of adjacent characters).
+int editDistance(const std::string& a, const std::string& b) {
+  const size_t m = a.size(), n = b.size();
+  std::vector<std::vector<int>> d(m + 1, std::vector<int>(n + 1));
+  for (size_t i = 0; i <= m; ++i) d[i][0] = static_cast<int>(i);
+  for (size_t j = 0; j <= n; ++j) d[0][j] = static_cast<int>(j);
+  for (size_t i = 1; i <= m; ++i)
+    for (size_t j = 1; j <= n; ++j) {
+      const int cost = a[i - 1] == b[j - 1] ? 0 : 1;
+      d[i][j] = std::min({d[i - 1][j] + 1, d[i][j - 1] + 1, d[i - 1][j - 1] + cost});
+      if (i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1]) d[i][j] = std::min(d[i][j], d[i - 2][j - 2] + 1);
+    }
+  return d[m][n];
+}
+}  // namespace
+
+std::string TetMesh::nearestNodeSetName(const std::string& name) const {
+  if (node_sets_.count(name)) return name;
+  const std::string key = lowerCase(name);
+  for (const auto& kv : node_sets_)
+    if (lowerCase(kv.first) == key) return kv.first;
+  const int limit = name.size() <= 3 ? 1 : 2;
+  std::string best;
+  int best_distance = limit + 1;
+  for (const auto& kv : node_sets_) {
+    const int d = editDistance(key, lowerCase(kv.first));
+    if (d < best_distance) best_distance = d, best = kv.first;
+  }
+  return best;
 }
 
 Eigen::VectorXd TetMesh::tetVolumes() const {

@@ -2,16 +2,20 @@
 /// @file simulation_settings.h
 /// Everything that sets up a gravity simulation of a model: material, time integration, linear
 /// solver and which nodes are held; read from a case file's `simulation:` map and turned into a
-/// ready DynamicSimulator. The node, the command-line tools and the benchmarks share this.
+/// ready DynamicSimulator, for a case's model or for any tetrahedral mesh (docs/design.md, "Driving
+/// the core with your own mesh"). The node, the command-line tools and the benchmarks share this.
 
 #include <functional>
 #include <map>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "breast_sim/core/fem/corotated_tet_fem.h"
 #include "breast_sim/core/fem/dynamic_simulator.h"
 #include "breast_sim/core/fem/elastic_material.h"
+#include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/solver/cholmod_solver.h"
 #include "breast_sim/core/solver/multigrid.h"
 
 namespace breast_sim::core {
@@ -23,7 +27,8 @@ struct SimulationModel;
 struct SolverSettings {
   enum class Kind {
     kMultigrid,    ///< PCG with the geometric multigrid V-cycle (the default; solver/multigrid.h);
-                   ///< needs the coarse meshes of an image or phantom case
+                   ///< needs coarse meshes of the domain: those of an image or phantom case, or
+                   ///< the caller's (buildSimulator for a mesh)
     kCholmod,      ///< sparse direct Cholesky (exact; the reference)
     kJacobiPcg,    ///< PCG with diagonal scaling (no set-up; slow on fine meshes)
     kAggregation   ///< PCG with smoothed-aggregation multigrid (solver/aggregation_multigrid.h):
@@ -43,6 +48,9 @@ struct SolverSettings {
     return o;
   }();
   CoarseningOptions coarsening;
+  /// Used by solver 'cholmod' (the direct solve of every step). The coarsest levels of 'multigrid'
+  /// and 'aggregation' factorize with their own options (one BLAS thread).
+  CholmodOptions cholmod;
 
   static std::string kindName(Kind k);
   /// "multigrid", "aggregation", "cholmod" or "jacobi-pcg". @throws std::invalid_argument naming the choices.
@@ -131,13 +139,33 @@ struct SimulatorBuild {
   std::unique_ptr<DynamicSimulator> simulator;
   int multigrid_levels = 0;        ///< levels including the fine one (0 without multigrid)
   std::vector<int> level_nodes;    ///< nodes per level, fine first
-  double hierarchy_seconds = 0.0;  ///< meshing the coarse levels and their prolongations [s]
+  /// Meshing the coarse levels (a case's only), their prolongations and constructing the solver [s]
+  double hierarchy_seconds = 0.0;
   double setup_seconds = 0.0;      ///< element set-up and the solver's pattern analysis [s]
 };
 
-/// Builds the element formulation (co-rotated linear tetrahedra, with the per-tissue moduli of
-/// settings.region_youngs_modulus_pa), the solver (for multigrid: the coarse meshes of the case,
-/// CoarseningOptions) and the simulator, and fixes settings.fixed_node_set.
+/// Builds, for any tetrahedral mesh, the element formulation (settings.element, with the per-region
+/// moduli of settings.region_youngs_modulus_pa keyed by the mesh's region labels), the solver
+/// (settings.solver) and the simulator, and fixes the nodes of settings.fixed_node_set.
+/// Stiffening (settings.stiffening) and sliding are not set up here: they belong to the runs of
+/// pipeline/ (settle() then settles the plain co-rotated model).
+/// @param mesh  kept by reference by the simulator and its elements: it must outlive the simulator
+/// @param coarse_meshes  for solver 'multigrid' only, and required by it: meshes of the same domain,
+///        each coarser than the one before (coarsest last); every node of a level must lie in the next
+///        coarser mesh (within its mean boundary edge length). The hierarchy is
+///        MeshHierarchy({mesh, coarse_meshes...}).
+/// @throws std::invalid_argument for invalid settings; a fixed_node_set the mesh lacks (naming the sets
+///         it has and a near match, TetMesh::nearestNodeSetName); solver 'multigrid' without coarse
+///         meshes (naming the alternatives 'aggregation' and 'cholmod'); coarse meshes with another
+///         solver; or a level that does not fit in the next coarser one (MeshHierarchy).
+SimulatorBuild buildSimulator(const TetMesh& mesh, const SimulationSettings& settings,
+                              std::vector<TetMesh> coarse_meshes = {});
+
+/// buildSimulator(model.mesh, settings, coarse meshes) for a case's model: for solver 'multigrid' the
+/// coarse meshes are meshed from the case's label image (buildCoarseMeshes with
+/// settings.solver.coarsening; none when the fine mesh is already small enough, which leaves the
+/// multigrid a direct solve), and hierarchy_seconds includes that meshing.
+/// @param model  its mesh must outlive the simulator
 /// @throws std::invalid_argument for invalid settings or a missing node set (names it and the sets
 ///         the model has); std::runtime_error as meshing the coarse levels does.
 SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel& model,

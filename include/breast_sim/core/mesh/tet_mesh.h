@@ -70,8 +70,17 @@ class TetMesh {
   /// @throws std::invalid_argument if a node index is out of range or the name is empty.
   void setNodeSet(const std::string& name, std::vector<int> node_indices);
   bool hasNodeSet(const std::string& name) const { return node_sets_.count(name) != 0; }
-  /// @throws std::out_of_range naming the set and listing those present.
+  /// @throws std::out_of_range naming the set, listing those present and suggesting
+  ///         nearestNodeSetName(name) when there is one. Names match exactly (case-sensitive).
   const std::vector<int>& nodeSet(const std::string& name) const;
+  /// The node-set name a misspelt `name` most likely meant, for error messages: a set whose name
+  /// equals `name` ignoring case, else the one with the fewest edits (insertions, deletions,
+  /// substitutions, transpositions of neighbours; compared ignoring case) if at most 2 (1 for names
+  /// of up to 3 characters); ties go to the first in nodeSets() order. `name` itself when it is a set;
+  /// "" when no set is near. Never used to look a set up: of "Skin" and "skin" either may be meant.
+  std::string nearestNodeSetName(const std::string& name) const;
+  /// The node-set names, comma-separated in alphabetical order ("" when there are none).
+  std::string nodeSetNames() const;
   const std::map<std::string, std::vector<int>>& nodeSets() const { return node_sets_; }
 
   /// Boundary faces with outward normals (computed once at construction).
