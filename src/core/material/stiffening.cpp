@@ -106,6 +106,8 @@ void SettleCriterion::validate() const {
   if (!(max_relative_residual > 0) || !std::isfinite(max_relative_residual))
     bad(w, "max_relative_residual", max_relative_residual, "a positive ratio, e.g. 1e-2");
   if (consecutive_steps < 1) bad(w, "consecutive_steps", consecutive_steps, "≥ 1");
+  if (!(max_modulus_excess > 0) || !std::isfinite(max_modulus_excess))
+    bad(w, "max_modulus_excess", max_modulus_excess, "a positive share E_r − 1, e.g. 1e-3");
 }
 
 SettleCheck evaluateSettle(const SettleCriterion& criterion, const Eigen::VectorXd& velocity_mps,
@@ -184,6 +186,7 @@ StiffeningSimulation::StiffeningSimulation(DynamicSimulator& sim, const TetMesh&
                                 std::to_string(sim_.elements().modulusFactors().size()) + " elements, the mesh " +
                                 std::to_string(mesh_.numTets()));
   fixed_node_.assign(mesh_.numNodes(), 0);
+  element_alpha_ = Eigen::VectorXd::Zero(mesh_.numTets());
   x_ = mesh_.nodes();
   refreshStress();
   last_inverted_ = countInverted();
@@ -192,14 +195,14 @@ StiffeningSimulation::StiffeningSimulation(DynamicSimulator& sim, const TetMesh&
 
 void StiffeningSimulation::fixNodes(const std::vector<int>& nodes) {
   sim_.fixNodes(nodes);  // validates the indices
-  settle_run_ = 0;
+  loadChanged();
 }
 
 bool StiffeningSimulation::setGravity(const Eigen::Vector3d& g) {
   if (!g.allFinite()) bad("stiffening", "gravity_mps2 norm", g.norm(), "finite components [m/s²]");
   const Eigen::Vector3d old = sim_.params().gravity_mps2;
   sim_.setGravity(g);
-  settle_run_ = 0;
+  loadChanged();
   bool changed;
   if (old.norm() == 0.0 || g.norm() == 0.0) {
     changed = (old.norm() == 0.0) != (g.norm() == 0.0);
@@ -213,17 +216,28 @@ bool StiffeningSimulation::setGravity(const Eigen::Vector3d& g) {
 
 void StiffeningSimulation::restartAlphaSearch() {
   controller_.restart();
+  loadChanged();
+  element_alpha_.setZero();
+}
+
+void StiffeningSimulation::loadChanged() {
   settle_run_ = 0;
+  releasing_ = false;
+}
+
+void StiffeningSimulation::restartAlphaSearch(double alpha_per_pa) {
+  controller_.restart(alpha_per_pa);
+  loadChanged();  // the local α's stay: the load is the same
 }
 
 void StiffeningSimulation::addNodalForces(const std::vector<int>& nodes, const Points& forces_n) {
   sim_.addNodalForces(nodes, forces_n);  // validates
-  settle_run_ = 0;
+  loadChanged();
 }
 
 void StiffeningSimulation::clearExternalForces() {
   sim_.clearExternalForces();
-  settle_run_ = 0;
+  loadChanged();
 }
 
 void StiffeningSimulation::refreshStress() {
@@ -234,19 +248,30 @@ void StiffeningSimulation::refreshStress() {
 }
 
 void StiffeningSimulation::setModuli(const Eigen::VectorXd& stress) {
-  const double a = controller_.alpha();
+  const double a = alpha();
   Eigen::VectorXd er(stress.size());
   for (Eigen::Index e = 0; e < stress.size(); ++e) {
     const double s = std::isfinite(stress[e]) ? stress[e] : 0.0;
-    er[e] = std::min(1.0 + a * s, params_.max_modulus_factor);
+    er[e] = std::min(1.0 + std::max(a, element_alpha_[e]) * s, params_.max_modulus_factor);
   }
   sim_.elements().setModulusFactors(er);
 }
 
-int StiffeningSimulation::countInverted() {
+std::vector<int> StiffeningSimulation::invertedElements() {
   const Eigen::VectorXd& u = sim_.state().displacement_m;
   for (int n = 0; n < mesh_.numNodes(); ++n) x_.row(n) = mesh_.nodes().row(n) + u.segment<3>(3 * n).transpose();
-  return static_cast<int>(invertedTets(mesh_.tets(), x_).size());
+  return invertedTets(mesh_.tets(), x_);
+}
+
+int StiffeningSimulation::countInverted() { return static_cast<int>(invertedElements().size()); }
+
+double StiffeningSimulation::modulusExcess() const {
+  const double a = alpha();
+  const Eigen::VectorXd& er = sim_.elements().modulusFactors();
+  double m = 0.0;
+  for (Eigen::Index e = 0; e < er.size(); ++e)
+    if (element_alpha_[e] <= a) m = std::max(m, er[e] - 1.0);
+  return m;
 }
 
 void StiffeningSimulation::pushHistory() {
@@ -268,7 +293,7 @@ void StiffeningSimulation::revertTo(int k) {
   history_.erase(history_.begin(), history_.begin() + k);
   refreshStress();
   last_inverted_ = countInverted();
-  settle_run_ = 0;
+  loadChanged();
 }
 
 void StiffeningSimulation::resync() {
@@ -276,7 +301,7 @@ void StiffeningSimulation::resync() {
   last_inverted_ = countInverted();
   history_.clear();
   pushHistory();
-  settle_run_ = 0;
+  loadChanged();
 }
 
 StiffeningStepResult StiffeningSimulation::step() {
@@ -298,8 +323,13 @@ StiffeningStepResult StiffeningSimulation::step() {
       } catch (const std::runtime_error&) {
         solved = false;  // e.g. non-finite velocities: treated like an inversion
       }
-      if (solved && countInverted() == 0) {
-        if (!hold_alpha_) controller_.onAccepted();
+      const std::vector<int> inverted = solved ? invertedElements() : std::vector<int>{};
+      if (solved && inverted.empty()) {
+        if (!hold_alpha_) {
+          // Releasing: α halves (see the class comment); else the controller's decrease.
+          if (releasing_) release_alpha_ *= 0.5;
+          else controller_.onAccepted();
+        }
         r.advanced = true;
         break;
       }
@@ -313,7 +343,15 @@ StiffeningStepResult StiffeningSimulation::step() {
       sim_.restore(saved);
       ++reversed_;
       ++r.reversals;
-      controller_.onReversed(attempt);
+      if (releasing_ && solved) {
+        // Only the inverting elements stiffen; the global α stays.
+        // An element first gets the α the release started from (it was valid there), then doubles.
+        const double a = alpha();
+        for (int e : inverted) element_alpha_[e] = element_alpha_[e] > a ? 2.0 * element_alpha_[e] : release_start_alpha_;
+      } else {
+        releasing_ = false;  // a failed solve: the controller's search again
+        controller_.onReversed(attempt);
+      }
       if (attempt >= params_.max_reversals_per_step) {
         r.reversal_limit_hit = true;
         ++limit_hits_;
@@ -339,12 +377,19 @@ StiffeningStepResult StiffeningSimulation::step() {
     r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, loads, sim_.lumpedMass(),
                               sim_.params().gravity_mps2, fixed_node_);
     settle_run_ = r.settle.below ? settle_run_ + 1 : 0;
-    if (settle_run_ >= params_.settle.consecutive_steps && steps_to_settle_ < 0) steps_to_settle_ = accepted_;
-    settled_ = settle_run_ >= params_.settle.consecutive_steps;
+    // The moduli this step ran with: how far its equilibrium is from the base material's.
+    excess_ = params_.update_moduli ? modulusExcess() : 0.0;
+    const bool shape_settled = settle_run_ >= params_.settle.consecutive_steps;
+    settled_ = shape_settled && (!reversal || excess_ <= params_.settle.max_modulus_excess);
+    if (shape_settled && !settled_ && reversal && !releasing_) {
+      releasing_ = true;
+      release_alpha_ = release_start_alpha_ = controller_.alpha();
+    }
+    if (settled_ && steps_to_settle_ < 0) steps_to_settle_ = accepted_;
     pushHistory();
   }
   r.inverted_elements = last_inverted_;
-  r.alpha_per_pa = controller_.alpha();
+  r.alpha_per_pa = alpha();
   wall_ += since(t0);
   return r;
 }
@@ -355,13 +400,22 @@ RunStats StiffeningSimulation::stats() const {
   s.reversed_steps = reversed_;
   s.reversal_fraction = accepted_ + reversed_ > 0 ? static_cast<double>(reversed_) / static_cast<double>(accepted_ + reversed_) : 0.0;
   s.reversal_limit_hits = limit_hits_;
-  s.final_alpha_per_pa = params_.update_moduli ? controller_.alpha() : 0.0;
+  s.final_alpha_per_pa = params_.update_moduli ? alpha() : 0.0;
   s.inverted_elements = last_inverted_;
   s.nan = !sim_.state().displacement_m.allFinite();
   deformationMeasures(mesh_, sim_.state().displacement_m, s.volume_change_percent, s.max_displacement_m);
   s.max_modulus_factor = sim_.elements().modulusFactors().maxCoeff();
   s.settled = settled_;
   s.steps_to_settle = steps_to_settle_;
+  s.max_modulus_excess = excess_;
+  s.releasing = releasing_;
+  const double a = alpha();
+  s.locally_stiffened_elements = static_cast<int>((element_alpha_.array() > a).count());
+  if (s.locally_stiffened_elements > 0) {
+    const Eigen::VectorXd v = mesh_.tetVolumes().cwiseAbs();
+    const double local = (element_alpha_.array() > a).select(v.array(), 0.0).sum();
+    s.locally_stiffened_volume_percent = 100.0 * local / v.sum();
+  }
   s.simulated_time_s = sim_.state().time_s;
   s.wall_seconds = wall_;
   return s;

@@ -173,7 +173,8 @@ YAML::Node stiffeningMap(const StiffeningParams& p) {
       .i("max_reversals_per_step", p.max_reversals_per_step)
       .n("settle_max_speed_mm_per_s", mm(p.settle.max_speed_mps))
       .n("settle_max_relative_residual", p.settle.max_relative_residual)
-      .i("settle_consecutive_steps", p.settle.consecutive_steps);
+      .i("settle_consecutive_steps", p.settle.consecutive_steps)
+      .n("settle_max_modulus_excess", p.settle.max_modulus_excess);
   return m.yaml();
 }
 

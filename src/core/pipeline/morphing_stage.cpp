@@ -103,7 +103,7 @@ IterationReport ProneToSupinePipeline::iterate() {
       it.diverged = true;
       r.advanced = false;
       r.reversals += 1;
-      r.alpha_per_pa = stiff_->controller().alpha();
+      r.alpha_per_pa = stiff_->alpha();
       mv = StepMoves{};  // back at the start: nothing moved
       it.pulled_increment_p95_m = 0.0;
     }

@@ -140,7 +140,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     checkKeys(m,
               {"initial_alpha_per_pa", "min_alpha_per_pa", "max_alpha_per_pa", "decrease_factor", "increase_factor",
                "reversal_growth", "rate_halving", "min_rate", "max_reversals_per_step", "settle_max_speed_mm_per_s",
-               "settle_max_relative_residual", "settle_consecutive_steps"},
+               "settle_max_relative_residual", "settle_consecutive_steps", "settle_max_modulus_excess"},
               f, "stiffening");
     auto key = [](const char* k) { return std::string("stiffening.") + k; };
     AlphaControllerParams& a = s.stiffening.alpha;
@@ -168,6 +168,8 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
       c.max_relative_residual = numberIn(m["settle_max_relative_residual"], f, key("settle_max_relative_residual"), 0, 1, true, false);
     if (m["settle_consecutive_steps"])
       c.consecutive_steps = static_cast<int>(integer(m["settle_consecutive_steps"], f, key("settle_consecutive_steps"), 1, 1000));
+    if (m["settle_max_modulus_excess"])
+      c.max_modulus_excess = numberIn(m["settle_max_modulus_excess"], f, key("settle_max_modulus_excess"), 0, 1, true, false);
     // The defaults of the keys not given must fit the ones given (e.g. min_alpha_per_pa above the
     // default initial α): named by the controller's field.
     try {

@@ -18,7 +18,10 @@ void ProneToSupinePipeline::closeReport(StageReport& r, const RunStats& before, 
   const RunStats after = stiff_->stats();
   r.reversed_steps = after.reversed_steps - before.reversed_steps;
   r.reversal_limit_hits = after.reversal_limit_hits - before.reversal_limit_hits;
-  r.final_alpha_per_pa = stiff_->controller().alpha();
+  r.final_alpha_per_pa = stiff_->alpha();
+  r.modulus_excess = after.max_modulus_excess;
+  r.locally_stiffened_elements = after.locally_stiffened_elements;
+  r.locally_stiffened_volume_percent = after.locally_stiffened_volume_percent;
   r.seconds = seconds;
   r.elements = model_.mesh.numTets();
 }
@@ -201,7 +204,7 @@ PipelineMetrics ProneToSupinePipeline::metrics() const {
   m.volume_change_percent = 100.0 * (q.total_volume_m3 / mesh_volume_m3_ - 1.0);
   m.max_displacement_m = maxNodalNorm(simulator().state().displacement_m);
   m.max_modulus_factor = modulusFactors().maxCoeff();
-  m.final_alpha_per_pa = stiff_->controller().alpha();
+  m.final_alpha_per_pa = stiff_->alpha();
   if (distance_) {
     m.has_target = true;
     m.surface = surfaceMatch(model_.mesh, x, model_.mesh.nodeSet(node_sets::kSkin), *distance_, target_);

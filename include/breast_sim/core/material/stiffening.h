@@ -108,12 +108,18 @@ class AlphaController {
   State s_;
 };
 
-/// When a run counts as settled: max nodal speed and the relative static residual, per step.
+/// When a run counts as settled: max nodal speed and the relative static residual, per step, and the
+/// stiffening faded out (StiffeningSimulation, "Release").
 struct SettleCriterion {
   double max_speed_mps = 1e-3;         ///< every free node slower than this [m/s]
   /// ‖f_el + f_ext + M g‖ / ‖f_ext + M g‖ over the free DOFs below this (static equilibrium).
   double max_relative_residual = 1e-2;
   int consecutive_steps = 3;           ///< both hold for this many accepted steps in a row
+  /// … and no element is stiffer than its base material by more than this share, E_r − 1 ≤ δ [1]
+  /// (the locally stiffened elements of the release excepted). Then K0 ≤ K ≤ (1 + δ) K0, so the
+  /// linearised state is within δ (relative, energy norm) of the base material's equilibrium:
+  /// the state is the material law's answer, not that of a material stiffened to avoid inversion.
+  double max_modulus_excess = 1e-3;
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
 };
@@ -176,6 +182,12 @@ struct RunStats {
   double volume_change_percent = 0.0;  ///< (V − V0) / V0 · 100 at the end [%]
   double max_modulus_factor = 1.0;  ///< largest E_r at the end [1]
   bool settled = false;             ///< the settle criterion held (consecutive_steps in a row)
+  /// Largest E_r − 1 of the last accepted step over the elements without a local α [1]: how far the
+  /// state is from the base material's equilibrium (SettleCriterion::max_modulus_excess).
+  double max_modulus_excess = 0.0;
+  int locally_stiffened_elements = 0;  ///< elements with a local α above the global one (release)
+  double locally_stiffened_volume_percent = 0.0;  ///< their share of the rest volume [%]
+  bool releasing = false;           ///< the release has started (and not been restarted)
   long steps_to_settle = -1;        ///< accepted steps until then, −1 if never
   double simulated_time_s = 0.0;
   double wall_seconds = 0.0;
@@ -193,6 +205,19 @@ void deformationMeasures(const TetMesh& mesh, const Eigen::VectorXd& displacemen
 /// Constraints, gravity and external forces may go through this class (it forwards them and restarts
 /// the settle count) or to the simulator directly: the settle criterion reads the simulator's own
 /// constrained DOFs and external forces.
+///
+/// Release: the seed's loop settles the shape with α still high (the stiffer material's equilibrium,
+/// up to 1.9× stiffer). So once speed and residual hold while an element is still stiffened by more
+/// than SettleCriterion::max_modulus_excess, the driver releases: α halves after every accepted step,
+/// past the controller's floor (alpha()), and a step that inverts elements is repeated with just
+/// those elements stiffened, by a local α_e (E_r = 1 + max(α, α_e) s_VM; α_e = the α the release
+/// started from, where they were valid, doubled on each further inversion) while the global α goes
+/// on down: a folding rim does not stiffen the whole breast. The controller keeps its state for the
+/// next search. Settled = speed and residual hold and every element without a local α has E_r − 1 ≤ δ.
+/// The local α's (RunStats::locally_stiffened_elements) last until the α search restarts from the
+/// initial α. A load or constraint change through this class or a restore ends the release, and so
+/// does a solver failure during it (α back to the controller: the seed's loop, then a new release).
+/// Without reversal (α fixed) there is no release and settled is the shape's criterion alone.
 class StiffeningSimulation {
  public:
   /// One undo-history entry: restores the simulation exactly.
@@ -211,8 +236,13 @@ class StiffeningSimulation {
   /// Sets gravity [m/s²]; a direction change beyond the tolerance restarts the α search.
   /// @return whether the search was restarted.
   bool setGravity(const Eigen::Vector3d& g_mps2);
-  /// Restarts the α search from the initial α (any other boundary-condition change).
+  /// Restarts the α search from the initial α (any other boundary-condition change); ends a release
+  /// and drops the local α's.
   void restartAlphaSearch();
+  /// The same from a given α [1/Pa] (clamped to the controller's bounds), keeping the local α's: the
+  /// boundary conditions changed, the load did not, and coming down from the initial α would soften
+  /// the tissue again (sliding attached).
+  void restartAlphaSearch(double alpha_per_pa);
   /// While held, accepted steps leave α as it is (reversals still increase it): the morphing stage
   /// holds α once the surface distance meets its tolerance (seed 2.6).
   void holdAlpha(bool hold) { hold_alpha_ = hold; }
@@ -239,6 +269,9 @@ class StiffeningSimulation {
   /// than k are dropped. @throws std::out_of_range for k outside [0, historySize()).
   void revertTo(int k);
 
+  /// The global α of the next step [1/Pa]: the controller's, or during the release the released one
+  /// (which may fall below the controller's floor).
+  double alpha() const { return releasing_ ? release_alpha_ : controller_.alpha(); }
   const AlphaController& controller() const { return controller_; }
   AlphaController& controller() { return controller_; }
   DynamicSimulator& simulator() { return sim_; }
@@ -254,7 +287,10 @@ class StiffeningSimulation {
   void refreshStress();  // elastic update at the current state: base stress, f_el
   void setModuli(const Eigen::VectorXd& stress);
   void pushHistory();
+  void loadChanged();  // restarts the settle count and ends a release
   int countInverted();
+  std::vector<int> invertedElements();
+  double modulusExcess() const;  // largest E_r − 1 over elements without a local α above the global one
 
   DynamicSimulator& sim_;
   const TetMesh& mesh_;
@@ -268,6 +304,10 @@ class StiffeningSimulation {
   long accepted_ = 0, reversed_ = 0, limit_hits_ = 0, steps_to_settle_ = -1;
   int settle_run_ = 0;
   bool settled_ = false;
+  bool releasing_ = false;
+  double release_alpha_ = 0.0, release_start_alpha_ = 0.0;  // [1/Pa]
+  Eigen::VectorXd element_alpha_;  // local α per element [1/Pa], 0 = none (release)
+  double excess_ = 0.0;
   double wall_ = 0.0;
   int last_inverted_ = 0;
 };

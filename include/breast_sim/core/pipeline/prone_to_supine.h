@@ -213,6 +213,13 @@ struct StageReport {
   double seconds = 0.0;       ///< wall time [s]
   double last_increment_m = 0.0;
   double final_alpha_per_pa = 0.0;
+  /// Largest E_r − 1 at the end over the elements without a local α [1]: the state is within this
+  /// (relative, linearised) of the base material's equilibrium (SettleCriterion::max_modulus_excess).
+  double modulus_excess = 0.0;
+  /// Elements kept stiffer than the rest at the end because the base material inverts them there
+  /// (StiffeningSimulation, "Release"), and their share of the model's rest volume [%].
+  int locally_stiffened_elements = 0;
+  double locally_stiffened_volume_percent = 0.0;
   double surface_mean_m = -1; ///< morphing: pulled vertices → target at the end [m]
   double surface_p95_m = -1;
   double max_slide_m = 0.0;   ///< sliding: largest total slide of a wall node [m]
