@@ -96,6 +96,10 @@ struct OurRun {
   std::vector<int> inverted_elements;
   long reversed = 0;
   double alpha = 0;
+  bool stiffened = false;            ///< ran the stiffening driver
+  double modulus_excess = 0;         ///< its largest E_r − 1 at the end (elements with a local α excepted)
+  int locally_stiffened = 0;         ///< elements it keeps stiffer locally, and their volume share [%]
+  double locally_stiffened_percent = 0;
   std::string failure;  ///< what a run that threw said ("" = it ran)
 };
 
@@ -251,6 +255,10 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
     r.settled = st.settled;
     r.reversed = st.reversed_steps;
     r.alpha = st.final_alpha_per_pa;
+    r.stiffened = true;
+    r.modulus_excess = st.max_modulus_excess;
+    r.locally_stiffened = st.locally_stiffened_elements;
+    r.locally_stiffened_percent = st.locally_stiffened_volume_percent;
   }
   if (wall.on) {
     // Release the wall onto implicit sliding and settle again (the pipeline's loop: springs before,
@@ -488,6 +496,15 @@ int main(int argc, char** argv) {
           std::printf("%6.3f | %-24s | %8.3f | %22s | %6.3f %6.3f %6.3f mm | %5d %4d |%s\n", nu, method.c_str(),
                       e_oc4.max_displacement_mm, "", e_oc4.mean_mm, e_oc4.p95_mm, e_oc4.lesion_max_mm, ours.steps,
                       ours.inverted, ours.settled ? "" : " (not settled)");
+        }
+        if (ours.stiffened) {
+          std::printf("       |   stiffening: %ld reversed, alpha %.2g /Pa, E_r - 1 <= %.2g, %d elements (%.4f %% of the "
+                      "volume) stiffened locally, %.2f s\n",
+                      ours.reversed, ours.alpha, ours.modulus_excess, ours.locally_stiffened, ours.locally_stiffened_percent,
+                      ours.settle_seconds);
+          o["stiffening"] = {{"reversed", ours.reversed}, {"final_alpha_per_pa", ours.alpha},
+                             {"modulus_excess", ours.modulus_excess}, {"locally_stiffened_elements", ours.locally_stiffened},
+                             {"locally_stiffened_volume_percent", ours.locally_stiffened_percent}};
         }
         const std::string where = invertedSummary(m, s.fixed_node_set, ours.inverted_elements);
         if (!where.empty()) {

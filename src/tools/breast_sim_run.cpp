@@ -366,6 +366,8 @@ int main(int argc, char** argv) {
         nlohmann::json j = {{"ran", r.ran}, {"converged", r.converged}, {"steps", r.steps}, {"reversed_steps", r.reversed_steps},
                             {"reversal_limit_hits", r.reversal_limit_hits}, {"stuck", r.stuck}, {"seconds", r.seconds},
                             {"last_increment_mm", r.last_increment_m * 1e3}, {"final_alpha_per_pa", r.final_alpha_per_pa},
+                            {"modulus_excess", r.modulus_excess}, {"locally_stiffened_elements", r.locally_stiffened_elements},
+                            {"locally_stiffened_volume_percent", r.locally_stiffened_volume_percent},
                             {"elements", r.elements}};
         if (r.coarse_elements > 0)
           j["coarse_start"] = {{"elements", r.coarse_elements}, {"steps", r.coarse_steps}, {"reversed_steps", r.coarse_reversed_steps}};
