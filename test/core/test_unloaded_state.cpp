@@ -1,0 +1,208 @@
+// recoverUnloadedShape: a known rest shape loaded by gravity is recovered from its loaded shape, with
+// and without stiffening; a load too large for the material ends without converging and says why;
+// bad input throws naming the value; no gravity gives the loaded shape back.
+#include <gtest/gtest.h>
+
+#include <omp.h>
+
+#include <cmath>
+#include <functional>
+#include <limits>
+#include <stdexcept>
+#include <string>
+
+#include "breast_sim/core/fem/equilibrium.h"
+#include "breast_sim/core/fem/simulation_settings.h"
+#include "breast_sim/core/fem/unloaded_state.h"
+#include "breast_sim/core/mesh/box_mesh.h"
+#include "breast_sim/core/mesh/tet_quality.h"
+
+using namespace breast_sim::core;
+
+namespace {
+
+// The meshes here are small: one thread is faster than two on a shared machine.
+[[maybe_unused]] const int kOneThread = (omp_set_num_threads(1), 1);
+
+const Eigen::Vector3d kGravity(0.0, 0.0, -9.81);
+
+// A 4 cm cube of 2 kPa tissue held at its x_min face: under gravity along −z it bends and hangs
+// (about 1 cm at the free edge), like a breast off the chest wall.
+const TetMesh& cube() {
+  static const TetMesh m = [] {
+    TetMesh b = makeBoxMesh({5, 5, 5}, {0.04, 0.04, 0.04});
+    b.setNodeSet("chest_wall", b.nodeSet("x_min"));
+    return b;
+  }();
+  return m;
+}
+
+SimulationSettings settings(bool stiffening, double youngs_modulus_pa = 2000.0) {
+  SimulationSettings s;
+  s.material.youngs_modulus_pa = youngs_modulus_pa;
+  s.material.poisson_ratio = 0.48;
+  s.solver.kind = SolverSettings::Kind::kCholmod;
+  s.solver.cholmod.blas_threads = 1;
+  s.stiffening = stiffening;
+  s.sliding = false;
+  return s;
+}
+
+// The rest shape X0 loaded by gravity, settled tighter than the recovery's tolerance.
+const TetMesh& loadedCube() {
+  static const TetMesh m = [] {
+    SimulationSettings s = settings(false);
+    s.dynamics.gravity_mps2 = kGravity;
+    SimulatorBuild b = buildSimulator(cube(), s);
+    SettleOptions o = s.settle;
+    o.increment_tolerance_m = 1e-7;
+    const SettleResult r = settle(*b.simulator, o);
+    if (!r.settled) throw std::runtime_error("the cube did not settle");
+    return withNodes(cube(), cube().nodes() + b.simulator->displacement());
+  }();
+  return m;
+}
+
+void expectRecovered(const UnloadedStateResult& r, const UnloadedStateOptions& o) {
+  ASSERT_TRUE(r.converged) << r.failure;
+  EXPECT_EQ(r.failure, "");
+  EXPECT_LE(r.max_residual_m, o.tolerance_m);
+  EXPECT_EQ(static_cast<int>(r.history.size()), r.iterations);
+  EXPECT_EQ(r.inverted_elements, 0);
+  ASSERT_EQ(r.unloaded_nodes_m.rows(), cube().numNodes());
+  const Eigen::VectorXd d = (r.unloaded_nodes_m - cube().nodes()).rowwise().norm();
+  const double sag = (loadedCube().nodes() - cube().nodes()).rowwise().norm().maxCoeff();
+  EXPECT_GT(sag, 5e-3);  // the load is not a small one
+  EXPECT_LT(d.mean(), 0.3e-3) << "max " << d.maxCoeff() << " m";
+  EXPECT_LT(d.maxCoeff(), 0.5e-3);
+  // The held face stays where it is.
+  for (int i : cube().nodeSet("chest_wall"))
+    EXPECT_EQ((r.unloaded_nodes_m.row(i) - loadedCube().nodes().row(i)).norm(), 0.0);
+  // The re-loaded shape is the loaded one.
+  ASSERT_EQ(r.reloaded_nodes_m.rows(), cube().numNodes());
+  EXPECT_LE((r.reloaded_nodes_m - loadedCube().nodes()).rowwise().norm().maxCoeff(), o.tolerance_m);
+  std::printf("    sag %.2f mm; %d iterations, %.3f s; |X0 - known| mean %.4f mm, max %.4f mm; residual max %.2e m, "
+              "mean %.2e m\n",
+              sag * 1e3, r.iterations, r.seconds, d.mean() * 1e3, d.maxCoeff() * 1e3, r.max_residual_m, r.mean_residual_m);
+}
+
+std::string invalidArgumentOf(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const std::invalid_argument& e) {
+    return e.what();
+  }
+  return "no std::invalid_argument";
+}
+
+}  // namespace
+
+TEST(UnloadedState, RecoversTheKnownRestShape) {
+  const UnloadedStateOptions o;
+  const UnloadedStateResult r = recoverUnloadedShape(loadedCube(), settings(false), kGravity, o);
+  expectRecovered(r, o);
+  EXPECT_LE(r.iterations, 12);
+  // Each loading settles from the last one's displacement: the later ones are short.
+  EXPECT_LT(r.history.back().settle_steps, r.history.front().settle_steps);
+}
+
+TEST(UnloadedState, RecoversTheKnownRestShapeWithStiffening) {
+  const UnloadedStateOptions o;
+  const UnloadedStateResult r = recoverUnloadedShape(loadedCube(), settings(true), kGravity, o);
+  expectRecovered(r, o);
+  EXPECT_LE(r.iterations, 12);
+}
+
+TEST(UnloadedState, StartsFromTheGivenShape) {
+  // Started at the answer of a first run, the iteration converges at once.
+  UnloadedStateOptions o;
+  const UnloadedStateResult first = recoverUnloadedShape(loadedCube(), settings(false), kGravity, o);
+  ASSERT_TRUE(first.converged) << first.failure;
+  o.initial_unloaded_nodes_m = first.unloaded_nodes_m;
+  const UnloadedStateResult again = recoverUnloadedShape(loadedCube(), settings(false), kGravity, o);
+  ASSERT_TRUE(again.converged) << again.failure;
+  EXPECT_EQ(again.iterations, 1);
+}
+
+TEST(UnloadedState, ALoadTooLargeEndsWithoutConvergingAndSaysWhy) {
+  // 50 Pa: the cube would hang tens of centimetres; no rest shape of valid elements reproduces it.
+  for (bool stiffening : {false, true}) {
+    SCOPED_TRACE(stiffening ? "stiffening" : "co-rotated");
+    UnloadedStateOptions o;
+    o.max_iterations = 8;
+    UnloadedStateResult r;
+    ASSERT_NO_THROW(r = recoverUnloadedShape(loadedCube(), settings(stiffening, 50.0), kGravity * 4.0, o));
+    EXPECT_FALSE(r.converged);
+    EXPECT_NE(r.failure.find("iteration "), std::string::npos) << r.failure;
+    EXPECT_GE(r.iterations, 1);
+    EXPECT_LE(r.iterations, o.max_iterations);
+    EXPECT_TRUE(r.unloaded_nodes_m.allFinite());
+    EXPECT_TRUE(invertedTets(cube().tets(), r.unloaded_nodes_m).empty());
+    std::printf("    %s: %s\n", stiffening ? "stiffening" : "co-rotated", r.failure.c_str());
+  }
+}
+
+TEST(UnloadedState, BadInputThrowsNamingTheValue) {
+  const SimulationSettings s = settings(false);
+  auto with = [&](auto change) {
+    UnloadedStateOptions o;
+    change(o);
+    return invalidArgumentOf([&] { recoverUnloadedShape(loadedCube(), s, kGravity, o); });
+  };
+  EXPECT_NE(with([](UnloadedStateOptions& o) { o.max_iterations = 0; }).find("max_iterations = 0"), std::string::npos);
+  EXPECT_NE(with([](UnloadedStateOptions& o) { o.tolerance_m = -1e-5; }).find("tolerance_m = -1e-05"), std::string::npos);
+  EXPECT_NE(with([](UnloadedStateOptions& o) { o.tolerance_m = std::numeric_limits<double>::infinity(); }).find("tolerance_m"),
+            std::string::npos);
+  EXPECT_NE(with([](UnloadedStateOptions& o) { o.max_growing_iterations = 0; }).find("max_growing_iterations = 0"),
+            std::string::npos);
+  EXPECT_NE(with([](UnloadedStateOptions& o) { o.stiffening.history_size = 0; }).find("history_size"), std::string::npos);
+  EXPECT_NE(with([](UnloadedStateOptions& o) { o.initial_unloaded_nodes_m = Points::Zero(3, 3); })
+                .find("initial_unloaded_nodes_m rows = 3"),
+            std::string::npos);
+  EXPECT_NE(with([](UnloadedStateOptions& o) {
+              o.initial_unloaded_nodes_m = cube().nodes();
+              o.initial_unloaded_nodes_m.col(0) *= -1.0;  // a mirror image: every element inverted
+            }).find("inverted elements"),
+            std::string::npos);
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_NE(invalidArgumentOf([&] { recoverUnloadedShape(loadedCube(), s, Eigen::Vector3d(0, nan, -9.81)); })
+                .find("gravity_mps2"),
+            std::string::npos);
+  SimulationSettings mg = s;
+  mg.solver.kind = SolverSettings::Kind::kMultigrid;
+  const std::string e = invalidArgumentOf([&] { recoverUnloadedShape(loadedCube(), mg, kGravity); });
+  EXPECT_NE(e.find("'multigrid'"), std::string::npos) << e;
+  EXPECT_NE(e.find("'aggregation' or 'cholmod'"), std::string::npos) << e;
+  SimulationSettings bad_set = s;
+  bad_set.fixed_node_set = "chest_wal";
+  const std::string f = invalidArgumentOf([&] { recoverUnloadedShape(loadedCube(), bad_set, kGravity); });
+  EXPECT_NE(f.find("'chest_wal'"), std::string::npos) << f;
+  EXPECT_NE(f.find("did you mean 'chest_wall'"), std::string::npos) << f;
+  SimulationSettings bad_material = s;
+  bad_material.material.poisson_ratio = 0.5;
+  EXPECT_NE(invalidArgumentOf([&] { recoverUnloadedShape(loadedCube(), bad_material, kGravity); }).find("poisson_ratio"),
+            std::string::npos);
+}
+
+TEST(UnloadedState, WithoutGravityTheLoadedShapeIsItsOwnRestShape) {
+  for (bool stiffening : {false, true}) {
+    const UnloadedStateResult r = recoverUnloadedShape(loadedCube(), settings(stiffening), Eigen::Vector3d::Zero());
+    ASSERT_TRUE(r.converged) << r.failure;
+    EXPECT_LE(r.iterations, 1);
+    EXPECT_LT(r.max_residual_m, 1e-12);  // the rest state's elastic forces vanish up to rounding
+    EXPECT_EQ(r.unloaded_nodes_m, loadedCube().nodes());
+  }
+}
+
+TEST(UnloadedState, WithNodesKeepsTheElementsAndNodeSetsAndRefusesInvertedElements) {
+  const Points moved = cube().nodes() * 2.0;
+  const TetMesh m = withNodes(cube(), moved);
+  EXPECT_EQ(m.nodes(), moved);
+  EXPECT_EQ(m.tets(), cube().tets());
+  EXPECT_EQ(m.regionLabels(), cube().regionLabels());
+  EXPECT_EQ(m.nodeSets(), cube().nodeSets());
+  EXPECT_THROW(withNodes(cube(), Points::Zero(4, 3)), std::invalid_argument);
+  Points mirrored = cube().nodes();
+  mirrored.col(2) *= -1.0;
+  EXPECT_NE(invalidArgumentOf([&] { withNodes(cube(), mirrored); }).find("inverted"), std::string::npos);
+}
