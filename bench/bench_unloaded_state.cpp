@@ -84,14 +84,17 @@ int main(int argc, char** argv) {
   nlohmann::json hist = nlohmann::json::array();
   for (size_t k = 0; k < r.history.size(); ++k) {
     const UnloadedIteration& it = r.history[k];
+    char step[32];
+    std::snprintf(step, sizeof step, it.step_fraction < 1.0 ? "plain x %.4g" : "plain", it.step_fraction);
     std::printf("%-5zu %-12.5f %-13.6f %-12d %-8.2f %s\n", k + 1, it.max_residual_m * 1e3, it.mean_residual_m * 1e3,
-                it.settle_steps, it.seconds, it.accelerated ? "anderson" : "plain");
+                it.settle_steps, it.seconds, it.accelerated ? "anderson" : step);
     hist.push_back({{"iteration", k + 1},
                     {"max_residual_mm", it.max_residual_m * 1e3},
                     {"mean_residual_mm", it.mean_residual_m * 1e3},
                     {"settle_steps", it.settle_steps},
                     {"seconds", it.seconds},
-                    {"accelerated", it.accelerated}});
+                    {"accelerated", it.accelerated},
+                    {"step_fraction", it.step_fraction}});
   }
   const Distances x0 = distances(r.unloaded_nodes_m, model.mesh.nodes());
   std::printf("\nconverged %s in %d iterations, %.1f s; residual max %.5f mm, mean %.6f mm%s%s\n",

@@ -16,6 +16,8 @@
 #include "breast_sim/core/fem/unloaded_state.h"
 #include "breast_sim/core/mesh/box_mesh.h"
 #include "breast_sim/core/mesh/tet_quality.h"
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/model/phantom.h"
 
 using namespace breast_sim::core;
 
@@ -111,6 +113,46 @@ TEST(UnloadedState, RecoversTheKnownRestShapeWithStiffening) {
   const UnloadedStateResult r = recoverUnloadedShape(loadedCube(), settings(true), kGravity, o);
   expectRecovered(r, o);
   EXPECT_LE(r.iterations, 12);
+}
+
+// The phantom at about 2000 elements as the known rest shape, loaded by prone gravity with the
+// stiffening driver (the pipeline's default material and element), recovered from its loaded shape.
+TEST(UnloadedState, RecoversThePhantomsRestShape) {
+  ModelCase c = loadModelCase(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../config/phantom_default.yaml");
+  c.meshing.target_elements = 2000;
+  const SimulationModel model = buildSimulationModel(c);
+  SimulationSettings s = settings(true);
+  const Eigen::Vector3d g_prone = s.gravity_mps2 * c.prone_gravity_direction.normalized();
+  SimulationSettings tight = s;
+  tight.settle.increment_tolerance_m = 1e-7;
+  const GravityLoading forward = loadWithGravity(model.mesh, tight, g_prone);
+  ASSERT_TRUE(forward.settled) << forward.failure;
+  const TetMesh loaded = withNodes(model.mesh, model.mesh.nodes() + forward.displacement_m);
+  const UnloadedStateOptions o;
+  const UnloadedStateResult r = recoverUnloadedShape(loaded, s, g_prone, o);
+  ASSERT_TRUE(r.converged) << r.failure;
+  EXPECT_LE(r.max_residual_m, o.tolerance_m);
+  EXPECT_LE(r.iterations, 10);
+  const Eigen::VectorXd d = (r.unloaded_nodes_m - model.mesh.nodes()).rowwise().norm();
+  const double sag = forward.displacement_m.rowwise().norm().maxCoeff();
+  EXPECT_GT(sag, 3e-3);
+  EXPECT_LT(d.mean(), 0.3e-3) << "max " << d.maxCoeff() << " m";
+  EXPECT_LT(d.maxCoeff(), 1e-3);
+  EXPECT_TRUE(invertedTets(model.mesh.tets(), r.unloaded_nodes_m).empty());
+  std::printf("    %d elements, sag %.2f mm; %d iterations, %.2f s; |X0 - known| mean %.4f mm, max %.4f mm\n",
+              model.mesh.numTets(), sag * 1e3, r.iterations, r.seconds, d.mean() * 1e3, d.maxCoeff() * 1e3);
+}
+
+TEST(UnloadedState, TheIterationLimitEndsWithoutConvergingAndSaysWhy) {
+  UnloadedStateOptions o;
+  o.max_iterations = 2;
+  const UnloadedStateResult r = recoverUnloadedShape(loadedCube(), settings(false), kGravity, o);
+  EXPECT_FALSE(r.converged);
+  EXPECT_EQ(r.iterations, 2);
+  EXPECT_NE(r.failure.find("iteration 2: not converged in 2 iterations"), std::string::npos) << r.failure;
+  ASSERT_EQ(r.history.size(), 2u);
+  EXPECT_LT(r.history[1].max_residual_m, r.history[0].max_residual_m);
+  EXPECT_EQ(r.max_residual_m, r.history[1].max_residual_m);  // the better of the two is returned
 }
 
 TEST(UnloadedState, StartsFromTheGivenShape) {

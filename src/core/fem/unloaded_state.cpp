@@ -26,6 +26,8 @@ constexpr int kAndersonDepth = 5;
 // A stiffened forward settle gives up after this many calls in a row that could not advance (each
 // already reverted max_reversals_per_step times), as the pipeline's gravity stage does.
 constexpr int kMaxStuckCalls = 5;
+// A plain step that folds elements is halved down to this share of the residual before giving up.
+constexpr double kMinStepFraction = 1.0 / 64.0;
 
 [[noreturn]] void bad(const std::string& field, double value, const std::string& range) {
   std::ostringstream s;
@@ -275,6 +277,7 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
   int growing = 0;
   Anderson anderson(kAndersonDepth);
   bool accelerated = false;
+  double step = 1.0;  // the share of the plain step that gave x0
   auto fail = [&](int k, const std::string& why) {
     res.failure = "iteration " + std::to_string(k) + ": " + why;
     res.seconds = since(t0);
@@ -296,6 +299,7 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
     it.settle_steps = l.steps;
     it.seconds = l.seconds;
     it.accelerated = accelerated;
+    it.step_fraction = step;
     res.history.push_back(it);
     if (it.max_residual_m < best) {
       best = it.max_residual_m;
@@ -322,19 +326,27 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
     Eigen::VectorXd next = anderson.next(x0, f, accelerated);
     holdFixed(next);
     size_t inv = invertedTets(loaded.tets(), unflat(next)).size();
-    if (inv > 0 && accelerated) {
-      // The mixed step folds elements: take the plain step and start the mixing again.
+    step = 1.0;
+    if (inv > 0) {
+      // The step folds elements: take the plain step, shortened until none folds, and start the
+      // mixing again from here (the shortened step is a valid secant pair for it).
       anderson.reset();
-      next = x0 + f;
-      holdFixed(next);
-      accelerated = false;
-      inv = invertedTets(loaded.tets(), unflat(next)).size();
       anderson.next(x0, f, accelerated);  // records (x0, f) as the start of the new history
       accelerated = false;
+      while (true) {
+        next = x0 + step * f;
+        holdFixed(next);
+        inv = invertedTets(loaded.tets(), unflat(next)).size();
+        if (inv == 0 || step <= kMinStepFraction) break;
+        step *= 0.5;
+      }
     }
     if (inv > 0) {
       res.inverted_elements = static_cast<int>(inv);
-      return fail(k, "the next unloaded shape would have " + std::to_string(inv) + " inverted elements");
+      std::ostringstream m;
+      m << "the next unloaded shape would have " << inv << " inverted elements, even with the step shortened to "
+        << step << " of the residual";
+      return fail(k, m.str());
     }
     x0 = next;
   }

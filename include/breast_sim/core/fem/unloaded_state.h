@@ -39,6 +39,9 @@ struct UnloadedIteration {
   double mean_residual_m = 0.0;  ///< its mean over all nodes [m]
   int settle_steps = 0;          ///< accepted time steps of the forward settle
   bool accelerated = false;      ///< this X0 came from the Anderson step (else the plain fixed-point step)
+  /// The plain step's length as a share of the residual: 1, or less where the full step would have
+  /// inverted elements of X0 (halved until none is).
+  double step_fraction = 1.0;
   double seconds = 0.0;          ///< wall time of the loading, simulator build included [s]
 };
 
@@ -72,8 +75,9 @@ struct UnloadedStateResult {
 /// increment tolerance is capped at options.tolerance_m / 4 (a looser forward settle would stall
 /// the iteration).
 ///
-/// A forward loading that does not settle or whose solver fails, a candidate X0 with inverted
-/// elements (after falling back from an Anderson step to the plain step), a loading that inverts
+/// A candidate X0 with inverted elements is replaced by the plain step, halved until no element is
+/// inverted (down to 1/64 of it), and the mixing starts again. A forward loading that does not
+/// settle or whose solver fails, a candidate X0 still inverted then, a loading that inverts
 /// elements, a residual that grew options.max_growing_iterations times in a row or the iteration
 /// limit end the run with converged = false and `failure` naming the iteration and the reason;
 /// none of them throws.
