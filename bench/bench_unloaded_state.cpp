@@ -126,9 +126,9 @@ int main(int argc, char** argv) {
     // The unloaded reference: X0 takes g_supine.
     const TetMesh rest = withNodes(model.mesh, r.unloaded_nodes_m);
     const GravityLoading unloaded = loadWithGravity(rest, s, g_supine, o.stiffening);
-    std::printf("\nsupine, prone + (g_supine - g_prone): %s in %d steps, %.1f s\n",
+    std::printf("\nsupine, prone + (g_supine - g_prone): %s, %d steps, %.1f s\n",
                 today.settled ? "settled" : today.failure.c_str(), today.steps, today.seconds);
-    std::printf("supine, X0 + g_supine:               %s in %d steps, %.1f s\n",
+    std::printf("supine, X0 + g_supine:               %s, %d steps, %.1f s\n",
                 unloaded.settled ? "settled" : unloaded.failure.c_str(), unloaded.steps, unloaded.seconds);
     out["supine_today_settled"] = today.settled;
     out["supine_unloaded_settled"] = unloaded.settled;

@@ -26,6 +26,9 @@ constexpr int kAndersonDepth = 5;
 // A stiffened forward settle gives up after this many calls in a row that could not advance (each
 // already reverted max_reversals_per_step times), as the pipeline's gravity stage does.
 constexpr int kMaxStuckCalls = 5;
+// The forward settles stop at an increment of at most this share of the iteration's tolerance
+// (docs/unloaded_state.md, "Forward settles").
+constexpr double kSettleToleranceShare = 0.25;
 // A plain step that folds elements is halved down to this share of the residual before giving up.
 constexpr double kMinStepFraction = 1.0 / 64.0;
 
@@ -268,7 +271,8 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
 
   // The forward settles: at least as tight as the iteration's tolerance.
   SimulationSettings forward = s;
-  forward.settle.increment_tolerance_m = std::min(s.settle.increment_tolerance_m, options.tolerance_m / 4.0);
+  forward.settle.increment_tolerance_m =
+      std::min(s.settle.increment_tolerance_m, kSettleToleranceShare * options.tolerance_m);
 
   UnloadedStateResult res;
   res.unloaded_nodes_m = unflat(x0);
