@@ -14,28 +14,15 @@
 
 #include "breast_sim/core/pipeline/case_file.h"
 
+#include "temp_dir.h"
+
 namespace fs = std::filesystem;
 using breast_sim::core::effectiveCaseYaml;
+using breast_sim::test::TempDir;
 
 namespace {
 
 const fs::path kSource = fs::path(BREAST_SIM_TEST_DATA_DIR) / ".." / "..";
-
-class TempDir {
- public:
-  TempDir() : path_(fs::temp_directory_path() / ("breast_sim_case_file_" + std::to_string(::getpid()))) {
-    fs::create_directories(path_);
-  }
-  ~TempDir() { fs::remove_all(path_); }
-  std::string write(const std::string& name, const std::string& text) const {
-    const fs::path p = path_ / name;
-    std::ofstream(p) << text;
-    return p.string();
-  }
-
- private:
-  fs::path path_;
-};
 
 std::string readFile(const fs::path& p) {
   std::ifstream in(p);
@@ -96,7 +83,7 @@ std::vector<std::string> alternatives(const YAML::Node& value) {
 }  // namespace
 
 TEST(CaseFile, EffectiveCaseOfEveryShippedCaseReadsBackToItself) {
-  TempDir dir;
+  TempDir dir("breast_sim_case_file");
   int cases = 0;
   for (const auto& entry : fs::directory_iterator(kSource / "config")) {
     const fs::path p = entry.path();
@@ -113,7 +100,7 @@ TEST(CaseFile, EffectiveCaseOfEveryShippedCaseReadsBackToItself) {
 // Writing a key and reading it must be inverse for each key on its own: a key written under another
 // key's name, or read into the wrong field, changes some other key of the re-written case.
 TEST(CaseFile, EachKeyIsReadBackAsWrittenAndChangesNothingElse) {
-  TempDir dir;
+  TempDir dir("breast_sim_case_file");
   const YAML::Node base = effective(dir, "phantom: {}\n");
   int tested = 0;
   std::vector<std::string> untested;
@@ -160,7 +147,7 @@ TEST(CaseFile, EachKeyIsReadBackAsWrittenAndChangesNothingElse) {
 }
 
 TEST(CaseFile, ShippedCasesKeepTheCodeDefaultsOfTheSimulation) {
-  TempDir dir;
+  TempDir dir("breast_sim_case_file");
   const YAML::Node defaults = effective(dir, "phantom: {}\n");
   for (const char* name : {"phantom_default.yaml", "victre_case.yaml"}) {
     SCOPED_TRACE(name);
@@ -178,7 +165,7 @@ TEST(CaseFile, DocumentedKeysAndDefaultsAreTheCodes) {
   const std::size_t start = open + 8;
   const std::size_t close = doc.find("```", start);
   ASSERT_NE(close, std::string::npos);
-  TempDir dir;
+  TempDir dir("breast_sim_case_file");
   const std::string documented = effectiveCaseYaml(dir.write("documented.yaml", doc.substr(start, close - start)));
   const std::string defaults = effectiveCaseYaml(dir.write("defaults.yaml", "phantom: {}\n"));
   EXPECT_EQ(documented, defaults);

@@ -19,28 +19,13 @@
 #include "breast_sim/core/mesh/mesh_io.h"
 #include "breast_sim/core/mesh/tet_mesh.h"
 
+#include "temp_dir.h"
+
 using namespace breast_sim::core;
+using breast_sim::test::TempDir;
 namespace fs = std::filesystem;
 
 namespace {
-
-// A fresh directory under the system temp dir, removed with its files at the end of the test.
-class TempDir {
- public:
-  TempDir() {
-    std::string pattern = (fs::temp_directory_path() / "breast_sim_mesh_io_XXXXXX").string();
-    if (!mkdtemp(pattern.data())) throw std::runtime_error("cannot create a temp dir");
-    dir_ = pattern;
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(dir_, ec);
-  }
-  std::string path(const std::string& name) const { return (dir_ / name).string(); }
-
- private:
-  fs::path dir_;
-};
 
 void writeText(const std::string& path, const std::string& text) {
   std::ofstream(path, std::ios::binary) << text;
@@ -221,7 +206,7 @@ TEST(MeshIo, EveryFormatRoundTripsNodesTetsLabelsAndNodeSets) {
       {"binary.vtk", {}, true, true},            {"ascii.vtk", vtk_ascii, false, true},
       {"mesh.node", {}, false, false},           {"mesh.inp", {}, false, true},
   };
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   for (const Case& c : cases) {
     for (double unit : {1.0, 1e-3}) {
       SCOPED_TRACE(c.file + " with length unit " + std::to_string(unit) + " m");
@@ -238,7 +223,7 @@ TEST(MeshIo, EveryFormatRoundTripsNodesTetsLabelsAndNodeSets) {
 
 TEST(MeshIo, LengthUnitScalesCoordinatesOnReadAndWrite) {
   const TetMesh mesh = twoCubeMesh();
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   for (const std::string file : {"mm.msh", "mm.inp", "mm.vtu", "mm.ele"}) {
     SCOPED_TRACE(file);
     writeTetMesh(dir.path(file), mesh, {}, 1e-3);  // file in mm
@@ -257,7 +242,7 @@ TEST(MeshIo, VtuKeepsPointAndCellFieldsForParaView) {
   fields.point_data.push_back({"displacement", displacement, /*is_length=*/true});
   fields.cell_data.push_back({"von_mises", Eigen::VectorXd::LinSpaced(mesh.numTets(), 0.0, 1e3)});
   fields.cell_data.push_back({"modulus_factor", Eigen::VectorXd::Constant(mesh.numTets(), 1.5)});
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   for (const std::string file : {"fields.vtu", "fields.vtk"}) {
     SCOPED_TRACE(file);
     writeTetMesh(dir.path(file), mesh, fields, 1e-3);  // coordinates and displacement in mm
@@ -280,7 +265,7 @@ TEST(MeshIo, VtuWritesADeformedConfigurationWhenGivenPositions) {
   const Eigen::Matrix3d F = Eigen::AngleAxisd(0.4, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix() *
                             Eigen::Vector3d(1.2, 0.9, 1.1).asDiagonal();
   const Points x = (mesh.nodes() * F.transpose()).rowwise() + Eigen::RowVector3d(0.01, -0.02, 0.03);
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   MeshWriteOptions options;
   options.vtk.positions_m = &x;
   for (const std::string file : {"deformed.vtu", "deformed.vtk"}) {
@@ -302,7 +287,7 @@ TEST(MeshIo, VtuWritesADeformedConfigurationWhenGivenPositions) {
 
 TEST(MeshIo, FieldWithWrongRowCountIsRejectedByName) {
   const TetMesh mesh = twoCubeMesh();
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   struct Case {
     std::string what;
     MeshFields fields;
@@ -334,7 +319,7 @@ TEST(MeshIo, FieldsAreRejectedForFormatsThatCannotHoldThem) {
   const TetMesh mesh = twoCubeMesh();
   MeshFields fields;
   fields.cell_data.push_back({"von_mises", Eigen::VectorXd::Zero(mesh.numTets())});
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   for (const std::string file : {"f.msh", "f.inp", "f.node"}) {
     SCOPED_TRACE(file);
     EXPECT_THROW(writeTetMesh(dir.path(file), mesh, fields), std::invalid_argument);
@@ -342,7 +327,7 @@ TEST(MeshIo, FieldsAreRejectedForFormatsThatCannotHoldThem) {
 }
 
 TEST(MeshIo, HandWrittenMsh41AsciiWithTagGapsAndMixedElementsIsRead) {
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   writeText(dir.path("hand41.msh"), kMsh41Ascii);
   const TetMesh m = readTetMesh(dir.path("hand41.msh"));
   EXPECT_EQ(m.nodes(), handWrittenNodes());  // file order of the tags 10, 20, 30, 40, 55
@@ -356,7 +341,7 @@ TEST(MeshIo, HandWrittenMsh41AsciiWithTagGapsAndMixedElementsIsRead) {
 }
 
 TEST(MeshIo, HandWrittenMsh22AsciiWithTagGapsAndMixedElementsIsRead) {
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   writeText(dir.path("hand22.msh"), kMsh22Ascii);
   const TetMesh m = readTetMesh(dir.path("hand22.msh"));
   EXPECT_EQ(m.nodes(), handWrittenNodes());
@@ -367,7 +352,7 @@ TEST(MeshIo, HandWrittenMsh22AsciiWithTagGapsAndMixedElementsIsRead) {
 }
 
 TEST(MeshIo, HandWrittenAbaqusInpIsRead) {
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   writeText(dir.path("hand.inp"), R"(** hand-written deck, lengths in mm
 *Heading
  three tets; this line is free text, 1, 2, 3
@@ -433,7 +418,7 @@ TEST(MeshIo, AbaqusNamedAndNumberedSetsNeverShareALabel) {
        "*ELEMENT, TYPE=C3D4, ELSET=R_-2\n1, 1, 2, 3, 4\n*ELEMENT, TYPE=C3D4, ELSET=FAT\n2, 1, 2, 3, 5\n",
        {-2, 1}},
   };
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   for (const Case& c : cases) {
     SCOPED_TRACE(c.name);
     writeText(dir.path("sets.inp"), nodes + c.elements);
@@ -442,7 +427,7 @@ TEST(MeshIo, AbaqusNamedAndNumberedSetsNeverShareALabel) {
 }
 
 TEST(MeshIo, HandWrittenTetGenPairIsReadFromEitherPath) {
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   writeText(dir.path("hand.node"), R"(# 0-based points, one attribute, boundary markers
 5 3 1 1
 0 0 0 0   7 1
@@ -468,7 +453,7 @@ TEST(MeshIo, HandWrittenTetGenPairIsReadFromEitherPath) {
 }
 
 TEST(MeshIo, VtkFilesFromOtherToolsGiveTetsAndLabelsAndSkipOtherCells) {
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   // As meshio writes a Gmsh mesh: labels in "gmsh:physical", a triangle cell among the tetrahedra.
   writeText(dir.path("other.vtu"), R"(<?xml version="1.0"?>
 <VTKFile type="UnstructuredGrid" version="0.1" byte_order="LittleEndian">
@@ -528,7 +513,7 @@ LOOKUP_TABLE default
 
 TEST(MeshIo, NegativelyOrientedTetsInAFileComeBackPositive) {
   // Every writer writes the mesh's positive order, so put a negative tet into each format by hand.
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   writeText(dir.path("neg.msh"), "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n4\n1 0 0 0\n2 1 0 0\n"
                                  "3 0 1 0\n4 0 0 1\n$EndNodes\n$Elements\n1\n1 4 2 3 3 1 3 2 4\n$EndElements\n");
   writeText(dir.path("neg.inp"), "*NODE\n1, 0, 0, 0\n2, 1, 0, 0\n3, 0, 1, 0\n4, 0, 0, 1\n"
@@ -546,7 +531,7 @@ TEST(MeshIo, NegativelyOrientedTetsInAFileComeBackPositive) {
 }
 
 TEST(MeshIo, MalformedFilesNameTheFileAndThePlace) {
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   const std::string nodes3 = "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n3\n1 0 0 0\n2 1 0 0\n3 0 1 0\n$EndNodes\n";
   const std::string nodes4 = "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n4\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n$EndNodes\n";
   // Binary files cut in the middle of their node data.
@@ -630,7 +615,7 @@ TEST(MeshIo, MalformedFilesNameTheFileAndThePlace) {
 // Counts from a header used to size reservations: "$Nodes 2000000000" in a tiny file gave a bare
 // std::bad_alloc without the path.
 TEST(MeshIo, HeaderCountsTheFileCannotHoldAreErrorsNamingThePlace) {
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   const std::string head22 = "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n";
   const std::string head41 = "$MeshFormat\n4.1 0 8\n$EndMeshFormat\n";
   const std::string nodes4 = head22 + "$Nodes\n4\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n$EndNodes\n";
@@ -730,7 +715,7 @@ TEST(MeshIo, LargeMeshRoundTripsInEveryFormat) {
         }
       }
   const TetMesh mesh(x, tets, labels);
-  TempDir dir;
+  TempDir dir("breast_sim_mesh_io");
   MeshWriteOptions msh41b;
   msh41b.gmsh = {GmshVersion::kMsh41, true};
   const std::vector<std::pair<std::string, MeshWriteOptions>> cases = {

@@ -16,28 +16,13 @@
 #include "breast_sim/core/mesh/mesh_io.h"
 #include "breast_sim/core/mesh/tet_mesh.h"
 
+#include "temp_dir.h"
+
 using namespace breast_sim::core;
+using breast_sim::test::TempDir;
 namespace fs = std::filesystem;
 
 namespace {
-
-// A fresh directory under the system temp dir, removed with its files at the end.
-class TempDir {
- public:
-  TempDir() {
-    std::string pattern = (fs::temp_directory_path() / "breast_sim_simulator_api_XXXXXX").string();
-    if (!mkdtemp(pattern.data())) throw std::runtime_error("cannot create a temp dir");
-    dir_ = pattern;
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(dir_, ec);
-  }
-  std::string path(const std::string& name) const { return (dir_ / name).string(); }
-
- private:
-  fs::path dir_;
-};
 
 // A 9 × 4.5 × 4.5 cm block held on its side x = 0 (node set "chest_wall"), at three resolutions of
 // the same domain (the coarse ones nest in the fine one), each written to an .inp file and read back
@@ -58,7 +43,7 @@ struct Meshes {
 const Meshes& meshes() {
   static const Meshes* m = [] {
     auto* out = new Meshes;
-    const TempDir dir;
+    const TempDir dir("breast_sim_simulator_api");
     const std::vector<Eigen::Vector3i> cells = {{12, 6, 6}, {6, 3, 3}, {2, 1, 1}};
     for (size_t l = 0; l < cells.size(); ++l) {
       const std::string path = dir.path("block_" + std::to_string(l) + ".inp");
