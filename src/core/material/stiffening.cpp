@@ -223,6 +223,7 @@ void StiffeningSimulation::restartAlphaSearch() {
 void StiffeningSimulation::loadChanged() {
   settle_run_ = 0;
   releasing_ = false;
+  release_failed_ = false;
 }
 
 void StiffeningSimulation::restartAlphaSearch(double alpha_per_pa) {
@@ -355,6 +356,13 @@ StiffeningStepResult StiffeningSimulation::step() {
       if (attempt >= params_.max_reversals_per_step) {
         r.reversal_limit_hit = true;
         ++limit_hits_;
+        if (releasing_) {
+          // Local α's cannot keep this step valid: the release ends for this load, the controller's
+          // α (valid where the shape settled) takes over, and settled becomes the shape's criterion.
+          releasing_ = false;
+          release_failed_ = true;
+          element_alpha_.setZero();
+        }
         setModuli(stress);  // the stiffest moduli tried, with the increased α, for the next call
         break;
       }
@@ -380,7 +388,7 @@ StiffeningStepResult StiffeningSimulation::step() {
     // The moduli this step ran with: how far its equilibrium is from the base material's.
     excess_ = params_.update_moduli ? modulusExcess() : 0.0;
     const bool shape_settled = settle_run_ >= params_.settle.consecutive_steps;
-    settled_ = shape_settled && (!reversal || excess_ <= params_.settle.max_modulus_excess);
+    settled_ = shape_settled && (!reversal || release_failed_ || excess_ <= params_.settle.max_modulus_excess);
     if (shape_settled && !settled_ && reversal && !releasing_) {
       releasing_ = true;
       release_alpha_ = release_start_alpha_ = controller_.alpha();

@@ -57,8 +57,9 @@ struct StabilityRun {
   std::string axis = "nu_dt";         ///< which sub-grid it belongs to: nu_dt, E, alpha
   double max_time_s = 4.0;            ///< simulated time limit [s]
   long max_steps = 400;               ///< accepted-step limit (step calls are limited to twice this)
-  /// The time limit is raised to this many steps for large dt (max(max_time_s, min_steps · dt)).
-  long min_steps = 40;
+  /// The time limit is raised to this many steps for large dt (max(max_time_s, min_steps · dt)):
+  /// the full method settles its shape and then releases α to the material's equilibrium.
+  long min_steps = 80;
   /// Simulated-time limit of the run [s].
   double timeLimit() const { return std::max(max_time_s, static_cast<double>(min_steps) * time_step_s); }
   /// @throws std::invalid_argument naming the field, its value and the accepted range.

@@ -217,7 +217,11 @@ void deformationMeasures(const TetMesh& mesh, const Eigen::VectorXd& displacemen
 /// The local α's (RunStats::locally_stiffened_elements) last until the α search restarts from the
 /// initial α. A load or constraint change through this class or a restore ends the release, and so
 /// does a solver failure during it (α back to the controller: the seed's loop, then a new release).
-/// Without reversal (α fixed) there is no release and settled is the shape's criterion alone.
+/// Without reversal (α fixed) there is no release and settled is the shape's criterion alone. A
+/// release step still inverting after max_reversals_per_step local doublings ends the release for
+/// this load: the local α's are dropped, the controller's α (valid where the shape settled) takes
+/// over, and settled is the shape's criterion, with RunStats::max_modulus_excess saying how far the
+/// state is from the base material's equilibrium.
 class StiffeningSimulation {
  public:
   /// One undo-history entry: restores the simulation exactly.
@@ -305,6 +309,7 @@ class StiffeningSimulation {
   int settle_run_ = 0;
   bool settled_ = false;
   bool releasing_ = false;
+  bool release_failed_ = false;  // the release hit the reversal limit under this load
   double release_alpha_ = 0.0, release_start_alpha_ = 0.0;  // [1/Pa]
   Eigen::VectorXd element_alpha_;  // local α per element [1/Pa], 0 = none (release)
   double excess_ = 0.0;
