@@ -213,6 +213,15 @@ GravityLoading loadWithGravity(const TetMesh& rest, const SimulationSettings& se
           << ", modulus excess " << stiff.stats().max_modulus_excess << ")";
         return finish(m.str());
       }
+      const RunStats st = stiff.stats();
+      if (st.max_modulus_excess > stiff.params().settle.max_modulus_excess) {
+        // Settled only with the material stiffened (elements would invert at the base material's
+        // equilibrium): not the loading of this material.
+        std::ostringstream m;
+        m << "the stiffened loading settled only with the material stiffened by up to E_r - 1 = "
+          << st.max_modulus_excess << " (elements invert at the base material's equilibrium)";
+        return finish(m.str());
+      }
     }
   } catch (const std::runtime_error& e) {
     out.displacement_m = Points();
