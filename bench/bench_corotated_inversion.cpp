@@ -103,10 +103,10 @@ RunResult runVariant(const ModelCase& c, const SimulationModel& m, SimulationSet
     while (stiff.stats().steps < v.max_steps && calls < 2L * v.max_steps) {
       ++calls;
       const StiffeningStepResult sr = stiff.step();
-      if (sr.advanced && stiff.stats().settled) break;
+      if (sr.advanced && stiff.settled()) break;
     }
     r.steps = static_cast<int>(stiff.stats().steps);
-    r.settled = stiff.stats().settled;
+    r.settled = stiff.settled();
     r.seconds = since(t0);
     r.u = sim.displacement();
     r.inverted = static_cast<int>(invertedTets(m.mesh.tets(), m.mesh.nodes() + r.u).size());

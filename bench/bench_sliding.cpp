@@ -241,7 +241,7 @@ int main(int argc, char** argv) {
         sim.setParams(p);
         for (int k = 0; k < 2 * ss.settle.max_steps; ++k) {
           const StiffeningStepResult r = stiff.step();
-          if (r.advanced && stiff.stats().settled) break;
+          if (r.advanced && stiff.settled()) break;
         }
         p.time_step_s = ss.dynamics.time_step_s;
         sim.setParams(p);
@@ -341,9 +341,9 @@ int main(int argc, char** argv) {
                       "(+%d −%d), free skin h min %.2f mm, settled %d\n",
                       calls, r.advanced ? "advanced" : "NOT advanced", r.reversals, r.alpha_per_pa, 1e3 * st.max_move_m,
                       st.move_scale, 1e3 * st.max_slide_m, st.contacts, st.contacts_added, st.contacts_released,
-                      1e3 * st.min_free_skin_distance_m, stiff.stats().settled);
+                      1e3 * st.min_free_skin_distance_m, stiff.settled());
         guard_limited += st.guard_limited;
-        quiet = r.advanced && stiff.stats().settled && st.max_move_m <= tol ? quiet + 1 : 0;
+        quiet = r.advanced && stiff.settled() && st.max_move_m <= tol ? quiet + 1 : 0;
         if (quiet >= 3) {
           settled = true;
           break;

@@ -247,7 +247,7 @@ OurRun runOurs(const ModelCase& c, const SimulationModel& m, SimulationSettings 
     while (stiff.stats().steps < s.settle.max_steps && calls < 2L * s.settle.max_steps) {
       ++calls;
       const StiffeningStepResult sr = stiff.step();
-      if (sr.advanced && stiff.stats().settled) break;
+      if (sr.advanced && stiff.settled()) break;
     }
     r.settle_seconds = since(t0);
     const RunStats st = stiff.stats();

@@ -63,7 +63,7 @@ int main(int argc, char** argv) {
     p.time_step_s = ss.settle.time_step_s;
     sim.setParams(p);
     for (int k = 0; k < 2 * ss.settle.max_steps; ++k)
-      if (stiff.step().advanced && stiff.stats().settled) break;
+      if (stiff.step().advanced && stiff.settled()) break;
     p.time_step_s = ss.dynamics.time_step_s;
     sim.setParams(p);
     WallSlipSettings ws = ps.wall_slip;

@@ -228,8 +228,8 @@ TEST(WallSlip, TwoBreastPhantomSettlesWithStiffeningAndTheGaussianHoldsTheMedial
     p.time_step_s = ss.settle.time_step_s;
     b.simulator->setParams(p);
     for (int k = 0; k < 2 * ss.settle.max_steps; ++k)
-      if (stiff.step().advanced && stiff.stats().settled) break;
-    EXPECT_TRUE(stiff.stats().settled);
+      if (stiff.step().advanced && stiff.settled()) break;
+    EXPECT_TRUE(stiff.settled());
     p.time_step_s = ss.dynamics.time_step_s;
     b.simulator->setParams(p);
     const RunStats before = stiff.stats();
@@ -247,7 +247,7 @@ TEST(WallSlip, TwoBreastPhantomSettlesWithStiffeningAndTheGaussianHoldsTheMedial
       slip.beforeStep(*b.simulator);
       if (!stiff.step().advanced) continue;
       last = slip.afterStep(*b.simulator);
-      res.settled = stiff.stats().settled;
+      res.settled = stiff.settled();
     }
     const RunStats rs = stiff.stats();
     res.accepted = rs.steps - before.steps;

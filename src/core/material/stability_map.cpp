@@ -144,7 +144,7 @@ StabilityResult runStability(const StabilityLoadCase& load, const StabilityRun& 
       try {
         const StiffeningStepResult r = stiff.step();
         last_advanced = r.advanced;
-        if (r.advanced && stiff.stats().settled) break;
+        if (r.advanced && stiff.settled()) break;
       } catch (const std::runtime_error& e) {
         failure = e.what();  // without reversal a solver failure ends the run
         break;

@@ -81,7 +81,7 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
     if (progress)
       progress({stage_, rep.steps, so.max_steps, rep.last_increment_m, -1, -1, r.alpha_per_pa,
                 logFraction(first, rep.last_increment_m, tol)});
-    const bool settled = settings_.simulation.stiffening ? stiff_->stats().settled : quiet >= so.consecutive_steps;
+    const bool settled = settings_.simulation.stiffening ? stiff_->settled() : quiet >= so.consecutive_steps;
     if (r.advanced && settled) {
       rep.converged = true;
       break;

@@ -127,7 +127,7 @@ void ProneToSupinePipeline::runSlidingStage(Eigen::VectorXd& previous, const Pip
     const bool still = settings_.sliding_stage.increment_measure == SlidingStageSettings::IncrementMeasure::kOffWall
                            ? mv.off_wall_max <= sliding_tol && mv.wall_p95 <= sliding_tol
                            : mv.all_max <= sliding_tol;
-    quiet_steps = !moving && still && stiff_->stats().settled ? quiet_steps + 1 : 0;
+    quiet_steps = !moving && still && stiff_->settled() ? quiet_steps + 1 : 0;
     if (progress)
       progress({stage_, sr.steps, so.max_steps, sr.last_increment_m, -1, -1, r.alpha_per_pa,
                 logFraction(first, sr.last_increment_m, sliding_tol)});

@@ -91,7 +91,7 @@ StiffSlidingSettleResult settleWithSlidingAndStiffening(
     out.take_backs += st.taken_back ? 1 : 0;
     out.max_slide_m = st.max_slide_m;
     if (progress) progress(out.calls, r, st);
-    quiet = r.advanced && stiff.stats().settled && st.max_move_m <= increment_tolerance_m ? quiet + 1 : 0;
+    quiet = r.advanced && stiff.settled() && st.max_move_m <= increment_tolerance_m ? quiet + 1 : 0;
     if (quiet >= consecutive_steps) {
       out.settled = true;
       break;

@@ -282,7 +282,10 @@ class StiffeningSimulation {
   const StiffeningParams& params() const { return params_; }
   /// Base-material von Mises stress at the current state [Pa], #T.
   const Eigen::VectorXd& baseStress() const { return base_stress_; }
-  /// Statistics so far (wall_seconds: time spent inside step()).
+  /// The settle criterion holds (RunStats::settled), without computing the statistics: for the
+  /// loops that ask after every step.
+  bool settled() const { return settled_; }
+  /// Statistics so far (wall_seconds: time spent inside step()); O(elements): volumes and moduli.
   RunStats stats() const;
   /// The per-node external forces of the simulator (3N [N]), used in the settle residual.
   const Eigen::VectorXd& externalForces() const { return sim_.externalForces(); }

@@ -269,7 +269,7 @@ class ChestWallSliding {
   ///     // (morphing forces, if any, go to sim.addNodalForces() before the step)
   ///     const StiffeningStepResult r = stiff.step();
   ///     const SlidingStepStats s = sliding.afterStep(stiff, r);
-  ///     if (r.advanced && stiff.stats().settled && s.max_move_m < 1e-5) break;
+  ///     if (r.advanced && stiff.settled() && s.max_move_m < 1e-5) break;
   ///   }
   ///   Points arrows = sliding.slidingVectors();  // per node [m]
   /// @endcode
