@@ -191,14 +191,11 @@ namespace {
 std::vector<int> fixedNodes(const TetMesh& mesh, const SimulationSettings& settings, const char* owner) {
   if (settings.fixed_node_set.empty()) return {};
   if (!mesh.hasNodeSet(settings.fixed_node_set)) {
-    const std::string have = mesh.nodeSetNames();
-    const std::string near = mesh.nearestNodeSetName(settings.fixed_node_set);
-    std::string msg = "simulation: fixed_node_set '" + settings.fixed_node_set + "' is not a node set of the " + owner;
-    if (have.empty())
-      msg += " (it has none): add the held nodes as a node set (TetMesh::setNodeSet, *NSET of an .inp file), or "
-             "set fixed_node_set to \"\" to hold none";
-    else
-      msg += " (it has: " + have + ")" + (near.empty() ? "" : "; did you mean '" + near + "'?");
+    std::string msg = "simulation: fixed_node_set '" + settings.fixed_node_set + "' is not a node set of the " +
+                      owner + mesh.nodeSetHint(settings.fixed_node_set);
+    if (mesh.nodeSets().empty())
+      msg += ": add the held nodes as a node set (TetMesh::setNodeSet, *NSET of an .inp file), or set "
+             "fixed_node_set to \"\" to hold none";
     throw std::invalid_argument(msg);
   }
   return mesh.nodeSet(settings.fixed_node_set);

@@ -201,7 +201,7 @@ GravityLoading loadWithGravity(const TetMesh& rest, const SimulationSettings& se
         last = maxNodalNorm(u - previous);
         previous = u;
         quiet = last <= so.increment_tolerance_m ? quiet + 1 : 0;
-        if (stiff.stats().settled && quiet >= so.consecutive_steps) {
+        if (stiff.settled() && quiet >= so.consecutive_steps) {
           settled = true;
           break;
         }
@@ -250,11 +250,8 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
         "recoverUnloadedShape: solver 'multigrid' needs coarse meshes of each unloaded shape, which the iteration "
         "does not have: choose 'aggregation' or 'cholmod'");
   if (!s.fixed_node_set.empty() && !loaded.hasNodeSet(s.fixed_node_set)) {
-    const std::string near = loaded.nearestNodeSetName(s.fixed_node_set);
-    const std::string sets = loaded.nodeSetNames();
-    throw std::invalid_argument("recoverUnloadedShape: the mesh has no node set '" + s.fixed_node_set +
-                                "' (fixed_node_set); it has " + (sets.empty() ? std::string("none") : sets) +
-                                (near.empty() ? std::string() : "; did you mean '" + near + "'?"));
+    throw std::invalid_argument("recoverUnloadedShape: fixed_node_set '" + s.fixed_node_set +
+                                "' is not a node set of the mesh" + loaded.nodeSetHint(s.fixed_node_set));
   }
   const int n = loaded.numNodes();
   const Eigen::VectorXd target = flat(loaded.nodes());

@@ -78,14 +78,15 @@ void TetMesh::setNodeSet(const std::string& name, std::vector<int> node_indices)
 
 const std::vector<int>& TetMesh::nodeSet(const std::string& name) const {
   auto it = node_sets_.find(name);
-  if (it == node_sets_.end()) {
-    const std::string have = nodeSetNames();
-    const std::string near = nearestNodeSetName(name);
-    throw std::out_of_range("TetMesh: no node set named '" + name + "' (present: " +
-                            (have.empty() ? "none" : have) + ")" +
-                            (near.empty() ? "" : "; did you mean '" + near + "'?"));
-  }
+  if (it == node_sets_.end()) throw std::out_of_range("TetMesh: no node set named '" + name + "'" + nodeSetHint(name));
   return it->second;
+}
+
+std::string TetMesh::nodeSetHint(const std::string& name) const {
+  const std::string have = nodeSetNames();
+  if (have.empty()) return " (it has none)";
+  const std::string near = nearestNodeSetName(name);
+  return " (it has: " + have + ")" + (near.empty() ? "" : "; did you mean '" + near + "'?");
 }
 
 std::string TetMesh::nodeSetNames() const {

@@ -81,6 +81,9 @@ class TetMesh {
   std::string nearestNodeSetName(const std::string& name) const;
   /// The node-set names, comma-separated in alphabetical order ("" when there are none).
   std::string nodeSetNames() const;
+  /// For an error about the missing set `name`: " (it has: a, b); did you mean 'x'?" (the suggestion
+  /// only when nearestNodeSetName finds one), or " (it has none)".
+  std::string nodeSetHint(const std::string& name) const;
   const std::map<std::string, std::vector<int>>& nodeSets() const { return node_sets_; }
 
   /// Boundary faces with outward normals (computed once at construction).
