@@ -75,7 +75,7 @@ std::vector<std::string> alternatives(const YAML::Node& value) {
   std::vector<std::string> words = {"right", "left", "cylindrical", "planar", "anp", "linear", "trace", "determinant",
                                     "aggregation", "cholmod", "jacobi-pcg", "multigrid", "chebyshev", "gauss-seidel", "jacobi",
                                     "explicit", "implicit", "initial", "current", "off_wall", "all_max", "pulled_p95",
-                                    "skin", "phantom", "auto", ""};
+                                    "skin", "phantom", "auto", "unloaded", "prone", ""};
   words.erase(std::remove(words.begin(), words.end(), v), words.end());
   return words;
 }

@@ -204,8 +204,10 @@ TEST(Pipeline, TheSlidingStageSearchesAlphaFromWhereTheFixedWallSettleLeftIt) {
 }
 
 TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
+  // The prone shape as rest shape: the files of the earlier formats are of it.
   const SmallPhantom& p = phantom();
   PipelineSettings s;
+  s.simulation.reference_state = SimulationSettings::ReferenceState::kProne;
   s.morphing.enabled = false;
   ProneToSupinePipeline pipe(p.c, p.m, s);
   const StageReport g = pipe.runGravity();
@@ -239,7 +241,7 @@ TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
     tilted.gravity_load_mps2 = Eigen::Vector3d(1, 2, 3);
     pipe.restore(tilted);
     pipe.saveState(file.string());
-    fs::resize_file(file, fs::file_size(file) - sizeof(std::int64_t) - 3 * sizeof(double));
+    fs::resize_file(file, fs::file_size(file) - 2 * sizeof(std::int64_t) - (3 + 3 * p.m.mesh.numNodes()) * sizeof(double));
     pipe.loadState(file.string());
     EXPECT_EQ(pipe.gravityLoad(), pipe.supineGravityLoad());
     EXPECT_EQ(pipe.simulator().state().displacement_m, saved.simulation.displacement_m);
@@ -259,8 +261,7 @@ TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
 
   // A snapshot of another model is refused by name and leaves the state alone.
   SmallPhantom other(1000);
-  PipelineSettings so;
-  so.morphing.enabled = false;
+  PipelineSettings so = s;
   ProneToSupinePipeline pipe2(other.c, other.m, so);
   try {
     pipe2.loadState(file.string());
@@ -478,8 +479,8 @@ TEST(Pipeline, RunMorphingWithTheCancelFlagAlreadySetReturnsCancelledBeforeItsFi
   EXPECT_TRUE(m.cancelled);
   EXPECT_EQ(m.steps, 0);
   EXPECT_TRUE(pipe.morphingReport().cancelled);
-  EXPECT_GT(m.surface_mean_m, 0.0);  // the rest shape is not the supine target
-  EXPECT_EQ(pipe.simulator().state().displacement_m.norm(), 0.0);
+  EXPECT_GT(m.surface_mean_m, 0.0);  // the prone shape is not the supine target
+  EXPECT_LE(pipe.displacement().norm(), 1e-12);  // still the prone shape (rounding of X0 + (prone − X0))
   EXPECT_NE(pipe.stage(), PipelineStage::kDone);
   // So does run(): the first stage stops before its first step, nothing after it runs.
   pipe.run({}, &cancel);
@@ -488,4 +489,123 @@ TEST(Pipeline, RunMorphingWithTheCancelFlagAlreadySetReturnsCancelledBeforeItsFi
   EXPECT_FALSE(pipe.slidingReport().ran);
   EXPECT_NE(pipe.stage(), PipelineStage::kDone);
   expectAConsistentState(pipe);
+}
+
+// reference_state unloaded: the rest shape is X0, recovered so that X0 under prone gravity is the
+// prone shape. The run starts at the prone shape and stays there under prone gravity; under supine
+// gravity it settles where X0 loaded with supine gravity settles (loadWithGravity, the slow
+// reference beside the pipeline: another simulator, solver and stop rule). Multigrid: its coarse
+// levels are moved to X0.
+TEST(Pipeline, AnUnloadedReferenceStartsProneStaysProneUnderProneGravityAndLoadsX0Supine) {
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.simulation.reference_state = SimulationSettings::ReferenceState::kUnloaded;
+  s.simulation.stiffening = false;
+  s.simulation.sliding = false;
+  s.morphing.enabled = false;
+  ASSERT_EQ(s.simulation.solver.kind, SolverSettings::Kind::kMultigrid);
+  ProneToSupinePipeline pipe(p.c, p.m, s);
+  const UnloadedStateResult& u = pipe.unloadedState();
+  ASSERT_TRUE(u.converged) << u.failure;
+  EXPECT_LE(u.max_residual_m, UnloadedStateOptions{}.tolerance_m);
+  const Points& prone = p.m.mesh.nodes();
+  const double x0_gap = (pipe.model().mesh.nodes() - prone).rowwise().norm().maxCoeff();
+  std::printf("[ measure  ] %d tets: X0 in %d loadings, residual %.4f mm, X0 up to %.2f mm from prone, %d coarse levels\n",
+              p.m.mesh.numTets(), u.iterations, 1e3 * u.max_residual_m, 1e3 * x0_gap, pipe.build().multigrid_levels - 1);
+  EXPECT_GT(x0_gap, 1e-3);  // the phantom hangs by millimetres prone
+  EXPECT_GT(pipe.build().multigrid_levels, 1);
+  EXPECT_EQ(&pipe.proneModel(), &p.m);
+  EXPECT_LE(pipe.displacement().norm(), 1e-12);
+  EXPECT_LE((pipe.lesionPositions() - p.m.lesion_embedding.positions(prone)).norm(), 1e-12);
+
+  // Under prone gravity (load 0) the state stays within the recovery's tolerance of the prone shape.
+  pipe.setGravityLoad(Eigen::Vector3d::Zero());
+  EXPECT_EQ(pipe.gravityLoad(), Eigen::Vector3d::Zero());
+  for (int k = 0; k < 10; ++k) pipe.stiffening().step();
+  EXPECT_LE(pipe.displacement().rowwise().norm().maxCoeff(), 2 * UnloadedStateOptions{}.tolerance_m);
+
+  // Supine: the pipeline's settle against X0 settled under supine gravity by loadWithGravity.
+  pipe.setGravityLoad(pipe.supineGravityLoad());
+  const StageReport g = pipe.runGravity();
+  ASSERT_TRUE(g.converged);
+  SimulationSettings ref = s.simulation;
+  ref.solver.kind = SolverSettings::Kind::kCholmod;
+  ref.settle.increment_tolerance_m = 1e-7;
+  const Eigen::Vector3d g_prone = s.simulation.gravity_mps2 * p.c.prone_gravity_direction.normalized();
+  const TetMesh x0 = withNodes(p.m.mesh, pipe.model().mesh.nodes());
+  const GravityLoading r = loadWithGravity(x0, ref, pipe.supineGravityLoad() + g_prone, {}, prone - x0.nodes());
+  ASSERT_TRUE(r.settled) << r.failure;
+  const Points reference = x0.nodes() + r.displacement_m;
+  const double largest = (reference - prone).rowwise().norm().maxCoeff();
+  const double gap = (pipe.positions() - reference).rowwise().norm().maxCoeff();
+  // The same load on the prone shape as rest shape lands elsewhere (what the reference state changes).
+  PipelineSettings sp = s;
+  sp.simulation.reference_state = SimulationSettings::ReferenceState::kProne;
+  ProneToSupinePipeline superposed(p.c, p.m, sp);
+  ASSERT_TRUE(superposed.runGravity().converged);
+  const double change = (superposed.positions() - pipe.positions()).rowwise().norm().maxCoeff();
+  std::printf("[ measure  ] supine: largest move %.2f mm, pipeline - reference %.6f mm, unloaded - superposed %.3f mm\n",
+              1e3 * largest, 1e3 * gap, 1e3 * change);
+  EXPECT_LE(gap, 1e-3 * largest + 2 * s.simulation.settle.increment_tolerance_m);
+  EXPECT_GT(change, 0.1e-3);
+  EXPECT_EQ(pipe.gravityLoad(), pipe.supineGravityLoad());  // the API's load is g_now − g_prone either way
+}
+
+// Snapshots carry their rest shape: a state of the other reference state is refused, naming it.
+TEST(Pipeline, AStateFileOfAnotherRestShapeIsRefused) {
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.simulation.reference_state = SimulationSettings::ReferenceState::kUnloaded;
+  s.simulation.sliding = false;
+  s.morphing.enabled = false;
+  ProneToSupinePipeline unloaded(p.c, p.m, s);
+  for (int k = 0; k < 3; ++k) unloaded.stiffening().step();
+  const fs::path file = fs::temp_directory_path() / "breast_sim_pipeline_unloaded_state.bin";
+  unloaded.saveState(file.string());
+  const PipelineState saved = unloaded.state();
+  unloaded.stiffening().step();
+  unloaded.loadState(file.string());
+  EXPECT_EQ(unloaded.simulator().state().displacement_m, saved.simulation.displacement_m);
+  EXPECT_EQ(unloaded.gravityLoad(), saved.gravity_load_mps2);
+
+  PipelineSettings sp = s;
+  sp.simulation.reference_state = SimulationSettings::ReferenceState::kProne;
+  ProneToSupinePipeline prone(p.c, p.m, sp);
+  try {
+    prone.loadState(file.string());
+    FAIL() << "a state of X0 was loaded onto the prone shape";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("another rest shape (an unloaded shape"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(prone.simulator().state().displacement_m.norm(), 0.0);
+  prone.saveState(file.string());
+  try {
+    unloaded.loadState(file.string());
+    FAIL() << "a state of the prone shape was loaded onto X0";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("reference_state: prone"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(unloaded.simulator().state().displacement_m, saved.simulation.displacement_m);
+  fs::remove(file);
+}
+
+// No X0 for tissue too soft for prone gravity: the constructor says so, with the way out.
+TEST(Pipeline, AnUnloadedShapeThatCannotBeFoundIsAClearError) {
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.simulation.reference_state = SimulationSettings::ReferenceState::kUnloaded;
+  s.simulation.stiffening = false;
+  s.simulation.sliding = false;
+  s.simulation.material.youngs_modulus_pa = 30.0;
+  s.simulation.gravity_mps2 = 40.0;
+  s.morphing.enabled = false;
+  try {
+    ProneToSupinePipeline pipe(p.c, p.m, s);
+    FAIL() << "an unloaded shape was found for 30 Pa tissue under 4 g";
+  } catch (const std::runtime_error& e) {
+    const std::string what = e.what();
+    std::printf("    %s\n", what.c_str());
+    EXPECT_NE(what.find("the unloaded (gravity-free) shape was not found: iteration "), std::string::npos) << what;
+    EXPECT_NE(what.find("simulation.reference_state: prone"), std::string::npos) << what;
+  }
 }

@@ -107,7 +107,7 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
              "stiffness_damping_s", "solver", "solver_relative_tolerance", "solver_max_iterations",
              "multigrid_smoother", "multigrid_chebyshev_ratio", "multigrid_smoothing_steps", "multigrid_coarse_update_interval",
              "multigrid_coarse_update_adaptive", "multigrid_coarse_update_cost_iterations",
-             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "element", "anp_element_volume_fraction", "anp_inversion_barrier", "anp_inversion_barrier_stiffness", "sliding", "settle_time_step_s",
+             "multigrid_max_coarsest_elements", "fixed_node_set", "gravity_mps2", "stiffening", "volume_term", "element", "anp_element_volume_fraction", "anp_inversion_barrier", "anp_inversion_barrier_stiffness", "sliding", "reference_state", "settle_time_step_s",
              "settle_increment_tolerance_mm", "settle_max_steps", "tissue_youngs_modulus_pa"},
             f, "simulation");
   const double inf = std::numeric_limits<double>::infinity();
@@ -145,6 +145,10 @@ SimulationSettings loadSimulationSettings(const std::string& yaml_path) {
   if (m["gravity_mps2"]) s.gravity_mps2 = numberIn(m["gravity_mps2"], f, key("gravity_mps2"), 0, 1000, false, false, "m/s^2");
   if (m["stiffening"]) s.stiffening = boolean(m["stiffening"], f, key("stiffening"));
   if (m["sliding"]) s.sliding = boolean(m["sliding"], f, key("sliding"));
+  if (m["reference_state"])
+    s.reference_state = choice(m["reference_state"], f, key("reference_state"), {"unloaded", "prone"}) == "prone"
+                            ? SimulationSettings::ReferenceState::kProne
+                            : SimulationSettings::ReferenceState::kUnloaded;
   if (m["element"])
     s.element = choice(m["element"], f, key("element"), {"linear", "anp"}) == "linear"
                     ? SimulationSettings::Element::kLinearTet

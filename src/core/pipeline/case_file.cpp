@@ -153,6 +153,7 @@ YAML::Node simulationMap(const SimulationSettings& s) {
       .s("fixed_node_set", s.fixed_node_set)
       .b("stiffening", s.stiffening)
       .b("sliding", s.sliding)
+      .s("reference_state", s.reference_state == SimulationSettings::ReferenceState::kProne ? "prone" : "unloaded")
       .n("settle_time_step_s", s.settle.time_step_s)
       .n("settle_increment_tolerance_mm", mm(s.settle.increment_tolerance_m))
       .i("settle_max_steps", s.settle.max_steps);

@@ -21,6 +21,10 @@ void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, doubl
     throw std::invalid_argument(std::string("startFrom: sliding differs (coarse: ") +
                                 (coarse.slip_ ? "implicit" : coarse.sliding_ ? "explicit" : "off") + ", this model: " +
                                 (slip_ ? "implicit" : sliding_ ? "explicit" : "off") + "); use the same settings for both");
+  if (static_cast<bool>(unloaded_model_) != static_cast<bool>(coarse.unloaded_model_))
+    throw std::invalid_argument(std::string("startFrom: the reference states differ (coarse: ") +
+                                (coarse.unloaded_model_ ? "unloaded" : "prone") + ", this model: " +
+                                (unloaded_model_ ? "unloaded" : "prone") + "); use the same settings for both");
   if (coarse.morphing_forces_ && !field_)
     throw std::invalid_argument("startFrom: the coarse run has morphing forces, but this model has no target surface (setTarget first)");
   const TetMesh& cm = coarse.model_.mesh;
@@ -90,7 +94,7 @@ void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, doubl
   }
   // The gravity load before the α state: a direction change would restart the α search.
   s.gravity_load_mps2 = coarse.gravityLoad();
-  stiff_->setGravity(s.gravity_load_mps2);
+  stiff_->setGravity(s.gravity_load_mps2 + gravity_offset_mps2_);
   restore(s);
 
   if (!coarse.morphing_forces_) return;

@@ -58,7 +58,7 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
   simulator().restore(s.simulation);
   // Directly, not through setGravityLoad: the α controller's state below is the snapshot's, not a
   // restarted search.
-  simulator().setGravity(s.gravity_load_mps2);
+  simulator().setGravity(s.gravity_load_mps2 + gravity_offset_mps2_);
   simulator().elements().setModulusFactors(s.modulus_factors);
   stiff_->controller().setState(s.alpha);
   stiff_->resync();  // the stress the next moduli come from is this state's
@@ -118,7 +118,7 @@ void ProneToSupinePipeline::saveState(const std::string& path) const {
                              s.simulation.time_s, static_cast<double>(s.simulation.step), s.alpha.alpha_per_pa,
                              static_cast<double>(s.alpha.phase == AlphaController::Phase::kSettling), s.alpha.rate,
                              static_cast<double>(s.alpha.oscillations), static_cast<double>(s.stage),
-                             meshFingerprint(model_.mesh)};
+                             meshFingerprint(prone_model_.mesh)};
   writeVector(out, header, 10);
   const double runs[3] = {static_cast<double>(s.alpha.runs[0]), static_cast<double>(s.alpha.runs[1]), static_cast<double>(s.alpha.runs[2])};
   writeVector(out, runs, 3);
@@ -133,6 +133,9 @@ void ProneToSupinePipeline::saveState(const std::string& path) const {
   writeVector(out, sd.data(), sd.size());
   // Appended after the second (a file without it loads under the supine gravity load).
   writeVector(out, s.gravity_load_mps2.data(), 3);
+  // ... and after the third: the rest shape (a file without it is of the prone shape as rest shape).
+  const Eigen::VectorXd rest = flatten(model_.mesh.nodes());
+  writeVector(out, rest.data(), rest.size());
   if (!out) throw std::runtime_error(path + ": writing the state file failed (disk full?)");
 }
 
@@ -151,7 +154,7 @@ void ProneToSupinePipeline::loadState(const std::string& path) {
                              std::to_string(static_cast<long>(h[1])) + " elements; this model has " +
                              std::to_string(model_.mesh.numNodes()) + " and " + std::to_string(model_.mesh.numTets()) +
                              " (load the same case with the same meshing first)");
-  if (h[9] != meshFingerprint(model_.mesh))
+  if (h[9] != meshFingerprint(prone_model_.mesh))
     throw std::runtime_error(path + (h[9] == 0.0 ? ": the state file was written by an older breast_sim, whose mesh "
                                                     "nodes were numbered differently; precompute the state again"
                                                   : ": the state is of a mesh with the same size but other nodes (another "
@@ -177,6 +180,24 @@ void ProneToSupinePipeline::loadState(const std::string& path) {
     const Eigen::VectorXd g = readVector(in, path);
     if (g.size() != 3) throw std::runtime_error(path + ": corrupt state file (a gravity load of " + std::to_string(g.size()) + " values)");
     s.gravity_load_mps2 = g;
+  }
+  // The rest shape: the same within the recovery's tolerance (a recovery is repeatable to far less).
+  const Points& own_rest = model_.mesh.nodes();
+  Points rest = prone_model_.mesh.nodes();
+  if (in.peek() != std::char_traits<char>::eof()) {
+    const Eigen::VectorXd r = readVector(in, path);
+    if (r.size() != 3 * own_rest.rows())
+      throw std::runtime_error(path + ": corrupt state file (a rest shape of " + std::to_string(r.size()) + " values)");
+    rest = toPoints(r);
+  }
+  const double rest_gap_m = (rest - own_rest).rowwise().norm().maxCoeff();
+  if (!(rest_gap_m <= UnloadedStateOptions{}.tolerance_m)) {
+    const bool file_prone = (rest - prone_model_.mesh.nodes()).rowwise().norm().maxCoeff() == 0.0;
+    throw std::runtime_error(path + ": the state was computed from another rest shape (" +
+                             (file_prone ? std::string("the prone shape, simulation.reference_state: prone")
+                                         : std::string("an unloaded shape ") + std::to_string(1e3 * rest_gap_m) +
+                                               " mm from this model's")  +
+                             "); load it with the case and settings it was saved with, or precompute again");
   }
   try {
     restore(s);

@@ -5,14 +5,71 @@
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <stdexcept>
 
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/model/point_embedding.h"
+#include "breast_sim/core/solver/multigrid.h"
 
 namespace breast_sim::core {
+namespace {
+
+/// X0 for reference_state unloaded (null for prone), recovered with the run's element, stiffening
+/// and fixed wall. 'multigrid' recovers with 'aggregation': its coarse meshes would be of the prone
+/// domain, and the recovery builds a simulator per iteration.
+std::unique_ptr<SimulationModel> unloadedModel(const ModelCase& model_case, const SimulationModel& prone,
+                                               const PipelineSettings& settings, UnloadedStateResult& result) {
+  if (settings.simulation.reference_state != SimulationSettings::ReferenceState::kUnloaded) return nullptr;
+  settings.validate();
+  SimulationSettings s = settings.simulation;
+  if (s.solver.kind == SolverSettings::Kind::kMultigrid) s.solver.kind = SolverSettings::Kind::kAggregation;
+  UnloadedStateOptions options;
+  options.stiffening = settings.stiffening;
+  const Eigen::Vector3d g_prone = settings.simulation.gravity_mps2 * model_case.prone_gravity_direction.normalized();
+  result = recoverUnloadedShape(prone.mesh, s, g_prone, options);
+  if (!result.converged) {
+    char best[160] = "";
+    if (!result.history.empty())
+      std::snprintf(best, sizeof best, "; the best one re-loads to within %.4f mm of the prone shape (mean %.4f mm, tolerance %.4f mm)",
+                    1e3 * result.max_residual_m, 1e3 * result.mean_residual_m, 1e3 * options.tolerance_m);
+    throw std::runtime_error("case '" + model_case.name + "': the unloaded (gravity-free) shape was not found: " +
+                             result.failure + best +
+                             ". Set simulation.reference_state: prone to take the prone shape as stress-free, or check "
+                             "the material (tissue too soft for prone gravity folds when it is unloaded)");
+  }
+  auto model = std::make_unique<SimulationModel>(prone);
+  model->mesh = withNodes(prone.mesh, result.unloaded_nodes_m);
+  return model;
+}
+
+/// The multigrid's coarse levels for the rest shape `rest` of the prone model: meshed from the case's
+/// image (the prone domain) and moved by the displacement rest − prone interpolated at their nodes
+/// (a coarse node outside the fine mesh takes the value at its closest point).
+std::vector<TetMesh> coarseMeshesOfRest(const ModelCase& model_case, const SimulationModel& prone, const TetMesh& rest,
+                                        const CoarseningOptions& options) {
+  std::vector<TetMesh> coarse = buildCoarseMeshes(model_case, prone, options);
+  const Points move = rest.nodes() - prone.mesh.nodes();
+  const Eigen::Vector3d lo = prone.mesh.nodes().colwise().minCoeff().transpose();
+  const Eigen::Vector3d hi = prone.mesh.nodes().colwise().maxCoeff().transpose();
+  const double anywhere_m = (hi - lo).norm();
+  for (size_t level = 0; level < coarse.size(); ++level) {
+    const PointEmbedding at(prone.mesh, coarse[level].nodes(), {}, anywhere_m);
+    try {
+      coarse[level] = withNodes(coarse[level], coarse[level].nodes() + at.interpolate(move));
+    } catch (const std::invalid_argument& e) {
+      throw std::runtime_error("case '" + model_case.name + "': coarse multigrid level " + std::to_string(level + 1) +
+                               " moved to the unloaded shape: " + e.what() + " (choose simulation.solver: aggregation)");
+    }
+  }
+  return coarse;
+}
+
+}  // namespace
 
 void ProneToSupinePipeline::closeReport(StageReport& r, const RunStats& before, double seconds) const {
   const RunStats after = stiff_->stats();
@@ -39,11 +96,38 @@ const char* stageName(PipelineStage stage) {
 
 ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model,
                                              const PipelineSettings& settings)
-    : case_(model_case), model_(model), settings_(settings) {
+    : case_(model_case),
+      prone_model_(model),
+      unloaded_model_(unloadedModel(model_case, model, settings, unloaded_)),
+      model_(unloaded_model_ ? *unloaded_model_ : model),
+      settings_(settings) {
   settings_.validate();
-  mesh_volume_m3_ = model_.mesh.volume();
-  settings_.simulation.dynamics.gravity_mps2 = supineGravityLoad();
-  build_ = buildSimulator(case_, model_, settings_.simulation);  // fixes the fixed node set
+  mesh_volume_m3_ = prone_model_.mesh.volume();
+  rest_volume_m3_ = model_.mesh.volume();
+  if (unloaded_model_)
+    gravity_offset_mps2_ = settings_.simulation.gravity_mps2 * case_.prone_gravity_direction.normalized();
+  settings_.simulation.dynamics.gravity_mps2 = supineGravityLoad() + gravity_offset_mps2_;
+  if (!unloaded_model_) {
+    build_ = buildSimulator(case_, model_, settings_.simulation);  // fixes the fixed node set
+  } else {
+    std::vector<TetMesh> coarse;
+    double meshing_s = 0.0;
+    if (settings_.simulation.solver.kind == SolverSettings::Kind::kMultigrid) {
+      const auto t = std::chrono::steady_clock::now();
+      coarse = coarseMeshesOfRest(case_, prone_model_, model_.mesh, settings_.simulation.solver.coarsening);
+      meshing_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+    }
+    build_ = buildSimulator(model_.mesh, settings_.simulation, std::move(coarse));
+    build_.hierarchy_seconds += meshing_s;
+    // The run starts at the prone shape, X0's equilibrium under prone gravity.
+    SimulationState start = simulator().state();
+    const Points& x0 = model_.mesh.nodes();
+    const Points& prone = prone_model_.mesh.nodes();
+    for (Eigen::Index n = 0; n < x0.rows(); ++n)
+      start.displacement_m.segment<3>(3 * n) = (prone.row(n) - x0.row(n)).transpose();
+    start.velocity_mps.setZero();
+    simulator().restore(start);
+  }
   StiffeningParams sp = settings_.stiffening;
   if (!settings_.simulation.stiffening) sp.update_moduli = false;  // co-rotated with E0 throughout
   stiff_ = std::make_unique<StiffeningSimulation>(*build_.simulator, model_.mesh, sp);
@@ -103,9 +187,9 @@ Eigen::Vector3d ProneToSupinePipeline::supineGravityLoad() const {
   return supine - prone;
 }
 
-void ProneToSupinePipeline::setGravityLoad(const Eigen::Vector3d& g_mps2) { stiff_->setGravity(g_mps2); }
+void ProneToSupinePipeline::setGravityLoad(const Eigen::Vector3d& g_mps2) { stiff_->setGravity(g_mps2 + gravity_offset_mps2_); }
 
-Eigen::Vector3d ProneToSupinePipeline::gravityLoad() const { return simulator().params().gravity_mps2; }
+Eigen::Vector3d ProneToSupinePipeline::gravityLoad() const { return simulator().params().gravity_mps2 - gravity_offset_mps2_; }
 
 void ProneToSupinePipeline::setTimeStep(double dt_s) {
   DynamicsParams p = simulator().params();
@@ -149,7 +233,8 @@ ProneToSupinePipeline::StepMoves ProneToSupinePipeline::stepMoves(Eigen::VectorX
 double ProneToSupinePipeline::volumeChangePercent() const {
   double volume_percent = 0.0, max_u = 0.0;
   deformationMeasures(model_.mesh, simulator().state().displacement_m, volume_percent, max_u);
-  return volume_percent;
+  // Of the prone volume (the rest shape's differs with reference_state unloaded).
+  return 100.0 * (rest_volume_m3_ * (1.0 + 0.01 * volume_percent) / mesh_volume_m3_ - 1.0);
 }
 
 void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
@@ -180,7 +265,7 @@ void ProneToSupinePipeline::run(const PipelineProgressFn& progress, const std::a
   stage_ = PipelineStage::kDone;
 }
 
-Points ProneToSupinePipeline::displacement() const { return simulator().displacement(); }
+Points ProneToSupinePipeline::displacement() const { return positions() - prone_model_.mesh.nodes(); }
 Points ProneToSupinePipeline::positions() const { return model_.mesh.nodes() + simulator().displacement(); }
 Points ProneToSupinePipeline::lesionPositions() const { return model_.lesion_embedding.positions(positions()); }
 
@@ -202,7 +287,7 @@ PipelineMetrics ProneToSupinePipeline::metrics() const {
   const QualityStats q = qualityStats(model_.mesh.tets(), x);
   m.inverted_elements = q.num_inverted;
   m.volume_change_percent = 100.0 * (q.total_volume_m3 / mesh_volume_m3_ - 1.0);
-  m.max_displacement_m = maxNodalNorm(simulator().state().displacement_m);
+  m.max_displacement_m = (x - prone_model_.mesh.nodes()).rowwise().norm().maxCoeff();
   m.max_modulus_factor = modulusFactors().maxCoeff();
   m.final_alpha_per_pa = stiff_->alpha();
   if (distance_) {

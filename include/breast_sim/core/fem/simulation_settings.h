@@ -105,6 +105,14 @@ struct SimulationSettings {
   /// Sliding of the chest-wall nodes on the wall (prone_to_supine.h, `sliding:` of a case file)
   /// after the fixed-wall settle; needs stiffening and a fixed node set.
   bool sliding = true;
+  /// The rest shape of the pipeline's runs (prone_to_supine.h). kProne: the prone shape taken as
+  /// stress-free and loaded with g_supine − g_prone (the seed's way). kUnloaded: the gravity-free
+  /// shape X0 recovered from the prone shape (fem/unloaded_state.h), loaded with supine gravity
+  /// itself; the wall then carries the supine weight only, half the superposition's normal load, so
+  /// free sliding (sliding.tether_stiffness 0) needs friction above the wall's slope
+  /// (docs/unloaded_state.md). buildSimulator does not read it.
+  enum class ReferenceState { kUnloaded, kProne };
+  ReferenceState reference_state = ReferenceState::kProne;
   /// Young's modulus per tissue [Pa], keyed by the elements' region label (the tissue class of
   /// model/tissue_labels.h: 1 fat, 2 fibroglandular, 3 skin, 4 lesion), e.g. {4: 20000}: a lesion
   /// ten times stiffer than 2 kPa tissue. Regions not listed take material.youngs_modulus_pa (E0).
@@ -127,7 +135,7 @@ Eigen::VectorXd elementYoungsModuli(const TetMesh& mesh, const SimulationSetting
 ///   multigrid_coarse_update_interval, multigrid_max_coarsest_elements, fixed_node_set, gravity_mps2, stiffening,
 ///   volume_term (trace | determinant), element (linear | anp), anp_element_volume_fraction (0..1),
 ///   anp_inversion_barrier (volume ratio in [0, 1), 0 = off), anp_inversion_barrier_stiffness (× bulk modulus),
-///   sliding,
+///   sliding, reference_state (unloaded | prone),
 ///   settle_time_step_s, settle_increment_tolerance_mm, settle_max_steps, tissue_youngs_modulus_pa
 ///   (a map tissue name → Pa: {fat, fibroglandular, skin, lesion}, e.g. {lesion: 20000}; see
 ///   SimulationSettings::region_youngs_modulus_pa).

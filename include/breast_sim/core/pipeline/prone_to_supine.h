@@ -2,9 +2,15 @@
 /// @file prone_to_supine.h
 /// The combined prone-to-supine pipeline (seed paper, section 2.6 and Figure 2).
 ///
+/// The rest shape (simulation.reference_state): by default the prone shape, taken as stress-free and
+/// loaded with g_supine − g_prone. With `unloaded` it is the shape X0 recovered at construction from
+/// the prone shape (fem/unloaded_state.h), so that X0 loaded with prone gravity is the prone shape;
+/// the run starts at the prone shape (displacement prone − X0) and loads supine gravity itself.
+/// Either way the gravity *load* the API speaks of is g_now − g_prone, and
+/// displacements are measured from the prone shape.
+///
 /// Two stages on one simulator:
-///  1. Gravity precomputation: the model is loaded with g_supine − g_prone (the prone shape already
-///     hangs under prone gravity) and settled with von Mises stiffening and time-step reversal, the
+///  1. Gravity precomputation: the model is loaded with supine gravity and settled with von Mises stiffening and time-step reversal, the
 ///     chest wall fixed; with sliding on, the wall nodes are then released to slide on the wall
 ///     and the run goes on until the wall stops moving and the tissue has settled again. The seed
 ///     advises exactly this order: morphing only after sliding and stiffening are macroscopically
@@ -32,6 +38,7 @@
 #include <Eigen/Core>
 
 #include "breast_sim/core/fem/simulation_settings.h"
+#include "breast_sim/core/fem/unloaded_state.h"
 #include "breast_sim/core/material/stiffening.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/morphing/surface_field.h"
@@ -281,10 +288,16 @@ struct PipelineState {
 
 class ProneToSupinePipeline {
  public:
-  /// Builds the simulator (solver, multigrid levels), the stiffening driver and, with sliding on, the
-  /// chest-wall surface. `model_case` and `model` are kept by reference and must outlive this.
-  /// The target of settings.morphing.target is read here ("phantom" needs a phantom case).
-  /// @throws std::invalid_argument / std::runtime_error for bad settings or a missing target.
+  /// With reference_state unloaded, first recovers X0 (recoverUnloadedShape with the run's element,
+  /// stiffening and fixed wall; solver 'multigrid' recovers with 'aggregation', then meshes its coarse
+  /// levels of the prone domain and moves them by the interpolated X0 − prone). Then builds the
+  /// simulator (solver, multigrid levels) on the rest shape, the stiffening driver and, with sliding
+  /// on, the chest-wall surface. `model_case` and `model` (the prone model) are kept by reference and
+  /// must outlive this. The target of settings.morphing.target is read here ("phantom" needs a
+  /// phantom case).
+  /// @throws std::invalid_argument / std::runtime_error for bad settings or a missing target;
+  ///         std::runtime_error when X0 is not found (the recovery's reason, its residual, and the
+  ///         way out: reference_state prone, or a stiffer material).
   ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model, const PipelineSettings& settings);
   ~ProneToSupinePipeline();
 
@@ -336,8 +349,8 @@ class ProneToSupinePipeline {
   const StageReport& morphingReport() const { return morphing_; }
   PipelineMetrics metrics() const;
 
-  Points displacement() const;   ///< #N×3 [m]
-  Points positions() const;      ///< rest + displacement, #N×3 [m]
+  Points displacement() const;   ///< from the prone shape, #N×3 [m]
+  Points positions() const;      ///< #N×3 [m]
   Points lesionPositions() const;  ///< #lesions×3 [m]
   /// Sliding vector per node [m] (zero without sliding).
   Points slidingVectors() const;
@@ -369,7 +382,9 @@ class ProneToSupinePipeline {
   /// @throws std::invalid_argument when the two pipelines differ in sliding (on / off, method) or
   ///         morphing (forces without a target here), or a node lies farther outside.
   void startFrom(const ProneToSupinePipeline& coarse, double snap_tolerance_m = 5e-3);
-  /// Binary snapshot file (magic, version, sizes, a fingerprint of the rest mesh, then the vectors).
+  /// Binary snapshot file (magic, version, sizes, a fingerprint of the prone mesh, then the vectors
+  /// and the rest shape). A state of another rest shape (reference_state, or a material that gives
+  /// another X0) is refused.
   /// A file written before the gravity load was saved loads with the supine load (supineGravityLoad),
   /// the load every precomputation ends under.
   /// @throws std::runtime_error naming the file on an I/O error or a snapshot of another model
@@ -391,7 +406,13 @@ class ProneToSupinePipeline {
   const std::vector<int>& wallBandNodes() const { return wall_band_nodes_; }
   const SurfaceMorphing* morphing() const { return morphing_forces_.get(); }
   const PipelineSettings& settings() const { return settings_; }
+  /// The model the simulator runs on: its mesh's nodes are the rest shape (X0 with reference_state
+  /// unloaded, else the prone shape); elements, node sets and lesions are the prone model's.
   const SimulationModel& model() const { return model_; }
+  /// The prone model given to the constructor.
+  const SimulationModel& proneModel() const { return prone_model_; }
+  /// The recovery of X0 (reference_state unloaded; else empty with iterations 0).
+  const UnloadedStateResult& unloadedState() const { return unloaded_; }
   /// With coarse_start: the pipeline on the coarse model (its model(), reports and state), else null.
   const ProneToSupinePipeline* coarse() const { return coarse_.get(); }
   /// The pipeline whose steps the progress callback is reporting: the coarse one while it runs
@@ -427,8 +448,14 @@ class ProneToSupinePipeline {
   double volumeChangePercent() const;
 
   const ModelCase& case_;
-  const SimulationModel& model_;
+  const SimulationModel& prone_model_;
+  UnloadedStateResult unloaded_;
+  std::unique_ptr<SimulationModel> unloaded_model_;  // prone_model_ with the nodes of X0 (reference_state unloaded)
+  const SimulationModel& model_;                    // the rest model: *unloaded_model_ or prone_model_
   PipelineSettings settings_;
+  /// Gravity the rest shape feels besides the load (g_prone with reference_state unloaded, else 0)
+  /// [m/s²]: the simulator's gravity is load + this.
+  Eigen::Vector3d gravity_offset_mps2_ = Eigen::Vector3d::Zero();
   SimulatorBuild build_;
   std::unique_ptr<StiffeningSimulation> stiff_;
   std::unique_ptr<ChestWallSliding> sliding_;
@@ -471,7 +498,8 @@ class ProneToSupinePipeline {
   SimulationState step_start_;
   Eigen::VectorXd step_start_factors_;
   PipelineState guard_before_;
-  double mesh_volume_m3_ = 0.0;
+  double mesh_volume_m3_ = 0.0;  // of the prone shape
+  double rest_volume_m3_ = 0.0;  // of the rest shape
 };
 
 }  // namespace breast_sim::core
