@@ -491,6 +491,18 @@ TEST(Pipeline, RunMorphingWithTheCancelFlagAlreadySetReturnsCancelledBeforeItsFi
   expectAConsistentState(pipe);
 }
 
+namespace {
+// The pipeline from the unloaded shape with the chest wall fixed and no morphing (the runs below).
+PipelineSettings unloadedFixedWall(bool stiffening) {
+  PipelineSettings s;
+  s.simulation.reference_state = SimulationSettings::ReferenceState::kUnloaded;
+  s.simulation.stiffening = stiffening;
+  s.simulation.sliding = false;
+  s.morphing.enabled = false;
+  return s;
+}
+}  // namespace
+
 // reference_state unloaded: the rest shape is X0, recovered so that X0 under prone gravity is the
 // prone shape. The run starts at the prone shape and stays there under prone gravity; under supine
 // gravity it settles where X0 loaded with supine gravity settles (loadWithGravity, the slow
@@ -498,11 +510,7 @@ TEST(Pipeline, RunMorphingWithTheCancelFlagAlreadySetReturnsCancelledBeforeItsFi
 // levels are moved to X0.
 TEST(Pipeline, AnUnloadedReferenceStartsProneStaysProneUnderProneGravityAndLoadsX0Supine) {
   const SmallPhantom& p = phantom();
-  PipelineSettings s;
-  s.simulation.reference_state = SimulationSettings::ReferenceState::kUnloaded;
-  s.simulation.stiffening = false;
-  s.simulation.sliding = false;
-  s.morphing.enabled = false;
+  const PipelineSettings s = unloadedFixedWall(false);
   ASSERT_EQ(s.simulation.solver.kind, SolverSettings::Kind::kMultigrid);
   ProneToSupinePipeline pipe(p.c, p.m, s);
   const UnloadedStateResult& u = pipe.unloadedState();
@@ -554,10 +562,7 @@ TEST(Pipeline, AnUnloadedReferenceStartsProneStaysProneUnderProneGravityAndLoads
 // Snapshots carry their rest shape: a state of the other reference state is refused, naming it.
 TEST(Pipeline, AStateFileOfAnotherRestShapeIsRefused) {
   const SmallPhantom& p = phantom();
-  PipelineSettings s;
-  s.simulation.reference_state = SimulationSettings::ReferenceState::kUnloaded;
-  s.simulation.sliding = false;
-  s.morphing.enabled = false;
+  const PipelineSettings s = unloadedFixedWall(true);
   ProneToSupinePipeline unloaded(p.c, p.m, s);
   for (int k = 0; k < 3; ++k) unloaded.stiffening().step();
   const fs::path file = fs::temp_directory_path() / "breast_sim_pipeline_unloaded_state.bin";
@@ -592,13 +597,9 @@ TEST(Pipeline, AStateFileOfAnotherRestShapeIsRefused) {
 // No X0 for tissue too soft for prone gravity: the constructor says so, with the way out.
 TEST(Pipeline, AnUnloadedShapeThatCannotBeFoundIsAClearError) {
   const SmallPhantom& p = phantom();
-  PipelineSettings s;
-  s.simulation.reference_state = SimulationSettings::ReferenceState::kUnloaded;
-  s.simulation.stiffening = false;
-  s.simulation.sliding = false;
+  PipelineSettings s = unloadedFixedWall(false);
   s.simulation.material.youngs_modulus_pa = 30.0;
   s.simulation.gravity_mps2 = 40.0;
-  s.morphing.enabled = false;
   try {
     ProneToSupinePipeline pipe(p.c, p.m, s);
     FAIL() << "an unloaded shape was found for 30 Pa tissue under 4 g";
