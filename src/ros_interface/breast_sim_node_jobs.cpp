@@ -29,7 +29,7 @@ std::unique_ptr<BreastSimNode::Engine> BreastSimNode::buildEngine(const std::str
   e->display = decimateSurface(mesh.nodes(), core::skinTriangles(mesh, mesh.nodeSet(core::node_sets::kSkin)),
                                params_.marker_max_triangles);
   if (mesh.hasNodeSet(core::node_sets::kChestWall)) e->wall_nodes = mesh.nodeSet(core::node_sets::kChestWall);
-  e->prone_gravity_mps2 = e->settings.simulation.gravity_mps2 * e->model_case->prone_gravity_direction.normalized();
+  e->prone_gravity_mps2 = core::proneGravity(*e->model_case, e->settings.simulation);
   e->gravity_load_mps2 = e->pipeline->supineGravityLoad();
   return e;
 }

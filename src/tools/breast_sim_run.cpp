@@ -156,7 +156,7 @@ void progressBar(const PipelineProgress& p) {
 /// stress and modulus factor per element.
 void writeDeformed(ProneToSupinePipeline& pipe, const SimulationModel& m, const std::string& path) {
   const Points u = pipe.displacement();
-  const Points x = m.mesh.nodes() + u;
+  const Points x = pipe.positions();
   MeshFields df;
   df.point_data.push_back({"displacement_mm", u * 1e3});
   if (pipe.sliding()) df.point_data.push_back({"sliding_mm", pipe.slidingVectors() * 1e3});
@@ -272,7 +272,7 @@ int main(int argc, char** argv) {
         // With coarse_start the first frames are of the coarse model (the one that is stepping).
         const ProneToSupinePipeline& running = pipe->running();
         const Points u = running.displacement();
-        const Points x = running.model().mesh.nodes() + u;
+        const Points x = running.positions();
         MeshFields ff;
         ff.point_data.push_back({"displacement_mm", u * 1e3});
         MeshWriteOptions wo;

@@ -25,13 +25,11 @@ namespace {
 std::unique_ptr<SimulationModel> unloadedModel(const ModelCase& model_case, const SimulationModel& prone,
                                                const PipelineSettings& settings, UnloadedStateResult& result) {
   if (settings.simulation.reference_state != SimulationSettings::ReferenceState::kUnloaded) return nullptr;
-  settings.validate();
   SimulationSettings s = settings.simulation;
   if (s.solver.kind == SolverSettings::Kind::kMultigrid) s.solver.kind = SolverSettings::Kind::kAggregation;
   UnloadedStateOptions options;
   options.stiffening = settings.stiffening;
-  const Eigen::Vector3d g_prone = settings.simulation.gravity_mps2 * model_case.prone_gravity_direction.normalized();
-  result = recoverUnloadedShape(prone.mesh, s, g_prone, options);
+  result = recoverUnloadedShape(prone.mesh, s, proneGravity(model_case, settings.simulation), options);
   if (!result.converged) {
     char best[160] = "";
     if (!result.history.empty())
@@ -69,7 +67,16 @@ std::vector<TetMesh> coarseMeshesOfRest(const ModelCase& model_case, const Simul
   return coarse;
 }
 
+PipelineSettings validated(const PipelineSettings& settings) {
+  settings.validate();
+  return settings;
+}
+
 }  // namespace
+
+Eigen::Vector3d proneGravity(const ModelCase& model_case, const SimulationSettings& settings) {
+  return settings.gravity_mps2 * model_case.prone_gravity_direction.normalized();
+}
 
 void ProneToSupinePipeline::closeReport(StageReport& r, const RunStats& before, double seconds) const {
   const RunStats after = stiff_->stats();
@@ -97,15 +104,13 @@ const char* stageName(PipelineStage stage) {
 ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model,
                                              const PipelineSettings& settings)
     : case_(model_case),
+      settings_(validated(settings)),
       prone_model_(model),
-      unloaded_model_(unloadedModel(model_case, model, settings, unloaded_)),
-      model_(unloaded_model_ ? *unloaded_model_ : model),
-      settings_(settings) {
-  settings_.validate();
+      unloaded_model_(unloadedModel(model_case, model, settings_, unloaded_)),
+      model_(unloaded_model_ ? *unloaded_model_ : model) {
   mesh_volume_m3_ = prone_model_.mesh.volume();
   rest_volume_m3_ = model_.mesh.volume();
-  if (unloaded_model_)
-    gravity_offset_mps2_ = settings_.simulation.gravity_mps2 * case_.prone_gravity_direction.normalized();
+  if (unloaded_model_) gravity_offset_mps2_ = proneGravity(case_, settings_.simulation);
   settings_.simulation.dynamics.gravity_mps2 = supineGravityLoad() + gravity_offset_mps2_;
   if (!unloaded_model_) {
     build_ = buildSimulator(case_, model_, settings_.simulation);  // fixes the fixed node set
@@ -179,7 +184,7 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
 ProneToSupinePipeline::~ProneToSupinePipeline() = default;
 
 Eigen::Vector3d ProneToSupinePipeline::supineGravityLoad() const {
-  const Eigen::Vector3d prone = settings_.simulation.gravity_mps2 * case_.prone_gravity_direction.normalized();
+  const Eigen::Vector3d prone = proneGravity(case_, settings_.simulation);
   // The phantom brings its supine direction (tilted, seed 3.3); the magnitude is the settings' for both.
   const Eigen::Vector3d supine = case_.phantom && case_.phantom->gravity_supine_mps2.norm() > 0
                                      ? Eigen::Vector3d(settings_.simulation.gravity_mps2 * case_.phantom->gravity_supine_mps2.normalized())
@@ -265,7 +270,11 @@ void ProneToSupinePipeline::run(const PipelineProgressFn& progress, const std::a
   stage_ = PipelineStage::kDone;
 }
 
-Points ProneToSupinePipeline::displacement() const { return positions() - prone_model_.mesh.nodes(); }
+Points ProneToSupinePipeline::displacement() const {
+  Points u = simulator().displacement();  // from the rest shape
+  if (unloaded_model_) u += model_.mesh.nodes() - prone_model_.mesh.nodes();
+  return u;
+}
 Points ProneToSupinePipeline::positions() const { return model_.mesh.nodes() + simulator().displacement(); }
 Points ProneToSupinePipeline::lesionPositions() const { return model_.lesion_embedding.positions(positions()); }
 
@@ -287,7 +296,7 @@ PipelineMetrics ProneToSupinePipeline::metrics() const {
   const QualityStats q = qualityStats(model_.mesh.tets(), x);
   m.inverted_elements = q.num_inverted;
   m.volume_change_percent = 100.0 * (q.total_volume_m3 / mesh_volume_m3_ - 1.0);
-  m.max_displacement_m = (x - prone_model_.mesh.nodes()).rowwise().norm().maxCoeff();
+  m.max_displacement_m = displacement().rowwise().norm().maxCoeff();
   m.max_modulus_factor = modulusFactors().maxCoeff();
   m.final_alpha_per_pa = stiff_->alpha();
   if (distance_) {

@@ -10,8 +10,8 @@
 /// displacements are measured from the prone shape.
 ///
 /// Two stages on one simulator:
-///  1. Gravity precomputation: the model is loaded with supine gravity and settled with von Mises stiffening and time-step reversal, the
-///     chest wall fixed; with sliding on, the wall nodes are then released to slide on the wall
+///  1. Gravity precomputation: the model is loaded with supine gravity and settled with von Mises
+///     stiffening and time-step reversal, the chest wall fixed; with sliding on, the wall nodes are then released to slide on the wall
 ///     and the run goes on until the wall stops moving and the tissue has settled again. The seed
 ///     advises exactly this order: morphing only after sliding and stiffening are macroscopically
 ///     stable.
@@ -286,6 +286,9 @@ struct PipelineState {
   Eigen::Vector3d gravity_load_mps2 = Eigen::Vector3d::Zero();
 };
 
+/// The gravity of a case's prone image [m/s²]: settings.gravity_mps2 along its prone direction.
+Eigen::Vector3d proneGravity(const ModelCase& model_case, const SimulationSettings& settings);
+
 class ProneToSupinePipeline {
  public:
   /// With reference_state unloaded, first recovers X0 (recoverUnloadedShape with the run's element,
@@ -448,11 +451,11 @@ class ProneToSupinePipeline {
   double volumeChangePercent() const;
 
   const ModelCase& case_;
+  PipelineSettings settings_;  // validated first: the recovery of X0 below uses it
   const SimulationModel& prone_model_;
   UnloadedStateResult unloaded_;
   std::unique_ptr<SimulationModel> unloaded_model_;  // prone_model_ with the nodes of X0 (reference_state unloaded)
   const SimulationModel& model_;                    // the rest model: *unloaded_model_ or prone_model_
-  PipelineSettings settings_;
   /// Gravity the rest shape feels besides the load (g_prone with reference_state unloaded, else 0)
   /// [m/s²]: the simulator's gravity is load + this.
   Eigen::Vector3d gravity_offset_mps2_ = Eigen::Vector3d::Zero();
