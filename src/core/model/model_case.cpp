@@ -1,5 +1,7 @@
 #include "breast_sim/core/model/model_case.h"
 
+#include <chrono>
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <limits>
@@ -70,27 +72,93 @@ MeshingOptions parseMeshing(const YAML::Node& m, const std::string& file, double
   return o;
 }
 
+/// prone_gravity_direction and nipples_mm of an image: or mesh: map.
+void readPlacement(const YAML::Node& m, const std::string& file, const std::string& section, ModelCase& c) {
+  if (m["prone_gravity_direction"]) {
+    const Eigen::Vector3d g = vec3(m["prone_gravity_direction"], file, section + ".prone_gravity_direction", "");
+    if (!(g.norm() > 0) || !std::isfinite(g.norm()))
+      fail(file, section + ".prone_gravity_direction", "must be a finite non-zero vector: give the chest wall → nipple direction");
+    c.prone_gravity_direction = g.normalized();
+  }
+  if (m["nipples_mm"]) {
+    if (!m["nipples_mm"].IsSequence()) fail(file, section + ".nipples_mm", "expected a list of [x, y, z] in mm");
+    for (const auto& n : m["nipples_mm"]) c.nipples_m.push_back(vec3(n, file, section + ".nipples_mm") * 1e-3);
+  }
+}
+
+/// The `mesh:` map: reads and prepares the mesh, then makes its label image.
+void loadMeshSource(const YAML::Node& m, const std::string& file, ModelCase& c) {
+  if (!m.IsMap()) fail(file, "mesh", "expected a map {path, units, chest_wall, ...}");
+  checkKeys(m, {"path", "units", "chest_wall", "skin", "nipple", "regions", "voxel_size_mm", "nipples_mm",
+                "prone_gravity_direction"},
+            file, "mesh");
+  UserMeshSource& s = c.mesh_source;
+  if (!m["path"]) fail(file, "mesh.path", "missing: give the mesh file (.msh .vtu .vtk .node/.ele .inp)");
+  fs::path p = text(m["path"], file, "mesh.path");
+  if (p.is_relative()) p = fs::absolute(fs::path(file).parent_path() / p);
+  s.path = p.lexically_normal().string();
+  if (!m["units"]) fail(file, "mesh.units", "missing: say whether the file's coordinates are in m or mm");
+  s.length_unit_m = choice(m["units"], file, "mesh.units", {"m", "mm"}) == "m" ? 1.0 : 1e-3;
+  if (m["chest_wall"]) s.chest_wall_set = text(m["chest_wall"], file, "mesh.chest_wall");
+  if (m["skin"]) s.skin_set = text(m["skin"], file, "mesh.skin");
+  if (m["nipple"]) s.nipple_set = text(m["nipple"], file, "mesh.nipple");
+  if (m["voxel_size_mm"]) s.voxel_size_m = 1e-3 * numberIn(m["voxel_size_mm"], file, "mesh.voxel_size_mm", 0.1, 10.0, false, false, "mm");
+  if (m["regions"]) {
+    const YAML::Node r = m["regions"];
+    checkKeys(r, {"fat", "fibroglandular", "skin", "lesion"}, file, "mesh.regions");
+    const std::pair<const char*, TissueClass> classes[] = {{"fat", TissueClass::kFat},
+                                                           {"fibroglandular", TissueClass::kFibroglandular},
+                                                           {"skin", TissueClass::kSkin},
+                                                           {"lesion", TissueClass::kLesion}};
+    for (const auto& [name, cls] : classes) {
+      if (!r[name]) continue;
+      const std::string key = std::string("mesh.regions.") + name;
+      if (!r[name].IsSequence()) fail(file, key, "expected a list of element region labels, e.g. [1, 2]");
+      for (const auto& v : r[name]) {
+        const int label = static_cast<int>(integer(v, file, key, -2'000'000'000L, 2'000'000'000L));
+        if (!s.regions.emplace(label, cls).second)
+          fail(file, key, "region label " + std::to_string(label) + " is in two lists");
+      }
+    }
+    if (s.regions.empty()) fail(file, "mesh.regions", "lists no region label");
+  }
+  readPlacement(m, file, "mesh", c);
+  if (m["nipples_mm"] && !s.nipple_set.empty())
+    fail(file, "mesh.nipples_mm", "give either nipples_mm or the node set mesh.nipple, not both");
+  auto mesh = std::make_shared<TetMesh>(readUserMesh(s, &c.mesh_report));
+  if (mesh->hasNodeSet(node_sets::kNipple)) {
+    Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+    for (int v : mesh->nodeSet(node_sets::kNipple)) centroid += mesh->nodes().row(v).transpose();
+    c.nipples_m.push_back(centroid / static_cast<double>(mesh->nodeSet(node_sets::kNipple).size()));
+  }
+  const auto t = std::chrono::steady_clock::now();
+  try {
+    c.image = voxelizeModel(*mesh, c.labels, s.voxel_size_m, kUserMeshImageMarginM);
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(file + ": " + e.what());
+  }
+  c.mesh_report.voxelize_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+  c.mesh = std::move(mesh);
+}
+
 }  // namespace
 
 ModelCase loadModelCase(const std::string& yaml_path) {
   if (!fs::exists(yaml_path)) throw std::runtime_error(yaml_path + ": no such case file");
   const YAML::Node root = yaml_fields::loadFile(yaml_path);  // with its base: file, if any
-  if (!root.IsMap()) throw std::runtime_error(yaml_path + ": expected a map with 'phantom:' or 'image:' at the top");
   ModelCase c;
   c.source_path = yaml_path;
   c.name = fs::path(yaml_path).stem().string();
-  const bool has_phantom = static_cast<bool>(root["phantom"]);
-  const bool has_image = static_cast<bool>(root["image"]);
-  if (has_phantom == has_image)
-    throw std::runtime_error(yaml_path + ": give exactly one of 'phantom:' (the software phantom) or 'image:' "
-                                         "(a label image), found " + (has_phantom ? "both" : "neither"));
-  if (has_phantom) {
+  const std::string source = caseSource(root, yaml_path);
+  if (source == "phantom") {
     auto phantom = std::make_shared<Phantom>(generatePhantom(loadPhantomParams(yaml_path)));
     c.image = phantom->labels;
     c.nipples_m = phantom->nipples_m;
     c.prone_gravity_direction = phantom->gravity_prone_mps2.normalized();
     c.lesions = phantom->lesions;
     c.phantom = phantom;
+  } else if (source == "mesh") {
+    loadMeshSource(root["mesh"], yaml_path, c);
   } else {
     const YAML::Node img = root["image"];
     checkKeys(img, {"path", "labels", "nipples_mm", "prone_gravity_direction"}, yaml_path, "image");
@@ -112,15 +180,7 @@ ModelCase loadModelCase(const std::string& yaml_path) {
         throw std::runtime_error(yaml_path + ": " + e.what());
       }
     }
-    if (img["prone_gravity_direction"]) {
-      const Eigen::Vector3d g = vec3(img["prone_gravity_direction"], yaml_path, "image.prone_gravity_direction");
-      if (!(g.norm() > 0)) fail(yaml_path, "image.prone_gravity_direction", "must not be zero: give the chest wall → nipple direction");
-      c.prone_gravity_direction = g.normalized();
-    }
-    if (img["nipples_mm"]) {
-      if (!img["nipples_mm"].IsSequence()) fail(yaml_path, "image.nipples_mm", "expected a list of [x, y, z] in mm");
-      for (const auto& n : img["nipples_mm"]) c.nipples_m.push_back(vec3(n, yaml_path, "image.nipples_mm") * 1e-3);
-    }
+    readPlacement(img, yaml_path, "image", c);
   }
   if (root["lesions"]) {
     if (!root["lesions"].IsSequence()) fail(yaml_path, "lesions", "expected a list of {name, position_mm, radius_mm}");
@@ -152,7 +212,21 @@ SimulationModel buildSimulationModel(const ModelCase& model_case) {
   std::vector<RefinementPoint> refine;
   for (const auto& l : model_case.lesions) refine.push_back({l.position_m, l.radius_m});
   SimulationModel model;
-  model.mesh = meshLabelImage(model_case.image, model_case.labels, refine, model_case.meshing, &model.meshing);
+  if (model_case.mesh) {
+    model.mesh = *model_case.mesh;
+    const UserMeshReport& r = model_case.mesh_report;
+    model.meshing.seconds = r.voxelize_seconds;
+    model.meshing.interior_size_m = r.interior_size_m;
+    model.meshing.skin_size_m = r.skin_size_m;
+    model.meshing.num_chest_wall_faces = r.chest_wall_faces;
+    model.meshing.num_skin_faces = r.skin_faces;
+    model.meshing.num_components = r.components;
+    model.meshing.tissue_voxels = std::count_if(model_case.image.labels.begin(), model_case.image.labels.end(),
+                                                [&](std::uint16_t l) { return model_case.labels.isTissue(l); });
+    model.meshing.voxel_volume_m3 = static_cast<double>(model.meshing.tissue_voxels) * model_case.image.spacing_m.prod();
+  } else {
+    model.mesh = meshLabelImage(model_case.image, model_case.labels, refine, model_case.meshing, &model.meshing);
+  }
 
   if (!model_case.nipples_m.empty()) {
     // The skin node nearest each nipple point; a point far from the skin is a coordinate mistake.

@@ -257,23 +257,18 @@ std::string effectiveCaseYaml(const std::string& case_path, const MeshingOptions
                               double lesion_snap_tolerance_m, const PipelineSettings& settings) {
   namespace fs = std::filesystem;
   const YAML::Node root = yaml_fields::loadFile(case_path);
-  if (!root.IsMap()) throw std::runtime_error(case_path + ": expected a map with 'phantom:' or 'image:' at the top");
-  const bool has_phantom = static_cast<bool>(root["phantom"]);
-  const bool has_image = static_cast<bool>(root["image"]);
-  if (has_phantom == has_image)
-    throw std::runtime_error(case_path + ": give exactly one of 'phantom:' (the software phantom) or 'image:' "
-                                         "(a label image), found " + (has_phantom ? "both" : "neither"));
+  const std::string source = yaml_fields::caseSource(root, case_path);
   YAML::Node out(YAML::NodeType::Map);
-  if (has_phantom) {
+  if (source == "phantom") {
     out["phantom"] = phantomMap(loadPhantomParams(case_path));
   } else {
-    YAML::Node image = YAML::Clone(root["image"]);
-    if (image.IsMap() && image["path"] && image["path"].IsScalar()) {
-      fs::path p = image["path"].as<std::string>();
+    YAML::Node map = YAML::Clone(root[source]);  // image: or mesh:, with its path made absolute
+    if (map.IsMap() && map["path"] && map["path"].IsScalar()) {
+      fs::path p = map["path"].as<std::string>();
       if (p.is_relative()) p = fs::absolute(fs::path(case_path).parent_path() / p);
-      image["path"] = p.lexically_normal().string();
+      map["path"] = p.lexically_normal().string();
     }
-    out["image"] = image;
+    out[source] = map;
   }
   if (root["lesions"]) out["lesions"] = YAML::Clone(root["lesions"]);
   out["meshing"] = meshingMap(meshing, lesion_snap_tolerance_m);

@@ -30,6 +30,9 @@ Eigen::Vector3d vec3(const YAML::Node& n, const std::string& file, const std::st
 /// `map` is a map whose keys are all in `allowed`.
 void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, const std::string& file,
                const std::string& section);
+/// Which source of tissue a case file's root map names: "phantom", "image" or "mesh".
+/// @throws std::runtime_error naming the file unless exactly one of them is there.
+std::string caseSource(const YAML::Node& root, const std::string& file);
 /// Loads a YAML file. A top-level `base: FILE` (relative to this file's folder) loads that file first
 /// and this file's keys replace its keys, map by map (a map merges into the base's map of the same
 /// key, anything else replaces it); bases may have bases (at most 8 deep, no cycles). The `base` key

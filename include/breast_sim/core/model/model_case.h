@@ -1,7 +1,7 @@
 #pragma once
 /// @file model_case.h
-/// A case: where the tissue comes from (the built-in phantom or a label image), its lesions and how
-/// to mesh it; and the simulation model built from it.
+/// A case: where the tissue comes from (the built-in phantom, a label image or a mesh of the user's),
+/// its lesions and how to mesh it; and the simulation model built from it.
 
 #include <memory>
 #include <string>
@@ -15,6 +15,7 @@
 #include "breast_sim/core/model/image_mesher.h"
 #include "breast_sim/core/model/point_embedding.h"
 #include "breast_sim/core/model/tissue_labels.h"
+#include "breast_sim/core/model/user_mesh.h"
 
 namespace breast_sim::core {
 
@@ -24,7 +25,8 @@ struct Phantom;  // model/phantom.h
 struct ModelCase {
   std::string name;                        ///< case name (file stem)
   std::string source_path;                 ///< the YAML file it came from, if any
-  LabelImage image;                        ///< the prone segmentation
+  /// The prone segmentation; for a mesh case, the label image made from the mesh (voxelizeModel).
+  LabelImage image;
   TissueLabels labels;                     ///< which label values are which tissue
   std::vector<Lesion> lesions;             ///< lesions in the prone image [m]
   std::vector<Eigen::Vector3d> nipples_m;  ///< nipple points [m] (may be empty)
@@ -35,13 +37,26 @@ struct ModelCase {
   MeshingOptions meshing;
   double lesion_snap_tolerance_m = 2e-3;   ///< a lesion this close outside the mesh is snapped onto it [m]
   std::shared_ptr<const Phantom> phantom;  ///< set when the case is the software phantom
+  /// Set when the case is a mesh of the user's (`mesh:`): the prepared mesh (readUserMesh), which
+  /// buildSimulationModel takes instead of meshing the image.
+  std::shared_ptr<const TetMesh> mesh;
+  UserMeshSource mesh_source;              ///< where that mesh came from (path made absolute)
+  UserMeshReport mesh_report;              ///< what preparing it found
 };
 
+/// Voxels around a user's mesh in its label image [m]: room for the chest-wall field behind the wall
+/// (it saturates 3.7 σ in, 7.4 mm at the default σ of 2 mm, and the Gaussian reaches 4 σ further).
+inline constexpr double kUserMeshImageMarginM = 20e-3;
+
 /// Loads a YAML case file. Top-level maps:
-///  - `phantom:` the software phantom's parameters (model/phantom.h), or
+///  - exactly one of `phantom:` the software phantom's parameters (model/phantom.h),
 ///  - `image:` {path (relative to the YAML file), labels: {fat: [...], fibroglandular: [...], skin:
 ///    [...], lesion: [...], chest_wall: [...]}, nipples_mm: [[x, y, z], ...],
 ///    prone_gravity_direction: [x, y, z] (default [0, -1, 0], anterior in LPS)};
+///  - `mesh:` {path (relative to the YAML file), units: m | mm, chest_wall: NODE_SET (default
+///    "chest_wall"), skin: NODE_SET (default: the boundary off the wall), nipple: NODE_SET, regions:
+///    {fat: [...], fibroglandular: [...], skin: [...], lesion: [...]} (element region labels),
+///    voxel_size_mm (default 1), nipples_mm, prone_gravity_direction} (model/user_mesh.h);
 ///  - `lesions:` optional list of {name, position_mm: [x, y, z], radius_mm} (LPS patient space, mm),
 ///    added to the phantom's own lesions;
 ///  - `meshing:` {target_elements, interior_size_mm, skin_size_factor, grading_distance_mm,
@@ -65,8 +80,8 @@ struct SimulationModel {
   QualityStats quality;
 };
 
-/// Meshes the case's image and embeds its lesions. The nipple node set holds the skin node nearest
-/// each nipple point.
+/// Meshes the case's image (or takes the case's own mesh) and embeds its lesions. The nipple node set
+/// holds the skin node nearest each nipple point.
 /// @throws as meshLabelImage and PointEmbedding do; messages name the case.
 SimulationModel buildSimulationModel(const ModelCase& model_case);
 
