@@ -1,4 +1,4 @@
-// breast_sim_run: the whole prone-to-supine run of a case (the software phantom or a label image):
+// breast_sim_run: the whole prone-to-supine run of a case (the software phantom, a label image or a mesh):
 // builds the simulation model and writes it for ParaView / 3D Slicer / CalculiX, loads it with the
 // gravity of the supine position (stiffening, sliding), morphs it to the target surface (seed
 // Figure 2), and writes the deformed meshes, a ParaView series, the lesion positions, metrics and
@@ -174,6 +174,10 @@ int main(int argc, char** argv) {
     const Args args = parse(argc, argv);
     const auto t0 = std::chrono::steady_clock::now();
     ModelCase c = loadModelCase(args.case_file);
+    if (c.mesh && (args.target_elements > 0 || args.max_lesion_error_mm > 0))
+      throw std::invalid_argument(std::string(args.target_elements > 0 ? "--target-elements" : "--max-lesion-error-mm") +
+                                  " chooses how an image is meshed, but case '" + c.name +
+                                  "' brings its own mesh (mesh:): leave the option out");
     if (args.target_elements > 0) c.meshing.target_elements = args.target_elements;
     PipelineSettings settings = loadPipelineSettings(args.case_file);
     if (!args.solver.empty()) settings.simulation.solver.kind = SolverSettings::kindFromName(args.solver);
@@ -229,6 +233,12 @@ int main(int argc, char** argv) {
     s["prone_gravity_direction"] = {c.prone_gravity_direction.x(), c.prone_gravity_direction.y(), c.prone_gravity_direction.z()};
     s["boundary_closed"] = isClosedManifold(m.mesh.boundary().triangles);
     s["seconds"] = {{"case_and_image", t_case}, {"meshing", m.meshing.seconds}, {"model_total", t_model}};
+    if (c.mesh)
+      s["mesh_file"] = {{"path", c.mesh_source.path},
+                        {"file_nodes", c.mesh_report.file_nodes},
+                        {"unused_nodes_dropped", c.mesh_report.unused_nodes},
+                        {"label_image_voxel_mm", c.mesh_source.voxel_size_m * 1e3},
+                        {"label_image_seconds", c.mesh_report.voxelize_seconds}};
     s["meshing"] = {{"passes", m.meshing.passes},
                     {"interior_size_mm", m.meshing.interior_size_m * 1e3},
                     {"skin_size_mm", m.meshing.skin_size_m * 1e3},
@@ -466,8 +476,9 @@ int main(int argc, char** argv) {
     if (!args.json.empty()) std::ofstream(args.json) << (metrics.is_null() ? s : metrics).dump(2) << '\n';
 
     std::printf("breast_sim run of case '%s'\n", c.name.c_str());
-    std::printf("  %-26s %d tetrahedra, %d nodes (%s boundary), %.2f s (meshing %.2f s)\n", "model", m.mesh.numTets(),
-                m.mesh.numNodes(), s["boundary_closed"].get<bool>() ? "closed" : "OPEN", t_model, m.meshing.seconds);
+    std::printf("  %-26s %d tetrahedra, %d nodes (%s boundary), %.2f s (%s %.2f s)\n", "model", m.mesh.numTets(),
+                m.mesh.numNodes(), s["boundary_closed"].get<bool>() ? "closed" : "OPEN", t_model,
+                c.mesh ? "read from the file; its label image" : "meshing", m.meshing.seconds);
     std::printf("  %-26s %.1f cm3", "volume", mesh_volume * 1e6);
     if (c.phantom) std::printf(" (analytic %.1f, error %+.2f%%)", c.phantom->prone_volume_m3 * 1e6,
                                100.0 * (mesh_volume / c.phantom->prone_volume_m3 - 1.0));

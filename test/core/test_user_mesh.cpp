@@ -276,3 +276,27 @@ TEST(UserMesh, TheEffectiveCaseNamesTheMeshByItsAbsolutePath) {
 
 }  // namespace
 }  // namespace breast_sim::core
+
+namespace breast_sim::core {
+namespace {
+
+// docs/case_files.md's `mesh:` block is a case that loads (its path made absolute).
+TEST(UserMesh, TheDocumentedMeshBlockIsACase) {
+  std::ifstream in(kConfigDir + "../docs/case_files.md");
+  const std::string doc((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const size_t section = doc.find("## A mesh of your own");
+  ASSERT_NE(section, std::string::npos);
+  const size_t open = doc.find("```\n", section), close = doc.find("```", open + 4);
+  ASSERT_NE(close, std::string::npos);
+  std::string block = doc.substr(open + 4, close - open - 4);
+  const std::string rel = "../test/data/";
+  block.replace(block.find(rel), rel.size(), kConfigDir + "../test/data/");
+  const test::TempDir dir("breast_sim_user_mesh_doc");
+  const ModelCase c = loadModelCase(dir.write("doc.yaml", block));
+  ASSERT_TRUE(c.mesh);
+  EXPECT_EQ(c.mesh->numTets(), 14132);
+  ASSERT_EQ(c.lesions.size(), 1u);
+}
+
+}  // namespace
+}  // namespace breast_sim::core
