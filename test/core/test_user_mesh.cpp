@@ -231,6 +231,8 @@ TEST(UserMesh, BadMeshesAndCasesGetAClearError) {
   // Exactly one source.
   expectError("mesh: {path: model.inp, units: mm}\nimage: {path: x.nrrd}\n", "give exactly one of");
   expectError(caseText("missing.inp", "mm"), "missing.inp");
+  // A label image too large for memory: the message gives the voxel size to choose.
+  expectError(caseText("model.inp", "mm", "  voxel_size_mm: 0.1\n"), "choose mesh.voxel_size_mm ≥");
 
   // A node set with an interior node, a piece that floats free, unused nodes (dropped).
   TetMesh mesh = p.m.mesh;

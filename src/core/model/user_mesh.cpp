@@ -247,10 +247,10 @@ LabelImage voxelizeModel(const TetMesh& mesh, const TissueLabels& labels, double
     voxels *= n;
     size[a] = static_cast<int>(std::min(n, 1e9));
   }
-  if (voxels > static_cast<double>(1 << 27)) {
+  if (voxels > static_cast<double>(1 << 26)) {
     std::ostringstream s;
     s << "voxelizeModel: a grid of " << voxel_size_m * 1e3 << " mm over the mesh would hold " << voxels
-      << " voxels (at most 2^27): choose mesh.voxel_size_mm ≥ " << std::cbrt(extent.prod() / (1 << 27)) * 1e3 * 1.01;
+      << " voxels (at most 2^26): choose mesh.voxel_size_mm ≥ " << std::cbrt(extent.prod() / (1 << 26)) * 1e3 * 1.01;
     throw std::invalid_argument(s.str());
   }
   LabelImage image(size, Eigen::Vector3d::Constant(voxel_size_m), lo, 0);
@@ -380,15 +380,13 @@ LabelImage voxelizeModel(const TetMesh& mesh, const TissueLabels& labels, double
   std::vector<std::int32_t> near_wall(total), near_skin(total);
   euclideanFeatureTransformOfSites(wall_voxels, size, image.spacing_m, near_wall.data());
   euclideanFeatureTransformOfSites(skin_voxels, size, image.spacing_m, near_skin.data());
-  std::vector<int> site_of(total, -1);  // only site voxels are looked up
-  for (size_t i = 0; i < wall_sites.size(); ++i) site_of[wall_sites[i].voxel] = static_cast<int>(i);
 
   const std::uint16_t wall_label = value[5];
 #pragma omp parallel for schedule(static)
   for (long v = 0; v < total; ++v) {
     if (image.labels[v] != 0 || near_wall[v] < 0) continue;
     const Eigen::Vector3d x = centre(v);
-    const int site = site_of[near_wall[v]];
+    const auto site = std::lower_bound(wall_voxels.begin(), wall_voxels.end(), near_wall[v]) - wall_voxels.begin();
     if ((x - wall_sites[site].sample).dot(site_normal[site]) <= 0.0) continue;  // in front of the wall
     const double d_wall = (x - centre(near_wall[v])).norm();
     const double d_skin = near_skin[v] < 0 ? 1e300 : (x - centre(near_skin[v])).norm();

@@ -64,7 +64,7 @@ TetMesh readUserMesh(const UserMeshSource& source, UserMeshReport* report = null
 /// So the chest-wall field's surface (sliding/chest_wall_surface.h) passes within about half a voxel
 /// of the mesh's wall faces.
 /// @throws std::invalid_argument when the mesh lacks the node sets, the voxel size or margin is not
-///         positive, or the grid would exceed 2^27 voxels (the message gives the size to choose).
+///         positive, or the grid would exceed 2^26 voxels (the message gives the size to choose).
 LabelImage voxelizeModel(const TetMesh& mesh, const TissueLabels& labels, double voxel_size_m, double margin_m);
 
 }  // namespace breast_sim::core
