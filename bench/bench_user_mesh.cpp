@@ -29,22 +29,33 @@ using namespace breast_sim;
 using namespace breast_sim::core;
 
 int main(int argc, char** argv) {
-  std::string case_path = std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/mesh_case.yaml", json_path;
-  std::string solvers = "multigrid,aggregation";
-  int ccx_threads = 0, repeats = 3;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--case") case_path = bench::argValue(argc, argv, i);
-    else if (a == "--solvers") solvers = bench::argValue(argc, argv, i);
-    else if (a == "--repeats") repeats = std::max(1, std::stoi(bench::argValue(argc, argv, i)));
-    else if (a == "--ccx-threads") ccx_threads = std::stoi(bench::argValue(argc, argv, i));
-    else if (a == "--json") json_path = bench::argValue(argc, argv, i);
-    else {
-      std::fprintf(stderr, "usage: bench_user_mesh [--case FILE] [--solvers multigrid,aggregation] [--repeats 3] [--ccx-threads N] [--json FILE]\n");
-      return 2;
-    }
-  }
   try {
+    std::string case_path = std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/mesh_case.yaml", json_path;
+    std::string solvers = "multigrid,aggregation";
+    int ccx_threads = 0, repeats = 3;
+    auto whole = [](const std::string& option, const std::string& text) {
+      size_t used = 0;
+      int v = 0;
+      try {
+        v = std::stoi(text, &used);
+      } catch (const std::exception&) {
+        used = 0;
+      }
+      if (used == 0 || used != text.size()) throw std::runtime_error(option + " expects a whole number, got '" + text + "'");
+      return v;
+    };
+    for (int i = 1; i < argc; ++i) {
+      const std::string a = argv[i];
+      if (a == "--case") case_path = bench::argValue(argc, argv, i);
+      else if (a == "--solvers") solvers = bench::argValue(argc, argv, i);
+      else if (a == "--repeats") repeats = std::max(1, whole(a, bench::argValue(argc, argv, i)));
+      else if (a == "--ccx-threads") ccx_threads = whole(a, bench::argValue(argc, argv, i));
+      else if (a == "--json") json_path = bench::argValue(argc, argv, i);
+      else {
+        std::fprintf(stderr, "usage: bench_user_mesh [--case FILE] [--solvers multigrid,aggregation] [--repeats 3] [--ccx-threads N] [--json FILE]\n");
+        return 2;
+      }
+    }
     if (!calculixAvailable()) throw std::runtime_error("CalculiX (ccx) does not run: apt-get install calculix-ccx");
     if (ccx_threads <= 0) ccx_threads = omp_get_max_threads();
     auto t0 = bench::Clock::now();

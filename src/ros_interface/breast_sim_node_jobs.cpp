@@ -21,7 +21,12 @@ std::unique_ptr<BreastSimNode::Engine> BreastSimNode::buildEngine(const std::str
   e->case_file = case_file;
   e->model_case = std::make_unique<core::ModelCase>(core::loadModelCase(case_file));
   // A case with its own mesh (mesh:) is not meshed: the element count is the file's.
-  if (target_elements > 0 && !e->model_case->mesh) e->model_case->meshing.target_elements = target_elements;
+  if (target_elements > 0 && e->model_case->mesh)
+    ROS_WARN_STREAM("breast_sim: case '" << e->model_case->name << "' brings its own mesh (mesh:, "
+                    << e->model_case->mesh->numTets() << " tetrahedra): target_elements " << target_elements
+                    << " does not apply to it");
+  else if (target_elements > 0)
+    e->model_case->meshing.target_elements = target_elements;
   e->model = std::make_unique<core::SimulationModel>(core::buildSimulationModel(*e->model_case));
   e->settings = core::loadPipelineSettings(params_.settings_file.empty() ? case_file : params_.settings_file);
   if (params_.field_voxel_size_m > 0) e->settings.morphing.field.voxel_size_m = params_.field_voxel_size_m;

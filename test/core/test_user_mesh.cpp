@@ -1,4 +1,5 @@
-// A user's own mesh as a case (`mesh:`, model/user_mesh.h): read in each format with its node sets,
+// A user's own mesh as a case (`mesh:`, model/user_mesh.h): read from .inp, .vtu, .vtk (node sets
+// and all) and Gmsh (the shipped case) files,
 // checked with clear errors, voxelized so that the chest-wall field and the multigrid work on it,
 // and run through the pipeline with the same result as the image case it was written from.
 #include <gtest/gtest.h>
@@ -154,20 +155,21 @@ TEST(UserMesh, APhantomModelWrittenOutIsTheSameCaseInEveryFormat) {
   reference.runGravity();
   ASSERT_TRUE(reference.gravityReport().converged);
 
-  for (const std::string& file : {"model.inp", "model.vtu", "model.msh"}) {
+  for (const std::string& file : {"model.inp", "model.vtu", "model.vtk", "model.msh", "model.node"}) {
     SCOPED_TRACE(file);
-    const bool in_mm = file != "model.vtu";
+    const bool in_mm = file == "model.inp" || file == "model.msh";
     TetMesh written = p.m.mesh;
     writeTetMesh(dir.path(file), written, {}, in_mm ? 1e-3 : 1.0);
     std::string extra;
-    if (file == "model.msh") {
-      // The Gmsh writer writes no node sets (a Gmsh file's come from its physical groups, as in the
-      // shipped case): the case must say that the wall's set is missing.
-      const std::string why = errorOf(dir.write("case_msh.yaml", caseText(file, "mm")));
+    if (file == "model.msh" || file == "model.node") {
+      // The Gmsh and TetGen writers write no node sets (a Gmsh file's come from its physical groups,
+      // as in the shipped case): the case must say that the wall's set is missing.
+      const std::string why = errorOf(dir.write("case_msh.yaml", caseText(file, in_mm ? "mm" : "m")));
       EXPECT_NE(why.find("no node set 'chest_wall'"), std::string::npos) << why;
       continue;
     }
     const std::string case_path = dir.write("case.yaml", caseText(file, in_mm ? "mm" : "m"));
+    SCOPED_TRACE(file);
     const ModelCase c = loadModelCase(case_path);
     const SimulationModel m = buildSimulationModel(c);
     ASSERT_EQ(m.mesh.numNodes(), p.m.mesh.numNodes());
@@ -223,6 +225,7 @@ TEST(UserMesh, BadMeshesAndCasesGetAClearError) {
   expectError(caseText("model.inp", "cm"), "mesh.units");
   // Node sets: missing (the message lists the file's), holding interior nodes.
   expectError(caseText("model.inp", "mm", "  chest_wall: WALL\n"), "no node set 'WALL' (mesh.chest_wall); the file has");
+  expectError(caseText("model.inp", "mm", "  chest_wall: WALL\n"), "chest_wall");
   // Regions: a label in no list; several labels without a map.
   expectError("mesh:\n  path: model.inp\n  units: mm\n  regions: {fat: [1, 2]}\n",
               "region label 4 (22 elements) is in none of mesh.regions' lists");
@@ -230,8 +233,11 @@ TEST(UserMesh, BadMeshesAndCasesGetAClearError) {
   expectError("mesh:\n  path: model.inp\n  units: mm\n  regions: {fat: [1, 2], lesion: [2]}\n", "is in two lists");
   // Exactly one source.
   expectError("mesh: {path: model.inp, units: mm}\nimage: {path: x.nrrd}\n", "give exactly one of");
-  expectError(caseText("missing.inp", "mm"), "missing.inp");
-  // A label image too large for memory: the message gives the voxel size to choose.
+  expectError(caseText("missing.inp", "mm"), "missing.inp: cannot open for reading");
+  expectError("mesh:\n  path: model.inp\n  units: mm\n  regions: {fat: []}\n", "'mesh.regions': lists no region label");
+  expectError(caseText("model.inp", "mm", "  nipples_mm: [[0, -60, 0]]\n"), "give either nipples_mm or the node set mesh.nipple");
+  expectError(caseText("model.inp", "mm", "  voxel_size_mm: 0\n"), "mesh.voxel_size_mm");
+  // A label image above 2^26 voxels: the message gives the voxel size to choose.
   expectError(caseText("model.inp", "mm", "  voxel_size_mm: 0.1\n"), "choose mesh.voxel_size_mm ≥");
 
   // A node set with an interior node, a piece that floats free, unused nodes (dropped).
@@ -242,7 +248,11 @@ TEST(UserMesh, BadMeshesAndCasesGetAClearError) {
   std::vector<int> wall = mesh.nodeSet(node_sets::kChestWall);
   wall.push_back(interior);
   mesh.setNodeSet("WALL_AND_INSIDE", wall);
+  mesh.setNodeSet("ONE", {mesh.boundary().nodes.front()});
+  mesh.setNodeSet("ALL", mesh.boundary().nodes);
   writeTetMesh(dir.path("inside.inp"), mesh, {}, 1e-3);
+  expectError(caseText("inside.inp", "mm", "  chest_wall: ONE\n"), "node set 'ONE' covers no boundary face");
+  expectError(caseText("inside.inp", "mm", "  chest_wall: ALL\n"), "every boundary face is on the chest wall");
   expectError(caseText("inside.inp", "mm", "  chest_wall: WALL_AND_INSIDE\n"), "1 of its");
   expectError(caseText("inside.inp", "mm", "  chest_wall: WALL_AND_INSIDE\n"), "are not on the mesh's boundary");
 
@@ -278,12 +288,13 @@ TEST(UserMesh, BadMeshesAndCasesGetAClearError) {
                                            "*ELEMENT, TYPE=C3D4\n1, 1, 2, 3, 4\n2, 1, 2, 3, 4\n";
   const std::string why = errorOf(dir.write("twice.yaml", "mesh: {path: twice.inp, units: mm}\n"));
   EXPECT_NE(why.find("twice.inp"), std::string::npos) << why;
+  EXPECT_NE(why.find("overlapping or duplicate elements"), std::string::npos) << why;
 }
 
 TEST(UserMesh, TheEffectiveCaseNamesTheMeshByItsAbsolutePath) {
   const std::string yaml = effectiveCaseYaml(kMeshCase);
   EXPECT_NE(yaml.find("mesh:"), std::string::npos);
-  EXPECT_NE(yaml.find(std::filesystem::weakly_canonical(kConfigDir + "../test/data/dome_breast.msh").string()),
+  EXPECT_NE(yaml.find(std::filesystem::absolute(kConfigDir + "../test/data/dome_breast.msh").lexically_normal().string()),
             std::string::npos)
       << yaml;
 }
@@ -299,6 +310,7 @@ TEST(UserMesh, TheDocumentedMeshBlockIsACase) {
   ASSERT_NE(close, std::string::npos);
   std::string block = doc.substr(open + 4, close - open - 4);
   const std::string rel = "../test/data/";
+  ASSERT_NE(block.find(rel), std::string::npos) << block;
   block.replace(block.find(rel), rel.size(), kConfigDir + "../test/data/");
   const test::TempDir dir("breast_sim_user_mesh_doc");
   const ModelCase c = loadModelCase(dir.write("doc.yaml", block));

@@ -125,7 +125,12 @@ void loadMeshSource(const YAML::Node& m, const std::string& file, ModelCase& c) 
   readPlacement(m, file, "mesh", c);
   if (m["nipples_mm"] && !s.nipple_set.empty())
     fail(file, "mesh.nipples_mm", "give either nipples_mm or the node set mesh.nipple, not both");
-  auto mesh = std::make_shared<TetMesh>(readUserMesh(s, &c.mesh_report));
+  std::shared_ptr<TetMesh> mesh;
+  try {
+    mesh = std::make_shared<TetMesh>(readUserMesh(s, &c.mesh_report));
+  } catch (const std::runtime_error& e) {
+    throw std::runtime_error(file + ": mesh: " + e.what());
+  }
   if (mesh->hasNodeSet(node_sets::kNipple)) {
     Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
     for (int v : mesh->nodeSet(node_sets::kNipple)) centroid += mesh->nodes().row(v).transpose();

@@ -85,7 +85,6 @@ TetMesh readUserMesh(const UserMeshSource& source, UserMeshReport* report) {
   const std::string& file = source.path;
   auto fail = [&](const std::string& what) { throw std::runtime_error(file + ": " + what); };
   if (!(source.length_unit_m > 0.0)) fail("the length unit is not given: set mesh.units to m or mm");
-  if (!(source.voxel_size_m > 0.0)) fail("the voxel size must be > 0 (mesh.voxel_size_mm)");
   TetMesh raw;
   try {
     raw = readTetMesh(file, source.length_unit_m);
@@ -171,7 +170,7 @@ TetMesh readUserMesh(const UserMeshSource& source, UserMeshReport* report) {
   if (r.chest_wall_faces == 0)
     fail("node set '" + source.chest_wall_set + "' covers no boundary face (no face has all three nodes in it): "
          "the chest wall must be a surface of the mesh");
-  if (skin.empty()) fail("every boundary face is on the chest wall: the mesh has no skin");
+  if (r.skin_faces == 0) fail("every boundary face is on the chest wall: the mesh has no skin");
   std::vector<int> nipple;
   if (!source.nipple_set.empty()) nipple = boundarySet(source.nipple_set, "nipple");
 
@@ -231,13 +230,27 @@ LabelImage voxelizeModel(const TetMesh& mesh, const TissueLabels& labels, double
     throw std::invalid_argument("voxelizeModel: voxel size " + mm(voxel_size_m) + " and margin " + mm(margin_m) + " must be > 0");
   if (!mesh.hasNodeSet(node_sets::kChestWall) || !mesh.hasNodeSet(node_sets::kSkin))
     throw std::invalid_argument("voxelizeModel: the mesh needs the node sets chest_wall and skin");
-  auto first = [](const std::set<std::uint16_t>& s, const char* name) {
-    if (s.empty()) throw std::invalid_argument(std::string("voxelizeModel: no label value for ") + name);
-    return *s.begin();
-  };
-  std::uint16_t value[6] = {0, first(labels.fat, "fat"), first(labels.fibroglandular, "fibroglandular"),
-                            first(labels.skin, "skin"), first(labels.lesion, "lesion"), first(labels.chest_wall, "chest wall")};
-
+  // The label value of each tissue class the mesh uses and of the chest wall (the first value of
+  // the class in `labels`).
+  std::uint16_t value[6] = {0, 0, 0, 0, 0, 0};
+  {
+    const std::set<std::uint16_t>* sets[6] = {nullptr, &labels.fat, &labels.fibroglandular, &labels.skin, &labels.lesion,
+                                              &labels.chest_wall};
+    std::set<int> used;
+    for (int t = 0; t < mesh.numTets(); ++t) {
+      const int cls = mesh.regionLabels()[t];
+      if (cls < static_cast<int>(TissueClass::kFat) || cls > static_cast<int>(TissueClass::kLesion))
+        throw std::invalid_argument("voxelizeModel: tetrahedron " + std::to_string(t) + " has region label " +
+                                    std::to_string(cls) + ", not a tissue class (1 fat, 2 fibroglandular, 3 skin, 4 lesion)");
+      used.insert(cls);
+    }
+    used.insert(static_cast<int>(TissueClass::kChestWall));
+    for (int cls : used) {
+      if (sets[cls]->empty())
+        throw std::invalid_argument("voxelizeModel: no label value for " + tissueClassName(static_cast<TissueClass>(cls)));
+      value[cls] = *sets[cls]->begin();
+    }
+  }
   const Eigen::Vector3d lo = mesh.boundsMin().array() - margin_m;
   const Eigen::Vector3d extent = (mesh.boundsMax() - mesh.boundsMin()).array() + 2.0 * margin_m;
   Eigen::Vector3i size;
@@ -277,7 +290,7 @@ LabelImage voxelizeModel(const TetMesh& mesh, const TissueLabels& labels, double
       bmin = bmin.cwiseMin(p), bmax = bmax.cwiseMax(p);
     }
     const Eigen::Matrix3d inv = E.inverse();
-    const std::uint16_t label = value[std::clamp(mesh.regionLabels()[t], 0, 5)];
+    const std::uint16_t label = value[mesh.regionLabels()[t]];
     Eigen::Vector3i i0, i1;
     for (int ax = 0; ax < 3; ++ax) {
       i0[ax] = std::max(0, static_cast<int>(std::ceil((bmin[ax] - lo[ax]) / voxel_size_m)));
@@ -302,23 +315,8 @@ LabelImage voxelizeModel(const TetMesh& mesh, const TissueLabels& labels, double
     int face;
     Eigen::Vector3d sample;
   };
-  std::vector<Site> wall_sites, skin_sites;
+  std::vector<Site> wall_sites, skin_sites, face_sites;
   std::vector<int> wall_faces;
-  for (Eigen::Index f = 0; f < boundary.triangles.rows(); ++f) {
-    const int n0 = boundary.triangles(f, 0), n1 = boundary.triangles(f, 1), n2 = boundary.triangles(f, 2);
-    const bool wall = is_wall[n0] && is_wall[n1] && is_wall[n2];
-    if (wall) wall_faces.push_back(static_cast<int>(f));
-    const Eigen::Vector3d a = X.row(n0).transpose(), b = X.row(n1).transpose(), c = X.row(n2).transpose();
-    const double longest = std::max({(b - a).norm(), (c - b).norm(), (a - c).norm()});
-    const int n = std::max(1, static_cast<int>(std::ceil(longest / (0.5 * voxel_size_m))));
-    for (int i = 0; i <= n; ++i)
-      for (int j = 0; i + j <= n; ++j) {
-        const Eigen::Vector3d p = a + (double(i) / n) * (b - a) + (double(j) / n) * (c - a);
-        const Eigen::Vector3i v = voxelOf(p);
-        const std::int32_t idx = static_cast<std::int32_t>(image.index(v.x(), v.y(), v.z()));
-        (wall ? wall_sites : skin_sites).push_back({idx, static_cast<float>((p - centre(idx)).norm()), static_cast<int>(f), p});
-      }
-  }
   auto unique_sites = [](std::vector<Site>& s) {
     std::sort(s.begin(), s.end(), [](const Site& x, const Site& y) {
       return x.voxel != y.voxel ? x.voxel < y.voxel : x.distance != y.distance ? x.distance < y.distance : x.face < y.face;
@@ -328,6 +326,28 @@ LabelImage voxelizeModel(const TetMesh& mesh, const TissueLabels& labels, double
     for (size_t i = 0; i < s.size(); ++i) voxels[i] = s[i].voxel;
     return voxels;
   };
+
+  for (Eigen::Index f = 0; f < boundary.triangles.rows(); ++f) {
+    const int n0 = boundary.triangles(f, 0), n1 = boundary.triangles(f, 1), n2 = boundary.triangles(f, 2);
+    const bool wall = is_wall[n0] && is_wall[n1] && is_wall[n2];
+    if (wall) wall_faces.push_back(static_cast<int>(f));
+    const Eigen::Vector3d a = X.row(n0).transpose(), b = X.row(n1).transpose(), c = X.row(n2).transpose();
+    const double longest = std::max({(b - a).norm(), (c - b).norm(), (a - c).norm()});
+    const int n = std::max(1, static_cast<int>(std::ceil(longest / (0.5 * voxel_size_m))));
+    // One site per voxel the face crosses (its sample nearest the voxel centre), whatever the
+    // (n+1)(n+2)/2 samples of a long, thin face.
+    face_sites.clear();
+    for (int i = 0; i <= n; ++i)
+      for (int j = 0; i + j <= n; ++j) {
+        const Eigen::Vector3d p = a + (double(i) / n) * (b - a) + (double(j) / n) * (c - a);
+        const Eigen::Vector3i v = voxelOf(p);
+        const std::int32_t idx = static_cast<std::int32_t>(image.index(v.x(), v.y(), v.z()));
+        face_sites.push_back({idx, static_cast<float>((p - centre(idx)).norm()), static_cast<int>(f), p});
+      }
+    unique_sites(face_sites);
+    std::vector<Site>& sites = wall ? wall_sites : skin_sites;
+    sites.insert(sites.end(), face_sites.begin(), face_sites.end());
+  }
   const std::vector<std::int32_t> wall_voxels = unique_sites(wall_sites), skin_voxels = unique_sites(skin_sites);
 
   // The wall's normal at each site: the area-weighted mean of the normals of the wall faces off the
