@@ -1,0 +1,128 @@
+// rostest client for mesh_case.test: the node on a case with a mesh of its own. It precomputes on
+// start, its lesion moves as the core pipeline (run here on the same case file) moves it, and a
+// load with an element count keeps the file's 14,132 tetrahedra and warns that the count does not
+// apply.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <chrono>
+#include <functional>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <ros/ros.h>
+#include <rosgraph_msgs/Log.h>
+
+#include <breast_sim/LesionArray.h>
+#include <breast_sim/LoadCase.h>
+#include <breast_sim/NodeState.h>
+
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/pipeline/case_file.h"
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+
+namespace {
+
+std::mutex m;
+breast_sim::NodeState::ConstPtr state;
+breast_sim::LesionArray::ConstPtr lesions;
+std::vector<rosgraph_msgs::Log> node_log;
+
+void onState(const breast_sim::NodeState::ConstPtr& msg) {
+  std::lock_guard<std::mutex> l(m);
+  state = msg;
+}
+
+void onLesions(const breast_sim::LesionArray::ConstPtr& msg) {
+  std::lock_guard<std::mutex> l(m);
+  lesions = msg;
+}
+
+void onRosout(const rosgraph_msgs::Log::ConstPtr& msg) {
+  std::lock_guard<std::mutex> l(m);
+  if (msg->name == "/breast_sim") node_log.push_back(*msg);
+}
+
+bool waitUntil(const std::function<bool()>& done, double seconds) {
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(seconds);
+  while (std::chrono::steady_clock::now() < end) {
+    {
+      std::lock_guard<std::mutex> l(m);
+      if (done()) return true;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  std::lock_guard<std::mutex> l(m);
+  return done();
+}
+
+TEST(MeshCase, TheNodePrecomputesTheMeshCaseOnStart) {
+  ASSERT_TRUE(waitUntil([] { return state && state->precomputed; }, 100.0))
+      << "not precomputed: " << (state ? state->state_name + ": " + state->message : std::string("no state"));
+  std::lock_guard<std::mutex> l(m);
+  EXPECT_EQ(state->case_name, "mesh_case");
+  EXPECT_TRUE(state->model_loaded);
+}
+
+TEST(MeshCase, TheLesionMovesAsTheCorePipelineMovesIt) {
+  ASSERT_TRUE(waitUntil([] { return state && state->precomputed && lesions && !lesions->lesions.empty(); }, 100.0));
+  ros::NodeHandle pnh("~");
+  std::string case_file;
+  ASSERT_TRUE(pnh.getParam("case_file", case_file));
+  using namespace breast_sim::core;
+  const ModelCase c = loadModelCase(case_file);
+  const SimulationModel model = buildSimulationModel(c);
+  ProneToSupinePipeline pipe(c, model, loadPipelineSettings(case_file));
+  pipe.run();
+  const Points expected = pipe.lesionPositions();
+  std::lock_guard<std::mutex> l(m);
+  ASSERT_EQ(lesions->lesions.size(), 1u);
+  const breast_sim::Lesion& got = lesions->lesions[0];
+  EXPECT_EQ(got.id, "L1");
+  EXPECT_NEAR(got.prone_position.x, 0.010, 1e-9);
+  EXPECT_NEAR(got.prone_position.y, -0.030, 1e-9);
+  EXPECT_NEAR(got.prone_position.z, 0.010, 1e-9);
+  const Eigen::Vector3d moved(got.position.x - got.prone_position.x, got.position.y - got.prone_position.y,
+                              got.position.z - got.prone_position.z);
+  const Eigen::Vector3d core_moved = expected.row(0).transpose() - c.lesions[0].position_m;
+  EXPECT_GT(core_moved.norm(), 3e-3);
+  // The same settings in another process (thread counts may differ: ~0.2 mm).
+  EXPECT_LE((moved - core_moved).norm(), 0.5e-3) << "node moved it " << moved.transpose() * 1e3 << " mm, the core "
+                                                 << core_moved.transpose() * 1e3 << " mm";
+}
+
+// Loading it again with an element count: the mesh is kept as it is, and the node says why.
+TEST(MeshCase, TargetElementsDoNotApplyToAMeshCase) {
+  ros::NodeHandle pnh("~");
+  breast_sim::LoadCase load;
+  ASSERT_TRUE(pnh.getParam("case_file", load.request.case_file));
+  load.request.target_elements = 2000;
+  ASSERT_TRUE(ros::service::waitForService("/breast_sim/load_case", ros::Duration(10.0)));
+  ASSERT_TRUE(ros::service::call("/breast_sim/load_case", load));
+  EXPECT_TRUE(load.response.success) << load.response.message;
+  EXPECT_NE(load.response.message.find("14132"), std::string::npos) << load.response.message;
+  EXPECT_TRUE(waitUntil([] {
+    return std::any_of(node_log.begin(), node_log.end(), [](const rosgraph_msgs::Log& msg) {
+      return msg.level == rosgraph_msgs::Log::WARN &&
+             msg.msg.find("(mesh:, 14132 tetrahedra): target_elements 2000 does not apply") != std::string::npos;
+    });
+  }, 10.0)) << "no warning that target_elements does not apply to a mesh case";
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  ros::init(argc, argv, "mesh_case_test");
+  ros::NodeHandle nh;
+  ros::Subscriber s1 = nh.subscribe("/breast_sim/state", 10, onState);
+  ros::Subscriber s2 = nh.subscribe("/breast_sim/lesions", 10, onLesions);
+  ros::Subscriber s3 = nh.subscribe("/rosout", 100, onRosout);
+  ros::AsyncSpinner spinner(1);
+  spinner.start();
+  const int result = RUN_ALL_TESTS();
+  ros::shutdown();
+  return result;
+}
