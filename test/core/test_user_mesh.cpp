@@ -104,6 +104,28 @@ TEST(UserMesh, TheLabelImagePutsTheWallBehindTheWallFacesAndPastTheRim) {
   EXPECT_LE(worst, 0.55e-3);  // half a voxel: voxel centres on the face are tissue
 }
 
+// Lesions from the mesh's lesion elements: the box with the slabs x < 10 mm and x > 30 mm labelled
+// lesion has two, at the slabs' centres, each with the radius of the sphere of its volume.
+TEST(UserMesh, EachPieceOfLesionElementsIsALesion) {
+  const TetMesh box = makeBoxMesh({8, 4, 6}, {0.04, 0.02, 0.03});
+  std::vector<int> labels(box.numTets(), static_cast<int>(TissueClass::kFat));
+  for (int t = 0; t < box.numTets(); ++t) {
+    double x = 0;
+    for (int k = 0; k < 4; ++k) x += 0.25 * box.nodes()(box.tets()(t, k), 0);
+    if (x < 0.01 || x > 0.03) labels[t] = static_cast<int>(TissueClass::kLesion);
+  }
+  std::vector<Lesion> lesions = lesionsOfRegions(TetMesh(box.nodes(), box.tets(), labels));
+  ASSERT_EQ(lesions.size(), 2u);
+  EXPECT_EQ(lesions[0].name, "L1");
+  EXPECT_EQ(lesions[1].name, "L2");
+  std::sort(lesions.begin(), lesions.end(), [](const Lesion& a, const Lesion& b) { return a.position_m.x() < b.position_m.x(); });
+  const double radius = std::cbrt(3.0 * (0.01 * 0.02 * 0.03) / (4.0 * M_PI));
+  EXPECT_LE((lesions[0].position_m - Eigen::Vector3d(0.005, 0.01, 0.015)).norm(), 1e-12);
+  EXPECT_LE((lesions[1].position_m - Eigen::Vector3d(0.035, 0.01, 0.015)).norm(), 1e-12);
+  for (const Lesion& l : lesions) EXPECT_NEAR(l.radius_m, radius, 1e-12);
+  EXPECT_TRUE(lesionsOfRegions(box).empty());
+}
+
 TEST(UserMesh, TheShippedGmshCaseLoadsWithItsNodeSetsAndTissues) {
   const ModelCase c = loadModelCase(kMeshCase);
   ASSERT_TRUE(c.mesh);
@@ -237,6 +259,23 @@ TEST(UserMesh, BadMeshesAndCasesGetAClearError) {
   expectError("mesh:\n  path: model.inp\n  units: mm\n  regions: {fat: []}\n", "'mesh.regions': lists no region label");
   expectError(caseText("model.inp", "mm", "  nipples_mm: [[0, -60, 0]]\n"), "give either nipples_mm or the node set mesh.nipple");
   expectError(caseText("model.inp", "mm", "  voxel_size_mm: 0\n"), "mesh.voxel_size_mm");
+  // Without `lesions:` the mesh's lesion elements are the lesions: the phantom's two
+  // (config/phantom_default.yaml), found within 1 mm and 0.5 mm of radius (measured at most 0.67 mm
+  // and 0.24 mm).
+  {
+    const ModelCase own = loadModelCase(dir.write("own_lesions.yaml", "mesh:\n  path: model.inp\n  units: mm\n"
+                                                  "  regions: {fat: [1], fibroglandular: [2], skin: [3], lesion: [4]}\n"));
+    ASSERT_EQ(own.lesions.size(), 2u);
+    const Lesion truth[2] = {{"lower_inner", Eigen::Vector3d(-15e-3, -20e-3, -20e-3), 3e-3},
+                             {"upper_outer", Eigen::Vector3d(20e-3, -35e-3, 15e-3), 5e-3}};
+    for (const Lesion& t : truth) {
+      const auto found = std::find_if(own.lesions.begin(), own.lesions.end(),
+                                      [&](const Lesion& l) { return (l.position_m - t.position_m).norm() <= 1e-3; });
+      ASSERT_NE(found, own.lesions.end()) << t.name;
+      EXPECT_NEAR(found->radius_m, t.radius_m, 0.5e-3) << t.name;
+    }
+    EXPECT_NO_THROW(buildSimulationModel(own));
+  }
   // A label image above 2^26 voxels: the message gives the voxel size to choose.
   expectError(caseText("model.inp", "mm", "  voxel_size_mm: 0.1\n"), "choose mesh.voxel_size_mm ≥");
 

@@ -200,6 +200,8 @@ ModelCase loadModelCase(const std::string& yaml_path) {
       c.lesions.push_back(les);
     }
   }
+  // A mesh that segments its lesions brings them, unless the case lists its own.
+  if (c.mesh && !root["lesions"]) c.lesions = lesionsOfRegions(*c.mesh);
   if (root["meshing"]) c.meshing = parseMeshing(root["meshing"], yaml_path, &c.lesion_snap_tolerance_m);
   return c;
 }

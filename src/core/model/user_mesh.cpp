@@ -225,6 +225,43 @@ TetMesh readUserMesh(const UserMeshSource& source, UserMeshReport* report) {
   return mortonOrdered(out);
 }
 
+std::vector<Lesion> lesionsOfRegions(const TetMesh& mesh) {
+  const int lesion = static_cast<int>(TissueClass::kLesion);
+  const auto& labels = mesh.regionLabels();
+  std::vector<int> parent(mesh.numTets());
+  std::iota(parent.begin(), parent.end(), 0);
+  // Lesion tetrahedra joined across shared faces (a face is keyed by its sorted nodes).
+  std::map<std::array<int, 3>, int> face_owner;
+  for (int t = 0; t < mesh.numTets(); ++t) {
+    if (labels[t] != lesion) continue;
+    for (int skip = 0; skip < 4; ++skip) {
+      std::array<int, 3> key;
+      for (int k = 0, n = 0; k < 4; ++k)
+        if (k != skip) key[n++] = mesh.tets()(t, k);
+      std::sort(key.begin(), key.end());
+      const auto [it, inserted] = face_owner.emplace(key, t);
+      if (inserted) continue;
+      const int a = findRoot(parent, it->second), b = findRoot(parent, t);
+      if (a != b) parent[std::max(a, b)] = std::min(a, b);
+    }
+  }
+  std::map<int, std::pair<double, Eigen::Vector3d>> pieces;  // root → volume [m³], volume × centroid
+  const Eigen::VectorXd volume = mesh.tetVolumes();
+  for (int t = 0; t < mesh.numTets(); ++t) {
+    if (labels[t] != lesion) continue;
+    Eigen::Vector3d c = Eigen::Vector3d::Zero();
+    for (int k = 0; k < 4; ++k) c += 0.25 * mesh.nodes().row(mesh.tets()(t, k)).transpose();
+    auto& piece = pieces.try_emplace(findRoot(parent, t), 0.0, Eigen::Vector3d::Zero()).first->second;
+    piece.first += volume[t];
+    piece.second += volume[t] * c;
+  }
+  std::vector<Lesion> out;
+  for (const auto& [root, piece] : pieces)  // roots are each piece's smallest tetrahedron
+    out.push_back({"L" + std::to_string(out.size() + 1), piece.second / piece.first,
+                   std::cbrt(3.0 * piece.first / (4.0 * M_PI))});
+  return out;
+}
+
 LabelImage voxelizeModel(const TetMesh& mesh, const TissueLabels& labels, double voxel_size_m, double margin_m) {
   if (!(voxel_size_m > 0.0) || !(margin_m > 0.0))
     throw std::invalid_argument("voxelizeModel: voxel size " + mm(voxel_size_m) + " and margin " + mm(margin_m) + " must be > 0");

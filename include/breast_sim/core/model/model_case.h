@@ -56,7 +56,8 @@ inline constexpr double kUserMeshImageMarginM = 20e-3;
 ///  - `mesh:` {path (relative to the YAML file), units: m | mm, chest_wall: NODE_SET (default
 ///    "chest_wall"), skin: NODE_SET (default: the boundary off the wall), nipple: NODE_SET, regions:
 ///    {fat: [...], fibroglandular: [...], skin: [...], lesion: [...]} (element region labels),
-///    voxel_size_mm (default 1), nipples_mm, prone_gravity_direction} (model/user_mesh.h);
+///    voxel_size_mm (default 1), nipples_mm, prone_gravity_direction} (model/user_mesh.h); without
+///    `lesions:` its pieces of lesion elements are the lesions (lesionsOfRegions);
 ///  - `lesions:` optional list of {name, position_mm: [x, y, z], radius_mm} (LPS patient space, mm),
 ///    added to the phantom's own lesions;
 ///  - `meshing:` {target_elements, interior_size_mm, skin_size_factor, grading_distance_mm,

@@ -10,6 +10,7 @@
 
 #include "breast_sim/core/image/label_image.h"
 #include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/model/point_embedding.h"
 #include "breast_sim/core/model/tissue_labels.h"
 
 namespace breast_sim::core {
@@ -52,6 +53,12 @@ struct UserMeshReport {
 ///         a connected piece touches no chest-wall node (it would float free); the file is malformed
 ///         or its elements overlap (as readTetMesh and TetMesh report them).
 TetMesh readUserMesh(const UserMeshSource& source, UserMeshReport* report = nullptr);
+
+/// The lesions a prepared mesh segments: each connected piece of lesion elements (region label
+/// TissueClass::kLesion; tetrahedra sharing a face) becomes a lesion "L1", "L2", … (in the order of
+/// their first tetrahedron) at the piece's centroid, with the radius of the sphere of its volume [m].
+/// Empty when the mesh has no lesion elements.
+std::vector<Lesion> lesionsOfRegions(const TetMesh& mesh);
 
 /// The label image of a prepared mesh (node sets chest_wall and skin, tissue-class regions), on an
 /// axis-aligned grid of `voxel_size_m` covering the mesh plus `margin_m` on every side:
