@@ -150,22 +150,22 @@ TetMesh readUserMesh(const UserMeshSource& source, UserMeshReport* report) {
   std::vector<bool> is_wall(mesh.numNodes(), false);
   for (int v : wall) is_wall[v] = true;
 
+  // A boundary face is on the wall when all three of its nodes are; the others are skin.
+  std::vector<bool> wall_face(boundary.triangles.rows());
+  for (Eigen::Index f = 0; f < boundary.triangles.rows(); ++f) {
+    wall_face[f] = is_wall[boundary.triangles(f, 0)] && is_wall[boundary.triangles(f, 1)] && is_wall[boundary.triangles(f, 2)];
+    (wall_face[f] ? r.chest_wall_faces : r.skin_faces) += 1;
+  }
   std::vector<int> skin;
-  std::vector<bool> in_skin(mesh.numNodes(), false);
   if (!source.skin_set.empty()) {
     skin = boundarySet(source.skin_set, "skin");
   } else {
-    for (Eigen::Index f = 0; f < boundary.triangles.rows(); ++f) {
-      const bool on_wall = is_wall[boundary.triangles(f, 0)] && is_wall[boundary.triangles(f, 1)] && is_wall[boundary.triangles(f, 2)];
-      if (on_wall) continue;
-      for (int k = 0; k < 3; ++k) in_skin[boundary.triangles(f, k)] = true;
-    }
+    std::vector<bool> in_skin(mesh.numNodes(), false);
+    for (Eigen::Index f = 0; f < boundary.triangles.rows(); ++f)
+      if (!wall_face[f])
+        for (int k = 0; k < 3; ++k) in_skin[boundary.triangles(f, k)] = true;
     for (int v = 0; v < mesh.numNodes(); ++v)
       if (in_skin[v]) skin.push_back(v);
-  }
-  for (Eigen::Index f = 0; f < boundary.triangles.rows(); ++f) {
-    const bool on_wall = is_wall[boundary.triangles(f, 0)] && is_wall[boundary.triangles(f, 1)] && is_wall[boundary.triangles(f, 2)];
-    (on_wall ? r.chest_wall_faces : r.skin_faces) += 1;
   }
   if (r.chest_wall_faces == 0)
     fail("node set '" + source.chest_wall_set + "' covers no boundary face (no face has all three nodes in it): "
@@ -202,10 +202,8 @@ TetMesh readUserMesh(const UserMeshSource& source, UserMeshReport* report) {
   {
     std::vector<bool> skin_tet(mesh.numTets(), false), boundary_tet(mesh.numTets(), false);
     for (size_t f = 0; f < boundary.owner_tet.size(); ++f) boundary_tet[boundary.owner_tet[f]] = true;
-    for (Eigen::Index f = 0; f < boundary.triangles.rows(); ++f) {
-      const bool on_wall = is_wall[boundary.triangles(f, 0)] && is_wall[boundary.triangles(f, 1)] && is_wall[boundary.triangles(f, 2)];
-      if (!on_wall) skin_tet[boundary.owner_tet[f]] = true;
-    }
+    for (Eigen::Index f = 0; f < boundary.triangles.rows(); ++f)
+      if (!wall_face[f]) skin_tet[boundary.owner_tet[f]] = true;
     std::vector<double> inner, outer;
     for (int t = 0; t < mesh.numTets(); ++t) {
       const auto p = [&](int k) { return Eigen::Vector3d(mesh.nodes().row(mesh.tets()(t, k)).transpose()); };
