@@ -45,7 +45,7 @@ YAML::Node effective(const TempDir& dir, const std::string& text) {
 /// Scalar keys of the settings maps, as section.key.
 std::vector<std::pair<std::string, std::string>> scalarKeys(const YAML::Node& root) {
   std::vector<std::pair<std::string, std::string>> keys;
-  for (const char* section : {"phantom", "meshing", "simulation", "stiffening", "sliding", "morphing", "coarse_start"})
+  for (const char* section : {"phantom", "meshing", "simulation", "stiffening", "sliding", "morphing", "coarse_start", "uncertainty"})
     for (const auto& kv : root[section])
       if (kv.second.IsScalar()) keys.emplace_back(section, kv.first.as<std::string>());
   return keys;

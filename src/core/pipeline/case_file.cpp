@@ -245,6 +245,20 @@ YAML::Node coarseStartMap(const CoarseStartSettings& c) {
   return m.yaml();
 }
 
+YAML::Node uncertaintyMap(const UncertaintySettings& u) {
+  Map m;
+  m.b("enabled", u.enabled)
+      .i("samples", u.samples)
+      .n("youngs_modulus_factor_min", u.youngs_modulus_factor_min)
+      .n("youngs_modulus_factor_max", u.youngs_modulus_factor_max)
+      .n("poisson_ratio_min", u.poisson_ratio_min)
+      .n("poisson_ratio_max", u.poisson_ratio_max)
+      .n("time_step_factor_min", u.time_step_factor_min)
+      .n("time_step_factor_max", u.time_step_factor_max)
+      .n("confidence", u.confidence);
+  return m.yaml();
+}
+
 }  // namespace
 
 std::string effectiveCaseYaml(const std::string& case_path) {
@@ -277,6 +291,7 @@ std::string effectiveCaseYaml(const std::string& case_path, const MeshingOptions
   out["sliding"] = slidingMap(settings);
   out["morphing"] = morphingMap(settings.morphing);
   out["coarse_start"] = coarseStartMap(settings.coarse_start);
+  out["uncertainty"] = uncertaintyMap(settings.uncertainty);
   YAML::Emitter e;
   e << out;
   if (!e.good()) throw std::runtime_error("effectiveCaseYaml: " + e.GetLastError());

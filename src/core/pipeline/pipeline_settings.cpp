@@ -59,6 +59,26 @@ void CoarseStartSettings::validate() const {
   }
 }
 
+void UncertaintySettings::validate() const {
+  auto bad = [](const char* name, double v, const char* range) {
+    std::ostringstream s;
+    s << "uncertainty '" << name << "' = " << v << " is invalid: expected " << range;
+    throw std::invalid_argument(s.str());
+  };
+  if (samples < 4 || samples > 1000) bad("samples", samples, "in [4, 1000] (a region in 3D needs 4 samples)");
+  if (!(youngs_modulus_factor_min > 0) || !(youngs_modulus_factor_min <= 100))
+    bad("youngs_modulus_factor_min", youngs_modulus_factor_min, "in (0, 100]");
+  if (!(youngs_modulus_factor_max >= youngs_modulus_factor_min) || !(youngs_modulus_factor_max <= 100))
+    bad("youngs_modulus_factor_max", youngs_modulus_factor_max, "in [youngs_modulus_factor_min, 100]");
+  if (!(poisson_ratio_min > 0) || !(poisson_ratio_min < 0.5)) bad("poisson_ratio_min", poisson_ratio_min, "in (0, 0.5)");
+  if (!(poisson_ratio_max >= poisson_ratio_min) || !(poisson_ratio_max < 0.5))
+    bad("poisson_ratio_max", poisson_ratio_max, "in [poisson_ratio_min, 0.5)");
+  if (!(time_step_factor_min > 0) || !(time_step_factor_min <= 10)) bad("time_step_factor_min", time_step_factor_min, "in (0, 10]");
+  if (!(time_step_factor_max >= time_step_factor_min) || !(time_step_factor_max <= 10))
+    bad("time_step_factor_max", time_step_factor_max, "in [time_step_factor_min, 10]");
+  if (!(confidence > 0) || !(confidence < 1)) bad("confidence", confidence, "in (0, 1), e.g. 0.95");
+}
+
 void PipelineSettings::validate() const {
   simulation.validate();
   stiffening.validate();
@@ -73,6 +93,7 @@ void PipelineSettings::validate() const {
   sliding_stage.validate();
   morphing.validate();
   coarse_start.validate();
+  uncertainty.validate();
   if (simulation.sliding && (!simulation.stiffening || simulation.fixed_node_set.empty()))
     throw std::invalid_argument(
         "simulation 'sliding' needs 'stiffening: true' and a 'fixed_node_set' (the nodes that slide): turn "
@@ -226,6 +247,24 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     if (m["elements"]) s.coarse_start.elements = static_cast<int>(integer(m["elements"], f, "coarse_start.elements", 0, 100000000));
     if (m["snap_tolerance_mm"])
       s.coarse_start.snap_tolerance_m = 1e-3 * numberIn(m["snap_tolerance_mm"], f, "coarse_start.snap_tolerance_mm", 0, 100, true, false, "mm");
+  }
+  if (root.IsMap() && root["uncertainty"] && !root["uncertainty"].IsNull()) {
+    const YAML::Node m = root["uncertainty"];
+    checkKeys(m,
+              {"enabled", "samples", "youngs_modulus_factor_min", "youngs_modulus_factor_max", "poisson_ratio_min",
+               "poisson_ratio_max", "time_step_factor_min", "time_step_factor_max", "confidence"},
+              f, "uncertainty");
+    auto key = [](const char* k) { return std::string("uncertainty.") + k; };
+    UncertaintySettings& u = s.uncertainty;
+    if (m["enabled"]) u.enabled = boolean(m["enabled"], f, key("enabled"));
+    if (m["samples"]) u.samples = static_cast<int>(integer(m["samples"], f, key("samples"), 4, 1000));
+    if (m["youngs_modulus_factor_min"]) u.youngs_modulus_factor_min = numberIn(m["youngs_modulus_factor_min"], f, key("youngs_modulus_factor_min"), 0, 100, true);
+    if (m["youngs_modulus_factor_max"]) u.youngs_modulus_factor_max = numberIn(m["youngs_modulus_factor_max"], f, key("youngs_modulus_factor_max"), 0, 100, true);
+    if (m["poisson_ratio_min"]) u.poisson_ratio_min = numberIn(m["poisson_ratio_min"], f, key("poisson_ratio_min"), 0, 0.5, true, true);
+    if (m["poisson_ratio_max"]) u.poisson_ratio_max = numberIn(m["poisson_ratio_max"], f, key("poisson_ratio_max"), 0, 0.5, true, true);
+    if (m["time_step_factor_min"]) u.time_step_factor_min = numberIn(m["time_step_factor_min"], f, key("time_step_factor_min"), 0, 10, true);
+    if (m["time_step_factor_max"]) u.time_step_factor_max = numberIn(m["time_step_factor_max"], f, key("time_step_factor_max"), 0, 10, true);
+    if (m["confidence"]) u.confidence = numberIn(m["confidence"], f, key("confidence"), 0, 1, true, true);
   }
   try {
     s.validate();

@@ -14,7 +14,7 @@ namespace breast_sim::core {
 
 /// The case file `case_path` (with its `base:` files) with every setting filled in: `phantom:` (all
 /// parameters) or `image:` (as given, its path made absolute), `lesions:` as given, and the complete
-/// `meshing:`, `simulation:`, `stiffening:`, `sliding:`, `morphing:` and `coarse_start:` maps. Numbers
+/// `meshing:`, `simulation:`, `stiffening:`, `sliding:`, `morphing:`, `coarse_start:` and `uncertainty:` maps. Numbers
 /// carry 12 significant digits. Does not read the image or build a model.
 /// @throws std::runtime_error as the case readers do for a case they reject.
 std::string effectiveCaseYaml(const std::string& case_path);

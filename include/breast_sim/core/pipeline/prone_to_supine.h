@@ -138,6 +138,23 @@ struct CoarseStartSettings {
   void validate() const;
 };
 
+/// The lesions' confidence regions (YAML map `uncertainty:`; pipeline/lesion_uncertainty.h): an
+/// ensemble of whole runs over Young's modulus, Poisson's ratio and the time steps (the stick/slip
+/// path). Off by default: it costs `samples` runs besides the nominal one (docs/uncertainty.md).
+struct UncertaintySettings {
+  bool enabled = false;
+  int samples = 8;                          ///< runs of the ensemble, in [4, 1000]
+  double youngs_modulus_factor_min = 0.5;   ///< every tissue's E × f, f log-uniform in [min, max], 0 < min ≤ max ≤ 100
+  double youngs_modulus_factor_max = 2.0;
+  double poisson_ratio_min = 0.45;          ///< ν uniform in [min, max], 0 < min ≤ max < 0.5
+  double poisson_ratio_max = 0.49;
+  double time_step_factor_min = 0.67;       ///< every stage's time step × k, k log-uniform in [min, max], 0 < min ≤ max ≤ 10
+  double time_step_factor_max = 1.5;
+  double confidence = 0.95;                 ///< of the regions, in (0, 1)
+  /// @throws std::invalid_argument naming the field, its value and the accepted range.
+  void validate() const;
+};
+
 /// Everything the pipeline needs besides the case and the model.
 struct PipelineSettings {
   SimulationSettings simulation;   ///< `simulation:`: material, solver, gravity stage, stiffening, sliding on/off
@@ -154,12 +171,13 @@ struct PipelineSettings {
   SlidingStageSettings sliding_stage;  ///< the sliding stage's time step, α restart and settle rule (`sliding:`)
   MorphingStageSettings morphing;  ///< `morphing:`
   CoarseStartSettings coarse_start;  ///< `coarse_start:`
+  UncertaintySettings uncertainty;  ///< `uncertainty:` (used by the caller of estimateLesionUncertainty)
   /// Every part's validate(); sliding also needs simulation.stiffening and a fixed_node_set.
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
 };
 
-/// Reads `simulation:`, `stiffening:`, `sliding:`, `morphing:` and `coarse_start:` of a case file
+/// Reads `simulation:`, `stiffening:`, `sliding:`, `morphing:`, `coarse_start:` and `uncertainty:` of a case file
 /// (absent maps and keys = the structs' defaults). The keys, their units and defaults are documented
 /// in config/phantom_default.yaml. `stiffening:` (StiffeningParams; used when simulation.stiffening
 /// is true), with accepted ranges:

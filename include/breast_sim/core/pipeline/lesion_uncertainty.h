@@ -1,0 +1,102 @@
+#pragma once
+/// @file lesion_uncertainty.h
+/// Each lesion's supine position with a confidence region, from an ensemble of pipeline runs.
+///
+/// Breast stiffness is known to a factor of about two, ν only roughly, and a run's stick/slip path
+/// on the chest wall moves lesions by about a millimetre. The ensemble runs the whole pipeline
+/// (ProneToSupinePipeline::run) once per sample of
+///   - Young's modulus: every tissue's E × f, f log-uniform in [youngs_modulus_factor_min, max];
+///   - Poisson's ratio ν uniform in [poisson_ratio_min, max];
+///   - the path: every stage's time step × k, k log-uniform in [time_step_factor_min, max]
+///     (a longer step takes another stick/slip path and another reversal history);
+/// at the points of a Halton sequence (bases 2, 3, 5), so the same settings give the same samples on
+/// any machine. Each lesion's region is centred on the nominal run's position p0 (the one the
+/// package publishes), with C = (1/n) Σ (p_k − p0)(p_k − p0)ᵀ over the n samples (bias included),
+/// and is the ellipsoid (x − p0)ᵀ C⁻¹ (x − p0) ≤ χ²₃(confidence): semi-axes √(χ²₃ λ_i) along
+/// C's eigenvectors. Measured coverage and cost: docs/uncertainty.md.
+/// Units: m, m²; the factors are dimensionless.
+
+#include <atomic>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "breast_sim/core/pipeline/prone_to_supine.h"
+
+namespace breast_sim::core {
+
+/// One ensemble member's parameters.
+struct UncertaintySampleParams {
+  double youngs_modulus_factor = 1.0;  ///< every tissue's E × this
+  double poisson_ratio = 0.48;         ///< ν of the sample
+  double time_step_factor = 1.0;       ///< every stage's time step × this
+};
+
+/// The `n` samples of the ensemble: Halton points `first_index` … `first_index + n − 1` (≥ 1)
+/// mapped onto the settings' ranges. @throws std::invalid_argument for n < 1 or first_index < 1.
+std::vector<UncertaintySampleParams> uncertaintyDesign(const UncertaintySettings& settings, int n, int first_index = 1);
+
+/// `nominal` with one sample's parameters applied (uncertainty off in the copy).
+/// @throws std::invalid_argument when the sample's settings are out of range (e.g. a time step over 10 s).
+PipelineSettings sampleSettings(const PipelineSettings& nominal, const UncertaintySampleParams& sample);
+
+/// The χ² quantile with 3 degrees of freedom: x with P(χ²₃ ≤ x) = p, for p in (0, 1) (7.815 at 0.95).
+/// @throws std::invalid_argument outside (0, 1).
+double chiSquare3Quantile(double p);
+
+/// A lesion's confidence region.
+struct LesionRegion {
+  Eigen::Vector3d centre_m = Eigen::Vector3d::Zero();        ///< the nominal position p0 [m]
+  Eigen::Matrix3d covariance_m2 = Eigen::Matrix3d::Zero();   ///< C about p0 [m²]
+  Eigen::Vector3d semi_axes_m = Eigen::Vector3d::Zero();     ///< of the ellipsoid, largest first [m]
+  /// Columns: the unit axis of each semi-axis, a right-handed rotation (det +1).
+  Eigen::Matrix3d axes = Eigen::Matrix3d::Identity();
+  double confidence = 0.95;
+  double scale = 0.0;                 ///< √χ²₃(confidence): the region's Mahalanobis radius
+  double max_sample_distance_m = 0.0; ///< the farthest sample from p0 [m]
+  /// True when p lies in the ellipsoid (on a degenerate axis, within 1e-9 m of the centre's plane).
+  bool contains(const Eigen::Vector3d& p_m) const;
+};
+
+/// The region of samples around `centre_m` (slow reference and fast path are the same few lines:
+/// the tests check it against ellipsoids built by hand). @throws std::invalid_argument for no
+/// samples or a confidence outside (0, 1).
+LesionRegion lesionRegion(const Eigen::Vector3d& centre_m, const std::vector<Eigen::Vector3d>& samples_m, double confidence);
+
+/// One ensemble member's run.
+struct UncertaintySample {
+  UncertaintySampleParams params;
+  bool completed = false;   ///< every stage that ran converged and no element ended inverted
+  std::string failure;      ///< why not completed (empty when completed)
+  Points lesions_m;         ///< #lesions×3 at the run's end [m]
+  double seconds = 0.0;
+};
+
+struct LesionUncertainty {
+  /// Regions exist for every lesion: all samples completed and none was cancelled.
+  bool valid = false;
+  bool cancelled = false;
+  std::string failure;      ///< the first failed sample and its parameters, or "cancelled"
+  std::vector<UncertaintySample> samples;
+  std::vector<LesionRegion> lesions;  ///< one per lesion when valid, else empty
+  double seconds = 0.0;               ///< the whole ensemble [s]
+};
+
+/// Progress of the ensemble: sample `index` (0-based) of `count`, and that run's own progress.
+using UncertaintyProgressFn = std::function<void(int index, int count, const PipelineProgress&)>;
+
+/// Runs the ensemble of settings.uncertainty (whether or not `enabled`: the caller decides) for the
+/// case and model the nominal run used, with that run's final lesion positions `nominal_lesions_m`
+/// (#lesions×3 [m], e.g. ProneToSupinePipeline::lesionPositions()). Each sample builds its own
+/// pipeline; the caller's pipeline is not touched. A sample that fails to converge or that throws
+/// ends the ensemble not valid, naming the sample (narrow the ranges or fix the case).
+/// @param first_index  the Halton index of the first sample (1 for a case's ensemble)
+/// @throws std::invalid_argument when the nominal positions do not match the model's lesions.
+LesionUncertainty estimateLesionUncertainty(const ModelCase& model_case, const SimulationModel& model,
+                                            const PipelineSettings& settings, const Points& nominal_lesions_m,
+                                            const UncertaintyProgressFn& progress = {},
+                                            const std::atomic<bool>* cancel = nullptr, int first_index = 1);
+
+}  // namespace breast_sim::core
