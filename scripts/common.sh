@@ -50,6 +50,7 @@ build_catkin_ws() {
 # Builds the ROS-free core with plain CMake (catkin is never looked for).
 build_core() {
   log "building the ROS-free core with plain CMake in ${BREAST_SIM_CORE_BUILD}"
+  mkdir -p "${BREAST_SIM_WORK}"
   # A build folder made for another checkout cannot be reused by CMake: start it afresh.
   local cache="${BREAST_SIM_CORE_BUILD}/CMakeCache.txt"
   if [ -f "${cache}" ] && ! grep -qx "CMAKE_HOME_DIRECTORY:INTERNAL=${BREAST_SIM_SRC}" "${cache}"; then

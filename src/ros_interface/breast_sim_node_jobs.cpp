@@ -4,6 +4,8 @@
 #include "breast_sim/ros_interface/breast_sim_node.h"
 
 #include <malloc.h>
+#include <algorithm>
+#include <cmath>
 #include <sstream>
 
 #include "breast_sim/core/mesh/tet_quality.h"
@@ -192,6 +194,20 @@ void BreastSimNode::precomputeJob(bool gravity_only, std::optional<PrecomputeSer
     result.seconds = seconds(Clock::now() - t0);
     s << "; " << q.num_inverted << " inverted elements; " << result.seconds << " s";
     e.precomputed = !cancelled;
+    e.regions.clear();
+    e.region_status = !e.settings.uncertainty.enabled ? "not computed (uncertainty: disabled in the case)"
+                      : gravity_only                  ? "not computed (gravity-only precomputation)"
+                      : cancelled                     ? "not computed (precomputation cancelled)"
+                      : !converged                    ? "not computed (the precomputation missed a tolerance)"
+                      : e.model->lesions.empty()      ? "not computed (the case has no lesions)"
+                                                      : "";
+    if (e.region_status.empty()) {
+      // The nominal supine state is shown while the ensemble runs.
+      publishModel(e, ros::Time::now(), true, false, "precomputed; computing the lesion regions");
+      s << "; " << lesionRegionsJob(e);
+      result.seconds = seconds(Clock::now() - t0);
+      s << " (" << result.seconds << " s in all)";
+    }
     restartTracking();
     {
       std::lock_guard<std::mutex> sl(state_mutex_);
@@ -219,6 +235,59 @@ void BreastSimNode::precomputeJob(bool gravity_only, std::optional<PrecomputeSer
   }
 }
 
+std::string BreastSimNode::lesionRegionsJob(Engine& e) {
+  const auto t0 = Clock::now();
+  auto progress = [&](int index, int count, const core::PipelineProgress& p) {
+    const auto now = Clock::now();
+    {
+      std::lock_guard<std::mutex> sl(state_mutex_);
+      state_.stage = "uncertainty";
+      state_.progress = (index + std::clamp(p.fraction, 0.0, 1.0)) / count;
+      state_.step = index + 1;
+      state_.max_steps = count;
+    }
+    if (seconds(now - last_progress_pub_) < 1.0 / params_.progress_rate_hz) return;
+    last_progress_pub_ = now;
+    std::ostringstream s;
+    s << "lesion regions: sample " << index + 1 << " of " << count << ", " << core::stageName(p.stage) << " step " << p.step;
+    setState(breast_sim::NodeState::PRECOMPUTING, s.str());
+    std::lock_guard<std::mutex> gl(goal_mutex_);
+    if (goal_) {
+      breast_sim::PrecomputeFeedback f;
+      f.stage = "uncertainty";
+      f.step = index + 1;
+      f.max_steps = count;
+      f.fraction = (index + std::clamp(p.fraction, 0.0, 1.0)) / count;
+      f.increment_m = p.increment_m;
+      f.surface_mean_m = p.surface_mean_m;
+      f.alpha_per_pa = p.alpha_per_pa;
+      goal_->publishFeedback(f);
+    }
+  };
+  std::ostringstream s;
+  try {
+    const core::Points nominal = e.model->lesion_embedding.positions(e.pipeline->positions());
+    const core::LesionUncertainty u =
+        core::estimateLesionUncertainty(*e.model_case, *e.model, e.settings, nominal, progress, &cancel_);
+    if (u.valid) {
+      e.regions = u.lesions;
+      double largest = 0;
+      for (const core::LesionRegion& r : u.lesions) largest = std::max(largest, r.semi_axes_m.x());
+      s << std::lround(100 * e.settings.uncertainty.confidence) << "% regions from " << u.samples.size()
+        << " runs in " << u.seconds << " s, largest semi-axis " << node_util::mm(largest);
+      e.region_status = s.str();
+    } else {
+      s << "no lesion regions: " << u.failure;
+      e.region_status = s.str();
+    }
+  } catch (const std::exception& ex) {
+    s << "no lesion regions: " << ex.what();
+    e.region_status = s.str();
+  }
+  ROS_INFO_STREAM("breast_sim: " << e.region_status << " (" << seconds(Clock::now() - t0) << " s)");
+  return e.region_status;
+}
+
 void BreastSimNode::resetJob() {
   setState(breast_sim::NodeState::LOADING, "resetting to the prone rest shape");
   std::lock_guard<std::mutex> lock(engine_mutex_);
@@ -231,6 +300,8 @@ void BreastSimNode::resetJob() {
     auto pipeline = std::make_unique<core::ProneToSupinePipeline>(*engine_->model_case, *engine_->model, engine_->settings);
     engine_->pipeline = std::move(pipeline);
     engine_->precomputed = false;
+    engine_->regions.clear();
+    engine_->region_status = "not computed (reset to the rest shape)";
     engine_->gravity_load_mps2 = engine_->pipeline->supineGravityLoad();
     restartTracking();
     {

@@ -38,7 +38,8 @@ void BreastSimNode::publishModel(Engine& e, const ros::Time& stamp, bool force_a
     last_mesh_pub_ = now;
     mesh_pub_.publish(toMessage(e.model->mesh, x - e.model->mesh.nodes(), params_.frame_id, stamp));
   }
-  lesions_pub_.publish(lesionsMessage(e.model->lesions, lesions, params_.frame_id, stamp, valid, status));
+  const std::vector<core::LesionRegion>* regions = e.regions.empty() ? nullptr : &e.regions;
+  lesions_pub_.publish(lesionsMessage(e.model->lesions, lesions, params_.frame_id, stamp, valid, status, regions));
   if (time_went_back_.exchange(false)) last_lesion_tf_stamp_ = ros::Time();
   // Frames only for lesions the node vouches for, and only newer stamps (a tf2 listener drops a
   // frame older than the newest it holds and warns about one at the same stamp).
@@ -51,11 +52,12 @@ void BreastSimNode::publishModel(Engine& e, const ros::Time& stamp, bool force_a
     std::lock_guard<std::mutex> sl(stats_mutex_);
     lesions_valid_ = valid;
     lesion_status_ = status;
+    region_status_ = e.region_status;
   }
   if (force_all || seconds(now - last_marker_pub_) >= 1.0 / params_.marker_rate_hz) {
     last_marker_pub_ = now;
     surface_pub_.publish(surfaceMarker(e.display, x, params_.frame_id, stamp));
-    lesion_markers_pub_.publish(lesionMarkers(e.model->lesions, lesions, params_.frame_id, stamp));
+    lesion_markers_pub_.publish(lesionMarkers(e.model->lesions, lesions, params_.frame_id, stamp, regions));
     if (e.pipeline->sliding())
       sliding_pub_.publish(slidingMarkers(x, e.pipeline->slidingVectors(), e.wall_nodes, params_.sliding_arrow_scale,
                                           params_.sliding_min_length_m, params_.sliding_max_arrows, params_.frame_id,
@@ -86,7 +88,7 @@ void BreastSimNode::publishDiagnostics(const ros::WallTimerEvent&) {
   long total_tracked, total_rejected;
   double mean_m, p95_m, alpha, icp_rms;
   Clock::time_point last_tracked;
-  std::string last_reject, lesion_status;
+  std::string last_reject, lesion_status, region_status;
   FrameQuality quality;
   bool lesions_valid;
   long taken_back;
@@ -95,6 +97,7 @@ void BreastSimNode::publishDiagnostics(const ros::WallTimerEvent&) {
     quality = quality_;
     lesions_valid = lesions_valid_;
     lesion_status = lesion_status_;
+    region_status = region_status_;
     taken_back = total_taken_back_;
     w = window_;
     window_ = Window();
@@ -156,6 +159,7 @@ void BreastSimNode::publishDiagnostics(const ros::WallTimerEvent&) {
   kv("state", st.state_name);
   kv("lesions valid", lesions_valid ? "true" : "false");
   kv("lesion status", lesion_status);
+  kv("lesion regions", region_status);
   kv("precomputed", st.precomputed ? "true" : "false");
   kv("cloud rate in [Hz]", num(w.clouds / window_s, 2));
   kv("tracked rate [Hz]", num(w.tracked / window_s, 2));

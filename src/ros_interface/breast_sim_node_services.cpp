@@ -123,6 +123,9 @@ bool BreastSimNode::loadStateSrv(breast_sim::StateFile::Request& req, breast_sim
     engine_->pipeline->loadState(req.path);
     engine_->gravity_load_mps2 = engine_->pipeline->gravityLoad();  // the state's, for the pose-update rule
     engine_->precomputed = true;
+    // A state file holds the shape, not the ensemble: its regions are unknown.
+    engine_->regions.clear();
+    engine_->region_status = "not computed (state loaded from " + req.path + ")";
     restartTracking();
     {
       std::lock_guard<std::mutex> sl(state_mutex_);

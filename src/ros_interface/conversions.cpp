@@ -83,12 +83,23 @@ core::Points displacementFromMessage(const breast_sim::TetrahedralMesh& msg) {
   return Eigen::Map<const core::Points>(msg.displacements.data(), n, 3);
 }
 
+namespace {
+
+void checkRegionCount(const char* what, const std::vector<core::LesionRegion>* regions, size_t lesions) {
+  if (regions && regions->size() != lesions)
+    throw std::invalid_argument(std::string(what) + ": " + std::to_string(regions->size()) + " regions for " +
+                                std::to_string(lesions) + " lesions");
+}
+
+}  // namespace
+
 breast_sim::LesionArray lesionsMessage(const std::vector<core::Lesion>& lesions, const core::Points& positions_m,
                                        const std::string& frame_id, const ros::Time& stamp, bool valid,
-                                       const std::string& status) {
+                                       const std::string& status, const std::vector<core::LesionRegion>* regions) {
   if (positions_m.rows() != static_cast<Eigen::Index>(lesions.size()))
     throw std::invalid_argument("lesionsMessage: " + std::to_string(positions_m.rows()) + " positions for " +
                                 std::to_string(lesions.size()) + " lesions");
+  checkRegionCount("lesionsMessage", regions, lesions.size());
   breast_sim::LesionArray msg;
   msg.header.frame_id = frame_id;
   msg.header.stamp = stamp;
@@ -105,6 +116,16 @@ breast_sim::LesionArray lesionsMessage(const std::vector<core::Lesion>& lesions,
     l.position.y = positions_m(r, 1);
     l.position.z = positions_m(r, 2);
     l.valid = valid;
+    l.position_covariance.fill(0.0);
+    l.position_covariance_type = breast_sim::Lesion::COVARIANCE_UNKNOWN;
+    if (regions) {
+      const core::LesionRegion& g = (*regions)[i];
+      for (int a = 0; a < 3; ++a)
+        for (int b = 0; b < 3; ++b) l.position_covariance[static_cast<size_t>(3 * a + b)] = g.covariance_m2(a, b);
+      l.position_covariance_type = breast_sim::Lesion::COVARIANCE_ENSEMBLE;
+      l.region_confidence = g.confidence;
+      l.region_scale = g.scale;
+    }
     msg.lesions.push_back(l);
   }
   return msg;
@@ -429,10 +450,12 @@ visualization_msgs::Marker surfaceMarker(const DisplaySurface& surface, const co
 }
 
 visualization_msgs::MarkerArray lesionMarkers(const std::vector<core::Lesion>& lesions, const core::Points& positions_m,
-                                              const std::string& frame_id, const ros::Time& stamp) {
+                                              const std::string& frame_id, const ros::Time& stamp,
+                                              const std::vector<core::LesionRegion>* regions) {
   if (positions_m.rows() != static_cast<Eigen::Index>(lesions.size()))
     throw std::invalid_argument("lesionMarkers: " + std::to_string(positions_m.rows()) + " positions for " +
                                 std::to_string(lesions.size()) + " lesions");
+  checkRegionCount("lesionMarkers", regions, lesions.size());
   visualization_msgs::MarkerArray out;
   for (size_t i = 0; i < lesions.size(); ++i) {
     const auto r = static_cast<Eigen::Index>(i);
@@ -462,6 +485,27 @@ visualization_msgs::MarkerArray lesionMarkers(const std::vector<core::Lesion>& l
     t.scale.z = 0.008;
     t.color.r = t.color.g = t.color.b = 1.0f;
     out.markers.push_back(t);
+    visualization_msgs::Marker e = s;
+    e.ns = "lesion_regions";
+    if (regions) {
+      const core::LesionRegion& g = (*regions)[i];
+      const Eigen::Quaterniond q(g.axes);  // the ellipsoid's x, y, z along semi-axes 1, 2, 3
+      e.pose.orientation.x = q.x();
+      e.pose.orientation.y = q.y();
+      e.pose.orientation.z = q.z();
+      e.pose.orientation.w = q.w();
+      // rviz cannot draw a zero-width sphere: a degenerate axis is drawn 0.1 mm wide.
+      e.scale.x = std::max(2.0 * g.semi_axes_m.x(), 1e-4);
+      e.scale.y = std::max(2.0 * g.semi_axes_m.y(), 1e-4);
+      e.scale.z = std::max(2.0 * g.semi_axes_m.z(), 1e-4);
+      e.color.r = 1.0f;
+      e.color.g = 0.6f;
+      e.color.b = 0.1f;
+      e.color.a = 0.35f;
+    } else {
+      e.action = visualization_msgs::Marker::DELETE;
+    }
+    out.markers.push_back(e);
   }
   return out;
 }

@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <optional>
 #include <string>
 
 #include <unistd.h>
@@ -22,6 +23,7 @@
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
 #include "breast_sim/core/pipeline/case_file.h"
+#include "breast_sim/core/pipeline/lesion_uncertainty.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/core/reference/model_choice.h"
 #include "breast_sim/core/render/cross_section.h"
@@ -45,7 +47,8 @@ docs/case_files.md). Writes to DIR:
   supine_gravity.vtu    after gravity (and sliding): displacement_mm, sliding_mm; von_mises_pa, modulus_factor
   supine.vtu            the final supine shape (after morphing), same fields
   series.pvd, series/   the run as a ParaView time series (a frame every N steps)
-  lesions.csv/.json     lesion positions, prone, after gravity and supine [mm]
+  lesions.csv/.json     lesion positions, prone, after gravity and supine [mm]; with `uncertainty:` enabled,
+                        each supine position's covariance [mm^2] and confidence ellipsoid (docs/uncertainty.md)
   sliding.csv           with sliding: each chest-wall node's rest position and sliding vector after gravity
                         and at the end [mm] (scripts/plot_sliding.py draws them)
   metrics.json          steps, reversals, alpha, timings, surface distances, volume change, inverted elements
@@ -154,6 +157,18 @@ void progressBar(const PipelineProgress& p) {
 
 /// The current deformed state as a .vtu: positions, displacement and sliding per node; von Mises
 /// stress and modulus factor per element.
+// A lesion's confidence region in millimetres, for lesions.json.
+nlohmann::json regionJson(const LesionRegion& r, int samples) {
+  nlohmann::json cov = nlohmann::json::array(), axes = nlohmann::json::array();
+  for (int i = 0; i < 3; ++i) {
+    cov.push_back({r.covariance_m2(i, 0) * 1e6, r.covariance_m2(i, 1) * 1e6, r.covariance_m2(i, 2) * 1e6});
+    axes.push_back({r.axes(0, i), r.axes(1, i), r.axes(2, i)});  // row i: the unit vector of semi-axis i
+  }
+  return {{"confidence", r.confidence}, {"samples", samples}, {"covariance_mm2", cov},
+          {"semi_axes_mm", {r.semi_axes_m.x() * 1e3, r.semi_axes_m.y() * 1e3, r.semi_axes_m.z() * 1e3}},
+          {"axes", axes}, {"max_sample_distance_mm", r.max_sample_distance_m * 1e3}};
+}
+
 void writeDeformed(ProneToSupinePipeline& pipe, const SimulationModel& m, const std::string& path) {
   const Points u = pipe.displacement();
   const Points x = pipe.positions();
@@ -266,6 +281,7 @@ int main(int argc, char** argv) {
 
     // The prone-to-supine pipeline: gravity with stiffening (and sliding), then morphing.
     std::vector<Points> lesion_rows;  // after gravity, final
+    std::optional<LesionUncertainty> uncertainty;  // with `uncertainty:` enabled
     std::unique_ptr<ProneToSupinePipeline> pipe;
     bool ok = true;
     if (!args.model_only) {
@@ -437,6 +453,27 @@ int main(int argc, char** argv) {
                  {"vtu_frames", frames.size()}};
       ok = g.converged && (!sl.ran || sl.converged) && (!morph || mo.converged) && fm.inverted_elements == 0;
       metrics["completed"] = ok;
+      // The lesions' confidence regions: the ensemble over stiffness, Poisson ratio and path.
+      if (ok && settings.uncertainty.enabled && !m.lesions.empty()) {
+        const int count = settings.uncertainty.samples;
+        int shown = -1;
+        uncertainty = estimateLesionUncertainty(c, m, settings, lesion_rows.back(), [&](int i, int n, const PipelineProgress&) {
+          if (args.quiet || i == shown) return;
+          shown = i;
+          std::fprintf(stderr, "  uncertainty: sample %d of %d\n", i + 1, n);
+        });
+        nlohmann::json js = nlohmann::json::array();
+        for (const UncertaintySample& u : uncertainty->samples)
+          js.push_back({{"youngs_modulus_factor", u.params.youngs_modulus_factor}, {"poisson_ratio", u.params.poisson_ratio},
+                        {"time_step_factor", u.params.time_step_factor}, {"completed", u.completed},
+                        {"failure", u.failure}, {"seconds", u.seconds}});
+        const double single = metrics["seconds"]["compute"].get<double>();
+        metrics["uncertainty"] = {{"valid", uncertainty->valid}, {"failure", uncertainty->failure},
+                                  {"samples_requested", count}, {"samples", js}, {"seconds", uncertainty->seconds},
+                                  {"cost_vs_run", single > 0 ? uncertainty->seconds / single : 0.0}};
+        ok = uncertainty->valid;
+        metrics["completed"] = ok;
+      }
     }
 
     nlohmann::json lesions = nlohmann::json::array();
@@ -445,6 +482,8 @@ int main(int argc, char** argv) {
     csv << "name,prone_x_mm,prone_y_mm,prone_z_mm,radius_mm,tet,outside_mm";
     for (size_t k = 0; k < lesion_rows.size(); ++k)
       csv << ',' << stage_names[k] << "_x_mm," << stage_names[k] << "_y_mm," << stage_names[k] << "_z_mm," << stage_names[k] << "_moved_mm";
+    if (uncertainty && uncertainty->valid)
+      csv << ",region_confidence,region_semi_axis_1_mm,region_semi_axis_2_mm,region_semi_axis_3_mm,region_max_sample_distance_mm";
     csv << '\n';
     for (size_t i = 0; i < m.lesions.size(); ++i) {
       const auto& l = m.lesions[i];
@@ -458,6 +497,12 @@ int main(int argc, char** argv) {
         csv << ',' << q.x() << ',' << q.y() << ',' << q.z() << ',' << (q - p).norm();
         j[std::string(stage_names[k]) + "_mm"] = {q.x(), q.y(), q.z()};
         j[std::string(stage_names[k]) + "_moved_mm"] = (q - p).norm();
+      }
+      if (uncertainty && uncertainty->valid) {
+        const LesionRegion& r = uncertainty->lesions[i];
+        csv << ',' << r.confidence << ',' << r.semi_axes_m.x() * 1e3 << ',' << r.semi_axes_m.y() * 1e3 << ','
+            << r.semi_axes_m.z() * 1e3 << ',' << r.max_sample_distance_m * 1e3;
+        j["supine_region"] = regionJson(r, static_cast<int>(uncertainty->samples.size()));
       }
       csv << '\n';
       lesions.push_back(j);
@@ -537,6 +582,14 @@ int main(int argc, char** argv) {
       if (metrics["morphing"].get<bool>()) deformed("after morphing", metrics["final"]);
       std::printf("  %-26s %.2f s (setup %.2f s)\n", "compute", metrics["seconds"]["compute"].get<double>(),
                   metrics["seconds"]["setup"].get<double>());
+      if (metrics.contains("uncertainty")) {
+        const auto& u = metrics["uncertainty"];
+        if (u["valid"].get<bool>())
+          std::printf("  %-26s %zu samples, %.2f s (%.1fx the run)\n", "lesion regions", u["samples"].size(),
+                      u["seconds"].get<double>(), u["cost_vs_run"].get<double>());
+        else
+          std::printf("  %-26s NONE: %s\n", "lesion regions", u["failure"].get<std::string>().c_str());
+      }
     }
     for (const auto& l : lesions) {
       std::printf("  lesion %-19s prone (%.1f, %.1f, %.1f) mm", l["name"].get<std::string>().c_str(),
@@ -547,6 +600,11 @@ int main(int argc, char** argv) {
       else if (l.contains("gravity_mm"))
         std::printf(" -> (%.1f, %.1f, %.1f) mm after gravity, moved %.1f mm", l["gravity_mm"][0].get<double>(),
                     l["gravity_mm"][1].get<double>(), l["gravity_mm"][2].get<double>(), l["gravity_moved_mm"].get<double>());
+      if (l.contains("supine_region")) {
+        const auto& r = l["supine_region"];
+        std::printf(", %.0f%% region: semi-axes %.1f x %.1f x %.1f mm", 100.0 * r["confidence"].get<double>(),
+                    r["semi_axes_mm"][0].get<double>(), r["semi_axes_mm"][1].get<double>(), r["semi_axes_mm"][2].get<double>());
+      }
       std::printf("\n");
     }
     std::printf("  %-26s %s\n", "written to", fs::absolute(out).string().c_str());

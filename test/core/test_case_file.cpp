@@ -62,7 +62,7 @@ std::vector<std::string> alternatives(const YAML::Node& value) {
     const double x = std::stod(v, &used);
     if (used == v.size()) {
       std::vector<std::string> out;
-      for (double c : {x * 1.25, x * 0.8, x + 1, x - 1, x * 2, x * 0.5, 0.5, 1.0, 2.0, 3.0, 0.1, 0.0}) {
+      for (double c : {x * 1.25, x * 0.8, x + 1, x - 1, x * 2, x * 0.5, 0.5, 1.0, 2.0, 3.0, 0.1, 0.0, x * 1.01, x * 0.99}) {
         std::ostringstream s;
         s.precision(12);
         s << c;

@@ -401,15 +401,65 @@ TEST(Conversions, LesionMessagesMarkersAndFrames) {
   EXPECT_EQ(msg.lesions[1].id, "L2");
   EXPECT_DOUBLE_EQ(msg.lesions[0].position.y, 0.022);
   EXPECT_DOUBLE_EQ(msg.lesions[0].prone_position.y, 0.02);
+  EXPECT_EQ(msg.lesions[0].position_covariance_type, breast_sim::Lesion::COVARIANCE_UNKNOWN);
+  EXPECT_EQ(msg.lesions[0].region_confidence, 0.0);
+  for (double c : msg.lesions[0].position_covariance) EXPECT_EQ(c, 0.0);
   const auto markers = ros_interface::lesionMarkers(lesions, x, "breast_model", ros::Time(2));
-  ASSERT_EQ(markers.markers.size(), 4u);  // sphere + label each
+  ASSERT_EQ(markers.markers.size(), 6u);  // sphere + label + region each
   EXPECT_DOUBLE_EQ(markers.markers[0].scale.x, 0.01);
-  EXPECT_DOUBLE_EQ(markers.markers[2].scale.x, 0.004);  // a point lesion is drawn 4 mm wide
+  EXPECT_DOUBLE_EQ(markers.markers[3].scale.x, 0.004);  // a point lesion is drawn 4 mm wide
+  // Without regions the region markers are deleted (none of an earlier precomputation lingers).
+  EXPECT_EQ(markers.markers[2].ns, "lesion_regions");
+  EXPECT_EQ(markers.markers[2].action, visualization_msgs::Marker::DELETE);
   const auto tfs = ros_interface::lesionTransforms(lesions, x, "breast_model", "lesion_", ros::Time(2));
   ASSERT_EQ(tfs.size(), 2u);
   EXPECT_EQ(tfs[0].child_frame_id, "lesion_L1");
   EXPECT_DOUBLE_EQ(tfs[1].transform.translation.z, 0.003);
   EXPECT_THROW(ros_interface::lesionsMessage(lesions, core::Points(1, 3), "f", ros::Time(0), true, ""), std::invalid_argument);
+}
+
+// The region of a lesion reaches the message (covariance, row-major) and the marker (an ellipsoid
+// whose axes and diameters are the region's): a point on the marker's surface is on the region's.
+TEST(Conversions, LesionRegionsInMessageAndMarker) {
+  std::vector<core::Lesion> lesions = {{"L1", Eigen::Vector3d(0.01, 0.02, 0.03), 0.005}};
+  core::Points x(1, 3);
+  x << 0.011, 0.022, 0.033;
+  // Samples spread 3 : 2 : 1 along axes rotated about z by 30 degrees, off-centre.
+  const Eigen::Matrix3d r = Eigen::AngleAxisd(M_PI / 6, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  std::vector<Eigen::Vector3d> samples;
+  const Eigen::Vector3d centre = x.row(0).transpose();
+  for (int k = 0; k < 3; ++k)
+    for (double sgn : {-1.0, 1.0}) samples.push_back(centre + sgn * (3.0 - k) * 1e-3 * r.col(k));
+  samples.push_back(centre + Eigen::Vector3d(0.2e-3, -0.1e-3, 0.3e-3));
+  const std::vector<core::LesionRegion> regions = {core::lesionRegion(centre, samples, 0.95)};
+  const auto msg = ros_interface::lesionsMessage(lesions, x, "breast_model", ros::Time(2), true, "ok", &regions);
+  const auto& l = msg.lesions[0];
+  EXPECT_EQ(l.position_covariance_type, breast_sim::Lesion::COVARIANCE_ENSEMBLE);
+  EXPECT_DOUBLE_EQ(l.region_confidence, 0.95);
+  EXPECT_NEAR(l.region_scale, std::sqrt(7.8147), 1e-3);
+  for (int a = 0; a < 3; ++a)
+    for (int b = 0; b < 3; ++b) EXPECT_DOUBLE_EQ(l.position_covariance[3 * a + b], regions[0].covariance_m2(a, b));
+  const auto markers = ros_interface::lesionMarkers(lesions, x, "breast_model", ros::Time(2), &regions);
+  ASSERT_EQ(markers.markers.size(), 3u);
+  const auto& e = markers.markers[2];
+  EXPECT_EQ(e.ns, "lesion_regions");
+  EXPECT_EQ(e.action, visualization_msgs::Marker::ADD);
+  EXPECT_EQ(e.type, visualization_msgs::Marker::SPHERE);
+  const Eigen::Quaterniond q(e.pose.orientation.w, e.pose.orientation.x, e.pose.orientation.y, e.pose.orientation.z);
+  EXPECT_NEAR(q.norm(), 1.0, 1e-12);
+  const Eigen::Vector3d half(e.scale.x / 2, e.scale.y / 2, e.scale.z / 2);
+  EXPECT_GE(half.x(), half.y());
+  EXPECT_GE(half.y(), half.z());
+  const Eigen::Vector3d c(e.pose.position.x, e.pose.position.y, e.pose.position.z);
+  const Eigen::Matrix3d cinv = regions[0].covariance_m2.inverse();
+  for (int k = 0; k < 3; ++k) {
+    // The marker's surface point along its local axis k is on the region's boundary.
+    const Eigen::Vector3d p = c + q.toRotationMatrix().col(k) * half(k);
+    EXPECT_NEAR((p - centre).dot(cinv * (p - centre)), l.region_scale * l.region_scale, 1e-6) << "axis " << k;
+  }
+  const std::vector<core::LesionRegion> none;
+  EXPECT_THROW(ros_interface::lesionMarkers(lesions, x, "f", ros::Time(0), &none), std::invalid_argument);
+  EXPECT_THROW(ros_interface::lesionsMessage(lesions, x, "f", ros::Time(0), true, "", &none), std::invalid_argument);
 }
 
 TEST(Conversions, SlidingArrowsSkipShortVectorsAndRespectTheBudget) {

@@ -42,6 +42,7 @@
 #include <breast_sim/StateFile.h>
 
 #include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/pipeline/lesion_uncertainty.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/ros_interface/conversions.h"
 #include "breast_sim/ros_interface/input_checks.h"
@@ -71,6 +72,10 @@ class BreastSimNode {
     Eigen::Vector3d prone_gravity_mps2 = Eigen::Vector3d::Zero();
     Eigen::Vector3d gravity_load_mps2 = Eigen::Vector3d::Zero();
     bool precomputed = false;
+    /// The lesions' confidence regions of the last precomputation (`uncertainty:` enabled), one per
+    /// lesion; empty when none was computed (or it failed, was cancelled, or a state was loaded).
+    std::vector<core::LesionRegion> regions;
+    std::string region_status = "not computed";  ///< why there are no regions, or how they were made
   };
   using PrecomputeServer = actionlib::ActionServer<breast_sim::PrecomputeAction>;
 
@@ -79,6 +84,9 @@ class BreastSimNode {
   bool startJob(std::function<void()> job, std::string* why);
   void loadCaseJob(const std::string& case_file, int target_elements, std::string* message, bool* ok);
   void precomputeJob(bool gravity_only, std::optional<PrecomputeServer::GoalHandle> goal);
+  /// The ensemble of the engine's `uncertainty:` after a precomputation; sets e.regions and
+  /// e.region_status and returns a line for the job's message.
+  std::string lesionRegionsJob(Engine& e);
   void resetJob();
   /// The state a job ends in, published by the worker once the node is free for the next job.
   void endJob(uint8_t state, const std::string& message);
@@ -120,8 +128,8 @@ class BreastSimNode {
   void applyGravity(Engine& e, const ros::Time& stamp);
 
   // Publishing, state and diagnostics (breast_sim_node_publishing.cpp).
-  /// Mesh, lesions (marked `valid` with `status`), their tf frames (only valid ones, only newer
-  /// stamps), and at the marker rate the markers.
+  /// Mesh, lesions (marked `valid` with `status`, with the engine's regions), their tf frames (only
+  /// valid ones, only newer stamps), and at the marker rate the markers.
   void publishModel(Engine& e, const ros::Time& stamp, bool force_all, bool valid, const std::string& status);
   void setState(uint8_t state, const std::string& message, bool force = true);
   void publishDiagnostics(const ros::WallTimerEvent&);
@@ -190,6 +198,7 @@ class BreastSimNode {
   int inverted_elements_ = 0;
   bool lesions_valid_ = false;
   std::string lesion_status_ = "no model";
+  std::string region_status_ = "not computed";
   FrameQuality quality_;
   double surface_mean_m_ = -1, surface_p95_m_ = -1, alpha_ = 0, icp_rms_m_ = -1;
   int skin_seen_ = 0, skin_held_ = 0;

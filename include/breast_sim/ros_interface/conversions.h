@@ -21,6 +21,7 @@
 
 #include "breast_sim/core/mesh/tet_mesh.h"
 #include "breast_sim/core/model/point_embedding.h"
+#include "breast_sim/core/pipeline/lesion_uncertainty.h"
 
 namespace breast_sim::ros_interface {
 
@@ -38,11 +39,14 @@ core::TetMesh meshFromMessage(const breast_sim::TetrahedralMesh& msg);
 core::Points displacementFromMessage(const breast_sim::TetrahedralMesh& msg);
 
 /// Lesions at given current positions (#lesions×3 [m], e.g. ProneToSupinePipeline::lesionPositions()),
-/// each and the array marked `valid` or not, with the `status` that says why.
-/// @throws std::invalid_argument when the row count differs from the number of lesions.
+/// each and the array marked `valid` or not, with the `status` that says why. With `regions` (one per
+/// lesion, lesion_uncertainty.h) each lesion carries its covariance [m²] and confidence region;
+/// without, COVARIANCE_UNKNOWN and zeros.
+/// @throws std::invalid_argument when the row count or the region count differs from the number of lesions.
 breast_sim::LesionArray lesionsMessage(const std::vector<core::Lesion>& lesions, const core::Points& positions_m,
                                        const std::string& frame_id, const ros::Time& stamp, bool valid,
-                                       const std::string& status);
+                                       const std::string& status,
+                                       const std::vector<core::LesionRegion>* regions = nullptr);
 
 /// The points of a PointCloud2 and what was left out.
 struct CloudPoints {
@@ -113,9 +117,14 @@ DisplaySurface decimateSurface(const core::Points& positions_m, const core::Tria
 visualization_msgs::Marker surfaceMarker(const DisplaySurface& surface, const core::Points& positions_m,
                                          const std::string& frame_id, const ros::Time& stamp);
 
-/// A sphere (diameter = 2·max(radius, 2 mm)) and a text label per lesion, ids stable per index.
+/// A sphere (diameter = 2·max(radius, 2 mm)) and a text label per lesion, ids stable per index, and in
+/// namespace "lesion_regions" the confidence ellipsoid of each lesion's `regions` entry (centred on
+/// the current position, diameters 2 × the semi-axes, oriented by the axes), or a DELETE for that id
+/// without regions, so a region of an earlier precomputation does not linger in rviz.
+/// @throws std::invalid_argument when the row count or the region count differs from the number of lesions.
 visualization_msgs::MarkerArray lesionMarkers(const std::vector<core::Lesion>& lesions, const core::Points& positions_m,
-                                              const std::string& frame_id, const ros::Time& stamp);
+                                              const std::string& frame_id, const ros::Time& stamp,
+                                              const std::vector<core::LesionRegion>* regions = nullptr);
 
 /// One transform per lesion: parent `frame_id`, child `prefix + name`, translation = position.
 std::vector<geometry_msgs::TransformStamped> lesionTransforms(const std::vector<core::Lesion>& lesions,
