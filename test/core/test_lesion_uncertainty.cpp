@@ -234,6 +234,27 @@ TEST(LesionUncertainty, EachSampleIsTheRunOfItsSettingsAndTheRegionHoldsTheSprea
   }
 }
 
+// A morphing stage that stalls short of its 95th-percentile tolerance but within its mean one still
+// counts (with a note); one that ends farther than the mean tolerance does not.
+TEST(LesionUncertainty, AMorphingStageShortOfItsMeanToleranceFailsTheSample) {
+  PipelineSettings s = gravityOnly();
+  s.morphing.enabled = true;
+  s.morphing.max_steps = 15;
+  s.morphing.tolerance_p95_m = 1e-9;  // never met
+  s.morphing.tolerance_mean_m = 0.05;
+  const Points nominal = nominalLesions(s);
+  const LesionUncertainty near = estimateLesionUncertainty(phantom().c, phantom().m, s, nominal);
+  ASSERT_TRUE(near.valid) << near.failure;
+  for (const auto& smp : near.samples) {
+    EXPECT_TRUE(smp.completed);
+    EXPECT_NE(smp.note.find("mean tolerance"), std::string::npos) << smp.note;
+  }
+  s.morphing.tolerance_mean_m = 1e-9;
+  const LesionUncertainty far = estimateLesionUncertainty(phantom().c, phantom().m, s, nominal);
+  EXPECT_FALSE(far.valid);
+  EXPECT_NE(far.failure.find("farther than its tolerance"), std::string::npos) << far.failure;
+}
+
 TEST(LesionUncertainty, AFailedSampleOrACancelLeavesNoRegion) {
   PipelineSettings s = gravityOnly();
   const Points nominal = nominalLesions(s);

@@ -161,9 +161,17 @@ LesionUncertainty estimateLesionUncertainty(const ModelCase& model_case, const S
       const int inverted = qualityStats(model.mesh.tets(), pipe.positions()).num_inverted;
       if (!g.converged) sample.failure = "the gravity settle did not converge";
       else if (sl.ran && !sl.converged) sample.failure = "the sliding stage did not settle";
-      else if (mo.ran && !mo.converged) sample.failure = "the morphing stage did not reach its tolerance";
+      else if (mo.ran && !mo.converged && !(mo.surface_mean_m >= 0 && mo.surface_mean_m <= settings.morphing.tolerance_mean_m))
+        sample.failure = "the morphing stage ended " + std::to_string(mo.surface_mean_m * 1e3) +
+                         " mm (mean) from the target, farther than its tolerance";
       else if (inverted > 0) sample.failure = std::to_string(inverted) + " elements ended inverted";
       else if (!sample.lesions_m.allFinite()) sample.failure = "a lesion position is not finite";
+      if (sample.failure.empty() && mo.ran && !mo.converged) {
+        std::ostringstream n;
+        n << "the morphing stage ended within its mean tolerance but not every other one (mean " << mo.surface_mean_m * 1e3
+          << " mm, p95 " << mo.surface_p95_m * 1e3 << " mm, after " << mo.steps << " steps)";
+        sample.note = n.str();
+      }
     } catch (const std::exception& e) {
       sample.failure = e.what();
     }

@@ -68,8 +68,11 @@ LesionRegion lesionRegion(const Eigen::Vector3d& centre_m, const std::vector<Eig
 /// One ensemble member's run.
 struct UncertaintySample {
   UncertaintySampleParams params;
-  bool completed = false;   ///< every stage that ran converged and no element ended inverted
+  /// Its lesions count: the gravity and sliding stages converged, the morphing stage converged or
+  /// ended within its mean tolerance (tolerance_mean_mm), no element ended inverted.
+  bool completed = false;
   std::string failure;      ///< why not completed (empty when completed)
+  std::string note;         ///< a tolerance missed by a completed sample (empty when none)
   Points lesions_m;         ///< #lesions×3 at the run's end [m]
   double seconds = 0.0;
 };
@@ -90,8 +93,11 @@ using UncertaintyProgressFn = std::function<void(int index, int count, const Pip
 /// Runs the ensemble of settings.uncertainty (whether or not `enabled`: the caller decides) for the
 /// case and model the nominal run used, with that run's final lesion positions `nominal_lesions_m`
 /// (#lesions×3 [m], e.g. ProneToSupinePipeline::lesionPositions()). Each sample builds its own
-/// pipeline; the caller's pipeline is not touched. A sample that fails to converge or that throws
-/// ends the ensemble not valid, naming the sample (narrow the ranges or fix the case).
+/// pipeline; the caller's pipeline is not touched. A sample that does not complete (see
+/// UncertaintySample::completed) or that throws ends the ensemble not valid, naming the sample
+/// (narrow the ranges or fix the case). A morphing stage that stalls within the mean tolerance but
+/// short of the 95th-percentile one (a few skin vertices the stiffer sample cannot bring to the
+/// target) still counts: its lesions lie where such a fit puts them, and the note says so.
 /// @param first_index  the Halton index of the first sample (1 for a case's ensemble)
 /// @throws std::invalid_argument when the nominal positions do not match the model's lesions.
 LesionUncertainty estimateLesionUncertainty(const ModelCase& model_case, const SimulationModel& model,
