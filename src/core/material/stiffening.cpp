@@ -250,10 +250,14 @@ void StiffeningSimulation::refreshStress() {
 
 void StiffeningSimulation::setModuli(const Eigen::VectorXd& stress) {
   const double a = alpha();
+  const Eigen::VectorXd& current = sim_.elements().modulusFactors();
   Eigen::VectorXd er(stress.size());
   for (Eigen::Index e = 0; e < stress.size(); ++e) {
     const double s = std::isfinite(stress[e]) ? stress[e] : 0.0;
     er[e] = std::min(1.0 + std::max(a, element_alpha_[e]) * s, params_.max_modulus_factor);
+    // A locally stiffened element keeps its largest modulus: one that followed its own lagged stress
+    // would swing between a stiff and a soft state, step after step, and the shape never settles.
+    if (element_alpha_[e] > a) er[e] = std::max(er[e], current[e]);
   }
   sim_.elements().setModulusFactors(er);
 }
