@@ -1,4 +1,4 @@
-// Lesion confidence regions (pipeline/lesion_uncertainty.h): the χ² quantile, the region of
+// Lesion confidence regions (pipeline/lesion_uncertainty.h): the region radius, the region of
 // samples against ellipsoids built by hand, the sample design, the case keys, and the ensemble on
 // the small phantom against runs set up by hand.
 #include <gtest/gtest.h>
@@ -20,25 +20,28 @@ using test_fixtures::message;
 using test_fixtures::phantom;
 using test_fixtures::writeTemp;
 
-TEST(LesionUncertainty, ChiSquareQuantileWithThreeDegreesOfFreedom) {
-  // Tabulated values (e.g. NIST/SEMATECH handbook, table of the chi-square distribution).
-  EXPECT_NEAR(chiSquare3Quantile(0.95), 7.814728, 1e-5);
-  EXPECT_NEAR(chiSquare3Quantile(0.99), 11.344867, 1e-5);
-  EXPECT_NEAR(chiSquare3Quantile(0.50), 2.365974, 1e-5);
-  EXPECT_NEAR(chiSquare3Quantile(0.10), 0.584375, 1e-5);
-  double last = 0.0;
-  for (double p = 0.01; p < 1.0; p += 0.01) {
-    const double x = chiSquare3Quantile(p);
-    EXPECT_GT(x, last) << p;
-    last = x;
+// The prediction region's radius: Hotelling's T² with the F quantiles of the tables (NIST/SEMATECH
+// handbook, upper 5 % and 1 % points), and the χ² radius with 3 degrees of freedom for many samples.
+TEST(LesionUncertainty, RegionScaleIsThePredictionRadiusOfItsSampleCount) {
+  EXPECT_NEAR(regionScale(0.95, 8), std::sqrt(3.0 * 8 / 6 * 4.757), 2e-3);    // F(3, 6) = 4.757
+  EXPECT_NEAR(regionScale(0.99, 8), std::sqrt(3.0 * 8 / 6 * 9.780), 2e-3);    // F(3, 6) = 9.780
+  EXPECT_NEAR(regionScale(0.95, 12), std::sqrt(3.0 * 12 / 10 * 3.708), 2e-3); // F(3, 10) = 3.708
+  EXPECT_NEAR(regionScale(0.95, 1000000), std::sqrt(7.814728), 1e-4);         // χ²₃ at 0.95
+  EXPECT_NEAR(regionScale(0.50, 1000000), std::sqrt(2.365974), 1e-4);
+  double last = regionScale(0.95, 3);
+  for (int n = 4; n < 200; ++n) {
+    const double s = regionScale(0.95, n);
+    EXPECT_LT(s, last) << n;  // more samples, a better known spread: a tighter region
+    last = s;
   }
-  EXPECT_THROW(chiSquare3Quantile(0.0), std::invalid_argument);
-  EXPECT_THROW(chiSquare3Quantile(1.0), std::invalid_argument);
-  EXPECT_THROW(chiSquare3Quantile(std::nan("")), std::invalid_argument);
+  EXPECT_THROW(regionScale(0.0, 8), std::invalid_argument);
+  EXPECT_THROW(regionScale(1.0, 8), std::invalid_argument);
+  EXPECT_THROW(regionScale(std::nan(""), 8), std::invalid_argument);
+  EXPECT_THROW(regionScale(0.95, 2), std::invalid_argument);
 }
 
 // Six samples at ±a, ±b, ±c along rotated axes give C = R diag(a², b², c²)/3 Rᵀ: the region's
-// semi-axes are √(χ² a²/3) … along R's columns.
+// semi-axes are s √(a²/3) … along R's columns, s the radius of six samples.
 TEST(LesionUncertainty, RegionOfSamplesOnRotatedAxesIsTheEllipsoidBuiltByHand) {
   const Eigen::Vector3d centre(0.01, -0.02, 0.03);
   const Eigen::Matrix3d R = Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
@@ -47,7 +50,7 @@ TEST(LesionUncertainty, RegionOfSamplesOnRotatedAxesIsTheEllipsoidBuiltByHand) {
   for (int k = 0; k < 3; ++k)
     for (double s : {-1.0, 1.0}) samples.push_back(centre + s * half[k] * R.col(k));
   const LesionRegion r = lesionRegion(centre, samples, 0.95);
-  const double q = chiSquare3Quantile(0.95);
+  const double q = regionScale(0.95, 6) * regionScale(0.95, 6);
   const Eigen::Matrix3d want = R * Eigen::Vector3d(half.array().square() / 3.0).asDiagonal() * R.transpose();
   EXPECT_LT((r.covariance_m2 - want).norm(), 1e-18);
   for (int k = 0; k < 3; ++k) {
@@ -58,7 +61,7 @@ TEST(LesionUncertainty, RegionOfSamplesOnRotatedAxesIsTheEllipsoidBuiltByHand) {
   EXPECT_NEAR(r.scale, std::sqrt(q), 1e-12);
   EXPECT_NEAR(r.max_sample_distance_m, half[0], 1e-15);
   // contains(): points just inside and just outside each semi-axis, and the samples themselves
-  // (√3 < √χ² so all six lie inside).
+  // (√3 < s so all six lie inside).
   for (int k = 0; k < 3; ++k)
     for (double s : {-1.0, 1.0}) {
       EXPECT_TRUE(r.contains(centre + s * 0.999 * r.semi_axes_m[k] * r.axes.col(k))) << k;
@@ -66,14 +69,16 @@ TEST(LesionUncertainty, RegionOfSamplesOnRotatedAxesIsTheEllipsoidBuiltByHand) {
     }
   for (const auto& p : samples) EXPECT_TRUE(r.contains(p));
   // Samples that are biased (all on one side) are counted about the centre, not their mean.
-  const LesionRegion biased = lesionRegion(centre, {centre + Eigen::Vector3d(1e-3, 0, 0), centre + Eigen::Vector3d(1e-3, 0, 0)}, 0.95);
+  const Eigen::Vector3d off = centre + Eigen::Vector3d(1e-3, 0, 0);
+  const LesionRegion biased = lesionRegion(centre, {off, off, off}, 0.95);
   EXPECT_NEAR(biased.covariance_m2(0, 0), 1e-6, 1e-18);
-  EXPECT_NEAR(biased.semi_axes_m[0], std::sqrt(q) * 1e-3, 1e-12);
+  EXPECT_NEAR(biased.semi_axes_m[0], regionScale(0.95, 3) * 1e-3, 1e-12);
   EXPECT_EQ(biased.semi_axes_m[1], 0.0);
   // A degenerate region holds only points on its plane / line.
   EXPECT_TRUE(biased.contains(centre + Eigen::Vector3d(-2e-3, 0, 0)));
   EXPECT_FALSE(biased.contains(centre + Eigen::Vector3d(0, 1e-6, 0)));
   EXPECT_THROW(lesionRegion(centre, {}, 0.95), std::invalid_argument);
+  EXPECT_THROW(lesionRegion(centre, {off, off}, 0.95), std::invalid_argument);
   EXPECT_THROW(lesionRegion(centre, samples, 1.0), std::invalid_argument);
 }
 

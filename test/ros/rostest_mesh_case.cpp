@@ -153,7 +153,7 @@ TEST(MeshCase, TheLesionCarriesTheEnsemblesRegionUntilAReset) {
   EXPECT_TRUE(saw_stage) << "~state never showed the stage 'uncertainty'";
   EXPECT_NE(message.find("regions from 4 runs"), std::string::npos) << message;
   EXPECT_DOUBLE_EQ(got.region_confidence, 0.95);
-  EXPECT_NEAR(got.region_scale, std::sqrt(7.8147), 1e-3);
+  EXPECT_DOUBLE_EQ(got.region_scale, breast_sim::core::regionScale(0.95, 4));
   Eigen::Matrix3d cov;
   for (int a = 0; a < 3; ++a)
     for (int b = 0; b < 3; ++b) cov(a, b) = got.position_covariance[static_cast<size_t>(3 * a + b)];

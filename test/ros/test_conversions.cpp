@@ -436,7 +436,7 @@ TEST(Conversions, LesionRegionsInMessageAndMarker) {
   const auto& l = msg.lesions[0];
   EXPECT_EQ(l.position_covariance_type, breast_sim::Lesion::COVARIANCE_ENSEMBLE);
   EXPECT_DOUBLE_EQ(l.region_confidence, 0.95);
-  EXPECT_NEAR(l.region_scale, std::sqrt(7.8147), 1e-3);
+  EXPECT_DOUBLE_EQ(l.region_scale, core::regionScale(0.95, 7));
   for (int a = 0; a < 3; ++a)
     for (int b = 0; b < 3; ++b) EXPECT_DOUBLE_EQ(l.position_covariance[3 * a + b], regions[0].covariance_m2(a, b));
   const auto markers = ros_interface::lesionMarkers(lesions, x, "breast_model", ros::Time(2), &regions);

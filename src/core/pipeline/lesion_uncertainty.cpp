@@ -7,6 +7,7 @@
 #include <stdexcept>
 
 #include <Eigen/Eigenvalues>
+#include <boost/math/distributions/fisher_f.hpp>
 
 #include "breast_sim/core/mesh/tet_quality.h"
 
@@ -24,12 +25,6 @@ double radicalInverse(int index, int base) {
 }
 
 double logUniform(double lo, double hi, double u) { return lo * std::pow(hi / lo, u); }
-
-/// P(χ²₃ ≤ x) = erf(√(x/2)) − √(2x/π) e^(−x/2).
-double chiSquare3Cdf(double x) {
-  if (x <= 0) return 0.0;
-  return std::erf(std::sqrt(0.5 * x)) - std::sqrt(2.0 * x / M_PI) * std::exp(-0.5 * x);
-}
 
 std::string describe(const UncertaintySampleParams& p) {
   std::ostringstream s;
@@ -76,17 +71,17 @@ PipelineSettings sampleSettings(const PipelineSettings& nominal, const Uncertain
   return s;
 }
 
-double chiSquare3Quantile(double p) {
-  if (!(p > 0) || !(p < 1))
-    throw std::invalid_argument("chiSquare3Quantile: probability " + std::to_string(p) + " is not in (0, 1)");
-  // The CDF rises monotonically; bisection to full double precision (at most ~110 halvings).
-  double lo = 0.0, hi = 1.0;
-  while (chiSquare3Cdf(hi) < p) hi *= 2.0;
-  for (int it = 0; it < 200 && hi - lo > 1e-14 * hi; ++it) {
-    const double mid = 0.5 * (lo + hi);
-    (chiSquare3Cdf(mid) < p ? lo : hi) = mid;
-  }
-  return 0.5 * (lo + hi);
+double regionScale(double confidence, int samples) {
+  if (!(confidence > 0) || !(confidence < 1))
+    throw std::invalid_argument("regionScale: confidence " + std::to_string(confidence) + " is not in (0, 1)");
+  if (samples < 3)
+    throw std::invalid_argument("regionScale: " + std::to_string(samples) +
+                                " samples cannot span a region in 3-D; give at least 3");
+  const double n = samples;
+  // T²(3, n) = 3n / (n − 2) · F(3, n − 2): the Mahalanobis distance of a new sample under the
+  // covariance of n samples about the known centre.
+  const boost::math::fisher_f f(3.0, n - 2.0);
+  return std::sqrt(3.0 * n / (n - 2.0) * boost::math::quantile(f, confidence));
 }
 
 bool LesionRegion::contains(const Eigen::Vector3d& p_m) const {
@@ -100,11 +95,10 @@ bool LesionRegion::contains(const Eigen::Vector3d& p_m) const {
 }
 
 LesionRegion lesionRegion(const Eigen::Vector3d& centre_m, const std::vector<Eigen::Vector3d>& samples_m, double confidence) {
-  if (samples_m.empty()) throw std::invalid_argument("lesionRegion: no samples");
   LesionRegion r;
   r.centre_m = centre_m;
   r.confidence = confidence;
-  r.scale = std::sqrt(chiSquare3Quantile(confidence));
+  r.scale = regionScale(confidence, static_cast<int>(samples_m.size()));
   for (const Eigen::Vector3d& p : samples_m) {
     const Eigen::Vector3d d = p - centre_m;
     r.covariance_m2 += d * d.transpose();

@@ -12,8 +12,8 @@
 /// at the points of a Halton sequence (bases 2, 3, 5), so the same settings give the same samples on
 /// any machine. Each lesion's region is centred on the nominal run's position p0 (the one the
 /// package publishes), with C = (1/n) Σ (p_k − p0)(p_k − p0)ᵀ over the n samples (bias included),
-/// and is the ellipsoid (x − p0)ᵀ C⁻¹ (x − p0) ≤ χ²₃(confidence): semi-axes √(χ²₃ λ_i) along
-/// C's eigenvectors. Measured coverage and cost: docs/uncertainty.md.
+/// and is the ellipsoid (x − p0)ᵀ C⁻¹ (x − p0) ≤ s², s = regionScale(confidence, n): semi-axes
+/// s √λ_i along C's eigenvectors. Measured coverage and cost: docs/uncertainty.md.
 /// Units: m, m²; the factors are dimensionless.
 
 #include <atomic>
@@ -42,9 +42,12 @@ std::vector<UncertaintySampleParams> uncertaintyDesign(const UncertaintySettings
 /// @throws std::invalid_argument when the sample's settings are out of range (e.g. a time step over 10 s).
 PipelineSettings sampleSettings(const PipelineSettings& nominal, const UncertaintySampleParams& sample);
 
-/// The χ² quantile with 3 degrees of freedom: x with P(χ²₃ ≤ x) = p, for p in (0, 1) (7.815 at 0.95).
-/// @throws std::invalid_argument outside (0, 1).
-double chiSquare3Quantile(double p);
+/// The Mahalanobis radius of a region from `samples` runs that holds a further run with probability
+/// `confidence` (a prediction region; normal spread about the known centre): √(3n/(n−2) F₃,ₙ₋₂(c)),
+/// 4.36 for 8 samples at 0.95, 3.06 for 32, and √χ²₃ = 2.80 for many. With few samples the spread
+/// itself is uncertain, and a χ² region would hold fewer further runs than it says.
+/// @throws std::invalid_argument for a confidence outside (0, 1) or fewer than 3 samples.
+double regionScale(double confidence, int samples);
 
 /// A lesion's confidence region.
 struct LesionRegion {
@@ -54,15 +57,15 @@ struct LesionRegion {
   /// Columns: the unit axis of each semi-axis, a right-handed rotation (det +1).
   Eigen::Matrix3d axes = Eigen::Matrix3d::Identity();
   double confidence = 0.95;
-  double scale = 0.0;                 ///< √χ²₃(confidence): the region's Mahalanobis radius
+  double scale = 0.0;                 ///< regionScale(confidence, samples): the region's Mahalanobis radius
   double max_sample_distance_m = 0.0; ///< the farthest sample from p0 [m]
   /// True when p lies in the ellipsoid (on a degenerate axis, within 1e-9 m of the centre's plane).
   bool contains(const Eigen::Vector3d& p_m) const;
 };
 
 /// The region of samples around `centre_m` (slow reference and fast path are the same few lines:
-/// the tests check it against ellipsoids built by hand). @throws std::invalid_argument for no
-/// samples or a confidence outside (0, 1).
+/// the tests check it against ellipsoids built by hand). @throws std::invalid_argument for fewer
+/// than 3 samples or a confidence outside (0, 1).
 LesionRegion lesionRegion(const Eigen::Vector3d& centre_m, const std::vector<Eigen::Vector3d>& samples_m, double confidence);
 
 /// One ensemble member's run.
