@@ -25,11 +25,13 @@ OUTCOMES = ["settled", "not_settled", "stalled", "inverted", "nan", "exploded"]
 COLOURS = ["#4caf50", "#c5e1a5", "#ffb74d", "#e57373", "#9575cd", "#5d4037"]
 LABELS = {"settled": "settled", "not_settled": "no inversion, still moving", "stalled": "stalled (reversal limit)",
           "inverted": "inverted elements", "nan": "NaN / solver failure", "exploded": "exploded (|u| > 1 m)"}
-METHODS = ["linear", "corotated", "vonmises_no_reversal", "full", "explicit_euler"]
+METHODS = ["linear", "corotated", "vonmises_no_reversal", "full", "explicit_euler", "anp", "anp_full"]
 SHORT = {"linear": "linear FEM", "corotated": "co-rotated, fixed E", "vonmises_no_reversal": "von Mises, no reversal",
-         "full": "full method", "explicit_euler": "explicit Euler"}
+         "full": "full method", "explicit_euler": "explicit Euler", "anp": "ANP + barrier, fixed E",
+         "anp_full": "ANP, full method"}
 TITLES = {"linear": "linear FEM", "corotated": "co-rotated, fixed E", "vonmises_no_reversal": "von Mises, no reversal",
-          "full": "full method (reversal + alpha control)", "explicit_euler": "explicit (symplectic) Euler"}
+          "full": "full method (reversal + alpha control)", "explicit_euler": "explicit (symplectic) Euler",
+          "anp": "ANP + barrier, fixed E", "anp_full": "ANP + barrier, full method"}
 
 
 def load(path):

@@ -31,7 +31,7 @@ Runs the stability map (see include/breast_sim/core/material/stability_map.h):
   --json FILE           the same rows and the settings
   --case FILE           phantom case (default: config/phantom_default.yaml of the source tree)
   --target-elements N   mesh size (default 3000)
-  --methods LIST        subset of linear,corotated,vonmises_no_reversal,full,explicit_euler
+  --methods LIST        subset of linear,corotated,vonmises_no_reversal,full,explicit_euler,anp,anp_full
   --max-time S          simulated-time limit per run [s] (default 4, quick 2; at least 80 steps)
   --threads N           OpenMP threads per run (default 1: the runs are small, and on a shared
                         machine spinning threads cost more than they save)

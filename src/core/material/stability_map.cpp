@@ -8,6 +8,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "breast_sim/core/fem/anp_tet_fem.h"
 #include "breast_sim/core/fem/corotated_tet_fem.h"
 #include "breast_sim/core/fem/dynamic_simulator.h"
 #include "breast_sim/core/material/explicit_euler.h"
@@ -35,20 +36,23 @@ const char* methodName(StabilityMethod m) {
     case StabilityMethod::kVonMisesNoReversal: return "vonmises_no_reversal";
     case StabilityMethod::kFullMethod: return "full";
     case StabilityMethod::kExplicitEuler: return "explicit_euler";
+    case StabilityMethod::kAnpFixed: return "anp";
+    case StabilityMethod::kAnpFull: return "anp_full";
   }
   return "?";
 }
 
 std::vector<StabilityMethod> allStabilityMethods() {
   return {StabilityMethod::kLinear, StabilityMethod::kCorotatedFixed, StabilityMethod::kVonMisesNoReversal,
-          StabilityMethod::kFullMethod, StabilityMethod::kExplicitEuler};
+          StabilityMethod::kFullMethod, StabilityMethod::kExplicitEuler, StabilityMethod::kAnpFixed,
+          StabilityMethod::kAnpFull};
 }
 
 StabilityMethod parseStabilityMethod(const std::string& name) {
   for (StabilityMethod m : allStabilityMethods())
     if (name == methodName(m)) return m;
   throw std::invalid_argument("unknown method '" + name +
-                              "': expected linear, corotated, vonmises_no_reversal, full or explicit_euler");
+                              "': expected linear, corotated, vonmises_no_reversal, full, explicit_euler, anp or anp_full");
 }
 
 std::string defaultPhantomCasePath() { return std::string(BREAST_SIM_SOURCE_DIR) + "/config/phantom_default.yaml"; }
@@ -127,12 +131,19 @@ StabilityResult runStability(const StabilityLoadCase& load, const StabilityRun& 
     s.simulated_time_s = sim.state().time_s;
   } else {
     StiffeningParams p = base;
-    p.update_moduli = run.method == StabilityMethod::kVonMisesNoReversal || run.method == StabilityMethod::kFullMethod;
-    p.reversal = run.method == StabilityMethod::kFullMethod;
+    p.update_moduli = run.method == StabilityMethod::kVonMisesNoReversal || run.method == StabilityMethod::kFullMethod ||
+                      run.method == StabilityMethod::kAnpFull;
+    p.reversal = run.method == StabilityMethod::kFullMethod || run.method == StabilityMethod::kAnpFull;
     p.alpha.initial_alpha_per_pa = std::clamp(run.alpha_scale * base.alpha.initial_alpha_per_pa, p.alpha.min_alpha_per_pa,
                                               p.alpha.max_alpha_per_pa);
     if (p.update_moduli) res.initial_alpha_per_pa = p.alpha.initial_alpha_per_pa;
-    DynamicSimulator sim(load.mesh, std::move(fem), material, dyn, std::make_unique<CholmodSolver>(CholmodOptions{1}));
+    std::unique_ptr<ElementFormulation> elements = std::move(fem);
+    if (run.method == StabilityMethod::kAnpFixed || run.method == StabilityMethod::kAnpFull) {
+      auto anp = std::make_unique<AnpTetFem>(load.mesh, material);
+      anp->setInversionBarrier(kStabilityAnpBarrier);
+      elements = std::move(anp);
+    }
+    DynamicSimulator sim(load.mesh, std::move(elements), material, dyn, std::make_unique<CholmodSolver>(CholmodOptions{1}));
     StiffeningSimulation stiff(sim, load.mesh, p);
     stiff.fixNodes(load.fixed_nodes);
     std::string failure;
@@ -218,8 +229,9 @@ std::vector<StabilityRun> stabilityGrid(bool quick) {
         g.push_back(r);
       }
     }
-    const bool has_alpha = m == StabilityMethod::kVonMisesNoReversal || m == StabilityMethod::kFullMethod;
-    if (has_alpha && (!quick || m == StabilityMethod::kFullMethod))
+    const bool full = m == StabilityMethod::kFullMethod || m == StabilityMethod::kAnpFull;
+    const bool has_alpha = m == StabilityMethod::kVonMisesNoReversal || full;
+    if (has_alpha && (!quick || full))
       for (double dt : {0.033, 0.33})
         for (double a : quick ? std::vector<double>{10.0} : std::vector<double>{0.1, 10.0}) {
           if (quick && dt != 0.33) continue;

@@ -1,6 +1,6 @@
 #pragma once
 /// @file stability_map.h
-/// "Test stability where methods fail": one load case run by five methods over a grid of
+/// "Test stability where methods fail": one load case run by seven methods over a grid of
 /// Poisson ratio, Young's modulus, time step and initial α, with an outcome per run. The command is
 /// breast_sim_stability_map (src/tools); the results and their plots are in docs/stability_map.
 
@@ -21,10 +21,16 @@ enum class StabilityMethod {
   kCorotatedFixed,      ///< co-rotated FEM, fixed E
   kVonMisesNoReversal,  ///< co-rotated, E_r = 1 + α s_VM every step with α fixed at its initial value, no reversal
   kFullMethod,          ///< co-rotated, von Mises update with time-step reversal and the α controller (seed 2.3)
-  kExplicitEuler        ///< co-rotated, fixed E, semi-implicit (symplectic) Euler (explicit_euler.h)
+  kExplicitEuler,       ///< co-rotated, fixed E, semi-implicit (symplectic) Euler (explicit_euler.h)
+  kAnpFixed,            ///< average-nodal-pressure tetrahedra with the inversion barrier (J_b 0.3), fixed E
+  kAnpFull              ///< the same element with the von Mises update, time-step reversal and the α controller
 };
 
-/// "linear", "corotated", "vonmises_no_reversal", "full", "explicit_euler".
+/// The ANP methods' inversion barrier: the volume ratio below which an element resists on its own
+/// (docs/speed_accuracy.md: the barrier value measured against CalculiX).
+inline constexpr double kStabilityAnpBarrier = 0.3;
+
+/// "linear", "corotated", "vonmises_no_reversal", "full", "explicit_euler", "anp", "anp_full".
 const char* methodName(StabilityMethod m);
 /// @throws std::invalid_argument naming the accepted names.
 StabilityMethod parseStabilityMethod(const std::string& name);
@@ -84,9 +90,9 @@ StabilityResult runStability(const StabilityLoadCase& load, const StabilityRun& 
 
 /// The sweep: per method the full ν × dt grid at E = 1 kPa (the soft end of the seed's 1–3 kPa: at
 /// 2 kPa nothing inverts in this load case) and α 1×; at ν = 0.48, dt = 0.033 s the moduli
-/// E ∈ {2, 3 kPa} and E = 2 μ (1 + ν) for μ ∈ {0.3, 0.5, 0.7 kPa}; for the two methods with α,
+/// E ∈ {2, 3 kPa} and E = 2 μ (1 + ν) for μ ∈ {0.3, 0.5, 0.7 kPa}; for the three methods with α,
 /// α ∈ {0.1×, 10×} at dt ∈ {0.033, 0.33 s}, E = 1 kPa. quick: ν ∈ {0.28, 0.48, 0.495} × dt ∈ {0.033, 0.33 s},
-/// no E or α axis except α 10× for the full method, and 2 s of simulated time.
+/// no E or α axis except α 10× for the two full methods, and 2 s of simulated time.
 std::vector<StabilityRun> stabilityGrid(bool quick);
 
 }  // namespace breast_sim::core
