@@ -13,6 +13,10 @@ PACKAGES=(
   libgtest-dev googletest
   # reference solver (speed-accuracy study, test_reference): CalculiX
   calculix-ccx
+  # MRI volumes (NIfTI, NRRD, MetaImage, DICOM series through GDCM), their filters and resampling
+  libinsighttoolkit5-dev
+  # fuzz targets (libFuzzer) and the sanitizer build of the core tests (ASan, UBSan)
+  clang-14 libclang-rt-14-dev
   # ROS 1 (Debian ships it into /usr)
   ros-core-dev catkin python3-catkin-pkg python3-rostest librostest-dev
   ros-message-generation ros-message-runtime libroscpp-dev
