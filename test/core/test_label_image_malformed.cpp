@@ -13,6 +13,7 @@
 #include <Eigen/Core>
 #include <gtest/gtest.h>
 
+#include "breast_sim/core/image/image_io_detail.h"
 #include "label_image_fixtures.h"
 
 namespace {
@@ -103,8 +104,27 @@ TEST(LabelImageReader, RejectsMalformedFilesNamingFileAndFault) {
        "NRRD0004\ndimension: 3\ntype: uint8\nsizes: 7 5 3\nencoding: raw\ndata file: nowhere.raw\n",
        {"data file", "nowhere.raw", "cannot open"}},
       {"ascii data too short", "short.nrrd",
-       nrrdHeader("type: uint8\nsizes: 7 5 3\nencoding: ascii\n") + "1 2 3\n",
+       nrrdHeader("type: uint8\nsizes: 7 5 3\nencoding: ascii\n") + "1 2 3" + std::string(300, ' '),
        {"expected 105 values, found 3"}},
+      // 2^31 labels (4 GiB) were allocated before the text was parsed.
+      {"ascii count beyond the data", "ascii_claim.nrrd",
+       nrrdHeader("type: uint8\nsizes: 1024 1024 2048\nencoding: ascii\n") + "1 2 3\n",
+       {"ASCII voxel data is truncated: expected 2147483648 values, but its 6 bytes hold at most 3"}},
+      {"MetaImage ascii count beyond the data", "ascii_claim.mha",
+       mha_head + "DimSize = 1024 1024 2048\nElementType = MET_UCHAR\nBinaryData = False\n"
+                  "ElementDataFile = LOCAL\n1 2 3\n",
+       {"ASCII voxel data is truncated: expected 2147483648 values, but its 6 bytes hold at most 3"}},
+      // A folder opened like a file and its "size" (2^63 on some file systems) was allocated.
+      {"data file that is a folder", "folder.nhdr",
+       "NRRD0004\ndimension: 3\ntype: uint8\nsizes: 7 5 3\nencoding: raw\ndata file: .\n",
+       {"data file:", "is a folder, not a file"}},
+      {"MetaImage data file that is a folder", "folder.mhd",
+       mha_head + "DimSize = 7 5 3\nElementType = MET_UCHAR\nElementDataFile = .\n",
+       {"data file:", "is a folder, not a file"}},
+      // The name was cut at its NUL byte, which left the header's own folder.
+      {"data file name with a NUL byte", "nul.nhdr",
+       "NRRD0004\ndimension: 3\ntype: uint8\nsizes: 7 5 3\nencoding: raw\ndata file: " + std::string("\0\0x\n", 4),
+       {"the data file name '??x' is empty or holds control characters"}},
       {"MetaImage without DimSize", "no_size.mha",
        mha_head + "ElementType = MET_UCHAR\nElementDataFile = LOCAL\n" + std::string(105, '\0'),
        {"'DimSize' is missing"}},
@@ -185,6 +205,29 @@ TEST(LabelImageReader, RejectsMalformedFilesNamingFileAndFault) {
       EXPECT_NE(message.find(s), std::string::npos) << "'" << s << "' not in: " << message;
     }
   }
+}
+
+std::string gzipped(const std::string& bytes) {
+  return breast_sim::core::image_io::deflateBytes(bytes, breast_sim::core::image_io::Wrapper::kGzip);
+}
+
+// A .nii.gz stream that goes on past the bytes its header describes was inflated to the end, however
+// large: it is refused once it passes them.
+TEST(LabelImageReader, GzipStreamLargerThanItsNiftiHeaderSaysIsRefused) {
+  const std::string image = niftiHeader(NiftiFields()) + markedData<std::uint8_t>(5, false);
+  const std::string path = tempPath("bomb.nii.gz");
+  writeBytes(path, gzipped(image + std::string(8 << 20, '\0')));
+  const std::string message = errorOf([&] { readLabelImage(path); });
+  EXPECT_NE(message.find(path + ": the gzip stream decompresses to more than the 457 bytes its header describes "
+                                "(vox_offset 352 + 7×5×3 uint8 values)"),
+            std::string::npos)
+      << message;
+  // The same image without the tail reads.
+  writeBytes(path, gzipped(image));
+  EXPECT_EQ(readLabelImage(path).at(5, 1, 2), 5);
+  // And so does an uncompressed one with a tail, as before (nothing is inflated).
+  writeBytes(tempPath("tail.nii"), image + std::string(1000, '\0'));
+  EXPECT_EQ(readLabelImage(tempPath("tail.nii")).at(5, 1, 2), 5);
 }
 
 TEST(LabelImageReader, TruncatedCompressedDataSaysHowManyBytesWereExpectedAndFound) {

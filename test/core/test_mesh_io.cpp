@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <map>
 #include <sstream>
 #include <stdexcept>
 #include <string>
@@ -682,6 +683,147 @@ TEST(MeshIo, HeaderCountsTheFileCannotHoldAreErrorsNamingThePlace) {
       EXPECT_NE(msg.find(c.what), std::string::npos) << "'" << c.what << "' in: " << msg;
     }
   }
+}
+
+// Counts, tags and ids a file merely claims: each is checked before it sizes anything or becomes a
+// label, and refused with the file and the place (found by the fuzz targets, fuzz/).
+TEST(MeshIo, ClaimedCountsTagsAndIdsAreRefusedNamingThePlace) {
+  TempDir dir("breast_sim_mesh_io");
+  const std::string nodes4 = "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n4\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n$EndNodes\n";
+  const std::string inp_nodes = "*NODE\n1, 0, 0, 0\n2, 1, 0, 0\n3, 0, 1, 0\n4, 0, 0, 1\n*ELEMENT, TYPE=C3D4\n1, 1, 2, 3, 4\n";
+  const auto vtu = [](const std::string& piece, const std::string& points, const std::string& connectivity,
+                      const std::string& offsets) {
+    return "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
+           "<UnstructuredGrid>\n<Piece " + piece + ">\n<Points>\n"
+           "<DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">" + points + "</DataArray>\n</Points>\n"
+           "<Cells>\n<DataArray type=\"Int64\" Name=\"connectivity\" format=\"ascii\">" + connectivity + "</DataArray>\n"
+           "<DataArray type=\"Int64\" Name=\"offsets\" format=\"ascii\">" + offsets + "</DataArray>\n"
+           "<DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">10</DataArray>\n</Cells>\n</Piece>\n"
+           "</UnstructuredGrid>\n</VTKFile>\n";
+  };
+  const std::string points4 = "0 0 0 1 0 0 0 1 0 0 0 1";
+  const std::string legacy = "# vtk DataFile Version 4.2\nhand-written\nASCII\nDATASET UNSTRUCTURED_GRID\n";
+  const std::string legacy_points = legacy + "POINTS 4 double\n0 0 0 1 0 0 0 1 0 0 0 1\n";
+  struct Case {
+    std::string file;
+    std::string text;
+    std::string place;
+    std::string what;
+  };
+  const std::vector<Case> cases = {
+      // 3 + ntags overflowed (undefined behaviour).
+      {"ntags.msh", nodes4 + "$Elements\n1\n1 4 9223372036854775807 1 2 3 4\n$EndElements\n", ":13:",
+       "element 1 announces 9223372036854775807 tags but the line has 4 values after them"},
+      // Cut to an int: 2^32 became label 0.
+      {"tag.msh", nodes4 + "$Elements\n1\n1 4 2 4294967296 1 1 2 3 4\n$EndElements\n", ":13:",
+       "region tag of element 1 is 4294967296, which does not fit a 32-bit integer"},
+      {"physical.msh", "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$PhysicalNames\n1\n2 4294967297 \"skin\"\n$EndPhysicalNames\n",
+       ":6:", "physical tag is 4294967297, which does not fit a 32-bit integer"},
+      // 10^8 numbers (1.6 GB of set entries) were generated from one line.
+      {"generate.inp", inp_nodes + "*NSET, NSET=ALL, GENERATE\n1, 100000000, 1\n", ":9:",
+       "GENERATE range 1, 100000000, 1 names 100000000 nodes, more than the file's 9 lines can define"},
+      // last − first overflowed a long long.
+      {"generate_span.inp", inp_nodes + "*ELSET, ELSET=ALL, GENERATE\n-9223372036854775808, 9223372036854775807\n",
+       ":9:", "names 2^64 elements, more than the file's 9 lines can define"},
+      {"generate_step.inp", inp_nodes + "*NSET, NSET=ALL, GENERATE\n1, 4, 0\n", ":9:",
+       "bad GENERATE range 1, 4, 0: expected first <= last and an increment >= 1"},
+      // A VTU point id beyond int was cut to a valid one (2^32 → 0).
+      {"id.vtu", vtu("NumberOfPoints=\"4\" NumberOfCells=\"1\"", points4, "4294967296 1 2 3", "4"), ":9:",
+       "connectivity entry 0 is point 4294967296, but the piece has 4 points"},
+      // Counts VTK allocated before reading any data.
+      {"points.vtu", vtu("NumberOfPoints=\"3000000000\" NumberOfCells=\"1\"", points4, "0 1 2 3", "4"), ":4:",
+       "<Piece> NumberOfPoints is '3000000000'; expected 0 to 2147483647"},
+      {"claim.vtu", vtu("NumberOfPoints=\"2000000000\" NumberOfCells=\"1\"", points4, "0 1 2 3", "4"), ":6:",
+       "the DataArray should hold 6000000000 values, but its 23 characters hold at most 12"},
+      {"offsets.vtu", vtu("NumberOfPoints=\"4\" NumberOfCells=\"1\"", points4, "0 1 2 3", "9"), ":10:",
+       "the last cell offset is 9 but the connectivity holds 4 ids"},
+      {"legacy_points.vtk", legacy + "POINTS 2000000000 float\n0 0 0\n", ":5:",
+       "header says 6000000000 point coordinates but the file can hold at most"},
+      // Cells that overrun their data, or a cell section without types, crashed VTK 9.1's reader.
+      {"legacy_cells.vtk", legacy_points + "CELLS 2 6\n4 0 1 2 3\n9\nCELL_TYPES 2\n10\n10\n", ":7:",
+       "cell 1 has 9 points, more than the 0 values left in CELLS"},
+      {"legacy_types.vtk", legacy_points + "CELLS 1 5\n4 0 1 2 3\n", ":7:", "CELLS without CELL_TYPES"},
+      {"legacy_type_count.vtk", legacy_points + "CELLS 1 5\n4 0 1 2 3\nCELL_TYPES 3\n10 10 10\n", ":9:",
+       "CELL_TYPES 3 for 1 cells"},
+      {"legacy_point_data.vtk",
+       legacy_points + "CELLS 1 5\n4 0 1 2 3\nCELL_TYPES 1\n10\nPOINT_DATA 7\nSCALARS s float\nLOOKUP_TABLE default\n1 2 3 4\n",
+       ":11:", "POINT_DATA 7 for 4 points"},
+      {"legacy_id.vtk", legacy_points + "CELLS 1 5\n4 0 1 2 4294967296\nCELL_TYPES 1\n10\n", "legacy_id.vtk: ",
+       "cell 0 refers to point 4294967296, but the file has 4 points"},
+      {"legacy_binary.vtk", "# vtk DataFile Version 4.2\nx\nBINARY\nDATASET UNSTRUCTURED_GRID\nPOINTS 4 double\n" +
+                                std::string(40, '\0'), ": byte ", "header says 12 point coordinates but the file can hold at most 5"},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.file);
+    const std::string path = dir.path(c.file);
+    writeText(path, c.text);
+    try {
+      readTetMesh(path);
+      ADD_FAILURE() << "no exception";
+    } catch (const std::runtime_error& e) {
+      const std::string msg = e.what();
+      EXPECT_EQ(msg.rfind(path, 0), 0u) << "message starts with the path: " << msg;
+      EXPECT_NE(msg.find(c.place), std::string::npos) << "place '" << c.place << "' in: " << msg;
+      EXPECT_NE(msg.find(c.what), std::string::npos) << "'" << c.what << "' in: " << msg;
+    }
+  }
+  // A folder named like a mesh file: its "size" was allocated.
+  std::filesystem::create_directory(dir.path("folder.msh"));
+  try {
+    readTetMesh(dir.path("folder.msh"));
+    ADD_FAILURE() << "no exception";
+  } catch (const std::runtime_error& e) {
+    EXPECT_EQ(std::string(e.what()), dir.path("folder.msh") + ": is a folder, not a mesh file");
+  }
+}
+
+// Sets that copy sets doubled with each copy ("S1 = S0, S0", "S2 = S1, S1", …): 2^60 entries. Merged,
+// each holds its distinct numbers.
+TEST(MeshIo, AbaqusSetsCopyingSetsStayTheirDistinctNumbers) {
+  std::string deck = "*NODE\n1, 0, 0, 0\n2, 1, 0, 0\n3, 0, 1, 0\n4, 0, 0, 1\n*ELEMENT, TYPE=C3D4, ELSET=E0\n1, 1, 2, 3, 4\n"
+                     "*NSET, NSET=S0\n1, 2, 3, 4\n";
+  for (int k = 1; k <= 60; ++k) {
+    deck += "*NSET, NSET=S" + std::to_string(k) + "\nS" + std::to_string(k - 1) + ", S" + std::to_string(k - 1) + "\n";
+    deck += "*ELSET, ELSET=E" + std::to_string(k) + "\nE" + std::to_string(k - 1) + ", E" + std::to_string(k - 1) + "\n";
+  }
+  TempDir dir("breast_sim_mesh_io");
+  writeText(dir.path("copies.inp"), deck);
+  const TetMesh m = readTetMesh(dir.path("copies.inp"));
+  EXPECT_EQ(m.nodeSet("S60"), (std::vector<int>{0, 1, 2, 3}));
+  EXPECT_EQ(m.regionLabels(), std::vector<int>{0});  // E0 ends in 0: label 0
+}
+
+// VTK's own writers in every variant (test/data/vtk_variants, make_vtk_variants.py): legacy 4.2 and
+// 5.1, ASCII and binary; XML ascii, inline and appended, raw and base64, uncompressed, zlib, LZ4 and
+// LZMA, 32- and 64-bit headers. Each reads to the same mesh and fields.
+TEST(MeshIo, VtkFilesOfEveryWriterVariantReadTheSame) {
+  const std::string folder = std::string(BREAST_SIM_TEST_DATA_DIR) + "/vtk_variants";
+  int files = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(folder)) {
+    const std::string ext = entry.path().extension().string();
+    if (ext != ".vtk" && ext != ".vtu") continue;
+    SCOPED_TRACE(entry.path().filename().string());
+    ++files;
+    MeshFields fields;
+    const TetMesh m = readVtkUnstructured(entry.path().string(), 1.0, &fields);
+    EXPECT_EQ(m.nodes(), handWrittenNodes());
+    expectHandWrittenTets(m);
+    EXPECT_EQ(m.regionLabels(), (std::vector<int>{29, 29, 2}));
+    EXPECT_EQ(m.nodeSet("skin"), (std::vector<int>{1, 2, 3}));
+    std::map<std::string, Eigen::MatrixXd> point;
+    for (const MeshField& f : fields.point_data) point[f.name] = f.values;
+    ASSERT_EQ(point.size(), 5u);  // the string array is not a field
+    EXPECT_EQ(point["temperature"].col(0).transpose(), Eigen::RowVectorXd((Eigen::RowVectorXd(5) << 1, -2, 3, -4, 5).finished()));
+    EXPECT_EQ(point["displacement_mm"].row(3), Eigen::RowVector3d(3, -3, 1.5));
+    EXPECT_EQ(point["ids"](4, 0), 14.0);
+    EXPECT_EQ(point["flags"].col(0).transpose(), Eigen::RowVectorXd((Eigen::RowVectorXd(5) << 1, 0, 1, 1, 0).finished()));
+    EXPECT_EQ(point["big"](4, 0), 1099511627776.0);
+    ASSERT_EQ(fields.cell_data.size(), 1u);
+    EXPECT_EQ(fields.cell_data[0].name, "von_mises_pa");
+    // Cells 1…3 (the tetrahedra; cell 0 is the skipped triangle): (1, 10), (2, 20), (3, 30).
+    EXPECT_EQ(fields.cell_data[0].values.row(2), Eigen::RowVector2d(3, 30));
+  }
+  EXPECT_EQ(files, 11);
 }
 
 TEST(MeshIo, FormatIsChosenByCaseInsensitiveExtension) {

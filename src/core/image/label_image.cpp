@@ -281,47 +281,28 @@ std::string formatNumber(double v) {
 }
 
 std::string readFileBytes(const std::string& path) {
+  if (path.find('\0') != std::string::npos) fail(path, "the file name holds a NUL byte");
+  // A folder or a device opens like a file but has no size to read (a folder's "size" can be 2^63).
+  std::error_code ec;
+  const auto status = std::filesystem::status(path, ec);
+  if (!ec && std::filesystem::is_directory(status)) fail(path, "is a folder, not a file");
+  if (!ec && std::filesystem::exists(status) && !std::filesystem::is_regular_file(status)) {
+    fail(path, "is not a regular file (a device, a pipe or a socket)");
+  }
   std::ifstream in(path, std::ios::binary);
   if (!in) fail(path, std::string("cannot open for reading (") + std::strerror(errno) + ")");
   in.seekg(0, std::ios::end);
   const std::streamoff n = in.tellg();
-  if (n < 0) fail(path, "cannot determine the file size (is it a directory?)");
+  if (n < 0) fail(path, "cannot determine the file size");
   in.seekg(0, std::ios::beg);
   std::string bytes(static_cast<std::size_t>(n), '\0');
   if (n > 0 && !in.read(bytes.data(), n)) fail(path, "read error");
   return bytes;
 }
 
-std::string readFileMaybeGzipped(const std::string& path) {
-  errno = 0;
-  gzFile f = gzopen(path.c_str(), "rb");
-  if (f == nullptr) {
-    fail(path, std::string("cannot open for reading (") +
-                   (errno != 0 ? std::strerror(errno) : "out of memory") + ")");
-  }
-  gzbuffer(f, 1u << 17);
-  std::string bytes;
-  std::size_t used = 0;
-  for (;;) {
-    constexpr std::size_t kChunk = 1u << 22;
-    if (bytes.size() < used + kChunk) bytes.resize(used + kChunk);
-    const int got = gzread(f, bytes.data() + used, static_cast<unsigned>(kChunk));
-    if (got > 0) {
-      used += static_cast<std::size_t>(got);
-      continue;
-    }
-    if (got == 0) break;
-    int code = Z_OK;
-    const std::string msg = gzerror(f, &code);
-    // A gzip stream cut short ends with Z_BUF_ERROR; keep what was decoded so that the caller
-    // reports the expected and found byte counts.
-    if (code == Z_BUF_ERROR) break;
-    gzclose(f);
-    fail(path, "compressed data is corrupt (zlib: " + msg + ")");
-  }
-  gzclose(f);
-  bytes.resize(used);
-  return bytes;
+bool isGzip(const std::string& bytes) {
+  return bytes.size() >= 2 && static_cast<unsigned char>(bytes[0]) == 0x1f &&
+         static_cast<unsigned char>(bytes[1]) == 0x8b;
 }
 
 void writeFileBytes(const std::string& path, const std::string& bytes) {
@@ -333,6 +314,14 @@ void writeFileBytes(const std::string& path, const std::string& bytes) {
 }
 
 std::string siblingPath(const std::string& header_path, const std::string& name) {
+  // A name with a NUL byte would be cut there by the operating system and name another file (the
+  // header's own folder, for a name that starts with one).
+  const bool control = std::any_of(name.begin(), name.end(), [](char c) {
+    return static_cast<unsigned char>(c) < 32 && c != '\t';
+  });
+  if (name.empty() || control) {
+    fail(header_path, "the data file name " + quoted(name) + " is empty or holds control characters");
+  }
   const std::filesystem::path p(name);
   if (p.is_absolute()) return name;
   return (std::filesystem::path(header_path).parent_path() / p).string();
@@ -348,9 +337,10 @@ std::string inflateBytes(const char* data, std::size_t n, std::size_t max_bytes,
   z_stream zs{};
   // 15 + 32: accept a zlib or a gzip header (MetaImage writes zlib, NRRD gzip).
   if (inflateInit2(&zs, 15 + 32) != Z_OK) fail(path, "cannot initialise zlib");
-  // Deflate expands at most 1032:1, so this bounds the output without trusting a header's size
-  // and, for a well-formed file, allocates once.
-  std::string out(std::min(max_bytes, 1032 * n + 1024), '\0');
+  // The buffer grows with what the stream really produces (doubling), never to the size a header
+  // claims: a short stream that claims gigabytes costs what it decodes to (deflate expands at most
+  // 1032:1).
+  std::string out(std::min(max_bytes, std::max<std::size_t>(std::size_t{1} << 20, 4 * n)), '\0');
   std::size_t consumed = 0;
   std::size_t produced = 0;
   constexpr std::size_t kChunk = 1u << 30;  // zlib counts in 32-bit unsigned
@@ -527,6 +517,13 @@ void decodeLabels(const char* bytes, ScalarType type, bool big_endian, const Eig
 void decodeAsciiLabels(const char* begin, const char* end, const Eigen::Vector3i& size,
                        const std::string& path, std::vector<std::uint16_t>& labels) {
   const long n = static_cast<long>(size.x()) * size.y() * size.z();
+  // Each value takes a digit and a separator (the last none): checked before the labels are
+  // allocated, so a header cannot claim 2^31 values over a few bytes of text.
+  const std::size_t most = (static_cast<std::size_t>(end - begin) + 1) / 2;
+  if (static_cast<std::size_t>(n) > most) {
+    fail(path, "ASCII voxel data is truncated: expected " + std::to_string(n) + " values, but its " +
+                   std::to_string(end - begin) + " bytes hold at most " + std::to_string(most));
+  }
   labels.resize(static_cast<std::size_t>(n));
   const std::string text(begin, end);  // NUL-terminated for strtod
   const char* p = text.c_str();

@@ -190,8 +190,9 @@ LabelImage readMetaImage(const std::string& path) {
       fail(path, "header field 'ElementDataFile' is " + quoted(data_file) +
                      "; multiple data files (LIST or a %d pattern) are not supported");
     }
+    const std::string data_path = siblingPath(path, data_file);
     try {
-      detached = readFileBytes(siblingPath(path, data_file));
+      detached = readFileBytes(data_path);
     } catch (const std::runtime_error& e) {
       fail(path, std::string("data file: ") + e.what());
     }

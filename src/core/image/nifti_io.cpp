@@ -118,7 +118,12 @@ class HeaderWriter {
 }  // namespace
 
 LabelImage readNifti(const std::string& path) {
-  const std::string file = readFileMaybeGzipped(path);
+  const std::string stored = readFileBytes(path);
+  // A .nii.gz is inflated in two steps: the header first, then exactly the bytes that header
+  // describes. A stream that holds more is refused, so a small file cannot decompress into
+  // whatever it likes (a decompression bomb).
+  const bool gz = isGzip(stored);
+  std::string file = gz ? inflateBytes(stored.data(), stored.size(), kHeaderSize, path) : stored;
   if (file.size() < kHeaderSize) {
     fail(path, "file has " + std::to_string(file.size()) +
                    " bytes (after decompression), fewer than a NIfTI-1 header's 348");
@@ -180,14 +185,18 @@ LabelImage readNifti(const std::string& path) {
                    " (" + scalarName(type) + ") has " + std::to_string(8 * scalarSize(type)) +
                    " bits");
   }
-  // A float from the file: infinity or 1e30 must not reach the size_t conversion below (UB).
+  // A float from the file: infinity or 1e30 must not reach the size_t conversion below (UB). A
+  // compressed file decompresses to at most 1032 bytes per byte (deflate's limit).
   const double vox_offset = h.f32(kVoxOffset);
+  const double most_bytes =
+      gz ? 1032.0 * static_cast<double>(stored.size()) : static_cast<double>(file.size());
   if (!std::isfinite(vox_offset) || vox_offset < static_cast<double>(kHeaderSize) ||
-      vox_offset > static_cast<double>(file.size()) || vox_offset != std::floor(vox_offset)) {
+      vox_offset > most_bytes || vox_offset != std::floor(vox_offset)) {
     fail(path, "vox_offset is " + formatNumber(vox_offset) +
                    "; expected an integer from 348 to the file size (" +
-                   std::to_string(file.size()) + " bytes" +
-                   (endsWith(path, ".gz") ? " after decompression" : "") + ")");
+                   (gz ? "at most " + formatNumber(most_bytes) + " bytes after decompression"
+                       : std::to_string(file.size()) + " bytes") +
+                   ")");
   }
   double slope = h.f32(kSclSlope);
   double inter = h.f32(kSclInter);
@@ -285,12 +294,22 @@ LabelImage readNifti(const std::string& path) {
   // ---- voxel data ----
   const std::size_t offset = static_cast<std::size_t>(vox_offset);
   const std::size_t expected = static_cast<std::size_t>(num_voxels) * scalarSize(type);
+  const std::string values = std::to_string(image.size.x()) + "×" + std::to_string(image.size.y()) +
+                             "×" + std::to_string(image.size.z()) + " " + scalarName(type) + " values";
+  if (gz) {
+    const std::size_t needed = offset + expected;
+    file = inflateBytes(stored.data(), stored.size(), needed + 1, path);
+    if (file.size() > needed) {
+      fail(path, "the gzip stream decompresses to more than the " + std::to_string(needed) +
+                     " bytes its header describes (vox_offset " + std::to_string(offset) + " + " +
+                     values + "); refused without inflating the rest (a decompression bomb?)");
+    }
+  }
   const std::size_t available = file.size() > offset ? file.size() - offset : 0;
   if (available < expected) {
-    fail(path, "voxel data is truncated: expected " + std::to_string(expected) + " bytes (" +
-                   std::to_string(image.size.x()) + "×" + std::to_string(image.size.y()) + "×" +
-                   std::to_string(image.size.z()) + " " + scalarName(type) + " values from byte " +
-                   std::to_string(offset) + "), found " + std::to_string(available));
+    fail(path, "voxel data is truncated: expected " + std::to_string(expected) + " bytes (" + values +
+                   " from byte " + std::to_string(offset) + (gz ? " after decompression" : "") +
+                   "), found " + std::to_string(available));
   }
   decodeLabels(file.data() + offset, type, big_endian, image.size, path, image.labels, slope,
                inter);

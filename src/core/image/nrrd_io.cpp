@@ -321,8 +321,9 @@ LabelImage readNrrd(const std::string& path) {
       fail(path, "header field 'data file' is " + quoted(*df) +
                      "; multiple data files (LIST or a %d pattern) are not supported");
     }
+    const std::string data_path = siblingPath(path, *df);
     try {
-      detached = readFileBytes(siblingPath(path, *df));
+      detached = readFileBytes(data_path);
     } catch (const std::runtime_error& e) {
       fail(path, std::string("data file: ") + e.what());
     }

@@ -65,9 +65,32 @@ bool integerSuffix(const std::string& name, int& value) {
   return true;
 }
 
+/// Most numbers all node and element sets of a file may hold together (duplicates merged): 2^27,
+/// 2 GiB of set entries. Each set alone holds at most as many distinct numbers as the file has lines
+/// (a node or an element needs a line of its own), so this bounds only files with very many sets.
+constexpr std::size_t kMaxSetNumbers = std::size_t{1} << 27;
+
+/// The numbers of one set as the file lists them. Duplicates are merged whenever the list has
+/// doubled since the last merge, so a set that copies sets ("A = A, A" again and again) grows to
+/// its distinct numbers, not exponentially.
+template <typename Entry>
+struct SetList {
+  std::vector<Entry> items;
+  std::size_t merged_size = 0;
+};
+
+long long entryNumber(long long v) { return v; }
+
+std::size_t lineCount(const std::string& data) {
+  const auto breaks = static_cast<std::size_t>(std::count(data.begin(), data.end(), '\n'));
+  return breaks + (!data.empty() && data.back() != '\n' ? 1 : 0);
+}
+long long entryNumber(const std::pair<long long, std::size_t>& v) { return v.first; }
+
 class InpReader {
  public:
-  InpReader(const std::string& path, double unit) : f_(path), unit_(unit) {}
+  InpReader(const std::string& path, double unit)
+      : f_(path), unit_(unit), lines_(lineCount(f_.data())) {}
 
   TetMesh read() {
     while (!f_.atEnd()) {
@@ -98,6 +121,7 @@ class InpReader {
       mode_ = Mode::kNode;
       const std::string* nset = param("NSET");
       current_nset_ = nset && !nset->empty() ? &nsets_[*nset] : nullptr;
+      if (current_nset_) current_nset_name_ = *nset;
     } else if (kw.name == "ELEMENT") {
       const std::string* type = param("TYPE");
       if (!type || type->empty()) f_.failAtLine(pos, "*ELEMENT without TYPE=");
@@ -111,17 +135,20 @@ class InpReader {
       const bool labelled = elset && !elset->empty();
       current_set_ = labelled ? setId(*elset) : -1;
       current_elset_ = labelled ? &elset_members_[*elset] : nullptr;
+      if (current_elset_) current_elset_name_ = *elset;
     } else if (kw.name == "NSET") {
       const std::string* name = param("NSET");
       if (!name || name->empty()) f_.failAtLine(pos, "*NSET without NSET=");
       mode_ = Mode::kNset;
       current_nset_ = &nsets_[*name];
+      current_nset_name_ = *name;
     } else if (kw.name == "ELSET") {
       const std::string* name = param("ELSET");
       if (!name || name->empty()) f_.failAtLine(pos, "*ELSET without ELSET=");
       mode_ = Mode::kElset;
       elset_assignments_.push_back({setId(*name), {}});
       current_elset_ = &elset_members_[*name];
+      current_elset_name_ = *name;
     } else if (kw.name == "INCLUDE") {
       f_.failAtLine(pos, "*INCLUDE is not supported; merge the included file into this one");
     } else {
@@ -190,7 +217,7 @@ class InpReader {
     const int index = static_cast<int>(xyz_.size() / 3);
     if (!node_index_.insert(number, index)) f_.failAtLine(pos, "node " + std::to_string(number) + " is defined twice");
     for (double v : x) xyz_.push_back(v * unit_);
-    if (current_nset_) current_nset_->push_back({number, pos});
+    if (current_nset_) addToSet(*current_nset_, std::pair<long long, std::size_t>{number, pos}, "node", current_nset_name_, pos);
   }
 
   void elementLine(std::string_view line, std::size_t pos) {
@@ -207,7 +234,7 @@ class InpReader {
     element_nodes_.insert(element_nodes_.end(), pending_.begin() + 1, pending_.end());
     element_pos_.push_back(pending_pos_);
     element_sets_.push_back(current_set_);
-    if (current_elset_) current_elset_->push_back(pending_[0]);
+    if (current_elset_) addToSet(*current_elset_, pending_[0], "element", current_elset_name_, pending_pos_);
     pending_.clear();
   }
 
@@ -217,51 +244,103 @@ class InpReader {
                                     std::to_string(pending_.empty() ? 0 : pending_.size() - 1));
   }
 
+  /// Merges the duplicates of a set whose list has doubled since the last merge; then checks the
+  /// limits (a set's distinct numbers against the file's lines, all sets against kMaxSetNumbers).
+  template <typename Entry>
+  void grew(SetList<Entry>& set, const char* kind, const std::string& name, std::size_t pos, bool force = false) {
+    if (!force && set.items.size() <= 2 * set.merged_size + 1024) return;
+    const std::size_t before = set.items.size();
+    std::sort(set.items.begin(), set.items.end());  // by number, then by line: the first line is kept
+    set.items.erase(std::unique(set.items.begin(), set.items.end(),
+                                [](const Entry& a, const Entry& b) { return entryNumber(a) == entryNumber(b); }),
+                    set.items.end());
+    set.merged_size = set.items.size();
+    set_numbers_ -= before - set.items.size();
+    if (set.items.size() > lines_) {
+      f_.failAtLine(pos, std::string(kind) + " set '" + name + "' holds " + std::to_string(set.items.size()) +
+                             " distinct numbers, more " + kind + "s than the file's " + std::to_string(lines_) +
+                             " lines can define");
+    }
+  }
+
+  template <typename Entry>
+  void addToSet(SetList<Entry>& set, const Entry& entry, const char* kind, const std::string& name, std::size_t pos) {
+    set.items.push_back(entry);
+    ++set_numbers_;
+    grew(set, kind, name, pos);
+    checkSetTotal(pos);
+  }
+
+  void checkSetTotal(std::size_t pos) const {
+    if (set_numbers_ > kMaxSetNumbers) {
+      f_.failAtLine(pos, "the node and element sets hold more than " + std::to_string(kMaxSetNumbers) +
+                             " numbers together (duplicates merged); split the file's sets");
+    }
+  }
+
   void setLine(std::string_view line, std::size_t pos) {
     mesh_io_detail::splitTokens(line, true, tokens_);
-    std::vector<long long> numbers;
+    const bool nset = mode_ == Mode::kNset;
+    const char* kind = nset ? "node" : "element";
+    const std::string& name = nset ? current_nset_name_ : current_elset_name_;
+    SetList<long long>* elset_assignment = nset ? nullptr : &elset_assignments_.back().second;
+    const auto add = [&](long long v) {
+      if (nset) {
+        addToSet(*current_nset_, std::pair<long long, std::size_t>{v, pos}, kind, name, pos);
+      } else {
+        addToSet(*current_elset_, v, kind, name, pos);
+        addToSet(*elset_assignment, v, kind, name, pos);
+      }
+    };
     if (generate_) {
       if (tokens_.size() < 2 || tokens_.size() > 3) f_.failAtLine(pos, "expected 'first, last[, increment]' after GENERATE");
       const long long first = integer(tokens_[0], pos, "the first number");
       const long long last = integer(tokens_[1], pos, "the last number");
       const long long step = tokens_.size() == 3 ? integer(tokens_[2], pos, "the increment") : 1;
-      if (step <= 0 || last < first || (last - first) / step > 100000000) {
-        f_.failAtLine(pos, "bad GENERATE range " + std::to_string(first) + ", " + std::to_string(last) + ", " +
-                               std::to_string(step));
+      const std::string range = std::to_string(first) + ", " + std::to_string(last) + ", " + std::to_string(step);
+      if (step <= 0 || last < first) {
+        f_.failAtLine(pos, "bad GENERATE range " + range + ": expected first <= last and an increment >= 1");
       }
-      for (long long v = first; v <= last; v += step) numbers.push_back(v);
-    } else {
-      for (std::string_view t : tokens_) {
-        if (t.empty()) continue;
-        long long v = 0;
-        if (mesh_io_detail::parseInteger(t, v)) {
-          numbers.push_back(v);
-          continue;
-        }
-        // The name of an earlier set of the same kind.
-        const std::string name(t);
-        if (mode_ == Mode::kNset) {
-          auto it = nsets_.find(name);
-          if (it == nsets_.end() || &it->second == current_nset_) {
-            f_.failAtLine(pos, "expected a node number or the name of an earlier node set, got '" + name + "'");
-          }
-          const auto copy = it->second;
-          current_nset_->insert(current_nset_->end(), copy.begin(), copy.end());
-        } else {
-          auto it = elset_members_.find(name);
-          if (it == elset_members_.end() || &it->second == current_elset_) {
-            f_.failAtLine(pos, "expected an element number or the name of an earlier element set, got '" + name + "'");
-          }
-          numbers.insert(numbers.end(), it->second.begin(), it->second.end());
-        }
+      // How many numbers, in unsigned arithmetic: last − first can exceed a long long, and the count
+      // 2^64 (first = −2^63, last = 2^63 − 1) an unsigned one.
+      const unsigned long long span = static_cast<unsigned long long>(last) - static_cast<unsigned long long>(first);
+      const unsigned long long steps = span / static_cast<unsigned long long>(step);
+      if (steps >= lines_) {
+        f_.failAtLine(pos, "GENERATE range " + range + " names " + (steps == ~0ULL ? std::string("2^64") : std::to_string(steps + 1)) +
+                               " " + kind + "s, more than the file's " + std::to_string(lines_) + " lines can define");
       }
+      const unsigned long long count = steps + 1;
+      for (unsigned long long k = 0; k < count; ++k) {
+        add(static_cast<long long>(static_cast<unsigned long long>(first) + k * static_cast<unsigned long long>(step)));
+      }
+      return;
     }
-    if (mode_ == Mode::kNset) {
-      for (long long v : numbers) current_nset_->push_back({v, pos});
-    } else {
-      auto& members = elset_assignments_.back().second;
-      members.insert(members.end(), numbers.begin(), numbers.end());
-      current_elset_->insert(current_elset_->end(), numbers.begin(), numbers.end());
+    for (std::string_view t : tokens_) {
+      if (t.empty()) continue;
+      long long v = 0;
+      if (mesh_io_detail::parseInteger(t, v)) {
+        add(v);
+        continue;
+      }
+      // The name of an earlier set of the same kind: its distinct numbers are copied.
+      const std::string other(t);
+      if (nset) {
+        auto it = nsets_.find(other);
+        if (it == nsets_.end() || &it->second == current_nset_) {
+          f_.failAtLine(pos, "expected a node number or the name of an earlier node set, got '" + other + "'");
+        }
+        grew(it->second, kind, other, pos, true);
+        const auto copy = it->second.items;
+        for (const auto& entry : copy) add(entry.first);
+      } else {
+        auto it = elset_members_.find(other);
+        if (it == elset_members_.end() || &it->second == current_elset_) {
+          f_.failAtLine(pos, "expected an element number or the name of an earlier element set, got '" + other + "'");
+        }
+        grew(it->second, kind, other, pos, true);
+        const auto copy = it->second.items;
+        for (long long v2 : copy) add(v2);
+      }
     }
   }
 
@@ -296,7 +375,7 @@ class InpReader {
         }
       }
       for (const auto& [set, members] : elset_assignments_) {
-        for (long long number : members) {
+        for (long long number : members.items) {
           const int e = element_index.find(number);
           if (e >= 0 && element_sets_[e] < 0) {  // other numbers belong to skipped element types
             element_sets_[e] = set;
@@ -313,8 +392,8 @@ class InpReader {
     TetMesh mesh = mesh_io_detail::makeMesh(f_.path(), std::move(nodes), std::move(tets), std::move(labels));
     for (const auto& [name, entries] : nsets_) {
       std::vector<int> set;
-      set.reserve(entries.size());
-      for (const auto& [number, pos] : entries) {
+      set.reserve(entries.items.size());
+      for (const auto& [number, pos] : entries.items) {
         const int index = node_index_.find(number);
         if (index < 0) {
           f_.failAtLine(pos, "node set '" + name + "' refers to node " + std::to_string(number) +
@@ -347,13 +426,18 @@ class InpReader {
 
   std::vector<std::string> set_names_;  // names that can label elements, in order of appearance
   std::map<std::string, int> set_id_;   // name → index into set_names_
-  std::map<std::string, std::vector<long long>> elset_members_;
-  std::vector<long long>* current_elset_ = nullptr;
-  std::vector<std::pair<int, std::vector<long long>>> elset_assignments_;  // (set index, members)
+  std::map<std::string, SetList<long long>> elset_members_;
+  SetList<long long>* current_elset_ = nullptr;
+  std::string current_elset_name_;
+  std::vector<std::pair<int, SetList<long long>>> elset_assignments_;  // (set index, members)
 
   // name → (node number, position of the line that named it)
-  std::map<std::string, std::vector<std::pair<long long, std::size_t>>> nsets_;
-  std::vector<std::pair<long long, std::size_t>>* current_nset_ = nullptr;
+  std::map<std::string, SetList<std::pair<long long, std::size_t>>> nsets_;
+  SetList<std::pair<long long, std::size_t>>* current_nset_ = nullptr;
+  std::string current_nset_name_;
+
+  std::size_t lines_;           // a set holds at most this many distinct numbers
+  std::size_t set_numbers_ = 0;  // held by all sets together
 };
 
 void checkSetName(const std::string& name) {

@@ -127,6 +127,15 @@ class GmshReader {
     return v;
   }
 
+  /// A tag or dimension stored in an int (region labels, physical and entity tags): a value the file
+  /// gives beyond an int is an error, not a silently different label.
+  int intValue(long long v, std::size_t pos, bool binary, const char* what) const {
+    if (v < std::numeric_limits<int>::min() || v > std::numeric_limits<int>::max()) {
+      failAt(pos, binary, std::string(what) + " is " + std::to_string(v) + ", which does not fit a 32-bit integer");
+    }
+    return static_cast<int>(v);
+  }
+
   long long countToken(const char* what) {
     const std::size_t pos = (f_.skipWhitespace(), f_.pos());
     const long long n = f_.integerToken(what);
@@ -189,8 +198,9 @@ class GmshReader {
       const std::string_view line = nextLine(pos, "$PhysicalNames");
       mesh_io_detail::splitTokens(line, false, tokens_);
       if (tokens_.size() < 3) f_.failAtLine(pos, "expected: dimension tag \"name\"");
-      const int dim = static_cast<int>(tokenInteger(tokens_[0], pos, "a physical group dimension"));
-      const int tag = static_cast<int>(tokenInteger(tokens_[1], pos, "a physical tag"));
+      const int dim = intValue(tokenInteger(tokens_[0], pos, "a physical group dimension"), pos, false,
+                               "physical group dimension");
+      const int tag = intValue(tokenInteger(tokens_[1], pos, "a physical tag"), pos, false, "physical tag");
       const std::size_t q0 = line.find('"');
       const std::size_t q1 = line.rfind('"');
       std::string name = (q0 != std::string_view::npos && q1 > q0) ? std::string(line.substr(q0 + 1, q1 - q0 - 1))
@@ -226,13 +236,14 @@ class GmshReader {
     for (auto& c : count) c = countToken("an entity count");
     for (int dim = 0; dim < 4; ++dim) {
       for (long long e = 0; e < count[dim]; ++e) {
-        const int tag = static_cast<int>(f_.integerToken("an entity tag"));
+        const std::size_t tag_pos = countPos();
+        const int tag = intValue(f_.integerToken("an entity tag"), tag_pos, false, "entity tag");
         for (int k = 0; k < (dim == 0 ? 3 : 6); ++k) f_.realToken("an entity coordinate");
         const std::size_t nphys_pos = countPos();
         const long long nphys = countToken("a physical tag count");
         checkCountFits(f_, nphys, nphys_pos, f_.pos(), 2, "physical tags", false);  // " 7"
         std::vector<int> phys(static_cast<std::size_t>(nphys));
-        for (auto& p : phys) p = static_cast<int>(f_.integerToken("a physical tag"));
+        for (auto& p : phys) p = intValue(f_.integerToken("a physical tag"), countPos(), false, "physical tag");
         entity_physicals_[{dim, tag}] = std::move(phys);
         if (dim > 0) {
           const long long nbound = countToken("a bounding entity count");
@@ -327,7 +338,8 @@ class GmshReader {
     xyz_.reserve(static_cast<std::size_t>(3 * total));
     std::vector<long long> tags;
     for (long long b = 0; b < blocks; ++b) {
-      const int dim = static_cast<int>(f_.integerToken("an entity dimension"));
+      const std::size_t block_header = countPos();
+      const int dim = intValue(f_.integerToken("an entity dimension"), block_header, false, "entity dimension");
       f_.integerToken("an entity tag");
       const long long parametric = f_.integerToken("the parametric flag");
       const std::size_t block_pos = (f_.skipWhitespace(), f_.pos());
@@ -433,7 +445,8 @@ class GmshReader {
       const long long number = tokenInteger(tokens_[0], pos, "an element number");
       const long long type = tokenInteger(tokens_[1], pos, "an element type");
       const long long ntags = tokenInteger(tokens_[2], pos, "a tag count");
-      if (ntags < 0 || 3 + ntags > static_cast<long long>(tokens_.size())) {
+      // Compared without adding to ntags, which the file may set to 2^63 − 1.
+      if (ntags < 0 || ntags > static_cast<long long>(tokens_.size()) - 3) {
         f_.failAtLine(pos, "element " + std::to_string(number) + " announces " + std::to_string(ntags) +
                                " tags but the line has " + std::to_string(tokens_.size() - 3) + " values after them");
       }
@@ -459,13 +472,14 @@ class GmshReader {
     const long long* nodes = values + 1 + ntags;
     if (type == kTet4) {
       // Physical tag; files saved without physical groups carry 0 there, then the elementary tag.
-      const int label = ntags == 0 ? 0 : (tags[0] != 0 || ntags == 1) ? static_cast<int>(tags[0]) : static_cast<int>(tags[1]);
+      const long long tag = ntags == 0 ? 0 : (tags[0] != 0 || ntags == 1) ? tags[0] : tags[1];
+      const int label = intValue(tag, pos, binary, ("region tag of element " + std::to_string(number)).c_str());
       addTet(number, nodes, label, pos, binary);
       return;
     }
     ++skipped_;
     if (ntags >= 1) {
-      const int phys = static_cast<int>(tags[0]);
+      const int phys = intValue(tags[0], pos, binary, ("physical tag of element " + std::to_string(number)).c_str());
       namedGroups(gmshElementDimension(type), &phys, 1, groups);
       addToGroups(groups, number, nodes, nn, pos, binary);
     }
@@ -540,8 +554,8 @@ class GmshReader {
     long long done = 0;
     for (long long b = 0; b < blocks; ++b) {
       const std::size_t header_pos = (f_.skipWhitespace(), f_.pos());
-      const int dim = static_cast<int>(f_.integerToken("an entity dimension"));
-      const int entity = static_cast<int>(f_.integerToken("an entity tag"));
+      const int dim = intValue(f_.integerToken("an entity dimension"), header_pos, false, "entity dimension");
+      const int entity = intValue(f_.integerToken("an entity tag"), header_pos, false, "entity tag");
       const long long type = f_.integerToken("an element type");
       const long long n = countToken("the number of elements in a block");
       if (done + n > total) {

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <filesystem>
 #include <numeric>
 #include <stdexcept>
 
@@ -27,6 +28,13 @@ std::string_view trimView(std::string_view s) {
 // ---- FileCursor ----------------------------------------------------------------------------------
 
 FileCursor::FileCursor(std::string path) : path_(std::move(path)) {
+  // A folder opens like a file on Linux, and its "size" can be 2^63: name it instead.
+  std::error_code ec;
+  const auto status = std::filesystem::status(path_, ec);
+  if (!ec && std::filesystem::is_directory(status)) throw std::runtime_error(path_ + ": is a folder, not a mesh file");
+  if (!ec && std::filesystem::exists(status) && !std::filesystem::is_regular_file(status)) {
+    throw std::runtime_error(path_ + ": is not a regular file (a device, a pipe or a socket)");
+  }
   std::FILE* file = std::fopen(path_.c_str(), "rb");
   if (!file) throw std::runtime_error(path_ + ": cannot open for reading (" + std::strerror(errno) + ")");
   // Reading the whole file at once keeps parsing a single pass over memory; a 300k-tet mesh is tens of MB.

@@ -1,8 +1,9 @@
-// VTK unstructured-grid reader and writers (.vtu XML, .vtk legacy) through the VTK library.
+// VTK unstructured grids: the writers (.vtu XML, .vtk legacy) through the VTK library, and the mesh
+// made from what the readers (vtu_read.cpp, vtk_legacy_read.cpp) parse.
 
-#include <cerrno>
+#include <algorithm>
 #include <cmath>
-#include <cstdio>
+#include <cstdint>
 #include <cstring>
 #include <limits>
 #include <set>
@@ -23,12 +24,11 @@
 #include <vtkPoints.h>
 #include <vtkSmartPointer.h>
 #include <vtkUnstructuredGrid.h>
-#include <vtkUnstructuredGridReader.h>
 #include <vtkUnstructuredGridWriter.h>
-#include <vtkXMLUnstructuredGridReader.h>
 #include <vtkXMLUnstructuredGridWriter.h>
 
 #include "breast_sim/core/mesh/mesh_io_detail.h"
+#include "vtk_read_detail.h"
 
 namespace breast_sim::core {
 namespace {
@@ -60,63 +60,67 @@ class ErrorCollector : public vtkCommand {
 
 bool startsWith(const std::string& s, const char* prefix) { return s.rfind(prefix, 0) == 0; }
 
-void checkFileReadable(const std::string& path) {
-  std::FILE* file = std::fopen(path.c_str(), "rb");
-  if (!file) throw std::runtime_error(path + ": cannot open for reading (" + std::strerror(errno) + ")");
-  std::fclose(file);
-}
-
-Eigen::MatrixXd arrayValues(vtkDataArray* array, const std::vector<vtkIdType>* rows) {
-  const int c = array->GetNumberOfComponents();
-  const vtkIdType n = rows ? static_cast<vtkIdType>(rows->size()) : array->GetNumberOfTuples();
-  Eigen::MatrixXd values(n, c);
-  for (vtkIdType i = 0; i < n; ++i) {
-    const vtkIdType row = rows ? (*rows)[i] : i;
-    for (int k = 0; k < c; ++k) values(i, k) = array->GetComponent(row, k);
+Eigen::MatrixXd arrayValues(const vtk_read::Array& array, const std::vector<std::size_t>* rows) {
+  const std::size_t c = static_cast<std::size_t>(array.components);
+  const std::size_t n = rows ? rows->size() : array.values.size() / c;
+  Eigen::MatrixXd values(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(c));
+  for (std::size_t i = 0; i < n; ++i) {
+    const std::size_t row = rows ? (*rows)[i] : i;
+    for (std::size_t k = 0; k < c; ++k) values(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(k)) = array.values[row * c + k];
   }
   return values;
 }
 
-TetMesh gridToMesh(const std::string& path, vtkUnstructuredGrid* grid, double unit, MeshFields* fields) {
-  const vtkIdType n = grid->GetNumberOfPoints();
-  if (n > std::numeric_limits<int>::max()) throw std::runtime_error(path + ": too many points");
+/// The tetrahedral mesh of a parsed grid: VTK_TETRA cells (others skipped, their ids still
+/// checked), region labels, node sets, other arrays as fields.
+TetMesh gridToMesh(const std::string& path, const vtk_read::Grid& grid, double unit, MeshFields* fields) {
+  const long long n = grid.numPoints();
   Points nodes(n, 3);
-  for (vtkIdType i = 0; i < n; ++i) {
-    double p[3];
-    grid->GetPoint(i, p);
-    for (int k = 0; k < 3; ++k) nodes(i, k) = p[k] * unit;
+  for (long long i = 0; i < n; ++i) {
+    for (int k = 0; k < 3; ++k) nodes(i, k) = grid.points[3 * static_cast<std::size_t>(i) + k] * unit;
   }
-  std::vector<vtkIdType> tet_cells;
-  const vtkIdType cells = grid->GetNumberOfCells();
-  for (vtkIdType c = 0; c < cells; ++c) {
-    if (grid->GetCellType(c) == VTK_TETRA) tet_cells.push_back(c);
+  std::vector<std::size_t> tet_cells;
+  const long long cells = grid.numCells();
+  for (long long c = 0; c < cells; ++c) {
+    const std::int64_t begin = grid.offsets[c], end = grid.offsets[c + 1];
+    for (std::int64_t k = begin; k < end; ++k) {
+      // Compared as 64-bit ids: an id beyond int must not wrap onto a valid point.
+      const std::int64_t id = grid.connectivity[static_cast<std::size_t>(k)];
+      if (id < 0 || id >= n) {
+        throw std::runtime_error(path + ": cell " + std::to_string(c) + " refers to point " + std::to_string(id) +
+                                 ", but the file has " + std::to_string(n) + " points (ids are 0-based)");
+      }
+    }
+    if (grid.types[c] == VTK_TETRA) {
+      if (end - begin != 4) {
+        throw std::runtime_error(path + ": tetra cell " + std::to_string(c) + " has " + std::to_string(end - begin) +
+                                 " points");
+      }
+      tet_cells.push_back(static_cast<std::size_t>(c));
+    }
   }
   if (tet_cells.empty()) {
     throw std::runtime_error(path + ": no VTK_TETRA cells among its " + std::to_string(cells) + " cells");
   }
   Tets tets(static_cast<Eigen::Index>(tet_cells.size()), 4);
   for (std::size_t t = 0; t < tet_cells.size(); ++t) {
-    vtkIdType npts = 0;
-    const vtkIdType* pts = nullptr;
-    grid->GetCellPoints(tet_cells[t], npts, pts);
-    if (npts != 4) throw std::runtime_error(path + ": tetra cell " + std::to_string(tet_cells[t]) + " has " +
-                                            std::to_string(npts) + " points");
-    for (int k = 0; k < 4; ++k) tets(static_cast<Eigen::Index>(t), k) = static_cast<int>(pts[k]);
+    const std::int64_t begin = grid.offsets[tet_cells[t]];
+    for (int k = 0; k < 4; ++k) tets(static_cast<Eigen::Index>(t), k) = static_cast<int>(grid.connectivity[begin + k]);
   }
 
   // Region labels: the first integer-valued cell array among the accepted names.
   std::vector<int> labels(tet_cells.size(), 0);
   std::string label_name;
-  vtkCellData* cd = grid->GetCellData();
   for (const char* name : {"region", "label", "gmsh:physical"}) {
-    vtkDataArray* array = cd->GetArray(name);
-    if (!array) continue;
-    if (array->GetNumberOfComponents() != 1) {
-      throw std::runtime_error(path + ": cell array '" + name + "' has " +
-                               std::to_string(array->GetNumberOfComponents()) + " components; region labels need 1");
+    const auto array = std::find_if(grid.cell_arrays.begin(), grid.cell_arrays.end(),
+                                    [&](const vtk_read::Array& a) { return a.name == name; });
+    if (array == grid.cell_arrays.end()) continue;
+    if (array->components != 1) {
+      throw std::runtime_error(path + ": cell array '" + name + "' has " + std::to_string(array->components) +
+                               " components; region labels need 1");
     }
     for (std::size_t t = 0; t < tet_cells.size(); ++t) {
-      const double v = array->GetComponent(tet_cells[t], 0);
+      const double v = array->values[tet_cells[t]];
       if (v != std::round(v) || std::abs(v) > std::numeric_limits<int>::max()) {
         throw std::runtime_error(path + ": cell array '" + name + "' holds " + std::to_string(v) + " at cell " +
                                  std::to_string(tet_cells[t]) + "; region labels must be integers");
@@ -128,27 +132,24 @@ TetMesh gridToMesh(const std::string& path, vtkUnstructuredGrid* grid, double un
   }
 
   // Node sets and other fields.
-  vtkPointData* pd = grid->GetPointData();
   std::vector<std::pair<std::string, std::vector<int>>> node_sets;
-  for (int a = 0; a < pd->GetNumberOfArrays(); ++a) {
-    vtkDataArray* array = pd->GetArray(a);  // null for string arrays
-    if (!array || !array->GetName()) continue;
-    const std::string name = array->GetName();
-    if (startsWith(name, kNodeSetPrefix) && name.size() > std::strlen(kNodeSetPrefix)) {
+  for (const vtk_read::Array& array : grid.point_arrays) {
+    if (array.name.empty()) continue;
+    if (startsWith(array.name, kNodeSetPrefix) && array.name.size() > std::strlen(kNodeSetPrefix)) {
       std::vector<int> set;
-      for (vtkIdType i = 0; i < n; ++i) {
-        if (array->GetComponent(i, 0) != 0.0) set.push_back(static_cast<int>(i));
+      const std::size_t c = static_cast<std::size_t>(array.components);
+      for (long long i = 0; i < n; ++i) {
+        if (array.values[static_cast<std::size_t>(i) * c] != 0.0) set.push_back(static_cast<int>(i));
       }
-      node_sets.emplace_back(name.substr(std::strlen(kNodeSetPrefix)), std::move(set));
+      node_sets.emplace_back(array.name.substr(std::strlen(kNodeSetPrefix)), std::move(set));
     } else if (fields) {
-      fields->point_data.push_back({name, arrayValues(array, nullptr)});
+      fields->point_data.push_back({array.name, arrayValues(array, nullptr)});
     }
   }
   if (fields) {
-    for (int a = 0; a < cd->GetNumberOfArrays(); ++a) {
-      vtkDataArray* array = cd->GetArray(a);
-      if (!array || !array->GetName() || array->GetName() == label_name) continue;
-      fields->cell_data.push_back({array->GetName(), arrayValues(array, &tet_cells)});
+    for (const vtk_read::Array& array : grid.cell_arrays) {
+      if (array.name.empty() || array.name == label_name) continue;
+      fields->cell_data.push_back({array.name, arrayValues(array, &tet_cells)});
     }
   }
 
@@ -156,6 +157,69 @@ TetMesh gridToMesh(const std::string& path, vtkUnstructuredGrid* grid, double un
   for (auto& [name, set] : node_sets) mesh_io_detail::addNodeSet(path, mesh, name, std::move(set));
   return mesh;
 }
+
+}  // namespace
+
+namespace vtk_read {
+
+void addArray(std::vector<Array>& arrays, Array array) {
+  for (Array& a : arrays) {
+    if (a.name == array.name) {
+      a = std::move(array);
+      return;
+    }
+  }
+  arrays.push_back(std::move(array));
+}
+
+namespace {
+template <typename T>
+T load(const char* p, bool big_endian) {
+  unsigned char b[sizeof(T)];
+  std::memcpy(b, p, sizeof(T));
+  const std::uint16_t one = 1;
+  const bool host_big = *reinterpret_cast<const unsigned char*>(&one) == 0;
+  if (big_endian != host_big) std::reverse(b, b + sizeof(T));
+  T v;
+  std::memcpy(&v, b, sizeof(T));
+  return v;
+}
+}  // namespace
+
+double scalarValue(const char* p, Scalar s, bool big_endian) {
+  switch (s) {
+    case Scalar::kInt8: return load<std::int8_t>(p, big_endian);
+    case Scalar::kUInt8: return load<std::uint8_t>(p, big_endian);
+    case Scalar::kInt16: return load<std::int16_t>(p, big_endian);
+    case Scalar::kUInt16: return load<std::uint16_t>(p, big_endian);
+    case Scalar::kInt32: return load<std::int32_t>(p, big_endian);
+    case Scalar::kUInt32: return load<std::uint32_t>(p, big_endian);
+    case Scalar::kInt64: return static_cast<double>(load<std::int64_t>(p, big_endian));
+    case Scalar::kUInt64: return static_cast<double>(load<std::uint64_t>(p, big_endian));
+    case Scalar::kFloat32: return load<float>(p, big_endian);
+    case Scalar::kFloat64: return load<double>(p, big_endian);
+  }
+  return 0.0;
+}
+
+bool scalarInteger(const char* p, Scalar s, bool big_endian, std::int64_t& value) {
+  switch (s) {
+    case Scalar::kFloat32:
+    case Scalar::kFloat64: return false;
+    case Scalar::kUInt64: {
+      const std::uint64_t v = load<std::uint64_t>(p, big_endian);
+      if (v > static_cast<std::uint64_t>(std::numeric_limits<std::int64_t>::max())) return false;
+      value = static_cast<std::int64_t>(v);
+      return true;
+    }
+    case Scalar::kInt64: value = load<std::int64_t>(p, big_endian); return true;
+    default: value = static_cast<std::int64_t>(scalarValue(p, s, big_endian)); return true;
+  }
+}
+
+}  // namespace vtk_read
+
+namespace {
 
 void checkFields(const char* function, const TetMesh& mesh, const MeshFields& fields) {
   auto check = [&](const std::vector<MeshField>& list, const char* kind, Eigen::Index rows, const char* count) {
@@ -250,44 +314,13 @@ TetMesh readVtkUnstructured(const std::string& path, double length_unit_m, MeshF
   if (format != MeshFileFormat::kVtu && format != MeshFileFormat::kVtkLegacy) {
     throw std::runtime_error(path + ": readVtkUnstructured reads .vtu and .vtk files only");
   }
-  checkFileReadable(path);
-  vtkNew<ErrorCollector> errors;
-  vtkUnstructuredGrid* grid = nullptr;
-  vtkSmartPointer<vtkAlgorithm> keep;
-  if (format == MeshFileFormat::kVtu) {
-    auto reader = vtkSmartPointer<vtkXMLUnstructuredGridReader>::New();
-    if (!reader->CanReadFile(path.c_str())) {
-      throw std::runtime_error(path + ": not a VTK XML unstructured grid (expected <VTKFile type=\"UnstructuredGrid\">)");
-    }
-    reader->AddObserver(vtkCommand::ErrorEvent, errors);
-    reader->SetFileName(path.c_str());
-    reader->Update();
-    if (reader->GetErrorCode() != 0 && errors->errors.empty()) errors->errors = "VTK error code " + std::to_string(reader->GetErrorCode());
-    grid = reader->GetOutput();
-    keep = reader;
-  } else {
-    auto reader = vtkSmartPointer<vtkUnstructuredGridReader>::New();
-    reader->AddObserver(vtkCommand::ErrorEvent, errors);
-    reader->SetFileName(path.c_str());
-    if (!reader->IsFileUnstructuredGrid()) {
-      throw std::runtime_error(path + ": not a legacy VTK unstructured grid (expected 'DATASET UNSTRUCTURED_GRID')" +
-                               (errors->errors.empty() ? std::string() : ": " + errors->errors));
-    }
-    // Legacy files may hold several SCALARS/VECTORS sections; by default VTK keeps only the first.
-    reader->ReadAllScalarsOn();
-    reader->ReadAllVectorsOn();
-    reader->ReadAllFieldsOn();
-    reader->ReadAllNormalsOn();
-    reader->ReadAllTensorsOn();
-    reader->ReadAllColorScalarsOn();
-    reader->ReadAllTCoordsOn();
-    reader->Update();
-    grid = reader->GetOutput();
-    keep = reader;
-  }
-  if (!errors->errors.empty()) throw std::runtime_error(path + ": VTK could not read the file: " + errors->errors);
-  if (!grid) throw std::runtime_error(path + ": VTK returned no unstructured grid");
-  return gridToMesh(path, grid, length_unit_m, fields);
+  mesh_io_detail::FileCursor f(path);
+  const vtk_read::Grid grid = format == MeshFileFormat::kVtu ? vtk_read::readXml(f) : vtk_read::readLegacy(f);
+  // Fields are filled only once the whole mesh is good.
+  MeshFields read_fields;
+  TetMesh mesh = gridToMesh(path, grid, length_unit_m, fields ? &read_fields : nullptr);
+  if (fields) *fields = std::move(read_fields);
+  return mesh;
 }
 
 void writeVtu(const std::string& path, const TetMesh& mesh, const MeshFields& fields, double length_unit_m,

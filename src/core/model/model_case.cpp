@@ -76,9 +76,12 @@ MeshingOptions parseMeshing(const YAML::Node& m, const std::string& file, double
 void readPlacement(const YAML::Node& m, const std::string& file, const std::string& section, ModelCase& c) {
   if (m["prone_gravity_direction"]) {
     const Eigen::Vector3d g = vec3(m["prone_gravity_direction"], file, section + ".prone_gravity_direction", "");
-    if (!(g.norm() > 0) || !std::isfinite(g.norm()))
-      fail(file, section + ".prone_gravity_direction", "must be a finite non-zero vector: give the chest wall → nipple direction");
-    c.prone_gravity_direction = g.normalized();
+    // Only the direction counts: scaled by its largest entry first, so that a long vector (1e200)
+    // does not overflow the norm and a tiny one does not underflow it.
+    const double largest = g.cwiseAbs().maxCoeff();
+    if (!(largest > 0))
+      fail(file, section + ".prone_gravity_direction", "must be a non-zero vector: give the chest wall → nipple direction");
+    c.prone_gravity_direction = (g / largest).normalized();
   }
   if (m["nipples_mm"]) {
     if (!m["nipples_mm"].IsSequence()) fail(file, section + ".nipples_mm", "expected a list of [x, y, z] in mm");

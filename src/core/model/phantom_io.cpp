@@ -5,7 +5,9 @@
 #include <algorithm>
 #include <cctype>
 #include <fstream>
+#include <cmath>
 #include <functional>
+#include <sstream>
 #include <stdexcept>
 #include <string>
 #include <utility>
@@ -67,7 +69,8 @@ Lesion readLesion(const YAML::Node& node, const std::string& key) {
   Lesion l;
   bool has_position = false;
   for (const auto& kv : node) {
-    const std::string k = kv.first.as<std::string>();
+    if (!kv.first.IsScalar()) badValue(key, node, "a map whose keys are name, position_mm, radius_mm");
+    const std::string k = kv.first.Scalar();
     const YAML::Node& v = kv.second;
     if (k == "name") {
       l.name = readWord(v, key + ".name", "a name (string)");
@@ -85,6 +88,47 @@ Lesion readLesion(const YAML::Node& node, const std::string& key) {
   }
   if (!has_position) badValue(key, node, "a position_mm: [x, y, z] entry");
   return l;
+}
+
+/// The sizes a case file may give, checked before PhantomParams::validate computes the image grid
+/// in voxels (as int): a length beyond 10 m or a voxel or triangle edge below 0.01 mm would overflow
+/// those counts long before the image-size check could refuse them.
+constexpr double kMaxLengthM = 10.0;
+constexpr double kMinStepM = 1e-5;
+
+void checkScale(const PhantomParams& p) {
+  const std::pair<const char*, double> lengths[] = {
+      {"breast_separation_mm", p.breast_separation_m},   {"chest_wall_radius_mm", p.chest_wall_radius_m},
+      {"chest_wall_thickness_mm", p.chest_wall_thickness_m}, {"lateral_semi_axis_mm", p.lateral_semi_axis_m},
+      {"si_semi_axis_mm", p.si_semi_axis_m},             {"depth_mm", p.depth_m},
+      {"skin_thickness_mm", p.skin_thickness_m},         {"supine_lateral_shift_mm", p.supine_lateral_shift_m},
+      {"voxel_size_mm", p.voxel_size_m},                 {"margin_mm", p.margin_m},
+      {"surface_edge_mm", p.surface_edge_m}};
+  const auto mm = [](double v_m) {
+    std::ostringstream s;
+    s << v_m / kMm;
+    return s.str();
+  };
+  for (const auto& [key, v] : lengths) {
+    if (!(std::abs(v) <= kMaxLengthM)) {
+      throw std::invalid_argument("key 'phantom." + std::string(key) + "' = " + mm(v) + " mm: expected a length of at most " +
+                                  mm(kMaxLengthM) + " mm");
+    }
+  }
+  for (const auto& [key, v] : {std::pair<const char*, double>{"voxel_size_mm", p.voxel_size_m},
+                               std::pair<const char*, double>{"surface_edge_mm", p.surface_edge_m}}) {
+    if (!(v >= kMinStepM)) {
+      throw std::invalid_argument("key 'phantom." + std::string(key) + "' = " + mm(v) + " mm: expected at least " +
+                                  mm(kMinStepM) + " mm");
+    }
+  }
+  for (std::size_t i = 0; i < p.lesions.size(); ++i) {
+    const Lesion& l = p.lesions[i];
+    if (!(l.position_m.cwiseAbs().maxCoeff() <= kMaxLengthM) || !(std::abs(l.radius_m) <= kMaxLengthM)) {
+      throw std::invalid_argument("key 'phantom.lesions[" + std::to_string(i) + "]': a position or radius beyond " +
+                                  mm(kMaxLengthM) + " mm");
+    }
+  }
 }
 
 }  // namespace
@@ -161,7 +205,10 @@ PhantomParams loadPhantomParams(const std::string& yaml_path) {
 
   try {
     for (const auto& kv : ph) {
-      const std::string key = kv.first.as<std::string>();
+      if (!kv.first.IsScalar()) {
+        throw std::invalid_argument("a key of 'phantom:' is " + describe(kv.first) + "; keys must be plain words");
+      }
+      const std::string key = kv.first.Scalar();
       const auto it = std::find_if(handlers.begin(), handlers.end(), [&](const auto& h) { return h.first == key; });
       if (it == handlers.end()) {
         std::string known;
@@ -171,6 +218,7 @@ PhantomParams loadPhantomParams(const std::string& yaml_path) {
       }
       it->second(kv.second, key);
     }
+    checkScale(p);
     p.validate();
   } catch (const std::invalid_argument& e) {
     throw std::runtime_error(where + e.what());

@@ -74,11 +74,20 @@ Eigen::Vector3d vec3(const YAML::Node& n, const std::string& file, const std::st
   return Eigen::Vector3d(number(n[0], file, key), number(n[1], file, key), number(n[2], file, key));
 }
 
+std::string key(const YAML::Node& k, const std::string& file, const std::string& section) {
+  if (!k.IsScalar()) {
+    YAML::Emitter e;
+    e << YAML::Flow << k;
+    fail(file, section, "a key is " + std::string(e.c_str()).substr(0, 60) + "; keys must be plain words");
+  }
+  return k.Scalar();
+}
+
 void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, const std::string& file,
                const std::string& section) {
   if (!map.IsMap()) fail(file, section, "expected a map of keys");
   for (const auto& kv : map) {
-    const std::string k = kv.first.as<std::string>();
+    const std::string k = key(kv.first, file, section);
     if (!allowed.count(k)) {
       std::string list;
       for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + a;
@@ -90,21 +99,27 @@ void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, cons
 namespace {
 
 /// `over`'s keys into a copy of `base`: maps merge key by key, anything else is replaced.
-YAML::Node merged(const YAML::Node& base, const YAML::Node& over) {
+YAML::Node merged(const YAML::Node& base, const YAML::Node& over, const std::string& file,
+                  const std::string& section) {
   if (!base.IsMap() || !over.IsMap()) return YAML::Clone(over);
   YAML::Node out = YAML::Clone(base);
   for (const auto& kv : over) {
-    const std::string key = kv.first.as<std::string>();
-    const YAML::Node b = out[key];
-    out[key] = b && b.IsMap() && kv.second.IsMap() ? merged(b, kv.second) : YAML::Clone(kv.second);
+    const std::string k = key(kv.first, file, section);
+    const YAML::Node b = out[k];
+    out[k] = b && b.IsMap() && kv.second.IsMap() ? merged(b, kv.second, file, section.empty() ? k : section + "." + k)
+                                                 : YAML::Clone(kv.second);
   }
   return out;
 }
 
 YAML::Node loadWithBase(const std::string& path, std::vector<std::string>& chain) {
-  if (!std::filesystem::exists(path))
-    throw std::runtime_error(path + ": no such file" +
-                             (chain.empty() ? std::string() : " (the base of " + chain.back() + ")"));
+  const std::string of = chain.empty() ? std::string() : " (the base of " + chain.back() + ")";
+  std::error_code ec;
+  const auto status = std::filesystem::status(path, ec);
+  if (ec || !std::filesystem::exists(status)) throw std::runtime_error(path + ": no such file" + of);
+  if (std::filesystem::is_directory(status)) throw std::runtime_error(path + ": is a folder, not a case file" + of);
+  if (!std::filesystem::is_regular_file(status))
+    throw std::runtime_error(path + ": is not a regular file (a device, a pipe or a socket)" + of);
   YAML::Node root;
   try {
     root = YAML::LoadFile(path);
@@ -115,9 +130,11 @@ YAML::Node loadWithBase(const std::string& path, std::vector<std::string>& chain
   const YAML::Node b = root["base"];
   if (!b.IsScalar() || b.as<std::string>().empty())
     fail(path, "base", "expected the file name of a case file to start from (relative to this file's folder)");
-  const std::filesystem::path base_path =
-      std::filesystem::weakly_canonical(std::filesystem::path(path).parent_path() / b.as<std::string>());
-  chain.push_back(std::filesystem::weakly_canonical(path).string());
+  std::filesystem::path base_path;
+  std::error_code canonical_error;
+  base_path = std::filesystem::weakly_canonical(std::filesystem::path(path).parent_path() / b.Scalar(), canonical_error);
+  if (canonical_error) fail(path, "base", "'" + b.Scalar() + "' cannot be resolved (" + canonical_error.message() + ")");
+  chain.push_back(std::filesystem::weakly_canonical(path, canonical_error).string());
   if (std::find(chain.begin(), chain.end(), base_path.string()) != chain.end())
     fail(path, "base", "'" + b.as<std::string>() + "' is this file or one of its own bases (a cycle)");
   if (chain.size() > 8) fail(path, "base", "more than 8 files deep; flatten the chain of bases");
@@ -126,7 +143,7 @@ YAML::Node loadWithBase(const std::string& path, std::vector<std::string>& chain
     fail(path, "base", "'" + b.as<std::string>() + "' is not a map of keys (empty, or a list); name a case file");
   chain.pop_back();
   root.remove("base");
-  return merged(base, root);
+  return merged(base, root, path, "");
 }
 
 }  // namespace

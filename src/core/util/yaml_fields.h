@@ -27,7 +27,10 @@ long integer(const YAML::Node& n, const std::string& file, const std::string& ke
 bool boolean(const YAML::Node& n, const std::string& file, const std::string& key);
 /// [x, y, z]; `unit` is named in the error.
 Eigen::Vector3d vec3(const YAML::Node& n, const std::string& file, const std::string& key, const std::string& unit = "mm");
-/// `map` is a map whose keys are all in `allowed`.
+/// A map key as text. @throws std::runtime_error naming the file and section when the key is not a
+/// plain scalar (a list or a map used as a key).
+std::string key(const YAML::Node& k, const std::string& file, const std::string& section);
+/// `map` is a map whose keys are all in `allowed` (plain scalars).
 void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, const std::string& file,
                const std::string& section);
 /// Which source of tissue a case file's root map names: "phantom", "image" or "mesh".

@@ -56,21 +56,23 @@ std::string quoted(const std::string& s);
 std::string formatNumber(double v);
 
 // ---- files ----------------------------------------------------------------------------------------
-/// Whole file as bytes. @throws via fail() when it cannot be opened or read.
+/// Whole file as bytes. @throws via fail() when it cannot be opened or read, is a folder or a
+/// device, or its name holds a NUL byte.
 std::string readFileBytes(const std::string& path);
-/// Whole file, gunzipped if it is gzip (zlib's transparent gzread). A truncated gzip stream
-/// returns the bytes decoded so far; corrupt data throws.
-std::string readFileMaybeGzipped(const std::string& path);
+/// Whether bytes start with the gzip magic 1f 8b.
+bool isGzip(const std::string& bytes);
 /// Writes bytes, replacing the file. @throws via fail().
 void writeFileBytes(const std::string& path, const std::string& bytes);
 /// `name` relative to the directory of `header_path`, unless `name` is absolute.
+/// @throws via fail() naming the header when `name` is empty or holds a control character.
 std::string siblingPath(const std::string& header_path, const std::string& name);
 /// File name without directory and without `ext` (which `path` is known to end with).
 std::string stemOf(const std::string& path, const std::string& ext);
 
 // ---- compression ----------------------------------------------------------------------------------
 /// Inflates a gzip or zlib stream (detected from its header; concatenated gzip members are
-/// followed). Stops after `max_bytes` output bytes. A stream that ends early returns what was
+/// followed). Stops after `max_bytes` output bytes; the buffer grows with the output, so memory
+/// follows what the stream decodes to, not `max_bytes`. A stream that ends early returns what was
 /// decoded (the caller reports the byte counts); corrupt data throws via fail() naming `path`.
 std::string inflateBytes(const char* data, std::size_t n, std::size_t max_bytes,
                          const std::string& path);

@@ -113,15 +113,23 @@ void writeGmsh(const std::string& path, const TetMesh& mesh, const GmshOptions& 
 
 // ---- VTK ------------------------------------------------------------------------------------------
 
-/// Reads a VTK unstructured grid with the VTK library: XML (.vtu) or legacy (.vtk) by extension.
-/// Only VTK_TETRA cells become elements; other cells are skipped (their points are kept).
-/// Region labels come from the first integer-valued cell array named "region", "label" or
-/// "gmsh:physical" (0 if none). Point arrays "nodeset_<name>" become node sets (nodes with a
-/// non-zero value).
+/// Reads a VTK unstructured grid: XML (.vtu) or legacy (.vtk) by extension. Both are parsed here,
+/// not by VTK 9.1's readers, which size arrays from a file's claimed counts and crash on malformed
+/// legacy files: every count is checked against the bytes that follow it before anything is
+/// allocated. Legacy: file versions 2.0–5.1, ASCII or BINARY, every attribute and FIELD array type
+/// (string arrays skipped). XML: ascii, inline base64 or appended (raw or base64) data, uncompressed
+/// or zlib / LZ4 / LZMA blocks (a block may expand at most 1032 times), UInt32 or UInt64 headers,
+/// either byte order, several pieces.
+/// Only VTK_TETRA cells become elements; other cells are skipped (their points are kept; their point
+/// ids must still be points of the file). Region labels come from the first cell array named
+/// "region", "label" or "gmsh:physical" (0 if none), which must hold integers. Point arrays
+/// "nodeset_<name>" become node sets (nodes with a non-zero value).
 /// @param fields  if not null, receives the other point arrays and the other cell arrays (restricted
-///                to the tetrahedra), as stored in the file (not scaled; is_length is false)
-/// \bug VTK's legacy reader reports some truncated files only as warnings on stderr; such a file
-///      can read without its last arrays (labels then 0, node sets missing) instead of throwing.
+///                to the tetrahedra), as stored in the file (not scaled; is_length is false); left
+///                unchanged when the file is refused
+/// @throws std::runtime_error "<path>:<line>: …" (XML, legacy text), "<path>: byte <offset>: …"
+///         (legacy binary) or "<path>: …" (the mesh: a point id out of range, a tetra without 4
+///         points, no tetrahedra).
 TetMesh readVtkUnstructured(const std::string& path, double length_unit_m = 1.0,
                             MeshFields* fields = nullptr);
 
