@@ -122,10 +122,11 @@ def main():
         cells = {(r["youngs_modulus_pa"], ms.index(r["method"])): r for r in rs if r["method"] in ms}
         heat(axes[0], cells, Es, list(range(len(ms))), "E [kPa] (0.89, 1.48, 2.07 = shear modulus 0.3, 0.5, 0.7 kPa)",
              "", lambda v: "%.2f" % (v / 1000), lambda i: SHORT[ms[i]], "Young's modulus at nu 0.48, dt 0.033 s")
-        ra = a_rows + [r for r in nu_dt if r["method"] in ("vonmises_no_reversal", "full") and r["poisson_ratio"] == 0.48
+        alpha_methods = ("vonmises_no_reversal", "full", "anp_full")
+        ra = a_rows + [r for r in nu_dt if r["method"] in alpha_methods and r["poisson_ratio"] == 0.48
                        and r["time_step_s"] in (0.033, 0.33)]
         keys = sorted({(r["time_step_s"], r["alpha_scale"]) for r in ra})
-        ms2 = [m for m in ("vonmises_no_reversal", "full") if any(r["method"] == m for r in ra)]
+        ms2 = [m for m in alpha_methods if any(r["method"] == m for r in ra)]
         cells = {(keys.index((r["time_step_s"], r["alpha_scale"])), ms2.index(r["method"])): r for r in ra}
         heat(axes[1], cells, list(range(len(keys))), list(range(len(ms2))), "dt [s] / initial alpha (x default)", "",
              lambda i: "%g / %gx" % keys[i], lambda i: SHORT[ms2[i]],
