@@ -1,0 +1,504 @@
+// Reading and writing MRI volumes through ITK, behind plain types (itk_bridge.h). One of the two
+// sources that compile ITK's headers (mri_filters_itk.cpp is the other); it includes no Eigen (see
+// itk_bridge.h). Each format's ImageIO is created here by name rather than through ITK's factory, so
+// only the four formats of the contract are accepted: ITK would otherwise read a PNG or a JPEG as a
+// 2-D "MRI". Headers are read and checked before any voxel is allocated.
+#include "itk_bridge.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <memory>
+#include <sstream>
+#include <stdexcept>
+#include <string>
+#include <system_error>
+#include <vector>
+
+#include <unistd.h>
+
+#include <itkGDCMImageIO.h>
+#include <itkGDCMSeriesFileNames.h>
+#include <itkImage.h>
+#include <itkImageFileReader.h>
+#include <itkImageFileWriter.h>
+#include <itkImageSeriesReader.h>
+#include <itkImageSeriesWriter.h>
+#include <itkMetaDataObject.h>
+#include <itkMetaImageIO.h>
+#include <itkNiftiImageIO.h>
+#include <itkNrrdImageIO.h>
+
+namespace breast_sim::core::itk_bridge {
+
+namespace {
+
+namespace fs = std::filesystem;
+using FloatImage = itk::Image<float, 3>;
+
+[[noreturn]] void fail(const std::string& path, const std::string& what) { throw std::runtime_error(path + ": " + what); }
+
+std::string fmt(double v, int precision = 3) {
+  std::ostringstream s;
+  s.precision(precision);
+  s << std::fixed << v;
+  return s.str();
+}
+
+std::string lower(std::string s) {
+  std::transform(s.begin(), s.end(), s.begin(), [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  return s;
+}
+
+bool endsWith(const std::string& s, const std::string& end) {
+  return s.size() >= end.size() && s.compare(s.size() - end.size(), end.size(), end) == 0;
+}
+
+// ITK prints warnings (e.g. about a NIfTI sform) to its output window; the readers report problems
+// as exceptions instead.
+void quietItk() {
+  static const bool done = [] {
+    itk::Object::GlobalWarningDisplayOff();
+    return true;
+  }();
+  (void)done;
+}
+
+struct Candidate {
+  itk::ImageIOBase::Pointer io;
+  std::string format;
+};
+
+// The ImageIO of a single file among NIfTI, NRRD and MetaImage, decided by content (CanReadFile).
+Candidate fileImageIo(const std::string& path) {
+  Candidate c;
+  if (auto io = itk::NiftiImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "NIfTI"};
+  else if (auto io = itk::NrrdImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "NRRD"};
+  else if (auto io = itk::MetaImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "MetaImage"};
+  else if (auto io = itk::GDCMImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "DICOM"};
+  return c;
+}
+
+const char* kFormats = "NIfTI (.nii, .nii.gz), NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd) or a folder of DICOM files";
+
+std::string sizeText(const std::vector<long>& size) {
+  std::string s;
+  for (std::size_t d = 0; d < size.size(); ++d) s += (d ? " x " : "") + std::to_string(size[d]);
+  return s;
+}
+
+// Checks what a header says before anything is allocated: 3-D, scalar, not too large.
+void checkHeader(const std::string& path, itk::ImageIOBase& io, long max_voxels) {
+  const unsigned dims = io.GetNumberOfDimensions();
+  std::vector<long> size;
+  for (unsigned d = 0; d < dims; ++d) size.push_back(static_cast<long>(io.GetDimensions(d)));
+  if (dims < 3 || size[2] <= 1)
+    fail(path, "a 2-D image (" + sizeText(size) +
+                   " voxels); the MRI must be a 3-D volume: give the folder of the whole DICOM series or a 3-D "
+                   "NIfTI/NRRD export");
+  for (unsigned d = 3; d < dims; ++d)
+    if (size[d] > 1)
+      fail(path, "a " + std::to_string(dims) + "-D image (" + sizeText(size) +
+                     " voxels: several volumes, e.g. a time series); give one 3-D volume (export a single time point)");
+  const unsigned components = io.GetNumberOfComponents();
+  const auto pixel = io.GetPixelType();
+  if (components != 1 || (pixel != itk::IOPixelEnum::SCALAR && pixel != itk::IOPixelEnum::UNKNOWNPIXELTYPE))
+    fail(path, "voxels of type " + itk::ImageIOBase::GetPixelTypeAsString(pixel) + " with " + std::to_string(components) +
+                   " components; the MRI must be a scalar (magnitude) image: export the magnitude, not RGB, vector "
+                   "or complex data");
+  // Overflow-safe: stop multiplying once past the cap.
+  long voxels = 1;
+  for (int d = 0; d < 3; ++d) {
+    if (size[d] < 1) fail(path, "the header gives a size of " + std::to_string(size[d]) + " voxels along axis " + std::to_string(d));
+    if (voxels > max_voxels / size[d])
+      fail(path, "the header gives " + sizeText({size[0], size[1], size[2]}) + " voxels, more than the " +
+                     std::to_string(max_voxels) + " accepted (MriReadOptions::max_voxels); a damaged header, or crop or "
+                     "resample the volume first");
+    voxels *= size[d];
+  }
+}
+
+Volume fromItk(const FloatImage& image) {
+  Volume out;
+  for (int d = 0; d < 3; ++d) {
+    out.grid.size[d] = static_cast<long>(image.GetLargestPossibleRegion().GetSize()[d]);
+    out.grid.spacing_mm[d] = image.GetSpacing()[d];
+    out.grid.origin_mm[d] = image.GetOrigin()[d];
+    for (int r = 0; r < 3; ++r) out.grid.direction[3 * r + d] = image.GetDirection()[r][d];
+  }
+  const float* src = image.GetBufferPointer();
+  out.values.assign(src, src + out.grid.count());
+  return out;
+}
+
+std::string dictionaryString(const itk::MetaDataDictionary& dict, const std::string& key) {
+  std::string v;
+  itk::ExposeMetaData<std::string>(dict, key, v);
+  while (!v.empty() && (v.back() == ' ' || v.back() == '\0')) v.pop_back();
+  return v;
+}
+
+Volume readSingleFile(const std::string& path, Candidate c, long max_voxels) {
+  try {
+    c.io->SetFileName(path);
+    c.io->ReadImageInformation();
+  } catch (const itk::ExceptionObject& e) {
+    fail(path, "cannot read the " + c.format + " header: " + e.GetDescription());
+  }
+  checkHeader(path, *c.io, max_voxels);
+  auto reader = itk::ImageFileReader<FloatImage>::New();
+  reader->SetImageIO(c.io);
+  reader->SetFileName(path);
+  try {
+    reader->Update();
+  } catch (const itk::ExceptionObject& e) {
+    fail(path, "cannot read the " + c.format + " voxels (truncated or damaged file?): " + e.GetDescription());
+  }
+  Volume out = fromItk(*reader->GetOutput());
+  out.format = c.format;
+  out.pixel_type = itk::ImageIOBase::GetComponentTypeAsString(c.io->GetComponentType());
+  return out;
+}
+
+using Vec3 = std::array<double, 3>;
+double dot(const Vec3& a, const Vec3& b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+Vec3 cross(const Vec3& a, const Vec3& b) {
+  return {a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]};
+}
+Vec3 minus(const Vec3& a, const Vec3& b) { return {a[0] - b[0], a[1] - b[1], a[2] - b[2]}; }
+
+// One slice file's header.
+struct SliceHeader {
+  std::string file;
+  Vec3 position_mm{};     // ImagePositionPatient
+  Vec3 row{}, column{};   // ImageOrientationPatient: the directions of axes i and j
+  double spacing_mm[2] = {1, 1};  // along i, along j
+  long columns = 0, rows = 0, frames = 0;
+};
+
+Volume readDicomSeries(const std::string& folder, std::string uid, long max_voxels, double tolerance) {
+  auto names = itk::GDCMSeriesFileNames::New();
+  names->SetUseSeriesDetails(false);
+  std::vector<std::string> uids;
+  try {
+    names->SetDirectory(folder);
+    uids = names->GetSeriesUIDs();
+  } catch (const itk::ExceptionObject& e) {
+    fail(folder, std::string("cannot scan the folder for DICOM files: ") + e.GetDescription());
+  }
+  if (uids.empty())
+    fail(folder, std::string("no DICOM image in this folder; give a folder holding one DICOM series, or a file in ") + kFormats);
+  const auto listSeries = [&] {
+    std::string s;
+    for (const std::string& u : uids) s += "\n  " + u + " (" + std::to_string(names->GetFileNames(u).size()) + " files)";
+    return s;
+  };
+  if (uid.empty()) {
+    if (uids.size() > 1)
+      fail(folder, "holds " + std::to_string(uids.size()) + " DICOM series; name the one to read by its series UID "
+                   "(MriReadOptions::series_uid, --series-uid):" + listSeries());
+    uid = uids.front();
+  } else if (std::find(uids.begin(), uids.end(), uid) == uids.end()) {
+    fail(folder, "holds no DICOM series with UID " + uid + "; the series here are:" + listSeries());
+  }
+  const std::vector<std::string> files = names->GetFileNames(uid);
+  const std::string where = folder + " (series " + uid + ")";
+
+  // Every slice's header first: sizes, orientation and positions are checked before the voxels are read.
+  std::vector<SliceHeader> slices;
+  std::string description;
+  for (const std::string& f : files) {
+    auto io = itk::GDCMImageIO::New();
+    try {
+      io->SetFileName(f);
+      io->ReadImageInformation();
+    } catch (const itk::ExceptionObject& e) {
+      fail(f, std::string("cannot read this DICOM file of ") + where + ": " + e.GetDescription());
+    }
+    if (io->GetNumberOfComponents() != 1)
+      fail(f, "voxels with " + std::to_string(io->GetNumberOfComponents()) +
+                  " components (e.g. RGB); the MRI must be a scalar (magnitude) image");
+    SliceHeader h;
+    h.file = f;
+    h.columns = static_cast<long>(io->GetDimensions(0));
+    h.rows = static_cast<long>(io->GetDimensions(1));
+    h.frames = io->GetNumberOfDimensions() > 2 ? static_cast<long>(io->GetDimensions(2)) : 1;
+    for (int r = 0; r < 3; ++r) {
+      h.position_mm[r] = io->GetOrigin(r);
+      h.row[r] = io->GetDirection(0)[r];
+      h.column[r] = io->GetDirection(1)[r];
+    }
+    h.spacing_mm[0] = io->GetSpacing(0);
+    h.spacing_mm[1] = io->GetSpacing(1);
+    if (description.empty()) description = dictionaryString(io->GetMetaDataDictionary(), "0008|103e");
+    slices.push_back(h);
+  }
+  const SliceHeader first = slices.front();
+  if (slices.size() == 1) {
+    if (first.frames > 1) {  // one multi-frame file is the whole volume
+      Volume v = readSingleFile(first.file, {itk::GDCMImageIO::New(), "DICOM"}, max_voxels);
+      v.series_uid = uid;
+      v.series_description = description;
+      return v;
+    }
+    fail(where, "a 2-D image (one slice of " + std::to_string(first.columns) + " x " + std::to_string(first.rows) +
+                    " voxels); the MRI must be a 3-D volume: copy the whole series into the folder");
+  }
+  const auto differs = [](const Vec3& a, const Vec3& b) {
+    return std::max({std::abs(a[0] - b[0]), std::abs(a[1] - b[1]), std::abs(a[2] - b[2])}) > 1e-4;
+  };
+  for (const SliceHeader& h : slices) {
+    if (h.frames != 1)
+      fail(h.file, "a multi-frame DICOM file (" + std::to_string(h.frames) + " frames) in a series of " +
+                       std::to_string(slices.size()) + " files; give a folder of single-slice files or the one multi-frame file");
+    if (h.columns != first.columns || h.rows != first.rows)
+      fail(h.file, "a slice of " + std::to_string(h.columns) + " x " + std::to_string(h.rows) + " voxels in " + where +
+                       " whose first slice has " + std::to_string(first.columns) + " x " + std::to_string(first.rows) +
+                       "; the series mixes acquisitions: give the series UID of one of them");
+    if (differs(h.row, first.row) || differs(h.column, first.column))
+      fail(h.file, "a slice orientation (ImageOrientationPatient) that differs from the first slice's in " + where +
+                       "; the series mixes acquisitions (e.g. a localizer): give the series UID of one of them");
+    if (std::abs(h.spacing_mm[0] - first.spacing_mm[0]) + std::abs(h.spacing_mm[1] - first.spacing_mm[1]) >
+        1e-4 * std::max(first.spacing_mm[0], first.spacing_mm[1]))
+      fail(h.file, "a pixel spacing that differs from the first slice's in " + where);
+  }
+  // Sort along the normal and check the spacing.
+  Vec3 normal = cross(first.row, first.column);
+  const double length = std::sqrt(dot(normal, normal));
+  if (length < 0.5) fail(first.file, "ImageOrientationPatient does not give two orthogonal directions");
+  for (double& x : normal) x /= length;
+  std::stable_sort(slices.begin(), slices.end(),
+                   [&](const SliceHeader& a, const SliceHeader& b) { return dot(normal, a.position_mm) < dot(normal, b.position_mm); });
+  const int n = static_cast<int>(slices.size());
+  std::vector<double> gaps(n - 1);
+  for (int s = 0; s + 1 < n; ++s) gaps[s] = dot(normal, minus(slices[s + 1].position_mm, slices[s].position_mm));
+  std::vector<double> sorted = gaps;
+  std::nth_element(sorted.begin(), sorted.begin() + sorted.size() / 2, sorted.end());
+  const double spacing = sorted[sorted.size() / 2];
+  const auto along = [&](int s) { return fmt(dot(normal, slices[s].position_mm), 2); };
+  for (int s = 0; s + 1 < n; ++s)
+    if (gaps[s] < 1e-3)
+      fail(where, "slices " + std::to_string(s + 1) + " and " + std::to_string(s + 2) + " (" + slices[s].file + ", " +
+                      slices[s + 1].file + ") lie at the same position (" + along(s) +
+                      " mm along the slice normal): the series holds several volumes (echoes, phases or repeats); "
+                      "export one volume");
+  for (int s = 0; s + 1 < n; ++s)
+    if (std::abs(gaps[s] - spacing) > tolerance * spacing)
+      fail(where, "slices are not evenly spaced: slice " + std::to_string(s + 2) + " (" + slices[s + 1].file + ", at " +
+                      along(s + 1) + " mm along the slice normal) follows slice " + std::to_string(s + 1) + " (at " +
+                      along(s) + " mm) by " + fmt(gaps[s], 2) + " mm where the slices are " + fmt(spacing, 2) +
+                      " mm apart: a slice is missing or the series mixes acquisitions; export the complete series");
+  // The positions must lie on one line along the normal (no in-plane shift, i.e. no gantry tilt).
+  for (int s = 1; s < n; ++s) {
+    const Vec3 d = minus(slices[s].position_mm, slices[0].position_mm);
+    const double a = dot(normal, d);
+    const Vec3 off = {d[0] - a * normal[0], d[1] - a * normal[1], d[2] - a * normal[2]};
+    if (std::sqrt(dot(off, off)) > 0.01 * std::max(spacing, 1.0) + 1e-3)
+      fail(where, "slice " + std::to_string(s + 1) + " (" + slices[s].file +
+                      ") is shifted within its plane against the first slice: a sheared grid (gantry tilt) is not "
+                      "supported; resample the series onto an orthogonal grid first");
+  }
+  if (first.columns * first.rows > max_voxels / n)
+    fail(where, std::to_string(first.columns) + " x " + std::to_string(first.rows) + " x " + std::to_string(n) +
+                    " voxels, more than the " + std::to_string(max_voxels) +
+                    " accepted (MriReadOptions::max_voxels); crop or resample the series first");
+
+  std::vector<std::string> sorted_files;
+  for (const SliceHeader& h : slices) sorted_files.push_back(h.file);
+  auto io = itk::GDCMImageIO::New();
+  auto reader = itk::ImageSeriesReader<FloatImage>::New();
+  reader->SetImageIO(io);
+  reader->SetFileNames(sorted_files);
+  try {
+    reader->Update();
+  } catch (const itk::ExceptionObject& e) {
+    fail(where, std::string("cannot read the slices' voxels: ") + e.GetDescription());
+  }
+  Volume out = fromItk(*reader->GetOutput());
+  // The geometry from the checked headers: the first slice along the normal, the median spacing.
+  Grid& g = out.grid;
+  for (int r = 0; r < 3; ++r) {
+    g.origin_mm[r] = slices.front().position_mm[r];
+    g.direction[3 * r + 0] = first.row[r];
+    g.direction[3 * r + 1] = first.column[r];
+    g.direction[3 * r + 2] = normal[r];
+  }
+  g.spacing_mm[0] = first.spacing_mm[0];
+  g.spacing_mm[1] = first.spacing_mm[1];
+  g.spacing_mm[2] = spacing;
+  out.format = "DICOM";
+  out.series_uid = uid;
+  out.series_description = description;
+  out.files = n;
+  out.pixel_type = itk::ImageIOBase::GetComponentTypeAsString(io->GetComponentType());
+  return out;
+}
+
+template <typename ImageType>
+typename ImageType::Pointer makeImage(const Grid& g) {
+  auto out = ImageType::New();
+  typename ImageType::RegionType region;
+  typename ImageType::SpacingType spacing;
+  typename ImageType::PointType origin;
+  typename ImageType::DirectionType direction;
+  for (int d = 0; d < 3; ++d) {
+    region.SetSize(d, static_cast<itk::SizeValueType>(g.size[d]));
+    spacing[d] = g.spacing_mm[d];
+    origin[d] = g.origin_mm[d];
+    for (int r = 0; r < 3; ++r) direction[r][d] = g.direction[3 * r + d];
+  }
+  out->SetRegions(region);
+  out->SetSpacing(spacing);
+  out->SetOrigin(origin);
+  out->SetDirection(direction);
+  out->Allocate();
+  return out;
+}
+
+// A name beside `path` for writing before the rename, with the same extension (ITK picks the
+// encoding by extension, e.g. .nii.gz).
+std::string temporaryBeside(const std::string& path, const std::string& extension) {
+  const fs::path p(path);
+  return (p.parent_path() / ("." + p.filename().string() + ".tmp" + std::to_string(::getpid()) + extension)).string();
+}
+
+std::string dicomNumber(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.6g", v);  // DICOM DS: at most 16 characters
+  return buf;
+}
+
+}  // namespace
+
+Volume readVolume(const std::string& path, const std::string& series_uid, long max_voxels, double slice_tolerance) {
+  quietItk();
+  std::error_code ec;
+  if (!fs::exists(path, ec))
+    fail(path, "no such file or folder; check the path (a relative path is read from the working directory)");
+  if (fs::is_directory(path, ec)) return readDicomSeries(path, series_uid, max_voxels, slice_tolerance);
+  const Candidate c = fileImageIo(path);
+  if (!c.io) fail(path, std::string("not an image of a supported format; give ") + kFormats);
+  if (c.format == "DICOM") {
+    // One file of a series: read its folder, the series it belongs to unless another is named.
+    std::string uid = series_uid;
+    if (uid.empty()) {
+      auto io = itk::GDCMImageIO::New();
+      try {
+        io->SetFileName(path);
+        io->ReadImageInformation();
+      } catch (const itk::ExceptionObject& e) {
+        fail(path, std::string("cannot read this DICOM file: ") + e.GetDescription());
+      }
+      uid = dictionaryString(io->GetMetaDataDictionary(), "0020|000e");
+    }
+    const fs::path parent = fs::path(path).parent_path();
+    return readDicomSeries(parent.empty() ? "." : parent.string(), uid, max_voxels, slice_tolerance);
+  }
+  return readSingleFile(path, c, max_voxels);
+}
+
+void writeVolume(const std::string& path, const Grid& grid, const std::vector<float>& values) {
+  quietItk();
+  const std::string l = lower(path);
+  itk::ImageIOBase::Pointer io;
+  std::string extension;
+  if (endsWith(l, ".nii.gz")) io = itk::NiftiImageIO::New(), extension = ".nii.gz";
+  else if (endsWith(l, ".nii")) io = itk::NiftiImageIO::New(), extension = ".nii";
+  else if (endsWith(l, ".nrrd")) io = itk::NrrdImageIO::New(), extension = ".nrrd";
+  else if (endsWith(l, ".mha")) io = itk::MetaImageIO::New(), extension = ".mha";
+  else
+    fail(path, "unknown extension for an MRI volume; use .nii, .nii.gz, .nrrd or .mha");
+  auto image = makeImage<FloatImage>(grid);
+  std::copy(values.begin(), values.end(), image->GetBufferPointer());
+  const std::string tmp = temporaryBeside(path, extension);
+  auto writer = itk::ImageFileWriter<FloatImage>::New();
+  writer->SetImageIO(io);
+  writer->SetFileName(tmp);
+  writer->SetUseCompression(extension != ".nii");
+  writer->SetInput(image);
+  std::error_code ec;
+  try {
+    writer->Update();
+  } catch (const itk::ExceptionObject& e) {
+    fs::remove(tmp, ec);
+    fail(path, std::string("cannot write: ") + e.GetDescription());
+  }
+  fs::rename(tmp, path, ec);
+  if (ec) {
+    const std::string why = ec.message();
+    fs::remove(tmp, ec);
+    fail(path, "cannot move the written file into place: " + why);
+  }
+}
+
+void writeDicom(const std::string& folder, const Grid& g, const std::vector<float>& values, const DicomTags& tags) {
+  quietItk();
+  std::error_code ec;
+  fs::create_directories(folder, ec);
+  if (ec || !fs::is_directory(folder)) fail(folder, "cannot create the folder: " + ec.message());
+  if (fs::directory_iterator(folder, ec) != fs::directory_iterator())
+    fail(folder, "the folder is not empty; a DICOM series is written into a new or empty folder (one series per folder)");
+
+  using ShortImage = itk::Image<short, 3>;
+  using SliceImage = itk::Image<short, 2>;
+  auto volume = makeImage<ShortImage>(g);
+  short* dst = volume->GetBufferPointer();
+  for (std::size_t v = 0; v < values.size(); ++v)
+    dst[v] = static_cast<short>(std::clamp(std::lround(values[v]), -32768L, 32767L));
+  const Vec3 row = {g.direction[0], g.direction[3], g.direction[6]}, column = {g.direction[1], g.direction[4], g.direction[7]};
+  const Vec3 axis_k = {g.direction[2], g.direction[5], g.direction[8]};
+  const Vec3 normal = cross(row, column);
+  std::string orientation;
+  for (const Vec3& d : {row, column})
+    for (int r = 0; r < 3; ++r) orientation += (orientation.empty() ? "" : "\\") + dicomNumber(d[r]);
+
+  auto io = itk::GDCMImageIO::New();
+  io->KeepOriginalUIDOn();
+  using Writer = itk::ImageSeriesWriter<ShortImage, SliceImage>;
+  auto writer = Writer::New();
+  writer->SetInput(volume);
+  writer->SetImageIO(io);
+  Writer::DictionaryArrayType dictionaries;
+  std::vector<std::unique_ptr<itk::MetaDataDictionary>> owned;
+  std::vector<std::string> files;
+  for (long k = 0; k < g.size[2]; ++k) {
+    auto d = std::make_unique<itk::MetaDataDictionary>();
+    const auto put = [&](const std::string& tag, const std::string& value) { itk::EncapsulateMetaData<std::string>(*d, tag, value); };
+    put("0008|0016", "1.2.840.10008.5.1.4.1.1.4");  // MR Image Storage: keeps position and orientation
+    put("0008|0018", tags.series_uid + "." + std::to_string(k + 1));
+    put("0008|0060", "MR");
+    put("0028|0004", "MONOCHROME2");
+    put("0008|0008", "DERIVED\\SECONDARY");
+    put("0008|103e", tags.description);
+    put("0010|0010", tags.patient_name);
+    put("0010|0020", tags.patient_id);
+    put("0020|000d", tags.study_uid);
+    put("0020|000e", tags.series_uid);
+    put("0020|0052", tags.frame_uid);
+    put("0020|0011", std::to_string(tags.series_number));
+    put("0020|0013", std::to_string(k + 1));
+    put("0020|0037", orientation);
+    Vec3 p;
+    for (int r = 0; r < 3; ++r) p[r] = g.origin_mm[r] + axis_k[r] * g.spacing_mm[2] * static_cast<double>(k);
+    put("0020|0032", dicomNumber(p[0]) + "\\" + dicomNumber(p[1]) + "\\" + dicomNumber(p[2]));
+    put("0020|1041", dicomNumber(dot(normal, p)));
+    put("0018|0050", dicomNumber(g.spacing_mm[2]));
+    put("0018|0088", dicomNumber(g.spacing_mm[2]));
+    dictionaries.push_back(d.get());
+    owned.push_back(std::move(d));
+    char name[32];
+    std::snprintf(name, sizeof name, "IM%05ld.dcm", k + 1);
+    files.push_back((fs::path(folder) / name).string());
+  }
+  writer->SetMetaDataDictionaryArray(&dictionaries);
+  writer->SetFileNames(files);
+  try {
+    writer->Update();
+  } catch (const itk::ExceptionObject& e) {
+    fail(folder, std::string("cannot write the DICOM series: ") + e.GetDescription());
+  }
+}
+
+}  // namespace breast_sim::core::itk_bridge
