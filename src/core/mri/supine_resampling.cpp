@@ -88,6 +88,12 @@ struct Writer {
   const ScalarImage* image;
   const LabelImage* labels;
   SupineImages& out;
+  std::vector<std::uint8_t> wall;  // per label value: 1 for the chest wall (a table: set lookups per voxel cost)
+
+  Writer(const TetMesh& m, const ScalarImage* i, const LabelImage* l, SupineImages& o, const TissueLabels& map)
+      : mesh(m), image(i), labels(l), out(o), wall(65536, 0) {
+    for (std::uint16_t v : map.chest_wall) wall[v] = 1;
+  }
   void body(long v, int t, const Eigen::Vector4d& lambda) const {
     Eigen::Vector3d x = Eigen::Vector3d::Zero();
     for (int a = 0; a < 4; ++a) x += lambda[a] * mesh.nodes().row(mesh.tets()(t, a)).transpose();
@@ -95,10 +101,10 @@ struct Writer {
     if (labels) out.labels.labels[v] = labels->labelAt(x, 0);
   }
   // Outside the deformed body: the chest wall stays where it is; the rest is air.
-  void outside(long v, const Eigen::Vector3d& y, const SupineResampleOptions& o) const {
+  void outside(long v, const Eigen::Vector3d& y) const {
     if (!labels) return;
     const std::uint16_t l = labels->labelAt(y, 0);
-    if (o.label_map.classify(l) != TissueClass::kChestWall) return;
+    if (!wall[l]) return;
     out.labels.labels[v] = l;
     if (image && insideGrid(image->geometry, y)) out.image.values[v] = static_cast<float>(sampleTrilinear(*image, y));
   }
@@ -167,7 +173,7 @@ SupineImages resampleToSupine(const TetMesh& mesh, const Points& displacement, c
   const auto t0 = Clock::now();
   checkInputs(mesh, displacement, prone_image, prone_labels, grid, options);
   SupineImages out = emptyOutputs(prone_image, prone_labels, grid, options);
-  const Writer writer{mesh, prone_image, prone_labels, out};
+  const Writer writer(mesh, prone_image, prone_labels, out, options.label_map);
   const std::vector<DeformedTet> tets = deformedTets(mesh, displacement);
   // The voxel box of each tetrahedron, and per slice k the tetrahedra that reach it, in index order.
   const int nz = grid.size.z();
@@ -228,7 +234,7 @@ SupineImages resampleToSupine(const TetMesh& mesh, const Points& displacement, c
     for (int j = 0; j < grid.size.y(); ++j)
       for (int i = 0; i < grid.size.x(); ++i) {
         const long v = grid.index(i, j, k);
-        if (!done[v]) writer.outside(v, grid.indexToPhysical(Eigen::Vector3d(i, j, k)), options);
+        if (!done[v]) writer.outside(v, grid.indexToPhysical(Eigen::Vector3d(i, j, k)));
       }
   }
   out.body_voxels = body;
@@ -242,7 +248,7 @@ SupineImages resampleToSupineReference(const TetMesh& mesh, const Points& displa
   const auto t0 = Clock::now();
   checkInputs(mesh, displacement, prone_image, prone_labels, grid, options);
   SupineImages out = emptyOutputs(prone_image, prone_labels, grid, options);
-  const Writer writer{mesh, prone_image, prone_labels, out};
+  const Writer writer(mesh, prone_image, prone_labels, out, options.label_map);
   const std::vector<DeformedTet> tets = deformedTets(mesh, displacement);
   long body = 0;
 #pragma omp parallel for schedule(dynamic, 1) reduction(+ : body)
@@ -261,7 +267,7 @@ SupineImages resampleToSupineReference(const TetMesh& mesh, const Points& displa
           ++body;
           writer.body(v, static_cast<int>(t), lambda);
         }
-        if (!inside) writer.outside(v, y, options);
+        if (!inside) writer.outside(v, y);
       }
   out.body_voxels = body;
   out.seconds = std::chrono::duration<double>(Clock::now() - t0).count();
