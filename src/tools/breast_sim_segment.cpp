@@ -33,7 +33,7 @@ wall 40 (include/breast_sim/core/mri/mri_segmentation.h).
   --series-uid UID      the DICOM series to read when the folder holds several
   --lesion-labels FILE  a label image of the lesions (non-zero voxels) in the MRI's patient space
   --png FILE            cross-sections with the segmentation outlined (default: LABELS with .png)
-  --json FILE           summary: volumes per class, levels, coverage, seconds (default: LABELS with .json)
+  --json FILE           summary: volumes per class, nipples, levels, coverage, seconds (default: LABELS with .json)
   --truth LABELS        a ground truth on the MRI's grid (VICTRE label values): Dice per class and the
                         chest-wall boundary's distance to it, printed and in the summary
 )";
@@ -107,6 +107,13 @@ int main(int argc, char** argv) try {
   const char* names[6] = {"air", "fat", "fibroglandular", "skin", "lesion", "chest_wall"};
   std::printf("volumes [ml]: fat %.1f, fibroglandular %.1f, skin %.1f, lesion %.1f, chest wall %.1f\n", r.volume_ml[1],
               r.volume_ml[2], r.volume_ml[3], r.volume_ml[4], r.volume_ml[5]);
+  std::string nipples;
+  for (const Eigen::Vector3d& n : r.nipples_m) {
+    char buf[96];
+    std::snprintf(buf, sizeof buf, "%s[%.1f, %.1f, %.1f]", nipples.empty() ? "" : ", ", 1e3 * n.x(), 1e3 * n.y(), 1e3 * n.z());
+    nipples += buf;
+  }
+  std::printf("nipples (the apex of each breast) [mm]: %s\n", nipples.c_str());
   nlohmann::json j;
   j["input"] = {{"path", in},
                 {"format", mri.info.format},
@@ -119,6 +126,9 @@ int main(int argc, char** argv) try {
   j["volumes_ml"] = volumes;
   j["levels"] = {{"fat_level", r.fat_level}, {"body_threshold", r.body_threshold}, {"fat_threshold", r.fat_threshold},
                  {"bias_min", r.bias_min}, {"bias_max", r.bias_max}};
+  nlohmann::json nipple_list = nlohmann::json::array();
+  for (const Eigen::Vector3d& n : r.nipples_m) nipple_list.push_back({1e3 * n.x(), 1e3 * n.y(), 1e3 * n.z()});
+  j["nipples_mm"] = nipple_list;
   j["chest_wall"] = {{"breast_columns", r.breast_columns}, {"measured_columns", r.measured_columns},
                      {"coverage", r.boundary_coverage}, {"rejected_candidates", r.rejected_candidates}};
   j["seconds"] = {{"bias_correction", r.seconds_bias}, {"tissue", r.seconds_tissue}, {"chest_wall", r.seconds_boundary},

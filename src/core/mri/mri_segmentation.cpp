@@ -71,16 +71,22 @@ std::vector<std::uint8_t> above(const std::vector<float>& values, double thresho
   return m;
 }
 
-// Components of `mask` with at least `share` of the largest's voxels; the others are cleared.
-std::vector<std::uint8_t> largeComponents(const itk_bridge::Grid& grid, const std::vector<std::uint8_t>& mask, double share) {
+// Components of `mask` with at least `share` of the largest's voxels; the others are cleared. With
+// `component`, each kept voxel's component (1 = largest) goes there, 0 elsewhere.
+std::vector<std::uint8_t> largeComponents(const itk_bridge::Grid& grid, const std::vector<std::uint8_t>& mask, double share,
+                                          std::vector<std::int32_t>* component = nullptr, int* kept = nullptr) {
   std::vector<long> sizes;
-  const std::vector<std::int32_t> cc = itk_bridge::connectedComponents(grid, mask, false, &sizes);
+  std::vector<std::int32_t> cc = itk_bridge::connectedComponents(grid, mask, false, &sizes);
   std::vector<std::uint8_t> out(mask.size(), 0);
-  if (sizes.empty()) return out;
   int keep = 0;
   while (keep < static_cast<int>(sizes.size()) && static_cast<double>(sizes[keep]) >= share * static_cast<double>(sizes[0])) ++keep;
 #pragma omp parallel for schedule(static)
-  for (long v = 0; v < static_cast<long>(mask.size()); ++v) out[v] = cc[v] >= 1 && cc[v] <= keep;
+  for (long v = 0; v < static_cast<long>(mask.size()); ++v) {
+    out[v] = cc[v] >= 1 && cc[v] <= keep;
+    if (!out[v]) cc[v] = 0;
+  }
+  if (component) component->swap(cc);
+  if (kept) *kept = keep;
   return out;
 }
 
@@ -296,7 +302,30 @@ MriSegmentation segmentProneMri(const ScalarImage& image, const SegmentationSett
   breast = itk_bridge::fillHoles(grid, breast);
 #pragma omp parallel for schedule(static)
   for (long v = 0; v < nvox; ++v) breast[v] = breast[v] && !wall[v];
-  breast = largeComponents(grid, breast, settings.min_component_share);
+  std::vector<std::int32_t> component;
+  int pieces = 0;
+  breast = largeComponents(grid, breast, settings.min_component_share, &component, &pieces);
+  // The nipple of each breast: the centroid of its voxels within 2 mm of its most anterior one.
+  {
+    std::vector<double> apex(static_cast<std::size_t>(pieces), -1e300);
+    for (int k = 0; k < g.size.z(); ++k)
+      for (int j = 0; j < g.size.y(); ++j)
+        for (int i = 0; i < g.size.x(); ++i) {
+          const std::int32_t c = component[g.index(i, j, k)];
+          if (c > 0) apex[c - 1] = std::max(apex[c - 1], anterior.dot(g.indexToPhysical(Eigen::Vector3d(i, j, k))));
+        }
+    std::vector<Eigen::Vector3d> sum(static_cast<std::size_t>(pieces), Eigen::Vector3d::Zero());
+    std::vector<long> count(static_cast<std::size_t>(pieces), 0);
+    for (int k = 0; k < g.size.z(); ++k)
+      for (int j = 0; j < g.size.y(); ++j)
+        for (int i = 0; i < g.size.x(); ++i) {
+          const std::int32_t c = component[g.index(i, j, k)];
+          if (c <= 0) continue;
+          const Eigen::Vector3d p = g.indexToPhysical(Eigen::Vector3d(i, j, k));
+          if (anterior.dot(p) >= apex[c - 1] - 2e-3) sum[c - 1] += p, ++count[c - 1];
+        }
+    for (int c = 0; c < pieces; ++c) report.nipples_m.push_back(sum[c] / static_cast<double>(count[c]));
+  }
   double t_breast = t_fat;
   if (std::any_of(breast.begin(), breast.end(), [](std::uint8_t b) { return b != 0; })) {
     const double t = itk_bridge::otsuThreshold(grid, I, breast);

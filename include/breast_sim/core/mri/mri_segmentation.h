@@ -118,6 +118,9 @@ struct SegmentationReport {
   int rejected_candidates = 0;    ///< candidates the robust fit rejected
   double boundary_coverage = 0.0; ///< measured / breast columns
   double volume_ml[6] = {0, 0, 0, 0, 0, 0};  ///< per TissueClass (air, fat, fibroglandular, skin, lesion, chest wall)
+  /// Per breast (body piece anterior of the wall, largest first): its nipple, the centroid of its voxels
+  /// within 2 mm of its most anterior one (the apex of a prone, pendant breast) [m].
+  std::vector<Eigen::Vector3d> nipples_m;
   double seconds_bias = 0, seconds_tissue = 0, seconds_boundary = 0, seconds_labels = 0, seconds_total = 0;
 };
 
