@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Quick-start command 2: every test. Installs what it needs (Debian 12, as root), builds the core
-# alone with plain CMake and runs its unit tests (proving the core builds without ROS), then builds
-# the catkin workspace and runs the ROS tests (gtest + rostest). Ends with "N passed, N failed".
+# alone with plain CMake and runs its unit tests (proving the core builds without ROS), runs a smoke
+# of every file reader's fuzz target and the reader layers' tests under ASan + UBSan (clang), then
+# builds the catkin workspace and runs the ROS tests (gtest + rostest). Ends with "N passed, N failed".
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
 mkdir -p "${BREAST_SIM_WORK}"
@@ -26,7 +27,38 @@ else
   echo "the core failed to build" > "${results}/core_build.failed"
 fi
 
-# 2. The catkin workspace: ROS layer, nodes, conversion tests and rostests.
+# 2. The file readers under clang's AddressSanitizer and UndefinedBehaviorSanitizer, one build
+#    (${BREAST_SIM_WORK}/fuzz_build, fuzz/CMakeLists.txt) for both: a smoke of every fuzz target (its
+#    seed corpus, then 3 s of new inputs; a crash, a sanitizer report or an error that does not name
+#    its file fails it), and the core tests of the reader layers. Longer runs: scripts/fuzz.sh SECONDS.
+mkdir -p "${results}/fuzz" "${results}/sanitizer"
+log "fuzz smoke of every file reader (ASan + UBSan)"
+BREAST_SIM_WORK="${BREAST_SIM_WORK}" bash "${BREAST_SIM_SRC}/scripts/fuzz.sh" 3 --fresh --junit "${results}/fuzz/fuzz_smoke.xml" \
+  || status=1
+[ -f "${results}/fuzz/fuzz_smoke.xml" ] || echo "the fuzz targets failed to build or run" > "${results}/fuzz_smoke.failed"
+fuzz_build="${BREAST_SIM_WORK}/fuzz_build"
+if [ -f "${fuzz_build}/CMakeCache.txt" ] && cmake --build "${fuzz_build}" -j"${BREAST_SIM_JOBS}" --target sanitizer_tests; then
+  log "running the reader layers' core tests under ASan + UBSan"
+  # A sanitizer report aborts the test (-fno-sanitize-recover), which then writes no XML; a leak is
+  # reported at exit, after the XML: the exit status counts too.
+  for name in $(cd "${fuzz_build}" && ctest -N | awk '/Test +#[0-9]+:/ {print $3}'); do
+    (cd "${fuzz_build}" && GTEST_OUTPUT="xml:${results}/sanitizer/${name}.xml" UBSAN_OPTIONS="print_stacktrace=1" \
+       ctest -R "^${name}\$" --timeout 600 --output-on-failure > "${results}/sanitizer/${name}.log" 2>&1)
+    code=$?
+    if [ ! -f "${results}/sanitizer/${name}.xml" ] || { [ ${code} -ne 0 ] && ! grep -q "<failure" "${results}/sanitizer/${name}.xml"; }; then
+      echo "${name} under the sanitizers exited with status ${code} (a sanitizer report, a crash or a timeout; ${results}/sanitizer/${name}.log)" \
+        > "${results}/sanitizer_${name}.failed"
+      grep -m3 -E "ERROR: (Address|Leak)Sanitizer|runtime error:" "${results}/sanitizer/${name}.log"
+      status=1
+    fi
+    [ ${code} -ne 0 ] && status=1
+  done
+else
+  log "the sanitizer build failed"; status=1
+  echo "the sanitizer build of the reader tests failed" > "${results}/sanitizer_build.failed"
+fi
+
+# 3. The catkin workspace: ROS layer, nodes, conversion tests and rostests.
 if build_catkin_ws && (cd "${BREAST_SIM_WS}" && catkin_make -j"${BREAST_SIM_JOBS}" tests \
       -DCMAKE_BUILD_TYPE=Release -DPYTHON_EXECUTABLE=/usr/bin/python3 >/dev/null); then
   log "running ROS tests"
@@ -44,7 +76,7 @@ else
   echo "the catkin workspace failed to build" > "${results}/catkin_build.failed"
 fi
 
-# 3. Count every test case (gtest and rostest) from the XML results.
+# 4. Count every test case (gtest, rostest, fuzz smoke) from the XML results.
 /usr/bin/python3 "${BREAST_SIM_SRC}/scripts/count_test_results.py" "${results}"
 count_status=$?
 [ ${count_status} -ne 0 ] && status=1
