@@ -93,6 +93,33 @@ void expectAllPositive(const TetMesh& m) {
 
 std::vector<int> row(const TetMesh& m, int t) { return {m.tets()(t, 0), m.tets()(t, 1), m.tets()(t, 2), m.tets()(t, 3)}; }
 
+/// A file and how its reader must refuse it.
+struct BadFile {
+  std::string file;
+  std::string text;
+  std::string place;  // ":<line>:" or ": byte "
+  std::string what;
+};
+
+/// Writes each file and checks that reading it throws a message that starts with its path and
+/// holds the place and what is wrong.
+void expectRefused(const TempDir& dir, const std::vector<BadFile>& cases) {
+  for (const BadFile& c : cases) {
+    SCOPED_TRACE(c.file);
+    const std::string path = dir.path(c.file);
+    writeText(path, c.text);
+    try {
+      readTetMesh(path);
+      ADD_FAILURE() << "no exception";
+    } catch (const std::runtime_error& e) {
+      const std::string msg = e.what();
+      EXPECT_EQ(msg.rfind(path, 0), 0u) << "message starts with the path: " << msg;
+      EXPECT_NE(msg.find(c.place), std::string::npos) << "place '" << c.place << "' in: " << msg;
+      EXPECT_NE(msg.find(c.what), std::string::npos) << "'" << c.what << "' in: " << msg;
+    }
+  }
+}
+
 // The node sets the hand-written files below give, in the same geometry for every format:
 // A (0,0,0), B (1,0,0), C (0,1,0), D (0,0,1), E (1,1,−0.5); tets ABCD (+), ABCE (−), BCED (−).
 // The three fill the space around edge BC without overlapping: E lies below ABC and beyond BCD.
@@ -545,13 +572,7 @@ TEST(MeshIo, MalformedFilesNameTheFileAndThePlace) {
   const std::string full22 = readBytes(dir.path("full22.msh"));
   const std::string full41 = readBytes(dir.path("full41.msh"));
 
-  struct Case {
-    std::string file;
-    std::string text;
-    std::string place;  // ":<line>:" or ": byte "
-    std::string what;
-  };
-  const std::vector<Case> cases = {
+  const std::vector<BadFile> cases = {
       {"no_elements.msh", nodes3, ":9:", "without an $Elements section"},
       {"mesh.msh", nodes3 + "$Elements\n1\n7 4 2 1 1 1 2 3\n$EndElements\n", ":12:",
        "expected 4 node indices for element 7, got 3"},
@@ -579,20 +600,7 @@ TEST(MeshIo, MalformedFilesNameTheFileAndThePlace) {
   writeText(dir.path("range.node"), "4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n");
   writeText(dir.path("few.node"), "4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n");
   writeText(dir.path("word.node"), "4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n");
-  for (const Case& c : cases) {
-    SCOPED_TRACE(c.file);
-    const std::string path = dir.path(c.file);
-    writeText(path, c.text);
-    try {
-      readTetMesh(path);
-      ADD_FAILURE() << "no exception";
-    } catch (const std::runtime_error& e) {
-      const std::string msg = e.what();
-      EXPECT_EQ(msg.rfind(path, 0), 0u) << "message starts with the path: " << msg;
-      EXPECT_NE(msg.find(c.place), std::string::npos) << "place '" << c.place << "' in: " << msg;
-      EXPECT_NE(msg.find(c.what), std::string::npos) << "'" << c.what << "' in: " << msg;
-    }
-  }
+  expectRefused(dir, cases);
   // The example from the issue, word for word.
   try {
     readTetMesh(dir.path("mesh.msh"));
@@ -637,13 +645,7 @@ TEST(MeshIo, HeaderCountsTheFileCannotHoldAreErrorsNamingThePlace) {
   const std::string huge_nodes41 = withTotal("$Nodes", nodes_at);
   const std::string huge_elements41 = withTotal("$Elements", elements_at);
 
-  struct Case {
-    std::string file;
-    std::string text;
-    std::string place;
-    std::string what;
-  };
-  const std::vector<Case> cases = {
+  const std::vector<BadFile> cases = {
       {"nodes22.msh", head22 + "$Nodes\n2000000000\n1 0 0 0\n$EndNodes\n", ":5:",
        "header says 2000000000 nodes but the file can hold at most 2 (19 bytes follow, each needs at least 8)"},
       {"elements22.msh", nodes4 + "$Elements\n2000000000\n1 4 0 1 2 3 4\n$EndElements\n", ":12:",
@@ -669,20 +671,7 @@ TEST(MeshIo, HeaderCountsTheFileCannotHoldAreErrorsNamingThePlace) {
        "header says 2000000000 tetrahedra but the file can hold at most 1"},
   };
   writeText(dir.path("bad_count.node"), "4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n");
-  for (const Case& c : cases) {
-    SCOPED_TRACE(c.file);
-    const std::string path = dir.path(c.file);
-    writeText(path, c.text);
-    try {
-      readTetMesh(path);
-      ADD_FAILURE() << "no exception";
-    } catch (const std::runtime_error& e) {
-      const std::string msg = e.what();
-      EXPECT_EQ(msg.rfind(path, 0), 0u) << "message starts with the path: " << msg;
-      EXPECT_NE(msg.find(c.place), std::string::npos) << "place '" << c.place << "' in: " << msg;
-      EXPECT_NE(msg.find(c.what), std::string::npos) << "'" << c.what << "' in: " << msg;
-    }
-  }
+  expectRefused(dir, cases);
 }
 
 // Counts, tags and ids a file merely claims: each is checked before it sizes anything or becomes a
@@ -704,13 +693,7 @@ TEST(MeshIo, ClaimedCountsTagsAndIdsAreRefusedNamingThePlace) {
   const std::string points4 = "0 0 0 1 0 0 0 1 0 0 0 1";
   const std::string legacy = "# vtk DataFile Version 4.2\nhand-written\nASCII\nDATASET UNSTRUCTURED_GRID\n";
   const std::string legacy_points = legacy + "POINTS 4 double\n0 0 0 1 0 0 0 1 0 0 0 1\n";
-  struct Case {
-    std::string file;
-    std::string text;
-    std::string place;
-    std::string what;
-  };
-  const std::vector<Case> cases = {
+  const std::vector<BadFile> cases = {
       // 3 + ntags overflowed (undefined behaviour).
       {"ntags.msh", nodes4 + "$Elements\n1\n1 4 9223372036854775807 1 2 3 4\n$EndElements\n", ":13:",
        "element 1 announces 9223372036854775807 tags but the line has 4 values after them"},
@@ -753,20 +736,7 @@ TEST(MeshIo, ClaimedCountsTagsAndIdsAreRefusedNamingThePlace) {
       {"legacy_binary.vtk", "# vtk DataFile Version 4.2\nx\nBINARY\nDATASET UNSTRUCTURED_GRID\nPOINTS 4 double\n" +
                                 std::string(40, '\0'), ": byte ", "header says 12 point coordinates but the file can hold at most 5"},
   };
-  for (const Case& c : cases) {
-    SCOPED_TRACE(c.file);
-    const std::string path = dir.path(c.file);
-    writeText(path, c.text);
-    try {
-      readTetMesh(path);
-      ADD_FAILURE() << "no exception";
-    } catch (const std::runtime_error& e) {
-      const std::string msg = e.what();
-      EXPECT_EQ(msg.rfind(path, 0), 0u) << "message starts with the path: " << msg;
-      EXPECT_NE(msg.find(c.place), std::string::npos) << "place '" << c.place << "' in: " << msg;
-      EXPECT_NE(msg.find(c.what), std::string::npos) << "'" << c.what << "' in: " << msg;
-    }
-  }
+  expectRefused(dir, cases);
   // A folder named like a mesh file: its "size" was allocated.
   std::filesystem::create_directory(dir.path("folder.msh"));
   try {
@@ -824,6 +794,46 @@ TEST(MeshIo, VtkFilesOfEveryWriterVariantReadTheSame) {
     EXPECT_EQ(fields.cell_data[0].values.row(2), Eigen::RowVector2d(3, 30));
   }
   EXPECT_EQ(files, 11);
+}
+
+// liblzma allocates the dictionary an xz header declares (up to 1.5 GiB, 4 GiB claimed), and VTK's
+// LZMA decompressor sets no memory limit: a block whose header claims more than 64 MiB is refused
+// before it is decompressed.
+TEST(MeshIo, VtuLzmaBlockDeclaringAHugeDictionaryIsRefused) {
+  // The five hand-written points as one LZMA block, as VTK's vtkLZMADataCompressor writes it.
+  const std::string xz(
+      "\xfd\x37\x7a\x58\x5a\x00\x00\x01\x69\x22\xde\x36\x02\xc0\x17\x78\x21\x01\x16\x00\x09\xc9\xbf\x39\xe0\x00"
+      "\x77\x00\x0f\x5d\x00\x00\x6e\x15\x37\xc4\x19\x21\xd8\x27\xb5\xa6\x06\xa6\x90\x00\x00\x00\x23\xe5\x1f\x6b"
+      "\x00\x01\x27\x78\x40\xfe\x9d\xa4\x90\x42\x99\x0d\x01\x00\x00\x00\x00\x01\x59\x5a",
+      72);
+  const auto file = [](const std::string& block) {
+    std::string header;
+    for (const std::uint32_t v : {1u, 120u, 120u, static_cast<std::uint32_t>(block.size())}) {
+      header.append(reinterpret_cast<const char*>(&v), 4);
+    }
+    return "<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\" header_type=\"UInt32\" "
+           "compressor=\"vtkLZMADataCompressor\">\n<UnstructuredGrid>\n<Piece NumberOfPoints=\"5\" NumberOfCells=\"3\">\n"
+           "<Points><DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"appended\" offset=\"0\"/></Points>\n"
+           "<Cells>\n<DataArray type=\"Int32\" Name=\"connectivity\" format=\"ascii\">0 1 2 3 0 1 2 4 1 2 4 3</DataArray>\n"
+           "<DataArray type=\"Int32\" Name=\"offsets\" format=\"ascii\">4 8 12</DataArray>\n"
+           "<DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">10 10 10</DataArray>\n</Cells>\n</Piece>\n"
+           "</UnstructuredGrid>\n<AppendedData encoding=\"raw\">\n_" + header + block + "\n</AppendedData>\n</VTKFile>\n";
+  };
+  TempDir dir("breast_sim_mesh_io");
+  writeText(dir.path("lzma.vtu"), file(xz));
+  EXPECT_EQ(readTetMesh(dir.path("lzma.vtu")).nodes(), handWrittenNodes());
+  std::string huge = xz;
+  huge[18] = '\x27';  // dictionary code 39: 3 GiB
+  writeText(dir.path("huge.vtu"), file(huge));
+  try {
+    readTetMesh(dir.path("huge.vtu"));
+    ADD_FAILURE() << "no exception";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("LZMA block 0 of the DataArray is refused: it declares an LZMA2 dictionary of "
+                                         "3072 MiB, more than the 64 MiB allowed"),
+              std::string::npos)
+        << e.what();
+  }
 }
 
 TEST(MeshIo, FormatIsChosenByCaseInsensitiveExtension) {

@@ -10,6 +10,7 @@
 
 #include <algorithm>
 #include <cctype>
+#include <cstdint>
 #include <cstring>
 #include <tuple>
 #include <string>
@@ -36,6 +37,58 @@ using mesh_io_detail::FileCursor;
 /// before its buffer is allocated.
 constexpr double kMaxBlockExpansion = 1032.0;
 constexpr int kMaxDepth = 32;
+/// Largest LZMA2 dictionary an LZMA block may declare. liblzma allocates the dictionary a stream's
+/// header declares (up to 1.5 GiB) whatever the data, and VTK calls it without a memory limit;
+/// VTK writes 8 MiB (its default preset), xz's strongest preset uses 64 MiB.
+constexpr std::uint64_t kMaxLzmaDictionary = std::uint64_t{64} << 20;
+
+/// Checks that `p` is an xz stream as VTK's LZMA compressor writes one: a single block with the
+/// LZMA2 filter alone, its compressed size in its header, and a dictionary of at most
+/// kMaxLzmaDictionary; returns what is wrong, or "" (xz file format 1.0.4, sections 2 and 3).
+std::string xzProblem(const unsigned char* p, std::size_t n) {
+  static const unsigned char kMagic[6] = {0xFD, '7', 'z', 'X', 'Z', 0x00};
+  if (n < 12 + 8 || std::memcmp(p, kMagic, 6) != 0) return "not an xz stream";
+  if (p[6] != 0 || (p[7] & 0xF0) != 0) return "unknown xz stream flags";
+  static const int kCheckSizes[16] = {0, 4, 4, 4, 8, 8, 8, 16, 16, 16, 32, 32, 32, 64, 64, 64};
+  const std::size_t check_size = static_cast<std::size_t>(kCheckSizes[p[7] & 0x0F]);
+  std::size_t at = 12;
+  if (p[at] == 0) return "";  // no block: the index follows at once
+  const std::size_t header = (static_cast<std::size_t>(p[at]) + 1) * 4;
+  if (header > n - at) return "its block header passes the end";
+  const unsigned char flags = p[at + 1];
+  if ((flags & 0x3C) != 0 || (flags & 0x03) != 0) return "its block has reserved flags or more than one filter";
+  if ((flags & 0x40) == 0) return "its block header does not give the compressed size";
+  std::size_t q = at + 2;
+  const std::size_t header_end = at + header;
+  const auto varint = [&](std::uint64_t& v) {
+    v = 0;
+    for (int i = 0; i < 9 && q < header_end; ++i) {
+      const unsigned char b = p[q++];
+      v |= static_cast<std::uint64_t>(b & 0x7F) << (7 * i);
+      if ((b & 0x80) == 0) return true;
+    }
+    return false;
+  };
+  std::uint64_t compressed = 0, ignored = 0, filter = 0, props = 0;
+  if (!varint(compressed)) return "its compressed size is malformed";
+  if ((flags & 0x80) != 0 && !varint(ignored)) return "its uncompressed size is malformed";
+  if (!varint(filter) || filter != 0x21 || !varint(props) || props != 1 || q >= header_end) {
+    return "its filter is not LZMA2";
+  }
+  const unsigned code = p[q] & 0x3F;
+  if (code > 40) return "its LZMA2 dictionary size is malformed";
+  const std::uint64_t dictionary = code == 40 ? 0xFFFFFFFFull : (std::uint64_t{2} | (code & 1)) << (code / 2 + 11);
+  if (dictionary > kMaxLzmaDictionary) {
+    return "it declares an LZMA2 dictionary of " + std::to_string(dictionary >> 20) + " MiB, more than the " +
+           std::to_string(kMaxLzmaDictionary >> 20) + " MiB allowed";
+  }
+  // One block only: the index (its indicator byte 0) follows the block's padded data and check.
+  if (compressed > n) return "its compressed size passes the end";
+  std::size_t end = header + static_cast<std::size_t>(compressed);
+  end = (end + 3) / 4 * 4 + at + check_size;
+  if (end >= n || p[end] != 0) return "it holds more than one block";
+  return "";
+}
 
 struct Element {
   std::string name;
@@ -83,6 +136,7 @@ class XmlReader {
         compressor_ = vtkSmartPointer<vtkLZ4DataCompressor>::New();
       } else if (*c == "vtkLZMADataCompressor") {
         compressor_ = vtkSmartPointer<vtkLZMADataCompressor>::New();
+        lzma_ = true;
       } else {
         f_.failAtLine(root.pos, "compressor '" + c->substr(0, 60) + "' is not supported (zlib, LZ4, LZMA are)");
       }
@@ -543,8 +597,9 @@ class XmlReader {
     char raw[8];
     if (!b.read(header_bytes_, raw)) f_.failAtLine(a.pos, std::string("the DataArray's data end in its header (") + what + ")");
     std::int64_t v = 0;
-    scalarInteger(raw, header_bytes_ == 8 ? Scalar::kUInt64 : Scalar::kUInt32, big_endian_, v);
-    if (v < 0) f_.failAtLine(a.pos, std::string("the DataArray's header gives ") + what + " beyond 2^63");
+    if (!scalarInteger(raw, header_bytes_ == 8 ? Scalar::kUInt64 : Scalar::kUInt32, big_endian_, v)) {
+      f_.failAtLine(a.pos, std::string("the DataArray's header gives ") + what + " beyond 2^63");
+    }
     return static_cast<std::uint64_t>(v);
   }
 
@@ -622,6 +677,10 @@ class XmlReader {
       const std::size_t u = static_cast<std::size_t>(k + 1 == blocks && last != 0 ? last : block);
       packed.resize(static_cast<std::size_t>(sizes[k]));
       if (!b.read(packed.size(), packed.data())) f_.failAtLine(a.pos, "the DataArray's compressed data are truncated or not base64");
+      if (lzma_) {
+        const std::string problem = xzProblem(reinterpret_cast<const unsigned char*>(packed.data()), packed.size());
+        if (!problem.empty()) f_.failAtLine(a.pos, "LZMA block " + std::to_string(k) + " of the DataArray is refused: " + problem);
+      }
       const std::size_t got = compressor_->Uncompress(reinterpret_cast<const unsigned char*>(packed.data()), packed.size(),
                                                       reinterpret_cast<unsigned char*>(out.data() + at), u);
       if (got != u) {
@@ -642,6 +701,7 @@ class XmlReader {
   bool big_endian_ = false;
   std::size_t header_bytes_ = 4;
   vtkSmartPointer<vtkDataCompressor> compressor_;
+  bool lzma_ = false;
   class Silence : public vtkCommand {
    public:
     static Silence* New() { return new Silence; }
