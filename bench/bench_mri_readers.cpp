@@ -14,6 +14,7 @@
 #include <nlohmann/json.hpp>
 #include <omp.h>
 
+#include "bench_mri_util.h"
 #include "bench_util.h"
 #include "breast_sim/core/image/label_image.h"
 #include "breast_sim/core/mri/mri_volume.h"
@@ -94,10 +95,11 @@ int main(int argc, char** argv) {
                     {"itk_over_ours", median(itk) / median(ours)},
                     {"same_voxels", same}});
   }
+  std::printf("(load average when run: %.2f)\n", loadAverage());
   std::filesystem::remove_all(dir);
   if (!json_path.empty())
     std::ofstream(json_path) << nlohmann::json{{"bench", "mri_readers"}, {"repeats", repeats}, {"threads", omp_get_max_threads()},
-                                               {"rows", rows}}
+                                               {"load_average", loadAverage()}, {"rows", rows}}
                                     .dump(2)
                              << '\n';
   return all_same ? 0 : 1;

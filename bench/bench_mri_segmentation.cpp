@@ -7,7 +7,6 @@
 //
 //   bench_mri_segmentation [--phantom FILE] [--size X,Y,Z] [--repeats N] [--sweep] [--json FILE]
 #include <cstdio>
-#include <ctime>
 #include <fstream>
 #include <string>
 #include <vector>
@@ -15,6 +14,7 @@
 #include <nlohmann/json.hpp>
 #include <omp.h>
 
+#include "bench_mri_util.h"
 #include "bench_util.h"
 #include "breast_sim/core/mri/mri_segmentation.h"
 #include "breast_sim/core/mri/segmentation_metrics.h"
@@ -24,24 +24,6 @@ using namespace breast_sim::core;
 using namespace breast_sim::bench;
 
 namespace {
-
-// CPU time of the whole process (all threads) [s]: on a machine shared with other jobs the wall time
-// depends on the load; CPU time / threads is what the run takes on free cores.
-double cpuSeconds() {
-  timespec ts;
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
-  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
-}
-
-// The 1-minute load average (how busy the shared machine was).
-double loadAverage() {
-  double load = 0.0;
-  if (std::FILE* f = std::fopen("/proc/loadavg", "r")) {
-    if (std::fscanf(f, "%lf", &load) != 1) load = 0.0;
-    std::fclose(f);
-  }
-  return load;
-}
 
 struct Case {
   std::string name;

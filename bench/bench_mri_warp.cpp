@@ -7,7 +7,6 @@
 //   bench_mri_warp [--case FILE] [--target-elements N] [--size N] [--repeats N] [--json FILE]
 #include <cmath>
 #include <cstdio>
-#include <ctime>
 #include <fstream>
 #include <string>
 #include <vector>
@@ -15,6 +14,7 @@
 #include <nlohmann/json.hpp>
 #include <omp.h>
 
+#include "bench_mri_util.h"
 #include "bench_util.h"
 #include "breast_sim/core/material/stability_map.h"  // defaultPhantomCasePath
 #include "breast_sim/core/model/model_case.h"
@@ -25,12 +25,6 @@ using namespace breast_sim::core;
 using namespace breast_sim::bench;
 
 namespace {
-
-double cpuSeconds() {
-  timespec ts;
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
-  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
-}
 
 // A supine-like displacement: the breast flattens towards the wall and shifts laterally and up,
 // more the farther it hangs from the wall (y < 0 is anterior) [m].
@@ -116,6 +110,7 @@ int main(int argc, char** argv) {
   const SupineImages fast = resampleToSupine(model.mesh, u, &prone.image, &prone.truth, small);
   const SupineImages slow = resampleToSupineReference(model.mesh, u, &prone.image, &prone.truth, small);
   const bool same = fast.image.values == slow.image.values && fast.labels.labels == slow.labels.labels;
+  std::printf("(wall times; cpu = process CPU time, all threads; load average when run: %.2f)\n", loadAverage());
   std::printf("\nreference on %dx%dx%d: %.3f s against %.4f s (%.0fx), voxels %s\n", small.size.x(), small.size.y(), small.size.z(),
               slow.seconds, fast.seconds, slow.seconds / fast.seconds, same ? "identical" : "DIFFERENT");
   if (!json_path.empty())
@@ -123,6 +118,7 @@ int main(int argc, char** argv) {
                                                {"case", case_path},
                                                {"tetrahedra", model.mesh.numTets()},
                                                {"threads", omp_get_max_threads()},
+                                               {"load_average", loadAverage()},
                                                {"rows", rows},
                                                {"reference", {{"grid", {small.size.x(), small.size.y(), small.size.z()}},
                                                               {"reference_seconds", slow.seconds},

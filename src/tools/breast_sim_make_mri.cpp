@@ -12,6 +12,7 @@
 #include "breast_sim/core/image/label_image.h"
 #include "breast_sim/core/mri/mri_volume.h"
 #include "breast_sim/core/mri/synthetic_mri.h"
+#include "mri_tool_args.h"
 
 using namespace breast_sim::core;
 
@@ -66,30 +67,25 @@ int main(int argc, char** argv) try {
       {"--bias-wavelength-mm", &p.bias_wavelength_mm}, {"--noise-sigma", &p.noise_sigma}, {"--margin-mm", &p.margin_mm},
       {"--thorax-depth-mm", &p.thorax_depth_mm}, {"--intercostal-depth-mm", &p.intercostal_depth_mm},
       {"--rib-spacing-mm", &p.rib_spacing_mm}, {"--rib-radius-mm", &p.rib_radius_mm}, {"--rib-cortex-mm", &p.rib_cortex_mm}};
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    auto value = [&]() -> std::string {
-      if (i + 1 >= argc) throw std::invalid_argument("option " + a + " needs a value\n" + kUsage);
-      return argv[++i];
-    };
-    if (a == "--help" || a == "-h") {
-      std::cout << kUsage;
-      return 0;
-    } else if (a == "--out") out = value();
-    else if (a == "--truth") truth = value();
-    else if (a == "--dicom") dicom = value();
-    else if (a == "--phantom-space") space = value();
-    else if (a == "--size") p.size_voxels = parseSize(value());
-    else if (a == "--seed") p.seed = std::stoull(value());
+  breast_sim::tools::Arguments args(argc, argv, kUsage);
+  while (args.next()) {
+    const std::string& a = args.option();
+    if (args.help()) return 0;
+    if (a == "--out") out = args.value();
+    else if (a == "--truth") truth = args.value();
+    else if (a == "--dicom") dicom = args.value();
+    else if (a == "--phantom-space") space = args.value();
+    else if (a == "--size") p.size_voxels = parseSize(args.value());
+    else if (a == "--seed") p.seed = std::stoull(args.value());
     else if (numbers.count(a)) {
-      const std::string v = value();
+      const std::string v = args.value();
       std::size_t used = 0;
       *numbers[a] = std::stod(v, &used);
       if (used != v.size()) throw std::invalid_argument(a + " needs a number, got '" + v + "'");
-    } else if (!a.empty() && a[0] != '-' && phantom_path.empty()) {
+    } else if (args.positional() && phantom_path.empty()) {
       phantom_path = a;
     } else {
-      throw std::invalid_argument("unknown option " + a + "\n" + kUsage);
+      args.unknown();
     }
   }
   if (phantom_path.empty()) throw std::invalid_argument(std::string("give the PHANTOM label image\n") + kUsage);

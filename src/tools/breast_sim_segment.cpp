@@ -16,6 +16,7 @@
 #include "breast_sim/core/mri/mri_segmentation.h"
 #include "breast_sim/core/mri/mri_volume.h"
 #include "breast_sim/core/mri/segmentation_metrics.h"
+#include "mri_tool_args.h"
 
 using namespace breast_sim::core;
 
@@ -50,24 +51,19 @@ std::string stemOf(const std::string& path) {
 
 int main(int argc, char** argv) try {
   std::string in, out, case_path, series_uid, lesion_labels, png, json_path, truth_path;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    auto value = [&]() -> std::string {
-      if (i + 1 >= argc) throw std::invalid_argument("option " + a + " needs a value\n" + kUsage);
-      return argv[++i];
-    };
-    if (a == "--help" || a == "-h") {
-      std::cout << kUsage;
-      return 0;
-    } else if (a == "--out") out = value();
-    else if (a == "--case") case_path = value();
-    else if (a == "--series-uid") series_uid = value();
-    else if (a == "--lesion-labels") lesion_labels = value();
-    else if (a == "--png") png = value();
-    else if (a == "--json") json_path = value();
-    else if (a == "--truth") truth_path = value();
-    else if (!a.empty() && a[0] != '-' && in.empty()) in = a;
-    else throw std::invalid_argument("unknown option " + a + "\n" + kUsage);
+  breast_sim::tools::Arguments args(argc, argv, kUsage);
+  while (args.next()) {
+    const std::string& a = args.option();
+    if (args.help()) return 0;
+    if (a == "--out") out = args.value();
+    else if (a == "--case") case_path = args.value();
+    else if (a == "--series-uid") series_uid = args.value();
+    else if (a == "--lesion-labels") lesion_labels = args.value();
+    else if (a == "--png") png = args.value();
+    else if (a == "--json") json_path = args.value();
+    else if (a == "--truth") truth_path = args.value();
+    else if (args.positional() && in.empty()) in = a;
+    else args.unknown();
   }
   if (in.empty() || out.empty()) throw std::invalid_argument(std::string("give IN and --out LABELS\n") + kUsage);
   if (png.empty()) png = stemOf(out) + ".png";

@@ -13,6 +13,7 @@
 #include "breast_sim/core/mri/mri_cross_sections.h"
 #include "breast_sim/core/mri/mri_volume.h"
 #include "breast_sim/core/mri/supine_resampling.h"
+#include "mri_tool_args.h"
 
 using namespace breast_sim::core;
 
@@ -49,25 +50,20 @@ Eigen::Vector3d parseTriple(const std::string& text, const std::string& option) 
 int main(int argc, char** argv) try {
   std::string prone_path, deformed_path, out, labels_path, out_labels, png, series_uid;
   SupineResampleOptions options;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    auto value = [&]() -> std::string {
-      if (i + 1 >= argc) throw std::invalid_argument("option " + a + " needs a value\n" + kUsage);
-      return argv[++i];
-    };
-    if (a == "--help" || a == "-h") {
-      std::cout << kUsage;
-      return 0;
-    } else if (a == "--deformed") deformed_path = value();
-    else if (a == "--out") out = value();
-    else if (a == "--labels") labels_path = value();
-    else if (a == "--out-labels") out_labels = value();
-    else if (a == "--png") png = value();
-    else if (a == "--series-uid") series_uid = value();
-    else if (a == "--margin-mm") options.margin_m = std::stod(value()) * 1e-3;
-    else if (a == "--spacing-mm") options.spacing_m = parseTriple(value(), a) * 1e-3;
-    else if (!a.empty() && a[0] != '-' && prone_path.empty()) prone_path = a;
-    else throw std::invalid_argument("unknown option " + a + "\n" + kUsage);
+  breast_sim::tools::Arguments args(argc, argv, kUsage);
+  while (args.next()) {
+    const std::string& a = args.option();
+    if (args.help()) return 0;
+    if (a == "--deformed") deformed_path = args.value();
+    else if (a == "--out") out = args.value();
+    else if (a == "--labels") labels_path = args.value();
+    else if (a == "--out-labels") out_labels = args.value();
+    else if (a == "--png") png = args.value();
+    else if (a == "--series-uid") series_uid = args.value();
+    else if (a == "--margin-mm") options.margin_m = std::stod(args.value()) * 1e-3;
+    else if (a == "--spacing-mm") options.spacing_m = parseTriple(args.value(), a) * 1e-3;
+    else if (args.positional() && prone_path.empty()) prone_path = a;
+    else args.unknown();
   }
   if (prone_path.empty() || deformed_path.empty() || out.empty())
     throw std::invalid_argument(std::string("give PRONE, --deformed MODEL and --out SUPINE\n") + kUsage);

@@ -1,6 +1,6 @@
 // The ITK filters of the MRI segmentation behind plain types (itk_bridge.h). One of the two sources
 // that compile ITK's headers (mri_volume_itk.cpp is the other); it includes no Eigen (see itk_bridge.h).
-#include "itk_bridge.h"
+#include "itk_image.h"
 
 #include <algorithm>
 #include <cmath>
@@ -23,27 +23,6 @@ namespace {
 using FloatImage = itk::Image<float, 3>;
 using MaskImage = itk::Image<std::uint8_t, 3>;
 using LabelImage32 = itk::Image<std::int32_t, 3>;
-
-template <typename ImageType>
-typename ImageType::Pointer makeImage(const Grid& g) {
-  auto out = ImageType::New();
-  typename ImageType::RegionType region;
-  typename ImageType::SpacingType spacing;
-  typename ImageType::PointType origin;
-  typename ImageType::DirectionType direction;
-  for (int d = 0; d < 3; ++d) {
-    region.SetSize(d, static_cast<itk::SizeValueType>(g.size[d]));
-    spacing[d] = g.spacing_mm[d];
-    origin[d] = g.origin_mm[d];
-    for (int r = 0; r < 3; ++r) direction[r][d] = g.direction[3 * r + d];
-  }
-  out->SetRegions(region);
-  out->SetSpacing(spacing);
-  out->SetOrigin(origin);
-  out->SetDirection(direction);
-  out->Allocate();
-  return out;
-}
 
 Grid gridOf(const itk::ImageBase<3>& image) {
   Grid g;

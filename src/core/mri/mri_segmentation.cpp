@@ -90,6 +90,17 @@ std::vector<std::uint8_t> largeComponents(const itk_bridge::Grid& grid, const st
   return out;
 }
 
+// Calls f(index) for each of the (up to six) face neighbours of voxel (i, j, k) inside the grid.
+template <typename F>
+void forEachFaceNeighbour(const ImageGeometry& g, int i, int j, int k, F&& f) {
+  for (int a = 0; a < 3; ++a)
+    for (int d : {-1, 1}) {
+      Eigen::Vector3i q(i, j, k);
+      q[a] += d;
+      if (q[a] >= 0 && q[a] < g.size[a]) f(g.index(q.x(), q.y(), q.z()));
+    }
+}
+
 std::uint16_t firstLabel(const std::set<std::uint16_t>& s) { return *s.begin(); }
 
 }  // namespace
@@ -346,24 +357,14 @@ MriSegmentation segmentProneMri(const ScalarImage& image, const SegmentationSett
   // dense tissue. They take fat unless every tissue voxel behind them (6-neighbours not on the surface)
   // is dense.
   {
-    const auto onSurface = [&](int i, int j, int k) {
-      for (int a = 0; a < 3; ++a)
-        for (int d : {-1, 1}) {
-          Eigen::Vector3i q(i, j, k);
-          q[a] += d;
-          if (q[a] < 0 || q[a] >= g.size[a]) continue;
-          const long w = g.index(q.x(), q.y(), q.z());
-          if (!breast[w] && !wall[w]) return true;
-        }
-      return false;
-    };
     std::vector<std::uint8_t> surface(static_cast<std::size_t>(nvox), 0);
 #pragma omp parallel for schedule(static)
     for (int k = 0; k < g.size.z(); ++k)
       for (int j = 0; j < g.size.y(); ++j)
         for (int i = 0; i < g.size.x(); ++i) {
           const long v = g.index(i, j, k);
-          surface[v] = breast[v] && onSurface(i, j, k);
+          if (!breast[v]) continue;
+          forEachFaceNeighbour(g, i, j, k, [&](long w) { surface[v] = surface[v] || (!breast[w] && !wall[w]); });
         }
     std::vector<std::uint16_t> relabel(labels.labels);
 #pragma omp parallel for schedule(static)
@@ -373,16 +374,11 @@ MriSegmentation segmentProneMri(const ScalarImage& image, const SegmentationSett
           const long v = g.index(i, j, k);
           if (!surface[v] || labels.labels[v] != l_gland) continue;
           bool any_fat = false, any_inner = false;
-          for (int a = 0; a < 3; ++a)
-            for (int d : {-1, 1}) {
-              Eigen::Vector3i q(i, j, k);
-              q[a] += d;
-              if (q[a] < 0 || q[a] >= g.size[a]) continue;
-              const long w = g.index(q.x(), q.y(), q.z());
-              if (!breast[w] || surface[w]) continue;
-              any_inner = true;
-              any_fat = any_fat || labels.labels[w] == l_fat;
-            }
+          forEachFaceNeighbour(g, i, j, k, [&](long w) {
+            if (!breast[w] || surface[w]) return;
+            any_inner = true;
+            any_fat = any_fat || labels.labels[w] == l_fat;
+          });
           if (any_fat || !any_inner) relabel[v] = l_fat;
         }
     labels.labels.swap(relabel);

@@ -3,7 +3,7 @@
 // itk_bridge.h). Each format's ImageIO is created here by name rather than through ITK's factory, so
 // only the four formats of the contract are accepted: ITK would otherwise read a PNG or a JPEG as a
 // 2-D "MRI". Headers are read and checked before any voxel is allocated.
-#include "itk_bridge.h"
+#include "itk_image.h"
 
 #include <algorithm>
 #include <array>
@@ -333,27 +333,6 @@ Volume readDicomSeries(const std::string& folder, std::string uid, long max_voxe
   out.series_description = description;
   out.files = n;
   out.pixel_type = itk::ImageIOBase::GetComponentTypeAsString(io->GetComponentType());
-  return out;
-}
-
-template <typename ImageType>
-typename ImageType::Pointer makeImage(const Grid& g) {
-  auto out = ImageType::New();
-  typename ImageType::RegionType region;
-  typename ImageType::SpacingType spacing;
-  typename ImageType::PointType origin;
-  typename ImageType::DirectionType direction;
-  for (int d = 0; d < 3; ++d) {
-    region.SetSize(d, static_cast<itk::SizeValueType>(g.size[d]));
-    spacing[d] = g.spacing_mm[d];
-    origin[d] = g.origin_mm[d];
-    for (int r = 0; r < 3; ++r) direction[r][d] = g.direction[3 * r + d];
-  }
-  out->SetRegions(region);
-  out->SetSpacing(spacing);
-  out->SetOrigin(origin);
-  out->SetDirection(direction);
-  out->Allocate();
   return out;
 }
 
