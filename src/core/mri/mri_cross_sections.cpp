@@ -5,12 +5,15 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <memory>
 #include <stdexcept>
 
 #include <Eigen/Geometry>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+
+#include "label_lookup.h"
 
 namespace breast_sim::core {
 
@@ -137,6 +140,13 @@ void writeMriCrossSections(const std::string& png_path, const std::vector<MriSec
     const auto [lo, hi] = window(row.image->values);
     const int y0 = static_cast<int>(r) * row_h;
     cv::putText(img, row.title, {gap, y0 + 20}, cv::FONT_HERSHEY_SIMPLEX, 0.6, {0, 0, 0}, 1, cv::LINE_AA);
+    std::vector<int> class_of;
+    std::unique_ptr<LabelLookup> label_at;
+    if (row.labels) {
+      class_of.resize(65536);
+      for (int l = 0; l < 65536; ++l) class_of[l] = static_cast<int>(row.label_map.classify(static_cast<std::uint16_t>(l)));
+      label_at = std::make_unique<LabelLookup>(*row.labels);
+    }
     int x0 = gap;
     for (int v = 0; v < 3; ++v) {
       const View& view = kViews[v];
@@ -150,7 +160,7 @@ void writeMriCrossSections(const std::string& png_path, const std::vector<MriSec
           const double g = std::clamp((sampleOrZero(*row.image, p) - lo) / (hi - lo), 0.0, 1.0);
           const auto grey = static_cast<unsigned char>(std::lround(255.0 * g));
           img.at<cv::Vec3b>(y0 + title_h + y, x0 + x) = cv::Vec3b(grey, grey, grey);
-          if (row.labels) cls[static_cast<std::size_t>(y) * w + x] = static_cast<int>(row.label_map.classify(row.labels->labelAt(p, 0)));
+          if (row.labels) cls[static_cast<std::size_t>(y) * w + x] = class_of[(*label_at)(p)];
         }
       if (row.labels) {
         for (int y = 0; y < h; ++y)

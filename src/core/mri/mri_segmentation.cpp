@@ -11,6 +11,7 @@
 #include "breast_sim/core/mri/mri_volume.h"
 #include "chest_wall_boundary.h"
 #include "grid_conversion.h"
+#include "label_lookup.h"
 
 namespace breast_sim::core {
 
@@ -415,12 +416,13 @@ MriSegmentation segmentProneMri(const ScalarImage& image, const SegmentationSett
   if (lesions.label_image.size.prod() > 0) {
     const LabelImage& li = lesions.label_image;
     li.validate();
+    const LabelLookup label_at(li);
     long inside = 0, outside = 0;
     for (int k = 0; k < g.size.z(); ++k)
       for (int j = 0; j < g.size.y(); ++j)
         for (int i = 0; i < g.size.x(); ++i) {
           const long v = g.index(i, j, k);
-          if (li.labelAt(g.indexToPhysical(Eigen::Vector3d(i, j, k)), 0) == 0) continue;
+          if (label_at(g.indexToPhysical(Eigen::Vector3d(i, j, k))) == 0) continue;
           if (breast[v]) labels.labels[v] = l_lesion, ++inside;
           else ++outside;
         }

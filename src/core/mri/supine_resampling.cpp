@@ -11,6 +11,7 @@
 #include <Eigen/Dense>
 
 #include "breast_sim/core/mri/mri_volume.h"
+#include "label_lookup.h"
 
 namespace breast_sim::core {
 
@@ -89,21 +90,23 @@ struct Writer {
   const LabelImage* labels;
   SupineImages& out;
   std::vector<std::uint8_t> wall;  // per label value: 1 for the chest wall (a table: set lookups per voxel cost)
+  LabelImage none;
+  LabelLookup label_at;
 
   Writer(const TetMesh& m, const ScalarImage* i, const LabelImage* l, SupineImages& o, const TissueLabels& map)
-      : mesh(m), image(i), labels(l), out(o), wall(65536, 0) {
+      : mesh(m), image(i), labels(l), out(o), wall(65536, 0), label_at(l ? *l : none) {
     for (std::uint16_t v : map.chest_wall) wall[v] = 1;
   }
   void body(long v, int t, const Eigen::Vector4d& lambda) const {
     Eigen::Vector3d x = Eigen::Vector3d::Zero();
     for (int a = 0; a < 4; ++a) x += lambda[a] * mesh.nodes().row(mesh.tets()(t, a)).transpose();
     if (image) out.image.values[v] = static_cast<float>(sampleTrilinear(*image, x));
-    if (labels) out.labels.labels[v] = labels->labelAt(x, 0);
+    if (labels) out.labels.labels[v] = label_at(x);
   }
   // Outside the deformed body: the chest wall stays where it is; the rest is air.
   void outside(long v, const Eigen::Vector3d& y) const {
     if (!labels) return;
-    const std::uint16_t l = labels->labelAt(y, 0);
+    const std::uint16_t l = label_at(y);
     if (!wall[l]) return;
     out.labels.labels[v] = l;
     if (image && insideGrid(image->geometry, y)) out.image.values[v] = static_cast<float>(sampleTrilinear(*image, y));

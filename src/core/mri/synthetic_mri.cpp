@@ -10,6 +10,7 @@
 #include <Eigen/Geometry>
 
 #include "breast_sim/core/mri/mri_volume.h"
+#include "label_lookup.h"
 
 namespace breast_sim::core {
 
@@ -211,6 +212,10 @@ SyntheticMri renderSyntheticT1(const LabelImage& phantom, const TissueLabels& la
     fine_grid = alignedGrid(out_lo - pad, out_hi + pad, fine_h, phantom, Eigen::Vector3i::Zero());
   }
   checkSize(fine_grid, "rendering grid");
+  // The signal of each label value (a table: the label sets are searched once, not per voxel).
+  std::vector<float> signal_of(65536);
+  for (int l = 0; l < 65536; ++l) signal_of[l] = static_cast<float>(tissueSignal(labels.classify(static_cast<std::uint16_t>(l)), sig));
+  const LabelLookup label_at(phantom);
   ScalarImage fine;
   fine.geometry = fine_grid;
   fine.values.resize(static_cast<std::size_t>(fine_grid.numVoxels()));
@@ -219,7 +224,7 @@ SyntheticMri renderSyntheticT1(const LabelImage& phantom, const TissueLabels& la
     for (int j = 0; j < fine_grid.size.y(); ++j)
       for (int i = 0; i < fine_grid.size.x(); ++i) {
         const Eigen::Vector3d p = fine_grid.indexToPhysical(Eigen::Vector3d(i, j, k));
-        const double s = thorax.contains(p) ? thorax.signal(p, sig) : tissueSignal(labels.classify(phantom.labelAt(p, 0)), sig);
+        const double s = thorax.contains(p) ? thorax.signal(p, sig) : signal_of[label_at(p)];
         fine.values[fine_grid.index(i, j, k)] = static_cast<float>(s);
       }
   if (sigma_psf > 0) fine = gaussianFilter(fine, sigma_psf);
@@ -260,7 +265,7 @@ SyntheticMri renderSyntheticT1(const LabelImage& phantom, const TissueLabels& la
         for (const Wave& w : waves) s += w.amplitude * std::cos(w.k.dot(p - centre) + w.phase);
         f[v] = s;
         f_max = std::max(f_max, std::abs(s));
-        out.truth.labels[v] = thorax.contains(p) ? wall_label : phantom.labelAt(p, 0);
+        out.truth.labels[v] = thorax.contains(p) ? wall_label : label_at(p);
       }
   const double scale = f_max > 0 ? params.bias_amplitude / f_max : 0.0;
   const double sigma = params.noise_sigma;
