@@ -2,12 +2,15 @@
 // whose contrast, bias, noise and blur differ from the image the defaults were set on; the chest-wall
 // field the sliding stage builds from it; lesions; the settings map; and the errors.
 #include <cmath>
+#include <fstream>
 #include <functional>
+#include <sstream>
 #include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
 #include <omp.h>
+#include <yaml-cpp/yaml.h>
 
 #include "breast_sim/core/mri/mri_segmentation.h"
 #include "breast_sim/core/mri/segmentation_metrics.h"
@@ -196,6 +199,40 @@ TEST(MriSegmentation, ImagesThatAreNoProneBreastMriAreClearErrors) {
   oblique.geometry.direction = q * r;
   m = messageOf([&] { segmentProneMri(oblique); });
   EXPECT_NE(m.find("no grid axis of the image is within 45 deg of the anterior direction"), std::string::npos) << m;
+}
+
+TEST(SegmentationSettings, TheDocumentedMapHoldsEveryKeyWithTheCodesDefault) {
+  // docs/mri.md lists the `segmentation:` map with every key at its default.
+  std::ifstream in(std::string(BREAST_SIM_TEST_DATA_DIR) + "/../../docs/mri.md");
+  std::stringstream doc;
+  doc << in.rdbuf();
+  const std::string text = doc.str();
+  const std::size_t start = text.find("```yaml\nsegmentation:\n");
+  ASSERT_NE(start, std::string::npos) << "docs/mri.md has no ```yaml block starting with segmentation:";
+  const std::size_t end = text.find("```", start + 8);
+  ASSERT_NE(end, std::string::npos);
+  const std::string block = text.substr(start + 8, end - start - 8);
+  TempDir dir("breast_sim_segmentation_doc");
+  const SegmentationSettings documented = loadSegmentationSettings(dir.write("doc.yaml", block));
+  const SegmentationSettings code;
+  EXPECT_EQ(documented.prone_gravity_direction, code.prone_gravity_direction);
+  EXPECT_EQ(documented.bias_correction, code.bias_correction);
+  EXPECT_EQ(documented.n4_shrink_factor, code.n4_shrink_factor);
+  EXPECT_EQ(documented.n4_fitting_levels, code.n4_fitting_levels);
+  EXPECT_EQ(documented.n4_iterations, code.n4_iterations);
+  EXPECT_EQ(documented.n4_spline_distance_mm, code.n4_spline_distance_mm);
+  EXPECT_EQ(documented.smoothing_sigma_mm, code.smoothing_sigma_mm);
+  EXPECT_EQ(documented.body_threshold, code.body_threshold);
+  EXPECT_EQ(documented.min_fat_component_share, code.min_fat_component_share);
+  EXPECT_EQ(documented.chest_wall_min_thickness_mm, code.chest_wall_min_thickness_mm);
+  EXPECT_EQ(documented.boundary_median_window_mm, code.boundary_median_window_mm);
+  EXPECT_EQ(documented.boundary_smoothing_mm, code.boundary_smoothing_mm);
+  EXPECT_EQ(documented.boundary_outlier_mm, code.boundary_outlier_mm);
+  EXPECT_EQ(documented.min_boundary_coverage, code.min_boundary_coverage);
+  EXPECT_EQ(documented.min_component_share, code.min_component_share);
+  EXPECT_EQ(documented.skin_thickness_mm, code.skin_thickness_mm);
+  // Every key the reader takes is in the block (the reader refuses any other).
+  EXPECT_EQ(YAML::Load(block)["segmentation"].size(), 16u);
 }
 
 TEST(SegmentationSettings, TheCaseFileMapIsReadAndCheckedKeyByKey) {
