@@ -61,8 +61,9 @@ struct MriVolume {
 MriVolume readMriVolume(const std::string& path, const MriReadOptions& options = {});
 
 /// Writes an intensity volume as float: `.nii`, `.nii.gz` (NIfTI-1, RAS on disk as ITK writes it),
-/// `.nrrd` (gzip, LPS), `.mha` or `.mhd`. The file is written to a temporary name beside it and then
-/// renamed, so a reader never sees half a file.
+/// `.nrrd` (gzip, LPS) or `.mha` (compressed): single files, written to a temporary name beside the
+/// target and then renamed, so a reader never sees half a file (two-file formats, `.nhdr` and `.mhd`,
+/// cannot be renamed as one and are not written).
 /// @throws std::invalid_argument for an invalid image (geometry, value count);
 ///         std::runtime_error naming the file for an unknown extension or a write error.
 void writeMriVolume(const std::string& path, const ScalarImage& image);
