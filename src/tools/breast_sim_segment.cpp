@@ -94,10 +94,10 @@ int main(int argc, char** argv) try {
   std::printf("%s (%s%s): %d x %d x %d voxels of %.2f x %.2f x %.2f mm, read in %.2f s\n", in.c_str(), mri.info.format.c_str(),
               mri.info.series_uid.empty() ? "" : (", series " + mri.info.series_uid).c_str(), g.size.x(), g.size.y(), g.size.z(),
               1e3 * g.spacing_m.x(), 1e3 * g.spacing_m.y(), 1e3 * g.spacing_m.z(), read_s);
-  std::printf("segmented in %.2f s (bias %.2f, tissue %.2f, chest wall %.2f, labels %.2f): fat level %.0f, body threshold "
-              "%.0f, fat threshold %.0f, bias field %.2f-%.2f\n",
+  std::printf("segmented in %.2f s (bias %.2f, tissue %.2f, chest wall %.2f, labels %.2f): fat level %.0f, background %.0f "
+              "+- %.0f, body threshold %.0f, fat threshold %.0f, bias field %.2f-%.2f\n",
               r.seconds_total, r.seconds_bias, r.seconds_tissue, r.seconds_boundary, r.seconds_labels, r.fat_level,
-              r.body_threshold, r.fat_threshold, r.bias_min, r.bias_max);
+              r.noise_level, r.noise_spread, r.body_threshold, r.fat_threshold, r.bias_min, r.bias_max);
   std::printf("chest wall: %d of %d breast columns measured (%.0f %%), %d candidates rejected by the fit\n", r.measured_columns,
               r.breast_columns, 100.0 * r.boundary_coverage, r.rejected_candidates);
   const char* names[6] = {"air", "fat", "fibroglandular", "skin", "lesion", "chest_wall"};
@@ -120,7 +120,8 @@ int main(int argc, char** argv) try {
   nlohmann::json volumes;
   for (int c = 1; c < 6; ++c) volumes[names[c]] = r.volume_ml[c];
   j["volumes_ml"] = volumes;
-  j["levels"] = {{"fat_level", r.fat_level}, {"body_threshold", r.body_threshold}, {"fat_threshold", r.fat_threshold},
+  j["levels"] = {{"fat_level", r.fat_level}, {"background_level", r.noise_level}, {"background_spread", r.noise_spread},
+                 {"body_threshold", r.body_threshold}, {"fat_threshold", r.fat_threshold},
                  {"bias_min", r.bias_min}, {"bias_max", r.bias_max}};
   nlohmann::json nipple_list = nlohmann::json::array();
   for (const Eigen::Vector3d& n : r.nipples_m) nipple_list.push_back({1e3 * n.x(), 1e3 * n.y(), 1e3 * n.z()});

@@ -223,6 +223,7 @@ TEST(SegmentationSettings, TheDocumentedMapHoldsEveryKeyWithTheCodesDefault) {
   EXPECT_EQ(documented.n4_spline_distance_mm, code.n4_spline_distance_mm);
   EXPECT_EQ(documented.smoothing_sigma_mm, code.smoothing_sigma_mm);
   EXPECT_EQ(documented.body_threshold, code.body_threshold);
+  EXPECT_EQ(documented.body_noise_margin, code.body_noise_margin);
   EXPECT_EQ(documented.min_fat_component_share, code.min_fat_component_share);
   EXPECT_EQ(documented.chest_wall_min_thickness_mm, code.chest_wall_min_thickness_mm);
   EXPECT_EQ(documented.boundary_median_window_mm, code.boundary_median_window_mm);
@@ -232,7 +233,7 @@ TEST(SegmentationSettings, TheDocumentedMapHoldsEveryKeyWithTheCodesDefault) {
   EXPECT_EQ(documented.min_component_share, code.min_component_share);
   EXPECT_EQ(documented.skin_thickness_mm, code.skin_thickness_mm);
   // Every key the reader takes is in the block (the reader refuses any other).
-  EXPECT_EQ(YAML::Load(block)["segmentation"].size(), 16u);
+  EXPECT_EQ(YAML::Load(block)["segmentation"].size(), 17u);
 }
 
 TEST(SegmentationSettings, TheCaseFileMapIsReadAndCheckedKeyByKey) {

@@ -198,6 +198,30 @@ MriSegmentation segmentProneMri(const ScalarImage& image, const SegmentationSett
   const double F = fat_sample[fat_sample.size() / 2];
   report.fat_level = F;
   report.body_threshold = settings.body_threshold * F;
+  // The background (air and lung: Rician noise) must stay below the body threshold: its level is the
+  // most frequent value below the threshold, its spread that of the values below that level (the
+  // noise's lower flank, which no tissue reaches), and the threshold rises to the level plus
+  // body_noise_margin spreads when the noise is strong.
+  {
+    constexpr int kBins = 400;
+    std::vector<long> histogram(kBins, 0);
+    const double width = report.body_threshold / kBins;
+    for (long v = 0; v < nvox; v += std::max(1L, nvox / 4000000))
+      if (I[v] >= 0 && I[v] < report.body_threshold) ++histogram[std::min(kBins - 1, static_cast<int>(I[v] / width))];
+    const int mode = static_cast<int>(std::max_element(histogram.begin(), histogram.end()) - histogram.begin());
+    const double level = (mode + 0.5) * width;
+    double sum = 0.0;
+    long count = 0;
+    for (int b = 0; b < mode; ++b) {
+      const double d = level - (b + 0.5) * width;
+      sum += histogram[b] * d * d;
+      count += histogram[b];
+    }
+    const double spread = count ? std::sqrt(sum / count) : 0.0;
+    report.noise_level = level;
+    report.noise_spread = spread;
+    report.body_threshold = std::max(report.body_threshold, level + settings.body_noise_margin * spread);
+  }
   const std::vector<std::uint8_t> body = above(I, report.body_threshold);
   double t_fat = itk_bridge::otsuThreshold(grid, I, body);
   if (!(t_fat > report.body_threshold && t_fat < F)) t_fat = 0.5 * (report.body_threshold + F);

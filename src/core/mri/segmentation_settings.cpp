@@ -30,6 +30,8 @@ void SegmentationSettings::validate() const {
         "[10, 1000] mm");
   check(smoothing_sigma_mm >= 0 && smoothing_sigma_mm <= 10, "smoothing_sigma_mm", smoothing_sigma_mm, "[0, 10] mm");
   check(body_threshold > 0 && body_threshold < 1, "body_threshold", body_threshold, "(0, 1), a share of the fat level");
+  check(body_noise_margin >= 0 && body_noise_margin <= 100, "body_noise_margin", body_noise_margin,
+        "[0, 100] spreads of the background noise");
   check(min_fat_component_share >= 0 && min_fat_component_share <= 1, "min_fat_component_share", min_fat_component_share,
         "[0, 1]");
   check(chest_wall_min_thickness_mm >= 0.5 && chest_wall_min_thickness_mm <= 100, "chest_wall_min_thickness_mm",
@@ -54,7 +56,7 @@ SegmentationSettings loadSegmentationSettings(const std::string& yaml_path) {
   if (!m.IsMap()) fail(f, "segmentation", "expected a map of settings");
   checkKeys(m,
             {"prone_gravity_direction", "bias_correction", "n4_shrink_factor", "n4_fitting_levels", "n4_iterations",
-             "n4_spline_distance_mm", "smoothing_sigma_mm", "body_threshold",
+             "n4_spline_distance_mm", "smoothing_sigma_mm", "body_threshold", "body_noise_margin",
              "min_fat_component_share", "chest_wall_min_thickness_mm", "boundary_median_window_mm",
              "boundary_smoothing_mm", "boundary_outlier_mm", "min_boundary_coverage", "min_component_share",
              "skin_thickness_mm"},
@@ -74,6 +76,7 @@ SegmentationSettings loadSegmentationSettings(const std::string& yaml_path) {
   if (m["smoothing_sigma_mm"])
     s.smoothing_sigma_mm = numberIn(m["smoothing_sigma_mm"], f, key("smoothing_sigma_mm"), 0, 10, false, false, "mm");
   if (m["body_threshold"]) s.body_threshold = numberIn(m["body_threshold"], f, key("body_threshold"), 0, 1, true, true);
+  if (m["body_noise_margin"]) s.body_noise_margin = numberIn(m["body_noise_margin"], f, key("body_noise_margin"), 0, 100);
   if (m["min_fat_component_share"])
     s.min_fat_component_share = numberIn(m["min_fat_component_share"], f, key("min_fat_component_share"), 0, 1);
   if (m["chest_wall_min_thickness_mm"])

@@ -10,8 +10,10 @@
 ///  1. N4 bias correction [Tustison 2010] (ITK) on the image shrunk by n4_shrink_factor, within its
 ///     voxels above Otsu's threshold; a light Gaussian smoothing against noise.
 ///  2. The fat level F: the median of the voxels brighter than 0.6 × the 99.5th percentile (fat is the
-///     brightest tissue of a T1 breast image). Body: voxels ≥ body_threshold × F. Fat against dense
-///     tissue: Otsu's threshold (ITK) within the body.
+///     brightest tissue of a T1 breast image). Body: voxels ≥ body_threshold × F, and at least
+///     body_noise_margin spreads above the background's noise (its most frequent value below that,
+///     the spread from the values below it). Fat against dense tissue: Otsu's threshold (ITK) within
+///     the body.
 ///  3. Breast fat: the connected components (ITK) of the fat mask with at least
 ///     min_fat_component_share of the largest's voxels. Fat behind the chest wall (rib marrow) is not
 ///     connected to it.
@@ -59,7 +61,9 @@ struct SegmentationSettings {
   int n4_iterations = 50;               ///< iterations per level at most, in [1, 1000]
   double n4_spline_distance_mm = 100.0; ///< control-point spacing of the first level [mm], in [10, 1000]
   double smoothing_sigma_mm = 0.6;      ///< Gaussian against noise before the thresholds [mm]; 0 = none
-  double body_threshold = 0.2;          ///< body: voxels ≥ this × the fat level, in (0, 1)
+  double body_threshold = 0.2;          ///< body: voxels ≥ this × the fat level, in (0, 1) ...
+  /// ... and at least this many spreads of the background's noise above its level, in [0, 100]
+  double body_noise_margin = 6.0;
   double min_fat_component_share = 0.1; ///< fat components of at least this share of the largest are breast fat
   double chest_wall_min_thickness_mm = 5.0;  ///< a chest wall is at least this deep behind the breast [mm]
   double boundary_median_window_mm = 30.0;   ///< robust first fit: median over this square of columns [mm]
@@ -111,6 +115,8 @@ struct ChestWallBoundary {
 struct SegmentationReport {
   double fat_level = 0.0;         ///< F, in bias-corrected image units
   double body_threshold = 0.0;    ///< absolute, same units
+  double noise_level = 0.0;       ///< the background's most frequent value (air, lung), same units
+  double noise_spread = 0.0;      ///< the spread of the background below that level, same units
   double fat_threshold = 0.0;     ///< Otsu within the breast, same units
   double bias_min = 1.0, bias_max = 1.0;  ///< range of the estimated bias field within the body
   int breast_columns = 0;         ///< columns holding breast fat
