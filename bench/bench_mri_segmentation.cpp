@@ -48,7 +48,7 @@ std::vector<Case> sweepCases() {
   for (double a : {0.0, 0.4, 0.6, 0.8, 1.0})
     add("bias " + std::to_string(a).substr(0, 4), [a](SyntheticMriParams& p) { p.bias_amplitude = a; });
   add("bias wavelength 100 mm", [](SyntheticMriParams& p) { p.bias_wavelength_mm = 100; });
-  for (double n : {5.0, 40.0, 60.0, 80.0, 120.0, 160.0})
+  for (double n : {5.0, 40.0, 60.0, 80.0, 100.0, 120.0, 140.0, 160.0})
     add("noise " + std::to_string(int(n)), [n](SyntheticMriParams& p) { p.noise_sigma = n; });
   for (double b : {0.0, 2.0, 3.0, 4.0})
     add("blur " + std::to_string(b).substr(0, 3) + " mm", [b](SyntheticMriParams& p) { p.blur_fwhm_mm = b; });
@@ -59,6 +59,8 @@ std::vector<Case> sweepCases() {
   add("muscle brighter than gland, noisy", [](SyntheticMriParams& p) {
     p.signal.muscle = 500, p.signal.fibroglandular = 350, p.noise_sigma = 45;
   });
+  add("dark muscle, noise 60", [](SyntheticMriParams& p) { p.signal.muscle = 240, p.noise_sigma = 60; });
+  add("dark muscle, noise 100", [](SyntheticMriParams& p) { p.signal.muscle = 240, p.noise_sigma = 100; });
   add("low contrast, blur, bias", [](SyntheticMriParams& p) {
     p.signal.fibroglandular = 600, p.signal.muscle = 450, p.blur_fwhm_mm = 2.0, p.bias_amplitude = 0.35, p.noise_sigma = 35;
   });

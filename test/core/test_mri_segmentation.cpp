@@ -61,10 +61,10 @@ TEST(MriSegmentation, MeetsTheTargetsOnImagesItWasNotTunedOn) {
        [](SyntheticMriParams& p) {
          p.signal.fibroglandular = 560, p.signal.muscle = 470, p.bias_amplitude = 0.45, p.noise_sigma = 40;
        }},
-      {"faint gland, dark muscle, 2 mm blur, short bias wavelength",
+      {"faint gland, dark muscle, 2 mm blur, short bias wavelength, strong noise",
        [](SyntheticMriParams& p) {
          p.signal.fibroglandular = 320, p.signal.muscle = 240, p.blur_fwhm_mm = 2.0, p.bias_wavelength_mm = 120,
-         p.bias_amplitude = 0.3, p.noise_sigma = 30;
+         p.bias_amplitude = 0.3, p.noise_sigma = 60;
        }},
       {"bright skin, little noise, sharp, no ribs",
        [](SyntheticMriParams& p) {
