@@ -97,6 +97,7 @@ struct Element {
   std::size_t pos = 0;            // of its '<'
   std::size_t content_begin = 0;  // its text: after the start tag ...
   std::size_t content_end = 0;    // ... to its end tag
+  std::size_t end = 0;            // after its end tag
 
   const std::string* attribute(const char* key) const {
     for (const auto& [k, v] : attributes)
@@ -186,8 +187,9 @@ class XmlReader {
                                (open.empty() ? std::string("any element") : "<" + elements_[open.back()].name + ">"));
         }
         elements_[open.back()].content_end = p;
-        open.pop_back();
         p = skipPast(q, ">", "an end tag");
+        elements_[open.back()].end = p;
+        open.pop_back();
         if (open.empty()) root_done = true;
       } else {
         if (root_done) f_.failAtLine(p, "a second root element");
@@ -211,7 +213,7 @@ class XmlReader {
           break;
         }
         if (self_closing_) {
-          elements_[e].content_end = elements_[e].content_begin;
+          elements_[e].content_end = elements_[e].end = elements_[e].content_begin;
           if (open.empty()) root_done = true;
         } else {
           open.push_back(e);
@@ -511,9 +513,29 @@ class XmlReader {
     return *f;
   }
 
+  /// The text of an element. Child elements (VTK writes an <InformationKey> into a DataArray that
+  /// carries information) are left out; `direct` says whether the text is d_'s own range
+  /// [content_begin, content_end), so that positions in it name lines.
+  std::string_view text(const Element& a, std::string& storage, bool& direct) const {
+    direct = a.children.empty();
+    if (direct) return std::string_view(d_.data() + a.content_begin, a.content_end - a.content_begin);
+    storage.clear();
+    std::size_t p = a.content_begin;
+    for (int c : a.children) {
+      storage.append(d_, p, elements_[c].pos - p);
+      p = elements_[c].end;
+    }
+    storage.append(d_, p, a.content_end - p);
+    return storage;
+  }
+
   template <typename Add>
   void ascii(const Element& a, long long count, Add add) {
-    const std::size_t begin = a.content_begin, end = a.content_end;
+    std::string storage;
+    bool direct = true;
+    const std::string_view t = text(a, storage, direct);
+    const char* base = t.data();
+    const std::size_t begin = 0, end = t.size();
     if (count >= 0) {
       // A digit and a separator per value, checked before the values are kept.
       const std::size_t most = (end - begin + 1) / 2;
@@ -525,11 +547,11 @@ class XmlReader {
     std::size_t p = begin;
     long long got = 0;
     while (count < 0 || got < count) {
-      while (p < end && isSpace(d_[p])) ++p;
+      while (p < end && isSpace(base[p])) ++p;
       if (p >= end) break;
       std::size_t q = p;
-      while (q < end && !isSpace(d_[q])) ++q;
-      add(std::string_view(d_.data() + p, q - p), p);
+      while (q < end && !isSpace(base[q])) ++q;
+      add(std::string_view(base + p, q - p), direct ? a.content_begin + p : a.pos);
       ++got;
       p = q;
     }
@@ -607,7 +629,12 @@ class XmlReader {
   /// header says when count is −1.
   std::string binary(const Element& a, Scalar type, long long count) {
     const std::size_t size = scalarBytes(type);
-    std::size_t begin = a.content_begin, end = a.content_end;
+    std::string storage;
+    bool direct = true;
+    const std::string_view inline_text = text(a, storage, direct);
+    const std::string* source = direct ? &d_ : &storage;
+    std::size_t begin = direct ? a.content_begin : 0;
+    std::size_t end = begin + inline_text.size();
     bool base64 = true;
     if (format(a) == "appended") {
       if (appended_ == 0) f_.failAtLine(a.pos, "an appended DataArray but no <AppendedData>");
@@ -617,11 +644,12 @@ class XmlReader {
         f_.failAtLine(a.pos, "the DataArray's offset is " + (offset ? "'" + offset->substr(0, 40) + "'" : std::string("missing")) +
                                  "; expected 0 to " + std::to_string(d_.size() - appended_) + " (the appended data's size)");
       }
+      source = &d_;
       begin = appended_ + static_cast<std::size_t>(o);
       end = d_.size();
       base64 = appended_base64_;
     }
-    Bytes b(d_, begin, end, base64);
+    Bytes b(*source, begin, end, base64);
     const std::string want = count < 0 ? std::string("as many as its header says")
                                        : std::to_string(count) + " values of " + std::to_string(size) + " bytes";
     std::string out;

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Writes the VTK files of test_mesh_io's VtkFilesOfEveryWriterVariantReadTheSame: one small grid
 (a triangle and three tetrahedra on five points; cell arrays region and a 2-component field with
-component names; point arrays of several types: short scalars, float vectors, vtkIdType, bits,
+component names and an information key; point arrays of several types: short scalars, float vectors, vtkIdType, bits,
 strings, int64, a node set) written by VTK's own writers in every variant a reader meets: legacy
 file versions 4.2 and 5.1, ASCII and binary; XML ascii, inline base64 and appended raw or base64
 data, uncompressed or zlib, LZ4 and LZMA blocks (64-byte blocks, so arrays span several), UInt32
@@ -39,6 +39,7 @@ def grid():
     stress = array(vtk.vtkDoubleArray, "von_mises_pa", [0, 0, 1, 10, 2, 20, 3, 30], 2)
     stress.SetComponentName(0, "a")
     stress.SetComponentName(1, "b")
+    stress.GetInformation().Set(vtk.vtkAbstractArray.GUI_HIDE(), 1)  # written as METADATA / InformationKey
     g.GetCellData().AddArray(stress)
     g.GetPointData().AddArray(array(vtk.vtkUnsignedCharArray, "nodeset_skin", [0, 1, 1, 1, 0]))
     g.GetPointData().SetVectors(array(vtk.vtkFloatArray, "displacement_mm",
