@@ -3,6 +3,8 @@
 /// Average-nodal-pressure (ANP) linear tetrahedra [Bonet & Burton 1998; Joldes, Wittek & Miller
 /// 2009, the element NiftySim uses for breast work]: linear tetrahedra without volumetric locking.
 
+#include <memory>
+#include <mutex>
 #include <vector>
 
 #include "breast_sim/core/fem/block_pattern.h"
@@ -69,7 +71,8 @@ class AnpTetFem : public ElementFormulation {
   void update(const Points& x, Eigen::VectorXd& f) override;
   void addStiffness(double scale, SparseMatrix& A) const override;
   void assignStiffness(double scale, SparseMatrix& A) const override;
-  const BlockPattern& pattern() const override { return wide_; }
+  /// The two-ring pattern, built on first use (a split run never needs it).
+  const BlockPattern& pattern() const override { return wide().pattern; }
   const BlockPattern* compactPattern() const override { return &star_; }
   void assignCompactStiffness(double scale, SparseMatrix& A) const override;
   RankOneSum rankOneStiffness() const override;
@@ -106,7 +109,6 @@ class AnpTetFem : public ElementFormulation {
   CorotatedTetFem deviatoric_;  // Ψ_dev on the one-ring pattern
   // The one-ring pattern (deviatoric_'s): node n's star is its neighbour list here.
   const BlockPattern& star_ = deviatoric_.pattern();
-  BlockPattern wide_;           // the two-ring pattern of the whole stiffness
   Tets tets_;
   double kappa_;
   double beta_ = 0.0;                // element volume fraction
@@ -125,11 +127,18 @@ class AnpTetFem : public ElementFormulation {
   std::vector<double> b_;             // 3 per star_ entry (n, slot q): the block q of b_n [1/m]
   std::vector<int> own_slot_;         // per star_ entry (a, k): a's slot in the star of neighbour(k)
   std::vector<int> own_entry_;        // … and that slot's star_ entry: neighbourStart(neighbour(k)) + own_slot_[k]
-  std::vector<int> narrow_to_wide_;   // per star_ entry (a, k): the two-ring slot of neighbour(k) in a's rows
-  mutable SparseMatrix narrow_;       // K_c for the whole stiffness (assignStiffness), one-ring pattern
-  std::vector<int> wide_offset_;      // per star_ entry (a, k) + 1: start in wide_slot_
-  std::vector<int> wide_slot_;        // for entry (a, k), n = neighbour(k): the two-ring slots in
-                                      // a's rows of n's star nodes, in n's star order
+  // What the assembled two-ring stiffness needs (pattern(), assignStiffness, addStiffness), built
+  // on first use: the pattern; per star_ entry (a, k) the two-ring slot of neighbour(k) in a's
+  // rows, and from wide_offset[k] the two-ring slots in a's rows of neighbour(k)'s star nodes; K_c
+  // on the one-ring pattern, moved into the two-ring rows.
+  struct Wide {
+    BlockPattern pattern;
+    std::vector<int> narrow_to_wide, wide_offset, wide_slot;
+    mutable SparseMatrix narrow;
+  };
+  const Wide& wide() const;
+  mutable std::unique_ptr<Wide> wide_;
+  mutable std::once_flag wide_once_;
   bool barrierActive(double volume_ratio) const { return barrier_j_ > 0.0 && volume_ratio < barrier_j_; }
   // The stiffness weights, one formula each for update() and updateStiffnessWeights(): node n with
   // star-averaged modulus scale s, element e with its modulus scale and volume ratio J_e.
