@@ -72,6 +72,12 @@ class ElementFormulation {
   virtual void setModulusFactors(const Eigen::VectorXd& factors) = 0;
   /// Von Mises norm of the element stress at the last update [Pa], #T (seed equation 1).
   virtual const Eigen::VectorXd& vonMisesStress() const = 0;
+  /// The volume ratio J at or below which an element counts as collapsed, as invalid as an inverted
+  /// one (J ≤ 0), for the stiffening's reversal (material/stiffening.h): a step that leaves one is
+  /// repeated. 0 (the default): only inverted elements. A formulation whose elements can lose their
+  /// own volume without resisting it (the average nodal pressure element) sets it above 0: from a
+  /// nearly flat element no linearised step can be kept valid, however stiff the material.
+  virtual double collapsedVolumeRatio() const { return 0.0; }
 };
 
 }  // namespace breast_sim::core
