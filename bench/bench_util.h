@@ -1,6 +1,6 @@
 #pragma once
-// Small functions shared by the benchmarks: wall time, medians and means of repeated runs, and
-// comma-separated number lists from the command line.
+// Small functions shared by the benchmarks: wall time, the machine's load, medians and means of
+// repeated runs, and comma-separated number lists from the command line.
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -15,6 +15,13 @@ using Clock = std::chrono::steady_clock;
 
 /// Seconds since t0.
 inline double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+/// The 1-minute load average (runnable processes, as `uptime` shows), −1 where unknown: the load a
+/// figure was measured under.
+inline double loadAverage() {
+  double l[1];
+  return getloadavg(l, 1) == 1 ? l[0] : -1.0;
+}
 
 /// Median (upper median for an even count); 0 for none.
 inline double median(std::vector<double> v) {

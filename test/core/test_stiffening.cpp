@@ -14,6 +14,7 @@
 
 #include <Eigen/Geometry>
 
+#include "breast_sim/core/fem/anp_tet_fem.h"
 #include "breast_sim/core/fem/corotated_tet_fem.h"
 #include "breast_sim/core/fem/dynamic_simulator.h"
 #include "breast_sim/core/fem/equilibrium.h"
@@ -367,6 +368,62 @@ TEST(Stiffening, SettlesAtTheBaseMaterialsEquilibriumUnderALoadThatInvertsNothin
 
 // Where the base material inverts elements at its equilibrium (E 600 Pa here), the release keeps just
 // those elements stiffer: the rest of the model settles to within δ of its base material.
+TEST(Stiffening, AStepThatLeavesAnElementCollapsedIsRepeatedStiffer) {
+  // A 2×2×2 block of average-nodal-pressure tetrahedra (barrier J_b 0.3, so collapsed below 0.1),
+  // bottom fixed, a top corner pulled by 0.109 N for one 0.33 s step: the plain step leaves an
+  // element at J ≈ 0.06 (not inverted), the stiffened step with reversal repeats it until none is
+  // below 0.1. The co-rotated tetrahedra count only inverted elements.
+  const TetMesh m = makeBoxMesh({2, 2, 2}, {0.02, 0.02, 0.02});
+  ElasticMaterial mat;
+  mat.youngs_modulus_pa = 2000.0;
+  mat.poisson_ratio = 0.48;
+  int corner = -1;
+  for (int n = 0; n < m.numNodes(); ++n)
+    if ((m.nodes().row(n).array() > 0.019).all()) corner = n;
+  ASSERT_GE(corner, 0);
+  auto minVolumeRatio = [&](const DynamicSimulator& sim) {
+    const Eigen::VectorXd V0 = m.tetVolumes();
+    double jmin = 1e9;
+    for (int e = 0; e < m.numTets(); ++e) {
+      Eigen::Vector3d x[4];
+      for (int i = 0; i < 4; ++i)
+        x[i] = (m.nodes().row(m.tets()(e, i)) + sim.state().displacement_m.segment<3>(3 * m.tets()(e, i)).transpose()).transpose();
+      jmin = std::min(jmin, (x[1] - x[0]).dot((x[2] - x[0]).cross(x[3] - x[0])) / 6.0 / V0[e]);
+    }
+    return jmin;
+  };
+  double jmin[2];
+  long reversals = 0;
+  for (int stiffened = 0; stiffened < 2; ++stiffened) {
+    auto anp = std::make_unique<AnpTetFem>(m, mat);
+    anp->setInversionBarrier(0.3);
+    EXPECT_DOUBLE_EQ(anp->collapsedVolumeRatio(), 0.1);
+    DynamicsParams dp;
+    dp.time_step_s = 0.33;
+    DynamicSimulator sim(m, std::move(anp), mat, dp, std::make_unique<CholmodSolver>());
+    sim.fixNodes(m.nodeSet("z_min"));
+    Points f(1, 3);
+    f << -0.109, -0.109, -0.109;
+    sim.addNodalForces({corner}, f);
+    if (stiffened) {
+      StiffeningParams p;
+      p.alpha.initial_alpha_per_pa = 1e-7;
+      StiffeningSimulation stiff(sim, m, p);
+      const StiffeningStepResult r = stiff.step();
+      EXPECT_TRUE(r.advanced);
+      reversals = r.reversals;
+    } else {
+      sim.step();
+    }
+    jmin[stiffened] = minVolumeRatio(sim);
+  }
+  EXPECT_GT(jmin[0], 0.0);
+  EXPECT_LT(jmin[0], 0.1);
+  EXPECT_GT(jmin[1], 0.1);
+  EXPECT_GE(reversals, 1);
+  EXPECT_EQ(CorotatedTetFem(m, mat).collapsedVolumeRatio(), 0.0);
+}
+
 TEST(Stiffening, ReleaseStiffensOnlyTheElementsThatWouldInvert) {
   PhantomSim full = makePhantomSim(0.33, StiffeningParams{});
   ASSERT_TRUE(settleDriver(full, 400));

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 #include <stdexcept>
+#include <memory>
+#include <mutex>
 #include <string>
 
 #include <Eigen/Dense>
@@ -22,7 +24,7 @@ inline void addOuter(double* row0, double* row1, double* row2, int col, double u
 }  // namespace
 
 AnpTetFem::AnpTetFem(const TetMesh& mesh, const ElasticMaterial& material)
-    : deviatoric_(mesh, material, /*pattern_rings=*/2), star_(mesh.tets(), mesh.numNodes(), 1), tets_(mesh.tets()) {
+    : deviatoric_(mesh, material, /*pattern_rings=*/1), tets_(mesh.tets()) {
   deviatoric_.setVolumeTerm(CorotatedTetFem::VolumeTerm::kNone);
   kappa_ = material.lameLambda() + 2.0 * material.lameMu() / 3.0;
   const int nt = mesh.numTets(), nn = mesh.numNodes();
@@ -53,31 +55,54 @@ AnpTetFem::AnpTetFem(const TetMesh& mesh, const ElasticMaterial& material)
   element_stiffness_.assign(nt, 0.0);
   const int num_star = star_.neighbourStart(nn);
   b_.assign(3 * static_cast<size_t>(num_star), 0.0);
-  // For row node a and each n in a's star (entry k): a's slot in n's star, and the two-ring slots
-  // (in a's rows) of n's star nodes.
-  const BlockPattern& wide = deviatoric_.pattern();
+  // For row node a and each n in a's star (entry k): a's slot in n's star.
   own_slot_.resize(num_star);
-  wide_offset_.assign(num_star + 1, 0);
-  for (int a = 0; a < nn; ++a)
-    for (int k = star_.neighbourStart(a); k < star_.neighbourStart(a + 1); ++k) {
-      const int n = star_.neighbour(k);
-      wide_offset_[k + 1] = wide_offset_[k] + (star_.neighbourStart(n + 1) - star_.neighbourStart(n));
-    }
-  wide_slot_.resize(wide_offset_[num_star]);
+  own_entry_.resize(num_star);
 #pragma omp parallel for schedule(dynamic, 256)
-  for (int a = 0; a < nn; ++a) {
-    const int* const row_begin = wide.neighbourData() + wide.neighbourStart(a);
-    const int* const row_end = wide.neighbourData() + wide.neighbourStart(a + 1);
+  for (int a = 0; a < nn; ++a)
     for (int k = star_.neighbourStart(a); k < star_.neighbourStart(a + 1); ++k) {
       const int n = star_.neighbour(k);
       const int* const s_begin = star_.neighbourData() + star_.neighbourStart(n);
       const int* const s_end = star_.neighbourData() + star_.neighbourStart(n + 1);
       own_slot_[k] = static_cast<int>(std::lower_bound(s_begin, s_end, a) - s_begin);
-      int* out = &wide_slot_[wide_offset_[k]];
-      for (const int* m = s_begin; m != s_end; ++m) *out++ = static_cast<int>(std::lower_bound(row_begin, row_end, *m) - row_begin);
+      own_entry_[k] = star_.neighbourStart(n) + own_slot_[k];
     }
-  }
   updateStiffnessWeights();
+}
+
+const AnpTetFem::Wide& AnpTetFem::wide() const {
+  std::call_once(wide_once_, [this] {
+    auto w = std::make_unique<Wide>();
+    w->pattern = BlockPattern(tets_, star_.numNodes(), 2);
+    const BlockPattern& wide = w->pattern;
+    const int nn = star_.numNodes(), num_star = star_.neighbourStart(nn);
+    // For row node a and each n in a's star (entry k): n's two-ring slot in a's rows, and the
+    // two-ring slots (in a's rows) of n's star nodes.
+    w->narrow_to_wide.resize(num_star);
+    w->wide_offset.assign(num_star + 1, 0);
+    for (int a = 0; a < nn; ++a)
+      for (int k = star_.neighbourStart(a); k < star_.neighbourStart(a + 1); ++k) {
+        const int n = star_.neighbour(k);
+        w->wide_offset[k + 1] = w->wide_offset[k] + (star_.neighbourStart(n + 1) - star_.neighbourStart(n));
+      }
+    w->wide_slot.resize(w->wide_offset[num_star]);
+#pragma omp parallel for schedule(dynamic, 256)
+    for (int a = 0; a < nn; ++a) {
+      const int* const row_begin = wide.neighbourData() + wide.neighbourStart(a);
+      const int* const row_end = wide.neighbourData() + wide.neighbourStart(a + 1);
+      for (int k = star_.neighbourStart(a); k < star_.neighbourStart(a + 1); ++k) {
+        const int n = star_.neighbour(k);
+        const int* const s_begin = star_.neighbourData() + star_.neighbourStart(n);
+        const int* const s_end = star_.neighbourData() + star_.neighbourStart(n + 1);
+        w->narrow_to_wide[k] = static_cast<int>(std::lower_bound(row_begin, row_end, n) - row_begin);
+        int* out = &w->wide_slot[w->wide_offset[k]];
+        for (const int* m = s_begin; m != s_end; ++m) *out++ = static_cast<int>(std::lower_bound(row_begin, row_end, *m) - row_begin);
+      }
+    }
+    w->narrow = star_.matrix();
+    wide_ = std::move(w);
+  });
+  return *wide_;
 }
 
 void AnpTetFem::updateStiffnessWeights() {
@@ -214,6 +239,7 @@ void AnpTetFem::update(const Points& x, Eigen::VectorXd& f) {
 void AnpTetFem::addVolumetricStiffness(double scale, SparseMatrix& A) const {
   // Row node a gathers κ_n V̂_n b_n[a] b_n[m]ᵀ over the nodes n of its star and the nodes m of n's
   // star: each row is written by one thread.
+  const Wide& w2 = wide();
   const int nn = star_.numNodes();
   double* const values = A.valuePtr();
   const int* const outer = A.outerIndexPtr();
@@ -230,15 +256,16 @@ void AnpTetFem::addVolumetricStiffness(double scale, SparseMatrix& A) const {
       const double w = scale * nodal_stiffness_[n];
       const double* const ba = bn + 3 * own_slot_[k];
       const double u0 = w * ba[0], u1 = w * ba[1], u2 = w * ba[2];
-      const int* const slots = &wide_slot_[wide_offset_[k]];
+      const int* const slots = &w2.wide_slot[w2.wide_offset[k]];
       for (int q = 0; q < deg; ++q) addOuter(row0, row1, row2, 3 * slots[q], u0, u1, u2, bn + 3 * q);
     }
   }
 }
 
 void AnpTetFem::addElementVolumeStiffness(double scale, SparseMatrix& A) const {
-  // κ_e V_e (β + c [J_e < J_b]) ∂J_e/∂x_i ∂J_e/∂x_jᵀ, gathered per row node from its elements.
-  const BlockPattern& wide = deviatoric_.pattern();
+  // κ_e V_e (β + c [J_e < J_b]) ∂J_e/∂x_i ∂J_e/∂x_jᵀ, gathered per row node from its elements
+  // (into the one-ring pattern).
+  const BlockPattern& one = star_;
   const int nn = star_.numNodes();
   double* const values = A.valuePtr();
   const int* const outer = A.outerIndexPtr();
@@ -249,27 +276,65 @@ void AnpTetFem::addElementVolumeStiffness(double scale, SparseMatrix& A) const {
     const int len = outer[3 * a + 1] - outer[3 * a];
     double* const row1 = row0 + len;
     double* const row2 = row1 + len;
-    for (int k = wide.incidentStart(a); k < wide.incidentStart(a + 1); ++k) {
-      const int e = wide.incidentElement(k), i = wide.incidentLocal(k);
-      const double* d = &dJ_[12 * static_cast<size_t>(e)];
+    for (int k = one.incidentStart(a); k < one.incidentStart(a + 1); ++k) {
+      const int e = one.incidentElement(k), i = one.incidentLocal(k);
       const double w = scale * element_stiffness_[e];
+      if (w == 0.0) continue;  // β = 0 and the barrier inactive: most elements
+      const double* d = &dJ_[12 * static_cast<size_t>(e)];
       const double u0 = w * d[3 * i], u1 = w * d[3 * i + 1], u2 = w * d[3 * i + 2];
-      const int* slot = wide.blockSlot(e) + 4 * i;
+      const int* slot = one.blockSlot(e) + 4 * i;
       for (int j = 0; j < 4; ++j) addOuter(row0, row1, row2, 3 * slot[j], u0, u1, u2, d + 3 * j);
     }
   }
 }
 
-void AnpTetFem::addStiffness(double scale, SparseMatrix& A) const {
-  deviatoric_.addStiffness(scale, A);
-  addVolumetricStiffness(scale, A);
+void AnpTetFem::assignCompactStiffness(double scale, SparseMatrix& A) const {
+  deviatoric_.assignStiffness(scale, A);  // checks A's size and entry count
   if (beta_ > 0.0 || barrier_j_ > 0.0) addElementVolumeStiffness(scale, A);
 }
 
-void AnpTetFem::assignStiffness(double scale, SparseMatrix& A) const {
-  deviatoric_.assignStiffness(scale, A);  // checks A's size and entry count
+void AnpTetFem::addWideStiffness(double scale, SparseMatrix& A, bool assign) const {
+  const Wide& w = wide();
+  if (A.rows() != 3 * w.pattern.numNodes() || A.nonZeros() != w.pattern.matrix().nonZeros())
+    throw std::invalid_argument("AnpTetFem: the matrix has " + std::to_string(A.rows()) + " rows and " +
+                                std::to_string(A.nonZeros()) + " entries, the two-ring pattern " +
+                                std::to_string(3 * w.pattern.numNodes()) + " and " +
+                                std::to_string(w.pattern.matrix().nonZeros()));
+  // K_c on the one-ring pattern, moved block by block into the two-ring rows, then K_vol.
+  assignCompactStiffness(scale, w.narrow);
+  const int nn = star_.numNodes();
+  const double* nval = w.narrow.valuePtr();
+  const int* nout = w.narrow.outerIndexPtr();
+  double* const values = A.valuePtr();
+  const int* const outer = A.outerIndexPtr();
+#pragma omp parallel for schedule(static)
+  for (int a = 0; a < nn; ++a)
+    for (int r = 0; r < 3; ++r) {
+      double* row = values + outer[3 * a + r];
+      if (assign) std::fill(row, values + outer[3 * a + r + 1], 0.0);
+      const double* from = nval + nout[3 * a + r];
+      for (int k = star_.neighbourStart(a); k < star_.neighbourStart(a + 1); ++k) {
+        double* to = row + 3 * w.narrow_to_wide[k];
+        const double* f = from + 3 * (k - star_.neighbourStart(a));
+        to[0] += f[0], to[1] += f[1], to[2] += f[2];
+      }
+    }
   addVolumetricStiffness(scale, A);
-  if (beta_ > 0.0 || barrier_j_ > 0.0) addElementVolumeStiffness(scale, A);
+}
+
+void AnpTetFem::addStiffness(double scale, SparseMatrix& A) const { addWideStiffness(scale, A, false); }
+
+void AnpTetFem::assignStiffness(double scale, SparseMatrix& A) const { addWideStiffness(scale, A, true); }
+
+RankOneSum AnpTetFem::rankOneStiffness() const {
+  RankOneSum R;
+  R.terms = R.nodes = star_.numNodes();
+  R.term_start = R.node_start = star_.neighbourStarts();
+  R.entry_node = R.node_term = star_.neighbourData();
+  R.entry_vector = b_.data();
+  R.weight = nodal_stiffness_.data();
+  R.node_entry = own_entry_.data();
+  return R;
 }
 
 }  // namespace breast_sim::core

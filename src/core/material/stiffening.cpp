@@ -7,6 +7,8 @@
 #include <limits>
 #include <stdexcept>
 
+#include <Eigen/Geometry>
+
 #include "breast_sim/core/mesh/tet_quality.h"
 
 namespace breast_sim::core {
@@ -188,6 +190,7 @@ StiffeningSimulation::StiffeningSimulation(DynamicSimulator& sim, const TetMesh&
   fixed_node_.assign(mesh_.numNodes(), 0);
   element_alpha_ = Eigen::VectorXd::Zero(mesh_.numTets());
   x_ = mesh_.nodes();
+  rest_volume_ = mesh_.tetVolumes();
   refreshStress();
   last_inverted_ = countInverted();
   pushHistory();
@@ -268,6 +271,26 @@ std::vector<int> StiffeningSimulation::invertedElements() {
   return invertedTets(mesh_.tets(), x_);
 }
 
+std::vector<int> StiffeningSimulation::invalidElements() {
+  const double j_min = sim_.elements().collapsedVolumeRatio();
+  if (!(j_min > 0.0)) return invertedElements();
+  const Eigen::VectorXd& u = sim_.state().displacement_m;
+  for (int n = 0; n < mesh_.numNodes(); ++n) x_.row(n) = mesh_.nodes().row(n) + u.segment<3>(3 * n).transpose();
+  const Tets& tets = mesh_.tets();
+  const int nt = mesh_.numTets();
+  std::vector<char> bad(static_cast<size_t>(nt), 0);
+#pragma omp parallel for schedule(static)
+  for (int e = 0; e < nt; ++e) {
+    const Eigen::RowVector3d a = x_.row(tets(e, 0));
+    const double v = (x_.row(tets(e, 1)) - a).dot((x_.row(tets(e, 2)) - a).cross(x_.row(tets(e, 3)) - a)) / 6.0;
+    bad[static_cast<size_t>(e)] = !(v > j_min * rest_volume_[e]);  // NaN counts too
+  }
+  std::vector<int> out;
+  for (int e = 0; e < nt; ++e)
+    if (bad[static_cast<size_t>(e)]) out.push_back(e);
+  return out;
+}
+
 int StiffeningSimulation::countInverted() { return static_cast<int>(invertedElements().size()); }
 
 double StiffeningSimulation::modulusExcess() const {
@@ -328,7 +351,7 @@ StiffeningStepResult StiffeningSimulation::step() {
       } catch (const std::runtime_error&) {
         solved = false;  // e.g. non-finite velocities: treated like an inversion
       }
-      const std::vector<int> inverted = solved ? invertedElements() : std::vector<int>{};
+      const std::vector<int> inverted = solved ? invalidElements() : std::vector<int>{};
       if (solved && inverted.empty()) {
         if (!hold_alpha_) {
           // Releasing: α halves (see the class comment); else the controller's decrease.

@@ -71,6 +71,35 @@ int MultigridPreconditioner::numColours(int level) const {
 }
 
 void MultigridPreconditioner::analyzePattern(const SparseMatrix& A) {
+  rank_one_ = false;
+  analyzeLevels(A, nullptr, nullptr);
+}
+
+bool MultigridPreconditioner::acceptsRankOneSum() const {
+  return !prolongations_.empty() && options_.smoother != MultigridOptions::Smoother::kGaussSeidel;
+}
+
+void MultigridPreconditioner::analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R) {
+  if (!acceptsRankOneSum())
+    throw std::logic_error(prolongations_.empty()
+                               ? "multigrid: a hierarchy of one level solves the assembled matrix directly; it takes no rank-one sum"
+                               : "multigrid: the Gauss–Seidel smoother takes no rank-one sum (use jacobi or chebyshev)");
+  if (3 * static_cast<Eigen::Index>(R.nodes) != S.rows())
+    throw std::invalid_argument("multigrid: the rank-one sum has " + std::to_string(R.nodes) + " nodes, the matrix " +
+                                std::to_string(S.rows()) + " rows");
+  rank_one_ = false;
+  rank_one_galerkin_.analyze(R, prolongations_[0]);
+  analyzeLevels(S, &rank_one_galerkin_.patternStart(), &rank_one_galerkin_.patternNodes());
+  rank_one_ = true;
+  rank_one_terms_ = R.terms;
+  rank_one_entries_ = R.entries();
+  rank_one_diag_.assign(9 * static_cast<size_t>(R.nodes), 0.0);
+  rank_one_work_.assign(static_cast<size_t>(std::max(R.terms, 1)), 0.0);
+  rank_one_rhs_.setZero(S.rows());
+}
+
+void MultigridPreconditioner::analyzeLevels(const SparseMatrix& A, const std::vector<int>* extra_start,
+                                            const std::vector<int>* extra_nodes) {
   const int L = static_cast<int>(prolongations_.size()) + 1;
   const Eigen::Index n0 = prolongations_.empty() ? A.rows() / 3 : prolongations_[0].rows();
   if (A.rows() != 3 * n0 || A.cols() != 3 * n0) {
@@ -88,7 +117,8 @@ void MultigridPreconditioner::analyzePattern(const SparseMatrix& A) {
     if (l == 0) {
       lv->A = &A;
     } else {
-      galerkin_[l - 1].analyze(*levels_[l - 1]->A, prolongations_[l - 1]);
+      if (l == 1) galerkin_[0].analyze(*levels_[0]->A, prolongations_[0], extra_start, extra_nodes);
+      else galerkin_[l - 1].analyze(*levels_[l - 1]->A, prolongations_[l - 1]);
       lv->owned = &galerkin_[l - 1].coarse();
       lv->A = lv->owned;
     }
@@ -165,6 +195,21 @@ void MultigridPreconditioner::analyzePattern(const SparseMatrix& A) {
 // Numeric update and coarse renewal
 
 void MultigridPreconditioner::factorize(const SparseMatrix& A) {
+  if (rank_one_) throw std::logic_error("multigrid: analysed with a rank-one sum: call factorizeWithRankOne()");
+  factorizeLevels(A);
+}
+
+void MultigridPreconditioner::factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R) {
+  if (!rank_one_) throw std::logic_error("multigrid: factorizeWithRankOne() called without analyzeWithRankOne()");
+  if (R.terms != rank_one_terms_ || R.entries() != rank_one_entries_ || 3 * static_cast<Eigen::Index>(R.nodes) != S.rows())
+    throw std::logic_error("multigrid: the rank-one sum's structure changed since analyzeWithRankOne()");
+  R_ = R;
+  std::fill(rank_one_diag_.begin(), rank_one_diag_.end(), 0.0);
+  addRankOneDiagonal(R_, rank_one_diag_.data());
+  factorizeLevels(S);
+}
+
+void MultigridPreconditioner::factorizeLevels(const SparseMatrix& A) {
   if (fine_nnz_ < 0) throw std::logic_error("multigrid: factorize() called before analyzePattern()");
   // Same size, entry count and row lengths: the float blocks and the Galerkin index lists are laid
   // out over the analysed rows.
@@ -186,6 +231,7 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
     auto t0 = Clock::now();
     if (l > 0) {
       galerkin_[l - 1].compute(*levels_[l - 1]->A, levels_[l - 1]->free.data());
+      if (l == 1 && rank_one_) rank_one_galerkin_.add(R_, galerkin_[0].coarse());
       timings_.galerkin_s += since(t0);
       t0 = Clock::now();
     }

@@ -60,7 +60,8 @@ using multigrid_detail::kParallelMinNodes;
 // they touch (C = Pᵀ A restricted to row I), which is then multiplied by P into A_c's row I. No
 // intermediate matrix is stored and no two tasks write the same memory.
 
-void GalerkinProduct::analyze(const SparseMatrix& A, const NodeProlongation& P) {
+void GalerkinProduct::analyze(const SparseMatrix& A, const NodeProlongation& P, const std::vector<int>* extra_start,
+                              const std::vector<int>* extra_nodes) {
   const std::string who = "GalerkinProduct";
   if (A.rows() != 3 * P.rows()) {
     std::ostringstream s;
@@ -70,6 +71,10 @@ void GalerkinProduct::analyze(const SparseMatrix& A, const NodeProlongation& P) 
   }
   std::vector<int> nbr_start, nbr;
   blockGraph(A, who, nbr_start, nbr, nullptr);
+  if (extra_start && (!extra_nodes || static_cast<Eigen::Index>(extra_start->size()) != P.cols() + 1))
+    throw std::invalid_argument(who + ": the extra coarse pattern has " +
+                                std::to_string(extra_start ? extra_start->size() : 0) + " row starts for " +
+                                std::to_string(P.cols()) + " coarse nodes (+1)");
   P_ = P;
   P_.makeCompressed();
   const int nf = static_cast<int>(P_.rows()), nc = static_cast<int>(P_.cols());
@@ -131,7 +136,16 @@ void GalerkinProduct::analyze(const SparseMatrix& A, const NodeProlongation& P) 
           coarse_stamp[pin[k]] = I;
           G.push_back(pin[k]);
         }
-    if (coarse_stamp[I] != I) G.push_back(I);  // keep a diagonal block even for a node without children
+    if (coarse_stamp[I] != I) {  // keep a diagonal block even for a node without children
+      coarse_stamp[I] = I;
+      G.push_back(I);
+    }
+    if (extra_start)
+      for (int k = (*extra_start)[I]; k < (*extra_start)[I + 1]; ++k)
+        if (coarse_stamp[(*extra_nodes)[k]] != I) {
+          coarse_stamp[(*extra_nodes)[k]] = I;
+          G.push_back((*extra_nodes)[k]);
+        }
     std::sort(G.begin(), G.end());
     for (size_t s = 0; s < G.size(); ++s) coarse_local[G[s]] = static_cast<int>(s);
     diag_k_[I] = coarse_local[I];

@@ -37,6 +37,8 @@ void MultigridPreconditioner::scanLevel(int l) {
       lv.free[row] = coupled ? 1.0 : 0.0;
       for (int c = 0; c < 3; ++c) d[3 * r + c] = cval[d0 + c];
     }
+    if (l == 0 && rank_one_)
+      for (int k = 0; k < 9; ++k) d[k] += rank_one_diag_[9 * static_cast<size_t>(i) + k];
     if (!smoother) continue;
     // Inverse by cofactors; Sylvester's criterion for positive definiteness.
     const double c00 = d[4] * d[8] - d[5] * d[7], c01 = d[2] * d[7] - d[1] * d[8], c02 = d[1] * d[5] - d[2] * d[4];
@@ -106,10 +108,11 @@ void MultigridPreconditioner::estimateDamping(int l) {
   double lambda = 0.0;
   for (int it = 0; it < iterations; ++it) {
     double vv = 0.0, yy = 0.0;
+#pragma omp parallel for schedule(static) if (lv.nodes > kParallelMinNodes)
+    for (int i = 0; i < lv.nodes; ++i) blockRowResidual(bval, bcol, bstart[i], bstart[i + 1], kZero, v, Av + 3 * i);
+    if (l == 0 && rank_one_) addRankOneProduct(R_, v, -1.0, Av, rank_one_work_.data());
 #pragma omp parallel if (lv.nodes > kParallelMinNodes)
     {
-#pragma omp for schedule(static)
-      for (int i = 0; i < lv.nodes; ++i) blockRowResidual(bval, bcol, bstart[i], bstart[i + 1], kZero, v, Av + 3 * i);
 #pragma omp for schedule(static) reduction(+ : vv, yy)
       for (int i = 0; i < lv.nodes; ++i) {
         const double* d = dinv + 9 * i;
@@ -160,6 +163,7 @@ void MultigridPreconditioner::residual(int l, const double* b, const double* x, 
   const int* col = lv.block_col.data();
   const int* start = lv.block_start.data();
   blockResidual(val, col, start, b, x, t, lv.nodes, options_.simd_kernels, lv.nodes > kParallelMinNodes);
+  if (l == 0 && rank_one_) addRankOneProduct(R_, x, -1.0, t, rank_one_work_.data());
 }
 
 void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool forward, bool from_zero) {
@@ -228,13 +232,20 @@ void MultigridPreconditioner::chebyshev(int l, const double* b, double* x, int d
     const double rho_new = k == 0 ? rho : 1.0 / (2.0 * sigma - rho);
     const double alpha = k == 0 ? 0.0 : rho_new * rho, beta = k == 0 ? 1.0 / theta : 2.0 * rho_new / delta;
     const bool zero = from_zero && k == 0;
+    // The fine level of A = S + R: the rows below take S from the float blocks, b − R x from here.
+    const double* bk = b;
+    if (l == 0 && rank_one_ && !zero) {
+      std::copy(b, b + 3 * n, rank_one_rhs_.data());
+      addRankOneProduct(R_, x, -1.0, rank_one_rhs_.data(), rank_one_work_.data());
+      bk = rank_one_rhs_.data();
+    }
 #pragma omp parallel if (n > kParallelMinNodes)
     {
 #pragma omp for schedule(static)
       for (int i = 0; i < n; ++i) {
         double r[3];
         if (zero) r[0] = b[3 * i], r[1] = b[3 * i + 1], r[2] = b[3 * i + 2];
-        else blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, x, r);
+        else blockRowResidual(val, col, start[i], start[i + 1], bk + 3 * i, x, r);
         const double* m = dinv + 9 * i;
         double* di = d + 3 * i;
         const double z0 = m[0] * r[0] + m[1] * r[1] + m[2] * r[2];

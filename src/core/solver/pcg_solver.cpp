@@ -165,6 +165,16 @@ void parallelMultiply(const SparseMatrix& A, const Eigen::VectorXd& x, Eigen::Ve
 
 // ---------------------------------------------------------------------------------------------------
 
+void Preconditioner::analyzeWithRankOne(const SparseMatrix&, const RankOneSum&) {
+  throw std::logic_error(name() + ": takes no rank-one sum beside the matrix");
+}
+
+void Preconditioner::factorizeWithRankOne(const SparseMatrix&, const RankOneSum&) {
+  throw std::logic_error(name() + ": takes no rank-one sum beside the matrix");
+}
+
+// ---------------------------------------------------------------------------------------------------
+
 void JacobiPreconditioner::analyzePattern(const SparseMatrix& A) {
   diagonal_position_ = diagonalPositions(A, "pcg-jacobi");
   inverse_diagonal_.resize(A.rows());
@@ -182,6 +192,23 @@ void JacobiPreconditioner::factorize(const SparseMatrix& A) {
       s << "pcg-jacobi: the matrix is not positive definite: diagonal entry of row " << dofName(i) << " is " << d;
       throw std::runtime_error(s.str());
     }
+    inverse_diagonal_[i] = 1.0 / d;
+  }
+}
+
+void JacobiPreconditioner::analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R) {
+  analyzePattern(S);
+  rank_one_diagonal_.assign(9 * static_cast<size_t>(R.nodes), 0.0);
+}
+
+void JacobiPreconditioner::factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R) {
+  if (static_cast<Eigen::Index>(rank_one_diagonal_.size()) != 3 * S.rows() || R.nodes * 3 != S.rows())
+    throw std::logic_error("pcg-jacobi: factorizeWithRankOne() called before analyzeWithRankOne() or with another size");
+  std::fill(rank_one_diagonal_.begin(), rank_one_diagonal_.end(), 0.0);
+  addRankOneDiagonal(R, rank_one_diagonal_.data());
+  factorize(S);
+  for (Eigen::Index i = 0; i < S.rows(); ++i) {
+    const double d = 1.0 / inverse_diagonal_[i] + rank_one_diagonal_[9 * (i / 3) + 4 * (i % 3)];
     inverse_diagonal_[i] = 1.0 / d;
   }
 }
@@ -209,9 +236,34 @@ void PcgSolver::setRelativeTolerance(double tolerance) {
 }
 
 void PcgSolver::analyzePattern(const SparseMatrix& A) {
+  rank_one_ = false;
   n_ = -1;
   diagonal_position_ = diagonalPositions(A, name());
   preconditioner_->analyzePattern(A);
+  analyzeCommon(A);
+}
+
+void PcgSolver::analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R) {
+  if (!acceptsRankOneSum())
+    throw std::logic_error(name() + ": the preconditioner '" + preconditioner_->name() +
+                           "' does not take a rank-one sum; assemble the whole matrix");
+  if (3 * static_cast<Eigen::Index>(R.nodes) != S.rows()) {
+    std::ostringstream s;
+    s << name() << ": the rank-one sum has " << R.nodes << " nodes, the matrix " << S.rows() << " rows";
+    throw std::invalid_argument(s.str());
+  }
+  rank_one_ = false;
+  n_ = -1;
+  diagonal_position_ = diagonalPositions(S, name());
+  preconditioner_->analyzeWithRankOne(S, R);
+  analyzeCommon(S);
+  rank_one_ = true;
+  rank_one_terms_ = R.terms;
+  rank_one_entries_ = R.entries();
+  rank_one_work_.assign(static_cast<size_t>(std::max(R.terms, 1)), 0.0);
+}
+
+void PcgSolver::analyzeCommon(const SparseMatrix& A) {
   const Eigen::Index n = A.rows();
   decoupled_flag_.assign(static_cast<size_t>(n), 0);
   decoupled_.clear();
@@ -227,6 +279,31 @@ void PcgSolver::analyzePattern(const SparseMatrix& A) {
 }
 
 void PcgSolver::factorize(const SparseMatrix& A) {
+  if (rank_one_)
+    throw std::logic_error(name() + ": analysed with a rank-one sum: call factorizeWithRankOne()");
+  checkAndScan(A);
+  preconditioner_->factorize(A);
+  A_ = &A;
+}
+
+void PcgSolver::factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R) {
+  if (!rank_one_)
+    throw std::logic_error(name() + ": factorizeWithRankOne() called without analyzeWithRankOne()");
+  if (R.terms != rank_one_terms_ || R.entries() != rank_one_entries_ || 3 * static_cast<Eigen::Index>(R.nodes) != n_)
+    throw std::logic_error(name() + ": the rank-one sum's structure changed since analyzeWithRankOne()");
+  checkAndScan(S);
+  // Decoupled rows are solved alone (x_i = b_i / S_ii): R must not reach them.
+  for (int i : decoupled_)
+    if (!R.free || R.free[i] != 0.0)
+      throw std::logic_error(name() + ": row " + dofName(i) +
+                             " of the matrix is decoupled (fixed) but the rank-one sum does not mask it");
+  // The mask folded into a copy of the vectors: the many products of the iterations read none.
+  R_ = withMaskApplied(R, rank_one_masked_);
+  preconditioner_->factorizeWithRankOne(S, R_);
+  A_ = &S;
+}
+
+void PcgSolver::checkAndScan(const SparseMatrix& A) {
   if (n_ < 0) throw std::logic_error(name() + ": factorize() called before analyzePattern()");
   if (A.rows() != n_ || A.cols() != n_ || A.nonZeros() != nnz_ || !A.isCompressed()) {
     std::ostringstream s;
@@ -263,8 +340,6 @@ void PcgSolver::factorize(const SparseMatrix& A) {
   decoupled_.clear();
   for (Eigen::Index i = 0; i < n_; ++i)
     if (decoupled_flag_[i]) decoupled_.push_back(static_cast<int>(i));
-  preconditioner_->factorize(A);
-  A_ = &A;
 }
 
 SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
@@ -299,9 +374,12 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   const int nodes = static_cast<int>(block_start_.size()) - 1;
   const bool parallel = A.rows() > kParallelMin;
   auto trueResidual = [&]() {
-    return blocks ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(), b.data(),
-                                 x.data(), r_.data(), nodes, true, options_.simd_kernels, parallel)
-                  : residual(A, b, x, r_);
+    const double rr_s = blocks ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(),
+                                              b.data(), x.data(), r_.data(), nodes, true, options_.simd_kernels, parallel)
+                               : residual(A, b, x, r_);
+    if (!rank_one_) return rr_s;
+    addRankOneProduct(R_, x.data(), -1.0, r_.data(), rank_one_work_.data());
+    return dot(r_, r_);
   };
   double rr = trueResidual();
   if (std::sqrt(rr) <= tol) {
@@ -326,9 +404,10 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
         << ")";
       throw std::runtime_error(s.str());
     }
-    const double pq = blocks ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(),
-                                            nullptr, p_.data(), q_.data(), nodes, false, options_.simd_kernels, parallel)
-                             : multiplyDot(A, p_, q_);
+    double pq = blocks ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(),
+                                      nullptr, p_.data(), q_.data(), nodes, false, options_.simd_kernels, parallel)
+                       : multiplyDot(A, p_, q_);
+    if (rank_one_) pq += addRankOneProduct(R_, p_.data(), 1.0, q_.data(), rank_one_work_.data());
     if (!(pq > 0.0)) {
       std::ostringstream s;
       s << name() << ": the matrix is not positive definite (pᵀAp = " << pq << " at iteration " << it

@@ -3,6 +3,8 @@
 /// Average-nodal-pressure (ANP) linear tetrahedra [Bonet & Burton 1998; Joldes, Wittek & Miller
 /// 2009, the element NiftySim uses for breast work]: linear tetrahedra without volumetric locking.
 
+#include <memory>
+#include <mutex>
 #include <vector>
 
 #include "breast_sim/core/fem/block_pattern.h"
@@ -31,8 +33,11 @@ namespace breast_sim::core {
 /// symmetric positive semi-definite, exact at rest (as CorotatedTetFem's kDeterminant term, it
 /// drops the indefinite Σ_e V_e p̄_e ∂²J_e/∂x²). b_n spans node n's star, so K couples nodes two
 /// element layers apart: pattern() is the two-ring BlockPattern, about 4× the entries of the
-/// linear tetrahedra's; the solvers take it unchanged (the multigrid must estimate its fine-level
-/// eigenvalue bound: the bound 4 holds only for four-node element matrices).
+/// linear tetrahedra's (the multigrid must estimate its fine-level eigenvalue bound: the bound 4
+/// holds only for four-node element matrices). Solvers that take a rank-one sum get the split
+/// K = K_c + K_vol instead: compactPattern() is the one-ring pattern of the deviatoric and element
+/// terms, rankOneStiffness() the sum Σ_n κ_n V̂_n b_n b_nᵀ, one term per node star, so no
+/// two-ring matrix is assembled or multiplied (solver/rank_one_sum.h).
 ///
 /// Element volume fraction β (setElementVolumeFraction): ANP constrains volume per node star, not
 /// per element, so a single element can flatten or invert at the price of its shear energy alone
@@ -54,17 +59,23 @@ namespace breast_sim::core {
 /// stiffness c κ_e V_e ∂J_e/∂x ∂J_e/∂xᵀ is added for the elements below J_b at the last update.
 /// J_b = 0 = off (the default).
 /// \note The deviatoric part (rotations, von Mises stress, modulus factors, per-tissue moduli) is a
-/// CorotatedTetFem on the same two-ring pattern; vonMisesStress() is its (pressure does not enter
-/// a von Mises norm).
+/// CorotatedTetFem on the one-ring pattern; vonMisesStress() is its (pressure does not enter a von
+/// Mises norm).
 class AnpTetFem : public ElementFormulation {
  public:
   /// @throws std::invalid_argument for an invalid material.
   AnpTetFem(const TetMesh& mesh, const ElasticMaterial& material);
+  AnpTetFem(const AnpTetFem&) = delete;
+  AnpTetFem& operator=(const AnpTetFem&) = delete;
 
   void update(const Points& x, Eigen::VectorXd& f) override;
   void addStiffness(double scale, SparseMatrix& A) const override;
   void assignStiffness(double scale, SparseMatrix& A) const override;
-  const BlockPattern& pattern() const override { return deviatoric_.pattern(); }
+  /// The two-ring pattern, built on first use (a split run never needs it).
+  const BlockPattern& pattern() const override { return wide().pattern; }
+  const BlockPattern* compactPattern() const override { return &star_; }
+  void assignCompactStiffness(double scale, SparseMatrix& A) const override;
+  RankOneSum rankOneStiffness() const override;
   const Eigen::VectorXd& modulusFactors() const override { return deviatoric_.modulusFactors(); }
   void setModulusFactors(const Eigen::VectorXd& factors) override;
   const Eigen::VectorXd& vonMisesStress() const override { return deviatoric_.vonMisesStress(); }
@@ -82,6 +93,12 @@ class AnpTetFem : public ElementFormulation {
   double inversionBarrier() const { return barrier_j_; }
   /// Elements below the barrier at the last update.
   int barrierActiveElements() const { return barrier_active_; }
+  /// A third of the barrier's volume ratio (0.1 at J_b 0.3; 0 without a barrier): an element that
+  /// its star let fall below it counts as collapsed. The barrier's force grows with J_b − J but its
+  /// linearisation does not see how fast J falls along a step through a nearly flat element, so on
+  /// the phantom's morphing (20.8k elements) the skin and rim elements reached J 0.002 in accepted
+  /// steps, and from there every step inverted one at any α.
+  double collapsedVolumeRatio() const override { return barrier_j_ / 3.0; }
   /// When false, the deviatoric part is not co-rotated (plain linear; comparisons only).
   void setCorotated(bool corotated) { deviatoric_.setCorotated(corotated); }
 
@@ -95,8 +112,9 @@ class AnpTetFem : public ElementFormulation {
   const Eigen::VectorXd& nodalRestVolumes() const { return nodal_rest_volume_; }
 
  private:
-  CorotatedTetFem deviatoric_;  // Ψ_dev on the two-ring pattern
-  BlockPattern star_;           // the one-ring pattern: node n's star is its neighbour list here
+  CorotatedTetFem deviatoric_;  // Ψ_dev on the one-ring pattern
+  // The one-ring pattern (deviatoric_'s): node n's star is its neighbour list here.
+  const BlockPattern& star_ = deviatoric_.pattern();
   Tets tets_;
   double kappa_;
   double beta_ = 0.0;                // element volume fraction
@@ -114,9 +132,19 @@ class AnpTetFem : public ElementFormulation {
   std::vector<double> elem_forces_;   // 12 per element: −V_e p̄_e ∂J_e/∂x_i [N]
   std::vector<double> b_;             // 3 per star_ entry (n, slot q): the block q of b_n [1/m]
   std::vector<int> own_slot_;         // per star_ entry (a, k): a's slot in the star of neighbour(k)
-  std::vector<int> wide_offset_;      // per star_ entry (a, k) + 1: start in wide_slot_
-  std::vector<int> wide_slot_;        // for entry (a, k), n = neighbour(k): the two-ring slots in
-                                      // a's rows of n's star nodes, in n's star order
+  std::vector<int> own_entry_;        // … and that slot's star_ entry: neighbourStart(neighbour(k)) + own_slot_[k]
+  // What the assembled two-ring stiffness needs (pattern(), assignStiffness, addStiffness), built
+  // on first use: the pattern; per star_ entry (a, k) the two-ring slot of neighbour(k) in a's
+  // rows, and from wide_offset[k] the two-ring slots in a's rows of neighbour(k)'s star nodes; K_c
+  // on the one-ring pattern, moved into the two-ring rows.
+  struct Wide {
+    BlockPattern pattern;
+    std::vector<int> narrow_to_wide, wide_offset, wide_slot;
+    mutable SparseMatrix narrow;
+  };
+  const Wide& wide() const;
+  mutable std::unique_ptr<Wide> wide_;
+  mutable std::once_flag wide_once_;
   bool barrierActive(double volume_ratio) const { return barrier_j_ > 0.0 && volume_ratio < barrier_j_; }
   // The stiffness weights, one formula each for update() and updateStiffnessWeights(): node n with
   // star-averaged modulus scale s, element e with its modulus scale and volume ratio J_e.
@@ -125,8 +153,9 @@ class AnpTetFem : public ElementFormulation {
     return kappa_ * scale * volumes_[e] * (beta_ + (barrierActive(j) ? barrier_c_ : 0.0));
   }
   void updateStiffnessWeights();  // nodal_stiffness_ and element_stiffness_ for the current factors
-  void addVolumetricStiffness(double scale, SparseMatrix& A) const;
-  void addElementVolumeStiffness(double scale, SparseMatrix& A) const;
+  void addVolumetricStiffness(double scale, SparseMatrix& A) const;      // two-ring A
+  void addElementVolumeStiffness(double scale, SparseMatrix& A) const;   // one-ring A
+  void addWideStiffness(double scale, SparseMatrix& A, bool assign) const;
 };
 
 }  // namespace breast_sim::core

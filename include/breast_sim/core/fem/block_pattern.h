@@ -28,8 +28,10 @@ class BlockPattern {
   /// [neighbourStart(I), neighbourStart(I+1)); k − neighbourStart(I) is the block slot.
   int neighbourStart(int node) const { return neighbour_start_[node]; }
   int neighbour(int k) const { return neighbours_[k]; }
-  /// All neighbour lists, concatenated (neighbour(k) = neighbourData()[k]).
+  /// All neighbour lists, concatenated (neighbour(k) = neighbourData()[k]), and their starts
+  /// (neighbourStarts()[I] = neighbourStart(I), N + 1 values).
   const int* neighbourData() const { return neighbours_.data(); }
+  const int* neighbourStarts() const { return neighbour_start_.data(); }
   /// A zero-valued matrix with this pattern (values to be filled by assembly).
   const SparseMatrix& matrix() const { return matrix_; }
   /// k of block (e's local node i, e's local node j), for element e: blockSlot(e)[4 i + j].

@@ -109,6 +109,10 @@ class DynamicSimulator {
 
   /// One implicit time step. @throws std::runtime_error if the solver fails.
   StepStats step();
+  /// Whether the step's matrix is the formulation's compact part with its rank-one part applied
+  /// by the solver (ElementFormulation::compactPattern and LinearSolver::acceptsRankOneSum), rather
+  /// than the whole assembled stiffness.
+  bool splitStiffness() const { return split_; }
 
   const SimulationState& state() const { return state_; }
   /// Every step() since construction, summed; restore() does not undo it.
@@ -171,6 +175,13 @@ class DynamicSimulator {
   std::vector<char> elim_for_;
   std::vector<int> constrained_rows_;
   std::vector<int> elim_row_, elim_start_, elim_pos_;
+  // The stiffness split as A_ (compact) + a rank-one sum the solver applies (ElementFormulation::
+  // compactPattern, LinearSolver::acceptsRankOneSum): its DOF mask (1 free, 0 constrained), the
+  // per-term workspace of its products and one product (right-hand side, reactions).
+  bool split_ = false;
+  std::vector<double> free_mask_;
+  std::vector<double> rank_one_work_;
+  Eigen::VectorXd rank_one_product_;
 };
 
 }  // namespace breast_sim::core

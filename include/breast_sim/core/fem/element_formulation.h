@@ -5,6 +5,7 @@
 /// be another without touching the solvers or the pipeline.
 
 #include <algorithm>
+#include <stdexcept>
 
 #include <Eigen/Core>
 #include <Eigen/LU>
@@ -12,6 +13,7 @@
 #include "breast_sim/core/fem/block_pattern.h"
 #include "breast_sim/core/mesh/tet_mesh.h"
 #include "breast_sim/core/solver/linear_solver.h"
+#include "breast_sim/core/solver/rank_one_sum.h"
 
 namespace breast_sim::core {
 
@@ -49,12 +51,33 @@ class ElementFormulation {
   }
   virtual const BlockPattern& pattern() const = 0;
 
+  /// A formulation whose stiffness splits as K = K_c + R, K_c on a narrower pattern and R a
+  /// rank-one sum (solver/rank_one_sum.h), lets a solver that takes such a sum
+  /// (LinearSolver::acceptsRankOneSum) apply R without assembling it: compactPattern() is K_c's
+  /// pattern. nullptr (the default): no split; pattern() is K's.
+  virtual const BlockPattern* compactPattern() const { return nullptr; }
+  /// Sets A = scale · K_c from the last update (A's pattern: compactPattern()->matrix()).
+  virtual void assignCompactStiffness(double scale, SparseMatrix& A) const {
+    (void)scale;
+    (void)A;
+    throw std::logic_error("this element formulation has no compact stiffness (compactPattern() is nullptr)");
+  }
+  /// R from the last update (scale 1, no mask); its arrays stay valid and unchanged until the next
+  /// update() or modulus change. Empty when compactPattern() is nullptr.
+  virtual RankOneSum rankOneStiffness() const { return {}; }
+
   /// Per-element modulus factor E_r (E = E_r · E0), #T, all 1 initially.
   virtual const Eigen::VectorXd& modulusFactors() const = 0;
   /// @throws std::invalid_argument if the size is not #T or a factor is not positive and finite.
   virtual void setModulusFactors(const Eigen::VectorXd& factors) = 0;
   /// Von Mises norm of the element stress at the last update [Pa], #T (seed equation 1).
   virtual const Eigen::VectorXd& vonMisesStress() const = 0;
+  /// The volume ratio J at or below which an element counts as collapsed, as invalid as an inverted
+  /// one (J ≤ 0), for the stiffening's reversal (material/stiffening.h): a step that leaves one is
+  /// repeated. 0 (the default): only inverted elements. A formulation whose elements can lose their
+  /// own volume without resisting it (the average nodal pressure element) sets it above 0: from a
+  /// nearly flat element no linearised step can be kept valid, however stiff the material.
+  virtual double collapsedVolumeRatio() const { return 0.0; }
 };
 
 }  // namespace breast_sim::core

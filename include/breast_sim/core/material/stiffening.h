@@ -2,8 +2,9 @@
 /// @file stiffening.h
 /// Non-linear material by von Mises stiffening with time-step reversal (seed paper, sections 2.3,
 /// 2.6 and 3.1): per element the modulus factor E_r = 1 + α · s_VM is set between time steps; a step
-/// that inverts an element is reverted and repeated with a larger α; α is decreased again after good
-/// steps, with an oscillation detector that makes it settle; an undo history of n states.
+/// that inverts an element (or collapses one below ElementFormulation::collapsedVolumeRatio) is
+/// reverted and repeated with a larger α; α is decreased again after good steps, with an oscillation
+/// detector that makes it settle; an undo history of n states.
 ///
 /// Units: α in 1/Pa, stresses in Pa, E_r dimensionless (E = E_r · E0), speeds in m/s.
 ///
@@ -297,6 +298,9 @@ class StiffeningSimulation {
   void loadChanged();  // restarts the settle count and ends a release
   int countInverted();
   std::vector<int> invertedElements();
+  // Inverted elements and, when the formulation says so (collapsedVolumeRatio), collapsed ones:
+  // what a step must not leave.
+  std::vector<int> invalidElements();
   double modulusExcess() const;  // largest E_r − 1 over elements without a local α above the global one
 
   DynamicSimulator& sim_;
@@ -308,6 +312,7 @@ class StiffeningSimulation {
   std::vector<char> fixed_node_;  // per node: constrained in the simulator (refreshed per accepted step)
   Eigen::VectorXd base_stress_, trial_stress_, f_el_;
   Points x_;
+  Eigen::VectorXd rest_volume_;  // per element [m³], for the collapsed check
   long accepted_ = 0, reversed_ = 0, limit_hits_ = 0, steps_to_settle_ = -1;
   int settle_run_ = 0;
   bool settled_ = false;

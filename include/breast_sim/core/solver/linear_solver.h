@@ -10,6 +10,8 @@
 
 namespace breast_sim::core {
 
+struct RankOneSum;  // solver/rank_one_sum.h
+
 /// Compressed sparse row matrix, the format assembly writes into (3 DOFs per node: x0 y0 z0 x1 …).
 using SparseMatrix = Eigen::SparseMatrix<double, Eigen::RowMajor, int>;
 
@@ -47,6 +49,19 @@ class LinearSolver {
   /// precomputation; a direct solver ignores it.
   /// @throws std::invalid_argument unless 0 < tolerance < 1 (iterative solvers).
   virtual void setRelativeTolerance(double tolerance) { (void)tolerance; }
+
+  /// Whether the solver takes A = S + R with R a rank-one sum applied without a matrix
+  /// (solver/rank_one_sum.h): PCG with its Jacobi or multigrid preconditioner (Jacobi or Chebyshev
+  /// smoother, at least two levels). Direct and aggregation solvers need the assembled matrix.
+  virtual bool acceptsRankOneSum() const { return false; }
+  /// analyzePattern() for A = S + R: S's pattern and R's structure (terms, entries, nodes), both
+  /// fixed until the next call; the Dirichlet rows of S (the contract above) must be masked in R
+  /// (RankOneSum::free). @throws std::logic_error when !acceptsRankOneSum().
+  virtual void analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R);
+  /// factorize() for A = S + R; R's vectors, weights, scale and mask may change from call to call.
+  /// The solver keeps the view: R's arrays must stay alive and unchanged until the last solve()
+  /// before the next factorize. @throws as factorize(); std::logic_error when !acceptsRankOneSum().
+  virtual void factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R);
 };
 
 }  // namespace breast_sim::core

@@ -20,6 +20,7 @@
 #include "breast_sim/core/solver/cholmod_solver.h"
 #include "breast_sim/core/solver/linear_solver.h"
 #include "breast_sim/core/solver/pcg_solver.h"
+#include "breast_sim/core/solver/rank_one_sum.h"
 
 namespace breast_sim::core {
 
@@ -109,8 +110,12 @@ class GalerkinProduct {
   /// Symbolic phase: the pattern of A_c (zero values) and the index lists of the product.
   /// @param A  3#N_fine square, block layout (values unused)
   /// @param P  #N_fine × #N_coarse node prolongation (pattern and values are kept)
+  /// @param extra_start, extra_nodes  optional: further blocks A_c's pattern must hold, per coarse
+  ///        node I the nodes [extra_start[I], extra_start[I + 1]) of extra_nodes (a symmetric
+  ///        pattern, e.g. RankOneGalerkin's), so that a term added after compute() has its place
   /// @throws std::invalid_argument when the sizes or A's layout do not fit.
-  void analyze(const SparseMatrix& A, const NodeProlongation& P);
+  void analyze(const SparseMatrix& A, const NodeProlongation& P, const std::vector<int>* extra_start = nullptr,
+               const std::vector<int>* extra_nodes = nullptr);
   /// Numeric phase: A_c's values from A's.
   /// @param A     same pattern as in analyze()
   /// @param free  3#N_fine DOF multipliers: 1 free, 0 fixed (nullptr = all free)
@@ -257,6 +262,18 @@ class MultigridPreconditioner : public Preconditioner {
   /// Records PCG's convergence for the adaptive coarse renewal (MultigridOptions::coarse_update_adaptive).
   void reportConvergence(int iterations, double residual_reduction) override;
 
+  /// A = S + R with R a rank-one sum (solver/rank_one_sum.h), e.g. the average-nodal-pressure
+  /// element's volumetric stiffness: the fine level's smoother and residuals add R's products (in
+  /// double) to the float blocks of S, its diagonal blocks include R's, and the first coarse
+  /// operator is the Galerkin product of S plus R's Galerkin image (RankOneGalerkin), so every
+  /// coarse level sees R exactly. Taken with the Jacobi and Chebyshev smoothers on two or more
+  /// levels (Gauss–Seidel would need R's rows one by one).
+  bool acceptsRankOneSum() const override;
+  /// @throws std::logic_error when !acceptsRankOneSum(); otherwise as analyzePattern().
+  void analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R) override;
+  /// @throws as factorize(); std::logic_error for an R of another structure than analysed.
+  void factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R) override;
+
   int numLevels() const { return static_cast<int>(levels_.size()); }
   /// How many factorize() calls renewed the coarse operators (the first one included).
   long coarseRenewals() const { return coarse_renewals_; }
@@ -302,6 +319,8 @@ class MultigridPreconditioner : public Preconditioner {
   void chebyshev(int level, const double* b, double* x, int degree, bool from_zero);
   void residual(int level, const double* b, const double* x, double* t);
   void toBlocks(int level);
+  void analyzeLevels(const SparseMatrix& A, const std::vector<int>* extra_start, const std::vector<int>* extra_nodes);
+  void factorizeLevels(const SparseMatrix& A);
 
   MultigridOptions options_;
   std::vector<NodeProlongation> prolongations_;
@@ -323,6 +342,14 @@ class MultigridPreconditioner : public Preconditioner {
   double first_log_rate_ = 0.0, lost_iterations_ = 0.0;
   bool factorized_ = false;
   Timings timings_;
+  // A = S + R (analyzeWithRankOne): the view of the last factorize, R's image on level 1, R's
+  // diagonal blocks on level 0 (9 per node), the per-term workspace and b − R x for the Chebyshev sweep.
+  bool rank_one_ = false;
+  RankOneSum R_;
+  int rank_one_terms_ = 0, rank_one_entries_ = 0;
+  RankOneGalerkin rank_one_galerkin_;
+  std::vector<double> rank_one_diag_, rank_one_work_;
+  Eigen::VectorXd rank_one_rhs_;
 };
 
 /// PCG with the multigrid V-cycle as preconditioner: the LinearSolver "pcg-multigrid". The

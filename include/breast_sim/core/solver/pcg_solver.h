@@ -9,6 +9,7 @@
 #include <Eigen/Core>
 
 #include "breast_sim/core/solver/linear_solver.h"
+#include "breast_sim/core/solver/rank_one_sum.h"
 
 namespace breast_sim::core {
 
@@ -36,6 +37,13 @@ class Preconditioner {
     (void)iterations;
     (void)residual_reduction;
   }
+  /// Whether it approximates A = S + R with R a rank-one sum (solver/rank_one_sum.h); the
+  /// default does not.
+  virtual bool acceptsRankOneSum() const { return false; }
+  /// analyzePattern() and factorize() for A = S + R (LinearSolver::analyzeWithRankOne and
+  /// factorizeWithRankOne say what may change between calls). The default throws std::logic_error.
+  virtual void analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R);
+  virtual void factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R);
 };
 
 /// Point Jacobi: M = diag(A).
@@ -46,10 +54,15 @@ class JacobiPreconditioner : public Preconditioner {
   void factorize(const SparseMatrix& A) override;
   void apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) override;
   std::string name() const override { return "jacobi"; }
+  /// M = diag(S + R).
+  bool acceptsRankOneSum() const override { return true; }
+  void analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R) override;
+  void factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R) override;
 
  private:
   std::vector<int> diagonal_position_;  // per row: index of (i, i) in A's value array
   Eigen::VectorXd inverse_diagonal_;
+  std::vector<double> rank_one_diagonal_;  // 9 per node: the diagonal blocks of R
 };
 
 /// Stopping rule and limits of PCG.
@@ -109,7 +122,15 @@ class PcgSolver : public LinearSolver {
   /// Rows found decoupled (fixed) by the last factorize(), ascending.
   const std::vector<int>& decoupledRows() const { return decoupled_; }
 
+  /// A = S + R: every product of the iteration adds R's (solver/rank_one_sum.h), the
+  /// preconditioner approximates S + R. Taken when the preconditioner takes it.
+  bool acceptsRankOneSum() const override { return preconditioner_->acceptsRankOneSum(); }
+  void analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R) override;
+  void factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R) override;
+
  private:
+  void analyzeCommon(const SparseMatrix& A);  // analyzePattern() after the preconditioner's
+  void checkAndScan(const SparseMatrix& A);   // factorize() without the preconditioner's
   PcgOptions options_;
   std::unique_ptr<Preconditioner> preconditioner_;
   const SparseMatrix* A_ = nullptr;
@@ -121,6 +142,13 @@ class PcgSolver : public LinearSolver {
   std::vector<int> block_start_, block_col_;  // node columns of A's 3×3 blocks (empty: no block layout)
   std::vector<int> analysed_outer_;           // A's row starts at analyzePattern()
   Eigen::VectorXd r_, z_, p_, q_;
+  // A = S + R when analysed with a rank-one sum: the view of the last factorize, its structure
+  // from analyzeWithRankOne (terms, entries), and the per-term workspace of its products.
+  bool rank_one_ = false;
+  RankOneSum R_;
+  int rank_one_terms_ = 0, rank_one_entries_ = 0;
+  std::vector<double> rank_one_work_;
+  std::vector<double> rank_one_masked_;  // R's vectors with its mask applied (withMaskApplied)
 };
 
 /// y = A x, in parallel over rows (OpenMP). y is resized if needed; x and y must not alias.
