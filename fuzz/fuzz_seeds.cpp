@@ -207,6 +207,13 @@ void meshSeeds(Corpus& c) {
         "*NSET, NSET=WALL\n1, 2, 3\n*NSET, NSET=SKIN, GENERATE\n2, 5, 3\n*NSET, NSET=BOTH\nWALL, SKIN, 4\n"
         "*MATERIAL, NAME=TISSUE\n*ELASTIC\n3000., 0.49\n");
 
+  // Every writer variant of VTK itself (test/data/vtk_variants).
+  for (const auto& entry : fs::directory_iterator(kSource + "/test/data/vtk_variants")) {
+    const std::string ext = entry.path().extension().string();
+    if (ext == ".vtk" || ext == ".vtu") {
+      c.add(ext == ".vtk" ? "fuzz_vtk_legacy" : "fuzz_vtu", entry.path().filename().string(), readFile(entry.path().string()));
+    }
+  }
   // Legacy VTK 5.1 (offsets and connectivity), as VTK 9 writes by default.
   c.add("fuzz_vtk_legacy", "v51_ascii.vtk",
         "# vtk DataFile Version 5.1\nhand-made\nASCII\nDATASET UNSTRUCTURED_GRID\nPOINTS 5 float\n"

@@ -9,7 +9,8 @@
 #   --junit FILE  also write one JUnit test case per target (scripts/count_test_results.py counts them)
 #   TARGET        fuzz_nrrd, fuzz_vtu, ... (default: every target)
 #
-# Builds in ${BREAST_SIM_WORK}/fuzz_build; corpora, seeds and reproducers in ${BREAST_SIM_WORK}/fuzz/.
+# Builds (niced, like the fuzzers) in ${BREAST_SIM_WORK}/fuzz_build; corpora, seeds and reproducers in
+# ${BREAST_SIM_WORK}/fuzz/ (docs/reliability.md).
 # Re-run a reproducer: ${BREAST_SIM_WORK}/fuzz_build/fuzz_<format> <file>. Exit status 1 on any crash.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
@@ -36,7 +37,7 @@ build_fuzz() {
   log "building the fuzz targets (clang, ASan + UBSan) in ${build}"
   cmake -S "${BREAST_SIM_SRC}/fuzz" -B "${build}" -DCMAKE_C_COMPILER=clang-14 -DCMAKE_CXX_COMPILER=clang++-14 \
     >"${work}/configure.log" 2>&1 || { cat "${work}/configure.log"; return 1; }
-  cmake --build "${build}" -j"${BREAST_SIM_JOBS}" --target fuzz_targets fuzz_seeds
+  nice -n 10 cmake --build "${build}" -j"${BREAST_SIM_JOBS}" --target fuzz_targets fuzz_seeds
 }
 
 build_fuzz || { echo "the fuzz targets failed to build"; exit 1; }
@@ -55,7 +56,10 @@ for t in "${targets[@]}"; do
   [ ${fresh} -eq 1 ] && corpus="${tmp}/corpus_${t}"
   artifacts="${work}/artifacts/${t}"
   mkdir -p "${corpus}" "${artifacts}" "${work}/seeds/${t}"
-  before=$(ls "${artifacts}" | wc -l)
+  # Findings are crash-, leak-, oom- and timeout- files; slow-unit- files (an input slower than 10 s,
+  # often only a loaded machine) are reported, not counted.
+  findings() { ls "${artifacts}" | grep -v '^slow-unit-' | wc -l; }
+  before=$(findings)
   logfile="${work}/${t}.log"
   dict="${BREAST_SIM_SRC}/fuzz/dict/${t}.dict"
   # -malloc_limit_mb: no input of a few kB may allocate 512 MB at once (a size taken from a header);
@@ -69,9 +73,10 @@ for t in "${targets[@]}"; do
   execs=$(awk '/stat::number_of_executed_units:/ {print $2}' "${logfile}" | tail -1)
   rate=$(awk '/stat::average_exec_per_sec:/ {print $2}' "${logfile}" | tail -1)
   size=$(ls "${corpus}" | wc -l)
-  reproducer=$(grep -o 'Test unit written to [^ ]*' "${logfile}" | tail -1 | sed 's/Test unit written to //')
-  if [ ${code} -eq 0 ] && [ "$(ls "${artifacts}" | wc -l)" -eq "${before}" ]; then
-    result="clean"
+  reproducer=$(grep -o 'Test unit written to [^ ]*' "${logfile}" | grep -v slow-unit | tail -1 | sed 's/Test unit written to //')
+  slowest=$(grep -o 'Slowest unit: [0-9]* s' "${logfile}" | tail -1 | sed 's/Slowest unit: //')
+  if [ ${code} -eq 0 ] && [ "$(findings)" -eq "${before}" ]; then
+    result="clean${slowest:+ (slowest input ${slowest})}"
     cases+="<testcase classname=\"fuzz_smoke\" name=\"${t}\" time=\"${seconds}\"/>"
   else
     status=1
