@@ -49,6 +49,41 @@ CorotatedTetFem::CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& mat
     for (int k = 0; k < 12; ++k) rec[k] = root_w * g[k];
   }
   const int nn = pattern_.numNodes();
+  // Fixed chunks of batches for the node forces (withChunkForces): as many as threads could ever
+  // use here. Each chunk adds into an array over the nodes its elements touch (1.4–1.6 × N entries
+  // for all chunks together on the phantom), so force_tets_ holds each element's nodes as slots of
+  // its chunk's array; a node sums the slots it has in chunk order.
+  const int chunks = static_cast<int>(std::max<size_t>(1, std::min<size_t>(kForceChunks, num_batches)));
+  chunk_batch_.resize(static_cast<size_t>(chunks) + 1);
+  for (int c = 0; c <= chunks; ++c) chunk_batch_[c] = static_cast<int>(num_batches * static_cast<size_t>(c) / chunks);
+  force_tets_.resize(4 * static_cast<size_t>(nt));
+  chunk_start_.assign(1, 0);
+  std::vector<int> slot_of(static_cast<size_t>(nn), -1), touched, node_slots;  // node_slots: (node, slot) pairs
+  for (int c = 0; c < chunks; ++c) {
+    touched.clear();
+    const int e_end = std::min(nt, chunk_batch_[c + 1] * kBatch);
+    for (int e = chunk_batch_[c] * kBatch; e < e_end; ++e)
+      for (int i = 0; i < 4; ++i) touched.push_back(tets_(e, i));
+    std::sort(touched.begin(), touched.end());
+    touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
+    for (size_t q = 0; q < touched.size(); ++q) {
+      slot_of[touched[q]] = static_cast<int>(q);
+      node_slots.push_back(touched[q]);
+      node_slots.push_back(chunk_start_.back() + static_cast<int>(q));
+    }
+    for (int e = chunk_batch_[c] * kBatch; e < e_end; ++e)
+      for (int i = 0; i < 4; ++i) force_tets_[4 * static_cast<size_t>(e) + i] = slot_of[tets_(e, i)];
+    chunk_start_.push_back(chunk_start_.back() + static_cast<int>(touched.size()));
+  }
+  chunk_forces_.assign(3 * static_cast<size_t>(chunk_start_.back()), 0.0);
+  cover_start_.assign(static_cast<size_t>(nn) + 1, 0);
+  for (size_t k = 0; k < node_slots.size(); k += 2) ++cover_start_[node_slots[k] + 1];
+  for (int n = 0; n < nn; ++n) cover_start_[n + 1] += cover_start_[n];
+  cover_slot_.resize(cover_start_[nn]);
+  {
+    std::vector<int> fill(cover_start_.begin(), cover_start_.end() - 1);
+    for (size_t k = 0; k < node_slots.size(); k += 2) cover_slot_[fill[node_slots[k]]++] = node_slots[k + 1];  // chunk order
+  }
   incident_slots_.resize(4 * static_cast<size_t>(pattern_.incidentStart(nn)));
 #pragma omp parallel for schedule(static)
   for (int n = 0; n < nn; ++n)
@@ -212,8 +247,9 @@ __attribute__((always_inline)) inline void batchKernel(const double* __restrict 
   }
 }
 
-/// Adds element e's forces fe (12 [N]) to its four nodes in node_forces (3 per node): the one order
-/// in which both update() paths, a fresh update and one at the same positions, sum them.
+/// Adds element e's forces fe (12 [N]) to its four nodes in node_forces (3 per slot; slots: the
+/// chunk's, force_tets): the one order in which both update() paths, a fresh update and one at the
+/// same positions, sum them.
 inline void addElementForces(const int* tets, size_t e, const double* fe, double* node_forces) {
   for (int i = 0; i < 4; ++i) {
     double* const fn = node_forces + 3 * static_cast<size_t>(tets[4 * e + i]);
@@ -229,6 +265,7 @@ struct UpdateArgs {
   const double* modulus_factor;
   const double* base_scale;
   const int* tets;            // row-major #T × 4 (Tets)
+  const int* force_tets;      // 4 per element: its nodes' slots in its chunk's node forces
   int num_tets;
   const double* x;            // row-major #N × 3 (Points) [m]
   double* von_mises;
@@ -243,7 +280,7 @@ struct UpdateArgs {
 /// e0 + l); every arithmetic loop runs over l without a branch, so it vectorises (see rotationsOf
 /// for why: no conditional expressions, square roots in loops of their own). Lanes past the last
 /// element compute on zeros and the identity and are not written back. The element forces are
-/// kept per element (for an update at the same positions, see update()) and added to the thread's
+/// kept per element (for an update at the same positions, see update()) and added to the chunk's
 /// node forces (node_forces, 3 per node) by addElementForces, as update()'s reuse path adds the kept
 /// ones. Inline, so that each instantiation below compiles it for its own instruction set.
 template <bool kDeterminant>
@@ -273,7 +310,7 @@ __attribute__((always_inline)) inline void updateBatch(const UpdateArgs& a, int 
     double* const fe = a.elem_forces + 12 * e;
     double* const rec = a.records + a.stride * e;
     for (int k = 0; k < 12; ++k) fe[k] = f[k * W + l];
-    addElementForces(a.tets, e, fe, node_forces);
+    addElementForces(a.force_tets, e, fe, node_forces);
     for (int k = 0; k < 12; ++k) rec[k] = rg[k * W + l];
     if constexpr (kDeterminant)
       for (int k = 0; k < 12; ++k) rec[12 + k] = cg[k * W + l];
@@ -318,6 +355,7 @@ void CorotatedTetFem::updateBatches(const Points& x, Eigen::VectorXd& f) {
   a.modulus_factor = modulus_factor_.data();
   a.base_scale = base_scale_.data();
   a.tets = tets_.data();
+  a.force_tets = force_tets_.data();
   a.num_tets = nt;
   a.x = x.data();
   a.von_mises = von_mises_.data();
@@ -334,37 +372,37 @@ void CorotatedTetFem::updateBatches(const Points& x, Eigen::VectorXd& f) {
   // Measured (bench_fem_assembly, 48.8k tets, 1 thread, medians of 40, old and new binaries
   // interleaved on a loaded machine): update (rotations + forces) trace 10.5–10.9 → 5.0 ms,
   // determinant 11.9 → 6.0 ms; of which rotations 7.9–8.5 → 2.8 ms.
-  withThreadForces(f, [&](double* node_forces, int b) { batch(a, b, node_forces); });
+  withChunkForces(f, [&](double* node_forces, int b) { batch(a, b, node_forces); });
 }
 
 template <class BatchFn>
-void CorotatedTetFem::withThreadForces(Eigen::VectorXd& f, BatchFn&& batch) {
-  // Each thread adds the forces of its batches (a static share, so the same batches and order in
-  // every call) to a node-force array of its own (3 per node, 229 kB at 9.8k nodes: cache-resident),
-  // and the arrays are summed in thread order: no two threads write the same entry, and the sums
-  // do not depend on timing. Before, each node gathered its elements' forces from the per-element
-  // array, visiting the elements in an order the prefetcher cannot follow.
-  const int nt = static_cast<int>(tets_.rows());
-  const int num_batches = (nt + kBatch - 1) / kBatch;
-  const size_t n3 = 3 * static_cast<size_t>(pattern_.numNodes());
-  const int max_threads = std::max(1, omp_get_max_threads());
-  if (thread_forces_.size() < n3 * static_cast<size_t>(max_threads))
-    thread_forces_.assign(n3 * static_cast<size_t>(max_threads), 0.0);
-  f.resize(static_cast<Eigen::Index>(n3));  // every entry is written below
+void CorotatedTetFem::withChunkForces(Eigen::VectorXd& f, BatchFn&& batch) {
+  // Each chunk of batches adds its elements' forces to a node-force array of its own (the nodes it
+  // touches: cache-resident), whichever thread runs it, and every node sums its slots in chunk
+  // order: no two threads write the same entry, and neither the timing nor the number of threads
+  // changes a sum. (A gather per node from the per-element array would visit the elements in an
+  // order the prefetcher cannot follow.)
+  const int chunks = static_cast<int>(chunk_batch_.size()) - 1;
+  const int nn = pattern_.numNodes();
+  f.resize(3 * static_cast<Eigen::Index>(nn));  // every entry is written below
   double* const out = f.data();
-  double* const buffers = thread_forces_.data();
-#pragma omp parallel num_threads(max_threads)
+  double* const buffers = chunk_forces_.data();
+#pragma omp parallel
   {
-    const int np = omp_get_num_threads();
-    double* const mine = buffers + n3 * static_cast<size_t>(omp_get_thread_num());
-    std::fill(mine, mine + n3, 0.0);
 #pragma omp for schedule(static)
-    for (int b = 0; b < num_batches; ++b) batch(mine, b);
+    for (int c = 0; c < chunks; ++c) {
+      double* const mine = buffers + 3 * static_cast<size_t>(chunk_start_[c]);
+      std::fill(mine, buffers + 3 * static_cast<size_t>(chunk_start_[c + 1]), 0.0);
+      for (int b = chunk_batch_[c]; b < chunk_batch_[c + 1]; ++b) batch(mine, b);
+    }
 #pragma omp for schedule(static)
-    for (size_t r = 0; r < n3; ++r) {
-      double sum = buffers[r];
-      for (int q = 1; q < np; ++q) sum += buffers[n3 * static_cast<size_t>(q) + r];
-      out[r] = sum;
+    for (int n = 0; n < nn; ++n) {
+      double s0 = 0.0, s1 = 0.0, s2 = 0.0;
+      for (int k = cover_start_[n]; k < cover_start_[n + 1]; ++k) {
+        const double* v = buffers + 3 * static_cast<size_t>(cover_slot_[k]);
+        s0 += v[0], s1 += v[1], s2 += v[2];
+      }
+      out[3 * n] = s0, out[3 * n + 1] = s1, out[3 * n + 2] = s2;
     }
   }
 }
@@ -397,8 +435,8 @@ void CorotatedTetFem::update(const Points& x, Eigen::VectorXd& f) {
   // The node forces from the kept element forces, in the batches' order (the same sums as the
   // update that computed them, when the modulus factors did not change since).
   const double* const fe_all = elem_forces_.data();
-  const int* const tets = tets_.data();
-  withThreadForces(f, [&](double* node_forces, int b) {
+  const int* const tets = force_tets_.data();
+  withChunkForces(f, [&](double* node_forces, int b) {
     const int e0 = b * kBatch, e1 = std::min(nt, e0 + kBatch);
     for (int e = e0; e < e1; ++e)
       addElementForces(tets, static_cast<size_t>(e), fe_all + 12 * static_cast<size_t>(e), node_forces);

@@ -10,6 +10,7 @@
 #include <Eigen/Geometry>
 
 #include "breast_sim/core/mesh/tet_quality.h"
+#include "../util/ordered_sum.h"
 
 namespace breast_sim::core {
 
@@ -166,13 +167,11 @@ void deformationMeasures(const TetMesh& mesh, const Eigen::VectorXd& u, double& 
   }
   max_displacement_m = finite ? std::sqrt(vmax2) : std::numeric_limits<double>::quiet_NaN();
   const Tets& T = mesh.tets();
-  double v = 0.0;
-#pragma omp parallel for reduction(+ : v) schedule(static)
-  for (int e = 0; e < mesh.numTets(); ++e) {
+  const double v = util::orderedSum(mesh.numTets(), true, [&](long e) {
     Eigen::Vector3d p[4];
     for (int k = 0; k < 4; ++k) p[k] = mesh.nodes().row(T(e, k)).transpose() + u.segment<3>(3 * T(e, k));
-    v += signedTetVolume(p[0], p[1], p[2], p[3]);
-  }
+    return signedTetVolume(p[0], p[1], p[2], p[3]);
+  });
   const double v0 = mesh.volume();
   volume_change_percent = 100.0 * (v - v0) / v0;
 }

@@ -6,6 +6,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "../util/ordered_sum.h"
+
 namespace breast_sim::core {
 
 void MorphingOptions::validate() const {
@@ -129,9 +131,8 @@ double SurfaceMorphing::addForces(DynamicSimulator& sim) {
       }
     }
   }
-  double sum = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : sum) if (nv > 2000)
-  for (int i = 0; i < nv; ++i) {
+  // The mean distance in a fixed order (util/ordered_sum.h): the same on any thread count.
+  const double sum = util::orderedSum(nv, nv > 2000, [&](long i) {
     const int n = vertices_[i];
     const Eigen::Vector3d x = rest_.row(n).transpose() + u.segment<3>(3 * n);
     Eigen::Vector3d v = field_->vectorToSurface(x);
@@ -147,7 +148,6 @@ double SurfaceMorphing::addForces(DynamicSimulator& sim) {
     anchor_.row(i) = (x + v).transpose();
     // The direction of the implicit pull; on the target (d ≈ 0) the last one is kept.
     if (d > 1e-9) normal_.row(i) = (v / d).transpose();
-    sum += d;
     const bool pull = options_.max_distance_m == 0.0 || d <= options_.max_distance_m;
     Eigen::RowVector3d f = pull ? Eigen::RowVector3d(options_.gain_pa_per_m * area_[i] * v.transpose()) : Eigen::RowVector3d::Zero();
     if (options_.max_traction_pa > 0) {
@@ -158,7 +158,8 @@ double SurfaceMorphing::addForces(DynamicSimulator& sim) {
       if (total.norm() > cap) f = total * (cap / total.norm()) - total_.row(i);
     }
     step_forces_.row(i) = f;
-  }
+    return d;
+  });
   total_ += step_forces_;
   sim.addNodalForces(vertices_, step_forces_);
   return sum / nv;

@@ -12,6 +12,7 @@
 #include <Eigen/Dense>
 
 #include "aggregation_detail.h"
+#include "../util/ordered_sum.h"
 
 namespace breast_sim::core {
 
@@ -183,31 +184,30 @@ void AggregationMultigridPreconditioner::estimateDamping(int l) {
   const double* fr = lv.free.data();
   double lambda = 0.0;
   for (int it = 0; it < iterations; ++it) {
-    double vv = 0.0, yy = 0.0;
-#pragma omp parallel if (lv.nodes > kParallelMinNodes)
-    {
-#pragma omp for schedule(static)
-      for (int r = 0; r < n; ++r) {
-        double s = 0.0;
-        for (int k = outer[r]; k < outer[r + 1]; ++k) s += val[k] * v[inner[k]];
-        Av[r] = s;
-      }
-#pragma omp for schedule(static) reduction(+ : vv, yy)
-      for (int i = 0; i < lv.nodes; ++i) {
-        const double* d = dinv + static_cast<size_t>(i) * bs * bs;
-        double y[kC];
-        for (int a = 0; a < bs; ++a) {
-          double s = 0.0;
-          for (int c = 0; c < bs; ++c) s += d[a * bs + c] * Av[bs * i + c];
-          y[a] = fr[bs * i + a] * s;  // decoupled DOFs (eigenvalue 1) are left out
-        }
-        for (int a = 0; a < bs; ++a) {
-          vv += v[bs * i + a] * v[bs * i + a];
-          v[bs * i + a] = y[a];
-          yy += y[a] * y[a];
-        }
-      }
+#pragma omp parallel for schedule(static) if (lv.nodes > kParallelMinNodes)
+    for (int r = 0; r < n; ++r) {
+      double s = 0.0;
+      for (int k = outer[r]; k < outer[r + 1]; ++k) s += val[k] * v[inner[k]];
+      Av[r] = s;
     }
+    // The norms in a fixed order (util/ordered_sum.h): the same estimate on any thread count.
+    const auto sums = util::orderedSums<2>(lv.nodes, lv.nodes > kParallelMinNodes, [&](long i) {
+      const double* d = dinv + static_cast<size_t>(i) * bs * bs;
+      double y[kC];
+      for (int a = 0; a < bs; ++a) {
+        double s = 0.0;
+        for (int c = 0; c < bs; ++c) s += d[a * bs + c] * Av[bs * i + c];
+        y[a] = fr[bs * i + a] * s;  // decoupled DOFs (eigenvalue 1) are left out
+      }
+      std::array<double, 2> t{0.0, 0.0};
+      for (int a = 0; a < bs; ++a) {
+        t[0] += v[bs * i + a] * v[bs * i + a];
+        v[bs * i + a] = y[a];
+        t[1] += y[a] * y[a];
+      }
+      return t;
+    });
+    const double vv = sums[0], yy = sums[1];
     if (!(yy > 0.0) || !(vv > 0.0)) break;
     lambda = std::sqrt(yy / vv);
     lv.eigenvector *= 1.0 / std::sqrt(yy);

@@ -1,6 +1,8 @@
 #include "breast_sim/core/solver/block_kernels.h"
 
+#include <algorithm>
 #include <cstddef>
+#include <vector>
 
 #include <omp.h>
 
@@ -267,13 +269,18 @@ void blockResidual(const float* val, const int* col, const int* start, const dou
 
 double blockProduct(const int* outer, const double* val, const int* start, const int* col, const double* b,
                     const double* x, double* y, int nodes, bool residual, bool simd, bool parallel) {
+  // The dot product over fixed chunks of rows, added in chunk order: the same bits on any number of
+  // threads (an OpenMP reduction adds per-thread shares, whose bounds move with the thread count).
+  constexpr int kChunk = 256;
+  const int chunks = (nodes + kChunk - 1) / kChunk;
+  thread_local std::vector<double> partial;
+  if (static_cast<int>(partial.size()) < chunks) partial.resize(static_cast<size_t>(chunks));
+  double* const part = partial.data();
+#pragma omp parallel for schedule(static) if (parallel && chunks > 1)
+  for (int c = 0; c < chunks; ++c)
+    part[c] = blockProductRows(outer, val, start, col, b, x, y, c * kChunk, std::min(nodes, (c + 1) * kChunk), residual, simd);
   double sum = 0.0;
-#pragma omp parallel reduction(+ : sum) if (parallel)
-  {
-    const int p = omp_get_thread_num(), np = omp_get_num_threads();
-    sum += blockProductRows(outer, val, start, col, b, x, y, shareStart(nodes, p, np), shareStart(nodes, p + 1, np),
-                            residual, simd);
-  }
+  for (int c = 0; c < chunks; ++c) sum += part[c];
   return sum;
 }
 

@@ -10,6 +10,7 @@
 
 #include "breast_sim/core/solver/block_kernels.h"
 #include "multigrid_detail.h"
+#include "../util/ordered_sum.h"
 
 namespace breast_sim::core {
 
@@ -107,26 +108,23 @@ void MultigridPreconditioner::estimateDamping(int l) {
   static constexpr double kZero[3] = {0.0, 0.0, 0.0};
   double lambda = 0.0;
   for (int it = 0; it < iterations; ++it) {
-    double vv = 0.0, yy = 0.0;
 #pragma omp parallel for schedule(static) if (lv.nodes > kParallelMinNodes)
     for (int i = 0; i < lv.nodes; ++i) blockRowResidual(bval, bcol, bstart[i], bstart[i + 1], kZero, v, Av + 3 * i);
     if (l == 0 && rank_one_) addRankOneProduct(R_, v, -1.0, Av, rank_one_work_.data());
-#pragma omp parallel if (lv.nodes > kParallelMinNodes)
-    {
-#pragma omp for schedule(static) reduction(+ : vv, yy)
-      for (int i = 0; i < lv.nodes; ++i) {
-        const double* d = dinv + 9 * i;
-        const double* a = Av + 3 * i;
-        double* y = v + 3 * i;
-        vv += y[0] * y[0] + y[1] * y[1] + y[2] * y[2];
-        // Fixed DOFs (eigenvalue 1 of D⁻¹A) are left out of the iteration.
-        const double y0 = fr[3 * i] * (d[0] * a[0] + d[1] * a[1] + d[2] * a[2]);
-        const double y1 = fr[3 * i + 1] * (d[3] * a[0] + d[4] * a[1] + d[5] * a[2]);
-        const double y2 = fr[3 * i + 2] * (d[6] * a[0] + d[7] * a[1] + d[8] * a[2]);
-        y[0] = y0, y[1] = y1, y[2] = y2;
-        yy += y0 * y0 + y1 * y1 + y2 * y2;
-      }
-    }
+    // The norms in a fixed order (util/ordered_sum.h): the same estimate on any thread count.
+    const auto sums = util::orderedSums<2>(lv.nodes, lv.nodes > kParallelMinNodes, [&](long i) {
+      const double* d = dinv + 9 * i;
+      const double* a = Av + 3 * i;
+      double* y = v + 3 * i;
+      const double vi = y[0] * y[0] + y[1] * y[1] + y[2] * y[2];
+      // Fixed DOFs (eigenvalue 1 of D⁻¹A) are left out of the iteration.
+      const double y0 = fr[3 * i] * (d[0] * a[0] + d[1] * a[1] + d[2] * a[2]);
+      const double y1 = fr[3 * i + 1] * (d[3] * a[0] + d[4] * a[1] + d[5] * a[2]);
+      const double y2 = fr[3 * i + 2] * (d[6] * a[0] + d[7] * a[1] + d[8] * a[2]);
+      y[0] = y0, y[1] = y1, y[2] = y2;
+      return std::array<double, 2>{vi, y0 * y0 + y1 * y1 + y2 * y2};
+    });
+    const double vv = sums[0], yy = sums[1];
     if (!(yy > 0.0) || !(vv > 0.0)) break;
     lambda = std::sqrt(yy / vv);
     lv.eigenvector *= 1.0 / std::sqrt(yy);

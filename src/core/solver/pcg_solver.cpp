@@ -7,6 +7,7 @@
 #include <stdexcept>
 
 #include "breast_sim/core/solver/block_kernels.h"
+#include "../util/ordered_sum.h"
 
 namespace breast_sim::core {
 
@@ -23,22 +24,19 @@ std::string dofName(Eigen::Index k) {
   return s.str();
 }
 
-// r = b − A x; returns rᵀr.
+// r = b − A x; returns rᵀr (in a fixed order: util/ordered_sum.h).
 double residual(const SparseMatrix& A, const Eigen::VectorXd& b, const Eigen::VectorXd& x, Eigen::VectorXd& r) {
   const int* outer = A.outerIndexPtr();
   const int* inner = A.innerIndexPtr();
   const double* val = A.valuePtr();
   const Eigen::Index n = A.rows();
   const double* xp = x.data();
-  double rr = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : rr) if (n > kParallelMin)
-  for (Eigen::Index i = 0; i < n; ++i) {
+  return util::orderedSum(n, n > kParallelMin, [&](long i) {
     double s = b[i];
     for (int k = outer[i]; k < outer[i + 1]; ++k) s -= val[k] * xp[inner[k]];
     r[i] = s;
-    rr += s * s;
-  }
-  return rr;
+    return s * s;
+  });
 }
 
 // q = A p; returns pᵀq.
@@ -48,38 +46,28 @@ double multiplyDot(const SparseMatrix& A, const Eigen::VectorXd& p, Eigen::Vecto
   const double* val = A.valuePtr();
   const Eigen::Index n = A.rows();
   const double* pp = p.data();
-  double pq = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : pq) if (n > kParallelMin)
-  for (Eigen::Index i = 0; i < n; ++i) {
+  return util::orderedSum(n, n > kParallelMin, [&](long i) {
     double s = 0.0;
     for (int k = outer[i]; k < outer[i + 1]; ++k) s += val[k] * pp[inner[k]];
     q[i] = s;
-    pq += pp[i] * s;
-  }
-  return pq;
+    return pp[i] * s;
+  });
 }
 
 // x += α p, r −= α q; returns rᵀr.
 double update(double alpha, const Eigen::VectorXd& p, const Eigen::VectorXd& q, Eigen::VectorXd& x,
               Eigen::VectorXd& r) {
   const Eigen::Index n = x.size();
-  double rr = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : rr) if (n > kParallelMin)
-  for (Eigen::Index i = 0; i < n; ++i) {
+  return util::orderedSum(n, n > kParallelMin, [&](long i) {
     x[i] += alpha * p[i];
     const double ri = r[i] - alpha * q[i];
     r[i] = ri;
-    rr += ri * ri;
-  }
-  return rr;
+    return ri * ri;
+  });
 }
 
 double dot(const Eigen::VectorXd& a, const Eigen::VectorXd& b) {
-  const Eigen::Index n = a.size();
-  double s = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : s) if (n > kParallelMin)
-  for (Eigen::Index i = 0; i < n; ++i) s += a[i] * b[i];
-  return s;
+  return util::orderedSum(a.size(), a.size() > kParallelMin, [&](long i) { return a[i] * b[i]; });
 }
 
 // p = z + β p

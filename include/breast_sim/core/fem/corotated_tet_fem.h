@@ -24,9 +24,9 @@ namespace breast_sim::core {
 /// batches of kRotationBatch elements in structure-of-arrays form, in loops over the batch the
 /// compiler vectorises; the rotations by rotationsOf() (polar_decomposition.h).
 /// The stiffness assembly runs in parallel over nodes (each node gathers its rows from its
-/// elements), so no two threads write the same entry; the node forces are summed per thread, each
-/// thread over its own static share of the batches into an array of its own, and the arrays added in
-/// thread order (the sums depend on the thread count, not on timing).
+/// elements), so no two threads write the same entry; the node forces are summed per fixed chunk of
+/// batches into an array of the chunk's own, and the arrays added in chunk order (the sums depend
+/// neither on the thread count nor on timing).
 class CorotatedTetFem : public ElementFormulation {
  public:
   /// @param pattern_rings  the reach of pattern() (BlockPattern): 1, or 2 for a formulation that
@@ -112,6 +112,7 @@ class CorotatedTetFem : public ElementFormulation {
 
  private:
   static constexpr int kBatch = kRotationBatch;  // elements per batch of update()
+  static constexpr int kForceChunks = 32;         // chunks of batches the node forces are summed over
   const Tets tets_;
   const Points rest_;
   ElasticMaterial material_;
@@ -152,13 +153,19 @@ class CorotatedTetFem : public ElementFormulation {
   VolumeTerm updated_volume_term_ = VolumeTerm::kTrace;
   double trace_lambda_ = 0.0;              // λ of the trace kernels at the last update(): λ, or −2μ/3 for kNone
   double volumeLambda() const { return trace_lambda_; }
-  std::vector<double> thread_forces_;  // per OpenMP thread, 3 per node: the node-force sums of its batches [N]
+  // The node forces summed over fixed chunks of batches (withChunkForces): chunk c holds batches
+  // [chunk_batch_[c], chunk_batch_[c + 1]) and adds their forces to its own array over the nodes
+  // its elements touch, slots [chunk_start_[c], chunk_start_[c + 1]) of chunk_forces_ (3 per slot);
+  // force_tets_ gives each element's nodes as slots of its chunk; node n sums the slots
+  // [cover_start_[n], cover_start_[n + 1]) of cover_slot_, in chunk order.
+  std::vector<int> chunk_batch_, chunk_start_, force_tets_, cover_start_, cover_slot_;
+  std::vector<double> chunk_forces_;  // [N]
   template <bool kDeterminant>
   void updateBatches(const Points& x, Eigen::VectorXd& f);
-  /// f = Σ over threads of the node forces batch(node_forces, b) adds for each batch b of the
-  /// thread's static share (see the definition).
+  /// f = the node forces batch(node_forces, b) adds for every batch b, summed per chunk of batches
+  /// and then over chunks in chunk order: the same bits on any number of threads.
   template <class BatchFn>
-  void withThreadForces(Eigen::VectorXd& f, BatchFn&& batch);
+  void withChunkForces(Eigen::VectorXd& f, BatchFn&& batch);
   template <bool kDeterminant, bool kAssign>
   void gatherStiffness(double scale, SparseMatrix& A) const;
 };
