@@ -20,6 +20,7 @@
 #include <visualization_msgs/MarkerArray.h>
 
 #include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/ros_interface/cloud_points.h"
 #include "breast_sim/core/model/point_embedding.h"
 #include "breast_sim/core/pipeline/lesion_uncertainty.h"
 
@@ -47,21 +48,6 @@ breast_sim::LesionArray lesionsMessage(const std::vector<core::Lesion>& lesions,
                                        const std::string& frame_id, const ros::Time& stamp, bool valid,
                                        const std::string& status,
                                        const std::vector<core::LesionRegion>* regions = nullptr);
-
-/// The points of a PointCloud2 and what was left out.
-struct CloudPoints {
-  core::Points points_m;     ///< finite points [m], in the message's frame
-  size_t total = 0;          ///< points in the message (width × height)
-  size_t non_finite = 0;     ///< points dropped for a NaN or infinite coordinate
-  size_t stride = 1;         ///< every stride-th point was read (1 = all)
-};
-
-/// Reads the x, y, z fields (FLOAT32 or FLOAT64, any offsets, either endianness of this machine only)
-/// of a cloud. Clouds with more than `max_points` points (0 = no limit) are read with a stride so at
-/// most `max_points` are taken. Non-finite points are dropped and counted.
-/// @throws std::invalid_argument naming the field when x/y/z are missing or not floating point, or
-///         when point_step, row_step and the data size disagree (a truncated or malformed message).
-CloudPoints pointsFromCloud(const sensor_msgs::PointCloud2& msg, size_t max_points = 0);
 
 /// A dense (height 1) PointCloud2 with FLOAT32 x, y, z fields of the given points [m].
 sensor_msgs::PointCloud2 cloudToMessage(const core::Points& points_m, const std::string& frame_id,
