@@ -98,7 +98,9 @@ std::string ConfinedFolder::existingFile(const std::string& name) const {
   const std::string real = realPath(path);
   if (real.empty()) {
     const int error = errno;
-    if (!lexicallyInside(root_, path))
+    // Outside or missing: decided by the folder it would be in (the name may reach the root through a link).
+    const std::string real_parent = realPath(std::filesystem::path(path).parent_path().string());
+    if (real_parent.empty() ? !lexicallyInside(root_, path) : !inside(real_parent))
       refuse(name, "is outside " + what_ + " (" + root_ + "); name files relative to it");
     if (error == ENOENT || error == ENOTDIR) refuse(name, "does not exist in " + what_ + " (" + root_ + ")");
     refuse(name, "cannot be resolved (" + systemError(error) + ")");

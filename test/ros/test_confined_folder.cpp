@@ -195,6 +195,16 @@ TEST_F(Folders, RemoveTakesFilesNotFolders) {
   EXPECT_NE(refusal([&] { folder_->removeFile("../outside/x"); }).find("'..'"), std::string::npos);
 }
 
+// The folder as the launch files name it: through a link (a catkin workspace's src/ links to the checkout).
+TEST_F(Folders, NamesThroughALinkToTheFolderAreInside) {
+  fs::create_directory_symlink(base_ / "inside", base_ / "alias");
+  const std::string a = write(in("a.state"), "A");
+  EXPECT_EQ(folder_->existingFile((base_ / "alias" / "a.state").string()), fs::canonical(a).string());
+  const std::string missing = refusal([&] { folder_->existingFile((base_ / "alias" / "none.yaml").string()); });
+  EXPECT_NE(missing.find("does not exist in ~state_folder"), std::string::npos) << missing;
+  EXPECT_EQ(read(folder_->writeFile((base_ / "alias" / "b.state").string(), false, writer("B"))), "B");
+}
+
 TEST(ConfinedFolder, AMissingFolderIsCreatedOnlyWhenAsked) {
   const fs::path base = fs::temp_directory_path() / ("confined_folder_create_" + std::to_string(::getpid()));
   fs::remove_all(base);
