@@ -19,7 +19,8 @@ bool BreastSimNode::loadCaseSrv(breast_sim::LoadCase::Request& req, breast_sim::
     file = data_folder_->existingFile(req.case_file);
   } catch (const std::exception& ex) {
     res.success = false;
-    res.message = std::string("cannot load case: ") + ex.what() + "; the previous model stays";
+    res.message = std::string("cannot load case: ") + ex.what();
+    ROS_WARN_STREAM("breast_sim: " << res.message << "; keeping the previous model");
     return true;
   }
   const int target = req.target_elements;
