@@ -31,8 +31,12 @@ bool BreastSimNode::writeCheckpoint(Engine& e, const char* after) {
     const std::string path = state_folder_->writeFile(checkpointName(e.fingerprint), true,
                                                       [&](const std::string& temp) { e.pipeline->saveState(temp); });
     last_checkpoint_ = Clock::now();
-    ROS_INFO_STREAM_THROTTLE(60.0, "breast_sim: checkpoint after " << after << " written to " << path << " in "
-                             << seconds(last_checkpoint_ - t0) << " s");
+    const double took_s = seconds(last_checkpoint_ - t0);
+    if (guard_.started())  // while tracking: once a minute
+      ROS_INFO_STREAM_THROTTLE(60.0, "breast_sim: checkpoint after " << after << " written to " << path << " in "
+                               << took_s << " s (every " << params_.checkpoint_period_s << " s while tracking)");
+    else
+      ROS_INFO_STREAM("breast_sim: checkpoint after " << after << " written to " << path << " in " << took_s << " s");
     return true;
   } catch (const std::exception& ex) {
     warn("checkpoint", std::string("breast_sim: the checkpoint after ") + after + " could not be written: " + ex.what() +
