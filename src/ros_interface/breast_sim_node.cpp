@@ -28,6 +28,9 @@ BreastSimNode::~BreastSimNode() {
 
 void BreastSimNode::initialize() {
   params_ = NodeParams::fromRos(pnh_);
+  data_folder_ = std::make_unique<ConfinedFolder>(params_.data_folder, "~data_folder", false);
+  state_folder_ = std::make_unique<ConfinedFolder>(params_.state_folder, "~state_folder", true);
+  if (!params_.settings_file.empty()) params_.settings_file = data_folder_->existingFile(params_.settings_file);
   guard_ = GuardedTracker(params_.tracker, params_.monitor);
   throttle_.setPeriod(params_.warn_throttle_s);
   tf_listener_ = std::make_unique<tf2_ros::TransformListener>(tf_buffer_, nh_);
@@ -62,10 +65,20 @@ void BreastSimNode::initialize() {
   startJob([this, case_file, target, precompute] {
     std::string message;
     bool ok = false;
-    loadCaseJob(case_file, target, &message, &ok);
+    try {
+      loadCaseJob(data_folder_->existingFile(case_file), target, &message, &ok);
+    } catch (const ConfinementError& ex) {
+      message = std::string("cannot load case_file: ") + ex.what();
+      endJob(breast_sim::NodeState::IDLE, message + "; no model loaded");
+    }
     if (!ok) {
       ROS_ERROR_STREAM("breast_sim: " << message << "; no model until a case loads (~load_case)");
       return;
+    }
+    // A node restarted after a crash goes on from where it was, without precomputing.
+    {
+      std::lock_guard<std::mutex> lock(engine_mutex_);
+      if (engine_ && resumeFromCheckpoint(*engine_)) return;
     }
     if (precompute) precomputeJob(false, std::nullopt);
   }, &why);

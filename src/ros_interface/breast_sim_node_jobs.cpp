@@ -78,6 +78,7 @@ void BreastSimNode::loadCaseJob(const std::string& case_file, int target_element
   std::unique_ptr<Engine> e;
   try {
     e = buildEngine(case_file, target_elements);
+    fingerprintEngine(*e);
   } catch (const std::exception& ex) {
     *ok = false;
     *message = std::string("cannot load case '") + case_file + "': " + ex.what();
@@ -222,6 +223,7 @@ void BreastSimNode::precomputeJob(bool gravity_only, std::optional<PrecomputeSer
                "stopped; ~reset returns to the rest shape, ~start_precomputation starts again");
       finish(false, true, "cancelled: " + s.str());
     } else {
+      writeCheckpoint(e, "the precomputation");
       endJob(breast_sim::NodeState::IDLE, "precomputed (" + s.str() + "); waiting for surface clouds");
       finish(true, false, s.str() + (converged ? "" : " (finished without meeting every tolerance)"));
     }
@@ -303,6 +305,7 @@ void BreastSimNode::resetJob() {
     engine_->regions.clear();
     engine_->region_status = "not computed (reset to the rest shape)";
     engine_->gravity_load_mps2 = engine_->pipeline->supineGravityLoad();
+    forgetCheckpoint(*engine_);
     restartTracking();
     {
       std::lock_guard<std::mutex> sl(state_mutex_);

@@ -14,7 +14,15 @@ bool BreastSimNode::loadCaseSrv(breast_sim::LoadCase::Request& req, breast_sim::
   std::mutex m;
   std::condition_variable cv;
   bool done = false;
-  const std::string file = req.case_file;
+  std::string file;
+  try {
+    file = data_folder_->existingFile(req.case_file);
+  } catch (const std::exception& ex) {
+    res.success = false;
+    res.message = std::string("cannot load case: ") + ex.what();
+    ROS_WARN_STREAM("breast_sim: " << res.message << "; keeping the previous model");
+    return true;
+  }
   const int target = req.target_elements;
   if (!startJob([&, file, target] {
         loadCaseJob(file, target, &message, &ok);
@@ -96,10 +104,15 @@ bool BreastSimNode::saveStateSrv(breast_sim::StateFile::Request& req, breast_sim
     return true;
   }
   try {
-    engine_->pipeline->saveState(req.path);
+    Engine& e = *engine_;
+    const std::string path =
+        state_folder_->writeFile(req.path, req.replace, [&](const std::string& temp) { e.pipeline->saveState(temp); });
     res.success = true;
-    res.message = "saved the state of case '" + engine_->model_case->name + "' (" +
-                  std::to_string(engine_->model->mesh.numNodes()) + " nodes) to " + req.path;
+    res.message = "saved the state of case '" + e.model_case->name + "' (" + std::to_string(e.model->mesh.numNodes()) +
+                  " nodes) to " + path;
+  } catch (const ConfinementError& ex) {
+    res.success = false;
+    res.message = std::string("not saved: ") + ex.what();
   } catch (const std::exception& ex) {
     res.success = false;
     res.message = ex.what();
@@ -120,28 +133,34 @@ bool BreastSimNode::loadStateSrv(breast_sim::StateFile::Request& req, breast_sim
     return true;
   }
   try {
-    engine_->pipeline->loadState(req.path);
-    engine_->gravity_load_mps2 = engine_->pipeline->gravityLoad();  // the state's, for the pose-update rule
-    engine_->precomputed = true;
-    // A state file holds the shape, not the ensemble: its regions are unknown.
-    engine_->regions.clear();
-    engine_->region_status = "not computed (state loaded from " + req.path + ")";
-    restartTracking();
-    {
-      std::lock_guard<std::mutex> sl(state_mutex_);
-      state_.precomputed = true;
-      state_.stage = "done";
-      state_.progress = 1.0;
-    }
-    publishModel(*engine_, ros::Time::now(), true, true, "loaded state " + req.path);
+    const std::string file = state_folder_->existingFile(req.path);
+    engine_->pipeline->loadState(file);
+    adoptLoadedState(*engine_, file);
     res.success = true;
-    res.message = "loaded " + req.path + "; the model is precomputed and follows surface clouds";
+    res.message = "loaded " + file + "; the model is precomputed and follows surface clouds";
     setState(breast_sim::NodeState::IDLE, res.message);
+    writeCheckpoint(*engine_, "a loaded state");
   } catch (const std::exception& ex) {
     res.success = false;
     res.message = std::string(ex.what()) + "; the previous state is kept";
   }
   return true;
+}
+
+void BreastSimNode::adoptLoadedState(Engine& e, const std::string& file) {
+  e.gravity_load_mps2 = e.pipeline->gravityLoad();  // the state's, for the pose-update rule
+  e.precomputed = true;
+  // A state file holds the shape, not the ensemble: its regions are unknown.
+  e.regions.clear();
+  e.region_status = "not computed (state loaded from " + file + ")";
+  restartTracking();
+  {
+    std::lock_guard<std::mutex> sl(state_mutex_);
+    state_.precomputed = true;
+    state_.stage = "done";
+    state_.progress = 1.0;
+  }
+  publishModel(e, ros::Time::now(), true, true, "loaded state " + file);
 }
 
 void BreastSimNode::goalCb(PrecomputeServer::GoalHandle goal) {

@@ -169,6 +169,10 @@ void BreastSimNode::processCloud(const sensor_msgs::PointCloud2ConstPtr& msg, Cl
   // 4. Publish (header stamp = the cloud's, so consumers can match them).
   publishModel(e, msg->header.stamp, false, f.valid, f.status);
   const double latency = seconds(Clock::now() - received);
+  // A frame the monitor vouches for is a state to resume from (after the latency is taken: the
+  // lesions are out before the checkpoint is written).
+  if (f.valid && params_.checkpoint_period_s > 0 && seconds(Clock::now() - last_checkpoint_) >= params_.checkpoint_period_s)
+    writeCheckpoint(e, "tracking");
   const auto now = Clock::now();
   inverted_elements_ = f.quality.inverted_elements;
   {

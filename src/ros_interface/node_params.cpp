@@ -1,6 +1,7 @@
 // The node's parameters, read from its private namespace and checked (node_params.h).
 #include "breast_sim/ros_interface/node_params.h"
 
+#include <cstdlib>
 #include <stdexcept>
 
 #include <ros/package.h>
@@ -19,11 +20,22 @@ void require(bool ok, const std::string& name, const std::string& what) {
   if (!ok) throw std::invalid_argument("parameter ~" + name + ": " + what);
 }
 
+/// $ROS_HOME/breast_sim/states, ROS_HOME defaulting to ~/.ros as roslaunch's does.
+std::string defaultStateFolder() {
+  const char* ros_home = std::getenv("ROS_HOME");
+  const char* home = std::getenv("HOME");
+  const std::string base = ros_home && *ros_home ? ros_home : std::string(home && *home ? home : "/tmp") + "/.ros";
+  return base + "/breast_sim/states";
+}
+
 }  // namespace
 
 NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   NodeParams p;
-  p.case_file = param<std::string>(pnh, "case_file", ros::package::getPath("breast_sim") + "/config/phantom_default.yaml");
+  p.data_folder = param<std::string>(pnh, "data_folder", ros::package::getPath("breast_sim"));
+  p.state_folder = param<std::string>(pnh, "state_folder", defaultStateFolder());
+  p.checkpoint_period_s = param(pnh, "checkpoint/period_s", p.checkpoint_period_s);
+  p.case_file = param<std::string>(pnh, "case_file", "config/phantom_default.yaml");
   p.target_elements = param(pnh, "target_elements", p.target_elements);
   p.settings_file = param(pnh, "settings_file", p.settings_file);
   p.field_voxel_size_m = param(pnh, "field_voxel_size_m", p.field_voxel_size_m);
@@ -84,6 +96,9 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   p.progress_rate_hz = param(pnh, "publish/progress_rate_hz", p.progress_rate_hz);
   p.warn_throttle_s = param(pnh, "warn_throttle_s", p.warn_throttle_s);
 
+  require(!p.data_folder.empty(), "data_folder", "must not be empty (a folder holding the case files)");
+  require(!p.state_folder.empty(), "state_folder", "must not be empty (a folder for state files and checkpoints)");
+  require(p.checkpoint_period_s >= 0, "checkpoint/period_s", "must be ≥ 0 s (0 = no checkpoints while tracking)");
   require(p.target_elements >= 0, "target_elements", "must be ≥ 0 (0 keeps the case's meshing.target_elements)");
   require(p.field_voxel_size_m >= 0 && p.field_voxel_size_m < 0.1, "field_voxel_size_m", "must be in [0, 0.1) m");
   require(!p.frame_id.empty(), "frame_id", "must not be empty");

@@ -22,6 +22,7 @@
 #include <breast_sim/StartPrecomputation.h>
 #include <std_srvs/Trigger.h>
 
+#include "node_state_folder.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/pipeline/case_file.h"
 #include "breast_sim/core/pipeline/lesion_uncertainty.h"
@@ -187,6 +188,7 @@ int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   ros::init(argc, argv, "mesh_case_test");
   ros::NodeHandle nh;
+  const breast_sim::test_fixtures::NodeStateFolder state_folder;
   ros::Subscriber s1 = nh.subscribe("/breast_sim/state", 10, onState);
   ros::Subscriber s2 = nh.subscribe("/breast_sim/lesions", 10, onLesions);
   ros::Subscriber s3 = nh.subscribe("/rosout", 100, onRosout);

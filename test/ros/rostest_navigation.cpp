@@ -40,6 +40,7 @@
 #include <breast_sim/StateFile.h>
 #include <breast_sim/TetrahedralMesh.h>
 
+#include "node_state_folder.h"
 #include "simulated_clock.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
@@ -65,8 +66,8 @@ constexpr int BAG_CLOUDS = 100;
 // Node after precomputation vs the offline pipeline (same deterministic computation; OpenMP
 // reductions may reorder sums).
 constexpr double PRECOMPUTE_TOLERANCE_MM = 0.05;
-// The node's state after the first (from prone) precomputation.
-constexpr const char* kPrecomputedStateFile = "/tmp/breast_sim_rostest.state";
+// The node's state after the first (from prone) precomputation, in its ~state_folder.
+constexpr const char* kPrecomputedStateFile = "precomputed.state";
 
 double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
@@ -219,7 +220,7 @@ TEST(Navigation, PrecomputesOffTheCallbackThreadAndMatchesTheOfflinePipeline) {
   breast_sim::StartPrecomputation again;
   ASSERT_TRUE(ros::service::call("/breast_sim/start_precomputation", again));
   breast_sim::StateFile save;
-  save.request.path = "/tmp/breast_sim_rostest_busy.state";
+  save.request.path = "busy.state";
   ASSERT_TRUE(ros::service::call("/breast_sim/save_state", save));
   const double answer_s = since(t0);
   bool saw_precomputing = waitUntil([] { return rec.state && rec.state->state == breast_sim::NodeState::PRECOMPUTING; }, 5.0);
@@ -247,6 +248,7 @@ TEST(Navigation, PrecomputesOffTheCallbackThreadAndMatchesTheOfflinePipeline) {
   // cancel landed (18–22 gravity steps under load), and tracking can amplify that difference.
   breast_sim::StateFile keep;
   keep.request.path = kPrecomputedStateFile;
+  keep.request.replace = true;
   ASSERT_TRUE(ros::service::call("/breast_sim/save_state", keep));
   ASSERT_TRUE(keep.response.success) << keep.response.message;
 }
@@ -451,7 +453,7 @@ TEST(Navigation, FollowsTheRecordedTrackerAndSurvivesMalformedClouds) {
 
 TEST(Navigation, SavedStateLoadsBack) {
   breast_sim::StateFile missing;
-  missing.request.path = "/tmp/breast_sim_no_such_dir/none.state";
+  missing.request.path = "no_such_dir/none.state";
   ASSERT_TRUE(ros::service::call("/breast_sim/load_state", missing));
   EXPECT_FALSE(missing.response.success);
   EXPECT_NE(missing.response.message.find("none.state"), std::string::npos) << missing.response.message;
@@ -502,6 +504,7 @@ int main(int argc, char** argv) {
   ros::Subscriber s2 = nh.subscribe("/breast_sim/deformed_mesh", 200, onMesh);
   ros::Subscriber s3 = nh.subscribe("/breast_sim/lesions", 200, onLesions);
   ros::Subscriber s4 = nh.subscribe("/diagnostics", 5, onDiagnostics);
+  const breast_sim::test_fixtures::NodeStateFolder state_folder;
   breast_sim::test_fixtures::SimulatedClock clock(nh);
   sim_clock = &clock;
   ros::AsyncSpinner spinner(2);

@@ -33,6 +33,7 @@
 #include <breast_sim/StartPrecomputation.h>
 #include <breast_sim/TetrahedralMesh.h>
 
+#include "node_state_folder.h"
 #include "simulated_clock.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/morphing/target_surface.h"
@@ -435,6 +436,7 @@ int main(int argc, char** argv) {
   // Longer than the scene: an array lost here would read as a cloud the node did not track.
   ros::Subscriber s3 = nh.subscribe("/breast_sim/lesions", 2000, onLesions);
   ros::Subscriber s4 = nh.subscribe("/rosout", 1000, onLog);
+  const breast_sim::test_fixtures::NodeStateFolder state_folder;
   breast_sim::test_fixtures::SimulatedClock clock(nh);
   sim_clock = &clock;
   ros::AsyncSpinner spinner(2);

@@ -13,12 +13,19 @@
 /// every cloud and pose is checked before it acts (input_checks.h). Every parameter is documented with
 /// its unit in config/node.yaml (node_params.h).
 ///
+/// Files: cases are read only inside ~data_folder, states written and read only inside
+/// ~state_folder (confined_folder.h). The node checkpoints its state there after each
+/// precomputation, after a loaded state and every checkpoint/period_s while tracking, and on start
+/// resumes from the newest checkpoint of its case (node_checkpoint.h), so that a node restarted
+/// after a crash tracks again without a precomputation.
+///
 /// The class is implemented in src/ros_interface: breast_sim_node.cpp (set-up), _jobs, _services,
-/// _tracking, _poses and _publishing (breast_sim_node_*.cpp), one file per group below.
+/// _tracking, _poses, _publishing and _checkpoints (breast_sim_node_*.cpp), one file per group below.
 
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <cstdint>
 #include <deque>
 #include <memory>
 #include <mutex>
@@ -44,6 +51,7 @@
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/pipeline/lesion_uncertainty.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "breast_sim/ros_interface/confined_folder.h"
 #include "breast_sim/ros_interface/conversions.h"
 #include "breast_sim/ros_interface/input_checks.h"
 #include "breast_sim/ros_interface/node_params.h"
@@ -76,6 +84,8 @@ class BreastSimNode {
     /// lesion; empty when none was computed (or it failed, was cancelled, or a state was loaded).
     std::vector<core::LesionRegion> regions;
     std::string region_status = "not computed";  ///< why there are no regions, or how they were made
+    /// caseFingerprint of the case as loaded; 0 when it could not be made (then no checkpoints).
+    std::uint64_t fingerprint = 0;
   };
   using PrecomputeServer = actionlib::ActionServer<breast_sim::PrecomputeAction>;
 
@@ -101,6 +111,21 @@ class BreastSimNode {
   bool loadStateSrv(breast_sim::StateFile::Request& req, breast_sim::StateFile::Response& res);
   void goalCb(PrecomputeServer::GoalHandle goal);
   void cancelGoalCb(PrecomputeServer::GoalHandle goal);
+  /// After the pipeline loaded a state from `file`: the engine is precomputed, tracking restarts
+  /// from it, ~state and the model say so (under engine_mutex_).
+  void adoptLoadedState(Engine& e, const std::string& file);
+
+  // Checkpoints (breast_sim_node_checkpoints.cpp); all under engine_mutex_.
+  /// Sets e.fingerprint (caseFingerprint); on failure 0, with a warning that no checkpoints are kept.
+  void fingerprintEngine(Engine& e) const;
+  /// Writes the engine's state to its checkpoint in ~state_folder, replacing the last one
+  /// atomically; false (with a warning) when it cannot.
+  bool writeCheckpoint(Engine& e, const char* after);
+  /// Loads the newest checkpoint of the engine's case (an older one when the newest does not load);
+  /// true when one was loaded.
+  bool resumeFromCheckpoint(Engine& e);
+  /// Removes the engine's checkpoint (a reset: the node must not come back precomputed).
+  void forgetCheckpoint(Engine& e);
 
   // Tracking (breast_sim_node_tracking.cpp).
   void cloudCb(const sensor_msgs::PointCloud2ConstPtr& msg);
@@ -138,6 +163,8 @@ class BreastSimNode {
 
   ros::NodeHandle nh_, pnh_;
   NodeParams params_;
+  std::unique_ptr<ConfinedFolder> data_folder_, state_folder_;
+  std::chrono::steady_clock::time_point last_checkpoint_;  ///< under engine_mutex_
   ros::Publisher mesh_pub_, lesions_pub_, lesion_markers_pub_, surface_pub_, sliding_pub_, state_pub_, diag_pub_;
   ros::Subscriber cloud_sub_, pose_sub_;
   std::vector<ros::ServiceServer> services_;

@@ -16,9 +16,15 @@ namespace breast_sim::ros_interface {
 
 /// Parameters of the node (config/node.yaml documents each with unit and default).
 struct NodeParams {
-  std::string case_file;
+  /// Case files (case_file, settings_file, ~load_case) are read only inside it; default: the package's folder.
+  std::string data_folder;
+  /// ~save_state, ~load_state and the checkpoints, only inside it; default: $ROS_HOME/breast_sim/states.
+  std::string state_folder;
+  /// While tracking, a checkpoint at most this often [s] (after a frame with valid lesions); 0 = off.
+  double checkpoint_period_s = 2.0;
+  std::string case_file;              ///< relative to data_folder, or absolute inside it
   int target_elements = 0;
-  std::string settings_file;          ///< "" = the case file's simulation/sliding/morphing maps
+  std::string settings_file;          ///< "" = the case file's simulation/sliding/morphing maps; as case_file
   double field_voxel_size_m = 0.003;  ///< [m]; 0 = the settings' morphing.voxel_size_mm
   std::string frame_id = "breast_model";
   bool precompute_on_start = false;

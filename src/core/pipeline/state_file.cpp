@@ -262,6 +262,14 @@ void writeStateFile(const std::string& path, const StateFile& f) {
     std::remove(tmp.c_str());
     throw std::runtime_error(path + ": writing the state file failed (" + std::strerror(error) + ")");
   }
+  // The rename reaches the disk with the folder's entry: flushed too, so that after a power loss the
+  // name holds the new state, not the old one (or none).
+  const std::string folder = std::filesystem::path(path).parent_path().string();
+  const int dir = ::open(folder.empty() ? "." : folder.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (dir >= 0) {
+    ::fsync(dir);
+    ::close(dir);
+  }
 }
 
 }  // namespace breast_sim::core

@@ -41,8 +41,8 @@ struct StateFile {
 StateFile readStateFile(const std::string& path);
 
 /// Writes a state file (all ten sections; has_gravity_load and has_rest_shape must be set) through
-/// a temporary file in the same folder, renamed over `path` once complete, so that a failed write
-/// never leaves half a state.
+/// a temporary file in the same folder, flushed (fsync), renamed over `path` once complete and the
+/// folder flushed, so that a failed write or a crash never leaves half a state.
 /// @throws std::invalid_argument when sizes do not match nodes and tets;
 ///         std::runtime_error naming the file when it cannot be written.
 void writeStateFile(const std::string& path, const StateFile& file);
