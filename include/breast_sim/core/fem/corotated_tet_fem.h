@@ -34,11 +34,11 @@ class CorotatedTetFem : public ElementFormulation {
   /// @throws std::invalid_argument for an invalid material.
   CorotatedTetFem(const TetMesh& mesh, const ElasticMaterial& material, int pattern_rings = 1);
   // records() points into records_raw_ at a 64-byte boundary: a copy of the buffer can sit at another
-  // offset from one, so copies are not made (a move keeps the buffer).
+  // offset from one, so copies are not made (a move keeps the buffer). The mesh is const: no assignment.
   CorotatedTetFem(const CorotatedTetFem&) = delete;
   CorotatedTetFem& operator=(const CorotatedTetFem&) = delete;
   CorotatedTetFem(CorotatedTetFem&&) = default;
-  CorotatedTetFem& operator=(CorotatedTetFem&&) = default;
+  CorotatedTetFem& operator=(CorotatedTetFem&&) = delete;
 
   void update(const Points& x, Eigen::VectorXd& f) override;
   void addStiffness(double scale, SparseMatrix& A) const override;
