@@ -285,10 +285,10 @@ TEST(CaseFile, PhantomSizesThatWouldOverflowTheGridAreRefused) {
     std::string says;
   };
   const std::vector<Case> cases = {
-      {"voxel_size_mm: 1.0e-300", "key 'phantom.voxel_size_mm' = 1e-300 mm: expected at least 0.01 mm"},
+      {"voxel_size_mm: 1.0e-300", "key 'phantom.voxel_size_mm' = 1e-300 mm: expected a positive step of at least 0.01 mm"},
       {"margin_mm: 1.0e+300", "key 'phantom.margin_mm' = 1e+300 mm: expected a length of at most 10000 mm"},
       {"lateral_semi_axis_mm: 1.0e+12", "key 'phantom.lateral_semi_axis_mm' = 1e+12 mm: expected a length of at most"},
-      {"surface_edge_mm: 1.0e-9", "key 'phantom.surface_edge_mm' = 1e-09 mm: expected at least 0.01 mm"},
+      {"surface_edge_mm: 1.0e-9", "key 'phantom.surface_edge_mm' = 1e-09 mm: expected a positive step of at least 0.01 mm"},
       {"lesions: [{position_mm: [1.0e+300, 0, 0]}]", "key 'phantom.lesions[0]': a position or radius beyond 10000 mm"},
   };
   for (const Case& c : cases) {
