@@ -14,7 +14,6 @@
 #include <nlohmann/json.hpp>
 #include <omp.h>
 
-#include "bench_mri_util.h"
 #include "bench_util.h"
 #include "breast_sim/core/image/label_image.h"
 #include "breast_sim/core/mri/mri_volume.h"

@@ -57,15 +57,6 @@ using namespace breast_sim::bench;
 
 namespace {
 
-// CPU time of the process [s] (all threads): with OMP_NUM_THREADS=1 the work of a solve, which
-// other processes on a shared machine stretch less than the wall time.
-double cpuSeconds() {
-  timespec t{};
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
-  return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
-}
-
-
 // A = M/dt² + K of linear tetrahedra (lumped mass), 3×3-block layout, Dirichlet rows and
 // columns of the fixed nodes zeroed with a unit diagonal. (The project's assembly is fem/.) At rest, or
 // co-rotated: element stiffness E_r R K_e Rᵀ with R the rotation of the element's deformation gradient

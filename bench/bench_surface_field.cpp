@@ -24,16 +24,6 @@
 using namespace breast_sim::core;
 using namespace breast_sim::bench;
 
-namespace {
-// CPU time of the whole process (all threads) [s]: on a machine shared with other jobs the wall
-// time depends on the load; CPU time / 2 is what the build would take on 2 free cores.
-double cpuSeconds() {
-  timespec ts;
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
-  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
-}
-}  // namespace
-
 int main(int argc, char** argv) {
   std::vector<double> sizes = {64, 128, 192, 256};
   int repeats = 3, samples = 20000;

@@ -1,10 +1,11 @@
 #pragma once
-// Small functions shared by the benchmarks: wall time, the machine's load, medians and means of
-// repeated runs, and comma-separated number lists from the command line.
+// Small functions shared by the benchmarks: wall and CPU time, the machine's load, medians and means
+// of repeated runs, and comma-separated number lists from the command line.
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <ctime>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -15,6 +16,14 @@ using Clock = std::chrono::steady_clock;
 
 /// Seconds since t0.
 inline double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+/// CPU time of the whole process (all threads) [s]: on a machine shared with other jobs the wall
+/// time depends on the load; CPU time / threads is what the work takes on free cores.
+inline double cpuSeconds() {
+  timespec ts;
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
+}
 
 /// The 1-minute load average (runnable processes, as `uptime` shows), −1 where unknown: the load a
 /// figure was measured under.

@@ -118,7 +118,7 @@ void checkScale(const PhantomParams& p) {
   for (const auto& [key, v] : {std::pair<const char*, double>{"voxel_size_mm", p.voxel_size_m},
                                std::pair<const char*, double>{"surface_edge_mm", p.surface_edge_m}}) {
     if (!(v >= kMinStepM)) {
-      throw std::invalid_argument("key 'phantom." + std::string(key) + "' = " + mm(v) + " mm: expected at least " +
+      throw std::invalid_argument("key 'phantom." + std::string(key) + "' = " + mm(v) + " mm: expected a positive step of at least " +
                                   mm(kMinStepM) + " mm");
     }
   }
