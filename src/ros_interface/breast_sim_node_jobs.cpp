@@ -25,7 +25,7 @@ std::unique_ptr<BreastSimNode::Engine> BreastSimNode::buildEngine(const std::str
                                                                  const std::function<void(const std::string&)>& stage) const {
   auto e = std::make_unique<Engine>();
   e->case_file = case_file;
-  e->model_case = std::make_unique<core::ModelCase>(core::loadModelCase(case_file, stage));
+  e->model_case = std::make_unique<core::ModelCase>(core::loadModelCaseWithMri(case_file, stage));
   // A case with its own mesh (mesh:) is not meshed: the element count is the file's.
   if (target_elements > 0 && e->model_case->mesh)
     ROS_WARN_STREAM("breast_sim: case '" << e->model_case->name << "' brings its own mesh (mesh:, "

@@ -200,7 +200,7 @@ int main(int argc, char** argv) {
   try {
     const Args args = parse(argc, argv);
     const auto t0 = std::chrono::steady_clock::now();
-    ModelCase c = loadModelCase(args.case_file);
+    ModelCase c = loadModelCaseWithMri(args.case_file);
     if (c.mesh && (args.target_elements > 0 || args.max_lesion_error_mm > 0))
       throw std::invalid_argument(std::string(args.target_elements > 0 ? "--target-elements" : "--max-lesion-error-mm") +
                                   " chooses how an image is meshed, but case '" + c.name +

@@ -124,6 +124,16 @@ TEST(MriCase, EveryBadKeyIsAnErrorNamingItAndTheFix) {
   }
 }
 
+// The model layer does not segment: loadModelCase alone refuses an MRI case, naming the file, and
+// reads no image.
+TEST(MriCase, TheModelLayerAloneRefusesAnMriCase) {
+  TempDir dir("breast_sim_mri_case");
+  const std::string file = dir.write("case.yaml", "mri: {path: missing.nii.gz}\n");
+  const std::string message = messageOf([&] { loadModelCase(file); });
+  EXPECT_EQ(message.rfind(file + ": 'mri': a prone MRI case is segmented before it is meshed", 0), 0u) << message;
+  EXPECT_EQ(message.find("missing.nii.gz"), std::string::npos) << message;
+}
+
 // case_effective.yaml repeats an MRI case: every key of `mri:` and `segmentation:` is written, and
 // each changed on its own is read back as written and changes nothing else.
 TEST(MriCase, TheEffectiveCaseRepeatsItKeyByKey) {
@@ -218,7 +228,7 @@ TEST(MriCase, ASyntheticVictreMriBecomesAModelWithItsLesions) {
   const std::string file = m.dir.write("case.yaml", "mri: {path: prone_t1.nii.gz, truth: truth.nrrd, lesion_labels: lesions.nrrd}\n"
                                                     "lesions:\n  - {name: L1, position_mm: [-10, -40, -10], radius_mm: 5}\n"
                                                     "meshing: {target_elements: 2000}\n");
-  const ModelCase c = loadModelCase(file, [&](const std::string& s) { stages.push_back(s); });
+  const ModelCase c = loadModelCaseWithMri(file, [&](const std::string& s) { stages.push_back(s); });
   EXPECT_EQ(stages, (std::vector<std::string>{"reading", "segmentation"}));
   ASSERT_TRUE(c.mri);
   const MriCase& mri = *c.mri;
@@ -294,7 +304,7 @@ TEST(MriCase, OneBreastOfTwoIsSimulatedAndTheOtherHeld) {
   const TissueLabels map;
   for (const char* side : {"left", "right"}) {
     SCOPED_TRACE(side);
-    const ModelCase c = loadModelCase(dir.write("case.yaml", std::string("mri: {path: two.nii.gz, breasts: ") + side + "}\n"));
+    const ModelCase c = loadModelCaseWithMri(dir.write("case.yaml", std::string("mri: {path: two.nii.gz, breasts: ") + side + "}\n"));
     const MriCase& mri = *c.mri;
     ASSERT_EQ(mri.segmentation.report.nipples_m.size(), 2u);
     EXPECT_NEAR(mri.midline_x_m, x_mirror, 1e-3);
@@ -322,7 +332,7 @@ TEST(MriCase, OneBreastOfTwoIsSimulatedAndTheOtherHeld) {
   const std::string file = dir.write("case.yaml", "mri: {path: two.nii.gz, breasts: left}\n"
                                                   "lesions: [{name: R1, position_mm: [" +
                                                       std::to_string(1e3 * (2 * x_mirror - kLesion.x())) + ", -40, -10]}]\n");
-  const std::string message = messageOf([&] { loadModelCase(file); });
+  const std::string message = messageOf([&] { loadModelCaseWithMri(file); });
   EXPECT_NE(message.find(file + ": 'lesions': lesion R1 at x = "), std::string::npos) << message;
   EXPECT_NE(message.find("lies in the breast the case does not simulate (mri.breasts: left"), std::string::npos) << message;
 }
@@ -373,7 +383,7 @@ TEST(MriCase, BadInputsAreClearErrorsNamingTheFiles) {
   for (const auto& [text, names, fix] : cases) {
     SCOPED_TRACE(text);
     const std::string file = dir.write("case.yaml", text);
-    const std::string message = messageOf([&] { loadModelCase(file); });
+    const std::string message = messageOf([&] { loadModelCaseWithMri(file); });
     EXPECT_EQ(message.rfind(file + ": 'mri", 0), 0u) << message;
     EXPECT_NE(message.find(names), std::string::npos) << message;
     EXPECT_NE(message.find(fix), std::string::npos) << message;

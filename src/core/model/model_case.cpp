@@ -12,7 +12,6 @@
 #include <yaml-cpp/yaml.h>
 
 #include "breast_sim/core/model/phantom.h"
-#include "breast_sim/core/mri/mri_case.h"
 #include "../util/yaml_fields.h"
 
 namespace breast_sim::core {
@@ -154,7 +153,8 @@ void loadMeshSource(const YAML::Node& m, const std::string& file, ModelCase& c) 
 
 ModelCase loadModelCase(const std::string& yaml_path) { return loadModelCase(yaml_path, {}); }
 
-ModelCase loadModelCase(const std::string& yaml_path, const std::function<void(const std::string&)>& stage) {
+ModelCase loadModelCase(const std::string& yaml_path, const std::function<void(const std::string&)>& stage,
+                        const MriSourceReader& read_mri) {
   if (!fs::exists(yaml_path)) throw std::runtime_error(yaml_path + ": no such case file");
   if (stage) stage("reading");
   const YAML::Node root = yaml_fields::loadFile(yaml_path);  // with its base: file, if any
@@ -172,12 +172,10 @@ ModelCase loadModelCase(const std::string& yaml_path, const std::function<void(c
   } else if (source == "mesh") {
     loadMeshSource(root["mesh"], yaml_path, c);
   } else if (source == "mri") {
-    // Read and segmented (mri/mri_case.h); its labels carry the default label values.
-    auto mri = std::make_shared<MriCase>(loadMriCase(yaml_path, stage));
-    c.image = mri->labels;
-    c.nipples_m = mri->nipples_m;
-    c.prone_gravity_direction = mri->settings.prone_gravity_direction.normalized();
-    c.mri = std::move(mri);
+    // Read and segmented by the MRI module (mri/mri_case.h); its labels carry the default label values.
+    if (!read_mri)
+      fail(yaml_path, "mri", "a prone MRI case is segmented before it is meshed: run it with breast_sim_run or the node");
+    read_mri(yaml_path, c);
   } else {
     const YAML::Node img = root["image"];
     checkKeys(img, {"path", "labels", "nipples_mm", "prone_gravity_direction"}, yaml_path, "image");
@@ -216,8 +214,6 @@ ModelCase loadModelCase(const std::string& yaml_path, const std::function<void(c
   }
   // A mesh that segments its lesions brings them, unless the case lists its own.
   if (c.mesh && !root["lesions"]) c.lesions = lesionsOfRegions(*c.mesh);
-  // An MRI's lesion label image adds its lesions after the listed ones.
-  if (c.mri) c.lesions.insert(c.lesions.end(), c.mri->image_lesions.begin(), c.mri->image_lesions.end());
   if (root["meshing"]) c.meshing = parseMeshing(root["meshing"], yaml_path, &c.lesion_snap_tolerance_m);
   return c;
 }

@@ -196,6 +196,19 @@ MriCase loadMriCase(const std::string& yaml_path, const std::function<void(const
   return c;
 }
 
+ModelCase loadModelCaseWithMri(const std::string& yaml_path, const std::function<void(const std::string&)>& stage) {
+  ModelCase c = loadModelCase(yaml_path, stage, [&](const std::string& file, ModelCase& m) {
+    auto mri = std::make_shared<MriCase>(loadMriCase(file, stage));
+    m.image = mri->labels;
+    m.nipples_m = mri->nipples_m;
+    m.prone_gravity_direction = mri->settings.prone_gravity_direction.normalized();
+    m.mri = std::move(mri);
+  });
+  // The lesion label image's lesions follow the listed ones.
+  if (c.mri) c.lesions.insert(c.lesions.end(), c.mri->image_lesions.begin(), c.mri->image_lesions.end());
+  return c;
+}
+
 SupineImages simulatedSupineMri(const MriCase& mri, const TetMesh& rest_mesh, const Points& displacement,
                                 const SupineResampleOptions& options) {
   if (displacement.rows() != rest_mesh.numNodes())

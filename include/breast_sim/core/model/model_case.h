@@ -66,9 +66,9 @@ inline constexpr double kUserMeshImageMarginM = 20e-3;
 ///    `lesions:` its pieces of lesion elements are the lesions (lesionsOfRegions);
 ///  - `mri:` {path (a file or a DICOM folder, relative to the YAML file), series_uid, breasts: both |
 ///    left | right, midline_x_mm, lesion_labels, truth} with the `segmentation:` map (mri/mri_case.h):
-///    the MRI is read and segmented, and its labels (segmentationLabel values) are the case's image;
-///    nipples and the prone gravity direction come from the segmentation, the lesions of a lesion label
-///    image follow the listed ones;
+///    the MRI is read and segmented (with `read_mri` below; mri/mri_case.h, loadModelCaseWithMri), and
+///    its labels (segmentationLabel values) are the case's image; nipples and the prone gravity
+///    direction come from the segmentation, the lesions of a lesion label image follow the listed ones;
 ///  - `lesions:` optional list of {name, position_mm: [x, y, z], radius_mm} (LPS patient space, mm),
 ///    added to the phantom's own lesions;
 ///  - `meshing:` {target_elements, interior_size_mm, skin_size_factor, grading_distance_mm,
@@ -77,9 +77,14 @@ inline constexpr double kUserMeshImageMarginM = 20e-3;
 /// Other top-level maps are left to later stages (simulation, sliding, …).
 /// @throws std::runtime_error naming the file, the key and what is expected.
 ModelCase loadModelCase(const std::string& yaml_path);
-/// The same, saying which stage runs: `stage` is called with "reading" (the case file and its image or
-/// MRI) and, for an MRI case, "segmentation" (mri/mri_case.h, loadMriCase).
-ModelCase loadModelCase(const std::string& yaml_path, const std::function<void(const std::string&)>& stage);
+/// Reads the tissue of an `mri:` case into `c` (image, nipples_m, prone_gravity_direction, mri): the
+/// MRI module (mri/mri_case.h, loadModelCaseWithMri) passes it, since the model layer does not segment.
+using MriSourceReader = std::function<void(const std::string& yaml_path, ModelCase& c)>;
+/// The same, saying which stage runs: `stage` is called with "reading" (the case file and its image)
+/// as it starts; `read_mri` reads an `mri:` case's tissue (without it such a case is an error naming
+/// the file).
+ModelCase loadModelCase(const std::string& yaml_path, const std::function<void(const std::string&)>& stage,
+                        const MriSourceReader& read_mri = {});
 
 /// The `meshing:` map of a case file alone (absent = the defaults of MeshingOptions), and its
 /// lesion_snap_tolerance_mm [m] into *lesion_snap_tolerance_m; reads no image.

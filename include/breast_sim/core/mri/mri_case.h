@@ -20,6 +20,7 @@
 
 #include "breast_sim/core/image/label_image.h"
 #include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/point_embedding.h"  // Lesion
 #include "breast_sim/core/mri/mri_segmentation.h"
 #include "breast_sim/core/mri/mri_volume.h"
@@ -80,6 +81,13 @@ struct MriCase {
 ///         breast or no chest wall in it, a lesion outside the breast, a breast side without a breast
 ///         or a midline, a truth on another grid.
 MriCase loadMriCase(const std::string& yaml_path, const std::function<void(const std::string&)>& stage = {});
+
+/// Any case file as loadModelCase (model/model_case.h) reads it, and an `mri:` case too: its MRI read
+/// and segmented (loadMriCase), the labels the case's image, the nipples and the prone gravity
+/// direction from the segmentation, the lesion label image's lesions after the listed ones.
+/// @param stage  called with "reading" and, for an MRI case, "segmentation" as each starts; may be empty
+/// @throws std::runtime_error as loadModelCase and loadMriCase do.
+ModelCase loadModelCaseWithMri(const std::string& yaml_path, const std::function<void(const std::string&)>& stage = {});
 
 /// The simulated supine MRI of an MRI case: the prone MRI and the model's labels resampled
 /// (supine_resampling.h) into the rest mesh moved by `displacement`, on the supine grid of the
