@@ -140,10 +140,16 @@ MriCase loadMriCase(const std::string& yaml_path, const std::function<void(const
     fail(yaml_path, "mri", s.path + ": " + e.what());
   }
   if (!s.truth.empty()) {
+    LabelImage truth;
     try {
-      c.scores = scoreSegmentation(c.segmentation.labels, TissueLabels{}, readLabelImage(s.truth), TissueLabels{});
+      truth = readLabelImage(s.truth);
     } catch (const std::exception& e) {
-      fail(yaml_path, "mri.truth", std::string(e.what()) + "; the truth must be a label image on the MRI's grid");
+      fail(yaml_path, "mri.truth", e.what());
+    }
+    try {
+      c.scores = scoreSegmentation(c.segmentation.labels, TissueLabels{}, truth, TissueLabels{});
+    } catch (const std::exception& e) {
+      fail(yaml_path, "mri.truth", s.truth + ": " + e.what() + "; the truth must be a label image on the MRI's grid");
     }
   }
 
