@@ -274,7 +274,13 @@ TEST(MriCase, BadInputIsRefusedAndTheModelKept) {
     EXPECT_NE(r.message.find(file), std::string::npos) << r.message;
     EXPECT_NE(r.message.find(names), std::string::npos) << r.message;
     EXPECT_NE(r.message.find(fix), std::string::npos) << r.message;
-    ASSERT_TRUE(waitUntil([] { return state->state == breast_sim::NodeState::IDLE; }, 30.0));
+    // The answer comes when the job ends; ~state says so on its own topic, soon after.
+    const std::string fix_text = fix;
+    EXPECT_TRUE(waitUntil(
+        [&] {
+          return state->state == breast_sim::NodeState::IDLE && state->message.find(fix_text) != std::string::npos;
+        },
+        30.0));
     std::lock_guard<std::mutex> l(m);
     EXPECT_NE(state->message.find("the previous model stays"), std::string::npos) << state->message;
     EXPECT_EQ(state->case_name, "victre_mri_case");
