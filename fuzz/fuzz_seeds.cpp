@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstdio>
+#include <cmath>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -24,6 +25,7 @@
 #include "breast_sim/core/image/label_image.h"
 #include "breast_sim/core/mesh/box_mesh.h"
 #include "breast_sim/core/mesh/mesh_io.h"
+#include "breast_sim/core/mri/mri_volume.h"
 #include "breast_sim/core/pipeline/state_file.h"
 #include "fuzz_files.h"
 
@@ -88,6 +90,7 @@ void imageSeeds(Corpus& c, const std::string& tag, const LabelImage& image) {
     writeLabelImage(p, image);
     const std::string target = std::string(ext) == ".nrrd" ? "fuzz_nrrd" : std::string(ext) == ".mha" ? "fuzz_metaimage" : "fuzz_nifti";
     c.add(target, tag + ext, readFile(p));
+    c.add("fuzz_mri_" + target.substr(5), tag + ext, readFile(p));  // the MRI reader takes label images too
   }
   // Detached data, renamed to the target's second file.
   writeLabelImage(c.scratch(tag + ".nhdr"), image);
@@ -156,6 +159,37 @@ void handMadeImageSeeds(Corpus& c, const LabelImage& image) {
   std::string no_orientation = sform_only;
   setShort(no_orientation, 254, 0);
   c.add("fuzz_nifti", "method1.nii", no_orientation);
+}
+
+// ---- MRI volumes (readMriVolume, ITK) -------------------------------------------------------------
+
+/// Float volumes as writeMriVolume writes them in every format, and DICOM series of four slices as
+/// writeDicomSeries writes them: whole, with a slice missing, and on an oblique grid.
+void mriSeeds(Corpus& c) {
+  ScalarImage image;
+  image.geometry.size = Eigen::Vector3i(6, 5, 4);
+  image.geometry.spacing_m = Eigen::Vector3d(0.8e-3, 0.9e-3, 1.5e-3);
+  image.geometry.origin_m = Eigen::Vector3d(-12e-3, 30e-3, -7e-3);
+  image.values.resize(static_cast<std::size_t>(image.geometry.numVoxels()));
+  for (std::size_t v = 0; v < image.values.size(); ++v) image.values[v] = static_cast<float>((v * 37) % 900) + 0.25f;
+  for (const char* ext : {".nii", ".nii.gz", ".nrrd", ".mha"}) {
+    const std::string p = c.scratch(std::string("mri") + ext);
+    writeMriVolume(p, image);
+    const std::string e = ext;
+    const std::string target = e == ".nrrd" ? "fuzz_mri_nrrd" : e == ".mha" ? "fuzz_mri_metaimage" : "fuzz_mri_nifti";
+    c.add(target, "float" + e, readFile(p));
+  }
+  ScalarImage oblique = image;
+  const double a = 0.3;
+  oblique.geometry.direction << std::cos(a), 0, std::sin(a), 0, 1, 0, -std::sin(a), 0, std::cos(a);
+  for (const auto& [tag, volume] : {std::pair<std::string, const ScalarImage*>{"axial", &image}, {"oblique", &oblique}}) {
+    const fs::path folder = c.scratch("dicom_" + tag);
+    writeDicomSeries(folder.string(), *volume);
+    std::vector<std::string> slices;
+    for (int k = 1; k <= 4; ++k) slices.push_back(readFile((folder / ("IM0000" + std::to_string(k) + ".dcm")).string()));
+    c.add("fuzz_mri_dicom", tag + "_4_slices", joinParts(slices));
+    c.add("fuzz_mri_dicom", tag + "_slice_3_missing", joinParts({slices[0], slices[1], "", slices[3]}));
+  }
 }
 
 // ---- meshes ---------------------------------------------------------------------------------------
@@ -378,6 +412,7 @@ int main(int argc, char** argv) {
     for (std::uint16_t l : victre_crop.labels) raw += static_cast<char>(l);
     c.add("fuzz_nrrd", "victre_header.nrrd", header + image_io::deflateBytes(raw, image_io::Wrapper::kGzip));
     if (fs::exists(kSharedVictre)) imageSeeds(c, "victre_0p5mm", crop(readLabelImage(kSharedVictre), Eigen::Vector3i(8, 8, 8)));
+    mriSeeds(c);
     meshSeeds(c);
     stateSeeds(c);
     caseSeeds(c);

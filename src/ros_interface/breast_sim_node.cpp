@@ -47,6 +47,7 @@ void BreastSimNode::initialize() {
   services_.push_back(pnh_.advertiseService("reset", &BreastSimNode::resetSrv, this));
   services_.push_back(pnh_.advertiseService("save_state", &BreastSimNode::saveStateSrv, this));
   services_.push_back(pnh_.advertiseService("load_state", &BreastSimNode::loadStateSrv, this));
+  services_.push_back(pnh_.advertiseService("write_supine_mri", &BreastSimNode::writeSupineMriSrv, this));
   action_ = std::make_unique<PrecomputeServer>(
       pnh_, "precompute", [this](PrecomputeServer::GoalHandle g) { goalCb(g); },
       [this](PrecomputeServer::GoalHandle g) { cancelGoalCb(g); }, false);

@@ -1,4 +1,5 @@
-// BreastSimNode's long jobs on the worker thread: building a case's model and pipeline, the
+// BreastSimNode's long jobs on the worker thread: building a case's model and pipeline (an MRI case
+// segmented first), the
 // precomputation (with its progress on ~state and the action's feedback) and the reset to the rest
 // shape. One job at a time; the state a job ends in is published once the worker is free.
 #include "breast_sim/ros_interface/breast_sim_node.h"
@@ -6,9 +7,11 @@
 #include <malloc.h>
 #include <algorithm>
 #include <cmath>
+#include <map>
 #include <sstream>
 
 #include "breast_sim/core/mesh/tet_quality.h"
+#include "breast_sim/core/mri/mri_case.h"
 #include "breast_sim_node_util.h"
 
 namespace breast_sim::ros_interface {
@@ -18,10 +21,11 @@ using node_util::seconds;
 
 using node_util::mm;
 
-std::unique_ptr<BreastSimNode::Engine> BreastSimNode::buildEngine(const std::string& case_file, int target_elements) const {
+std::unique_ptr<BreastSimNode::Engine> BreastSimNode::buildEngine(const std::string& case_file, int target_elements,
+                                                                 const std::function<void(const std::string&)>& stage) const {
   auto e = std::make_unique<Engine>();
   e->case_file = case_file;
-  e->model_case = std::make_unique<core::ModelCase>(core::loadModelCase(case_file));
+  e->model_case = std::make_unique<core::ModelCase>(core::loadModelCaseWithMri(case_file, stage));
   // A case with its own mesh (mesh:) is not meshed: the element count is the file's.
   if (target_elements > 0 && e->model_case->mesh)
     ROS_WARN_STREAM("breast_sim: case '" << e->model_case->name << "' brings its own mesh (mesh:, "
@@ -29,7 +33,9 @@ std::unique_ptr<BreastSimNode::Engine> BreastSimNode::buildEngine(const std::str
                     << " does not apply to it");
   else if (target_elements > 0)
     e->model_case->meshing.target_elements = target_elements;
+  stage("meshing");
   e->model = std::make_unique<core::SimulationModel>(core::buildSimulationModel(*e->model_case));
+  stage("setup");
   e->settings = core::loadPipelineSettings(params_.settings_file.empty() ? case_file : params_.settings_file);
   if (params_.field_voxel_size_m > 0) e->settings.morphing.field.voxel_size_m = params_.field_voxel_size_m;
   e->pipeline = std::make_unique<core::ProneToSupinePipeline>(*e->model_case, *e->model, e->settings);
@@ -75,21 +81,71 @@ bool BreastSimNode::startJob(std::function<void()> job, std::string* why) {
 void BreastSimNode::loadCaseJob(const std::string& case_file, int target_elements, std::string* message, bool* ok) {
   setState(breast_sim::NodeState::LOADING, "loading case '" + case_file + "'");
   const auto t0 = Clock::now();
+  breast_sim::NodeState before;  // the stage and progress a failed load leaves as they were
+  {
+    std::lock_guard<std::mutex> sl(state_mutex_);
+    before = state_;
+  }
+  // Each stage of the load on ~state: reading (the case and its image), segmentation (an MRI case),
+  // meshing, setup (solver, multigrid levels, sliding).
+  auto stage = [&](const std::string& name) {
+    static const std::map<std::string, std::string> what = {
+        {"reading", "reading the case and its image"},
+        {"segmentation", "segmenting the prone MRI"},
+        {"meshing", "meshing the model"},
+        {"setup", "setting up the solver, the multigrid levels and the chest wall"}};
+    {
+      std::lock_guard<std::mutex> sl(state_mutex_);
+      state_.stage = name;
+      state_.progress = 0;
+      state_.step = 0;
+      state_.max_steps = 0;
+    }
+    const auto it = what.find(name);
+    setState(breast_sim::NodeState::LOADING,
+             "loading case '" + case_file + "': " + (it == what.end() ? name : it->second));
+  };
   std::unique_ptr<Engine> e;
   try {
-    e = buildEngine(case_file, target_elements);
+    e = buildEngine(case_file, target_elements, stage);
     fingerprintEngine(*e);
   } catch (const std::exception& ex) {
     *ok = false;
     *message = std::string("cannot load case '") + case_file + "': " + ex.what();
+    {
+      std::lock_guard<std::mutex> sl(state_mutex_);
+      state_.stage = before.stage;
+      state_.progress = before.progress;
+      state_.step = before.step;
+      state_.max_steps = before.max_steps;
+    }
     std::lock_guard<std::mutex> lock(engine_mutex_);
     endJob(breast_sim::NodeState::IDLE, *message + (engine_ ? "; the previous model stays" : "; no model loaded"));
     return;
   }
   std::ostringstream s;
-  s << "case '" << e->model_case->name << "': " << e->model->mesh.numTets() << " tetrahedra, "
-    << e->model->mesh.numNodes() << " nodes, " << e->model->lesions.size() << " lesions, built in "
-    << seconds(Clock::now() - t0) << " s";
+  s << "case '" << e->model_case->name << "': ";
+  if (e->model_case->mri) {
+    // What the segmentation found, and against a truth how well.
+    const core::MriCase& mri = *e->model_case->mri;
+    const core::SegmentationReport& r = mri.segmentation.report;
+    s.setf(std::ios::fixed);
+    s.precision(1);
+    s << "MRI " << mri.source.path << " segmented in " << r.seconds_total << " s (fat " << r.volume_ml[1]
+      << " ml, fibroglandular " << r.volume_ml[2] << " ml, chest wall measured in " << 100 * r.boundary_coverage
+      << " % of the breast's columns";
+    if (mri.scores) {
+      s.precision(3);
+      s << "; against the truth: breast Dice " << mri.scores->score("breast").dice << ", chest-wall boundary mean ";
+      s.precision(2);
+      s << mri.scores->boundary.mean_mm << " mm, p95 " << mri.scores->boundary.p95_mm << " mm";
+    }
+    s << "); ";
+    s.unsetf(std::ios::fixed);
+    s.precision(6);
+  }
+  s << e->model->mesh.numTets() << " tetrahedra, " << e->model->mesh.numNodes() << " nodes, " << e->model->lesions.size()
+    << " lesions, built in " << seconds(Clock::now() - t0) << " s";
   *message = s.str();
   *ok = true;
   {

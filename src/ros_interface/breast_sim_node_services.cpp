@@ -1,9 +1,19 @@
 // BreastSimNode's services and the ~precompute action: each answers at once (loading a case waits
-// for the model) and hands long work to the worker; while a job runs they refuse with the reason.
+// for the model, writing a file for the file) and hands long work to the worker; while a job runs
+// they refuse with the reason.
 #include "breast_sim/ros_interface/breast_sim_node.h"
 
+#include <unistd.h>
+
+#include <atomic>
+#include <cerrno>
+#include <cstring>
 #include <condition_variable>
+#include <filesystem>
 #include <mutex>
+#include <sstream>
+
+#include "breast_sim/core/mri/mri_case.h"
 
 namespace breast_sim::ros_interface {
 
@@ -161,6 +171,91 @@ void BreastSimNode::adoptLoadedState(Engine& e, const std::string& file) {
     state_.progress = 1.0;
   }
   publishModel(e, ros::Time::now(), true, true, "loaded state " + file);
+}
+
+bool BreastSimNode::writeSupineMriSrv(breast_sim::WriteSupineMri::Request& req, breast_sim::WriteSupineMri::Response& res) {
+  namespace fs = std::filesystem;
+  res.success = false;
+  if (busy_) {
+    res.message = "busy (loading or precomputing); write the supine MRI when ~state is idle or tracking";
+    return true;
+  }
+  static const std::vector<std::string> kExtensions = {".nii.gz", ".nii", ".nrrd", ".mha"};  // writeMriVolume's
+  std::string target;
+  const std::string bad = checkOutputFileName(params_.output_folder, req.file_name, kExtensions, &target);
+  if (!bad.empty()) {
+    res.message = bad;
+    return true;
+  }
+  if (!req.overwrite && fs::exists(target)) {
+    res.message = target + " exists; choose another file_name or set overwrite";
+    return true;
+  }
+  // The state to resample, copied under the lock: the resampling runs while tracking goes on.
+  std::shared_ptr<const core::MriCase> mri;
+  core::TetMesh rest;
+  core::Points displacement;
+  std::string case_name, shows;
+  {
+    std::lock_guard<std::mutex> lock(engine_mutex_);
+    if (!engine_) {
+      res.message = "no model is loaded; load an MRI case first (~load_case)";
+      return true;
+    }
+    case_name = engine_->model_case->name;
+    if (!engine_->model_case->mri) {
+      res.message = "case '" + case_name + "' is not an MRI case (mri:): there is no prone MRI to resample; load one";
+      return true;
+    }
+    mri = engine_->model_case->mri;
+    rest = engine_->model->mesh;
+    displacement = engine_->pipeline->positions() - rest.nodes();
+    std::lock_guard<std::mutex> sl(state_mutex_);
+    shows = state_.state == breast_sim::NodeState::TRACKING ? "the tracked state"
+            : engine_->precomputed                          ? "the precomputed supine state"
+                                                            : "the prone rest shape (not precomputed)";
+  }
+  // Written beside the target under a temporary name (with the target's extension, which chooses the
+  // format), then moved into place in one step; without overwrite the move is a hard link, which fails
+  // when the name was taken in the meantime.
+  const fs::path path(target);
+  std::string extension;
+  for (const std::string& e : kExtensions)
+    if (extension.empty() && target.size() > e.size() && target.compare(target.size() - e.size(), e.size(), e) == 0) extension = e;
+  static std::atomic<long> writes{0};  // two calls at once write to two temporaries
+  const fs::path temporary = path.parent_path() / ("." + path.filename().string() + ".writing." + std::to_string(::getpid()) +
+                                                   "." + std::to_string(writes++) + extension);
+  try {
+    const core::SupineImages supine = core::simulatedSupineMri(*mri, rest, displacement);
+    fs::create_directories(path.parent_path());
+    core::writeMriVolume(temporary.string(), supine.image);
+    if (req.overwrite) {
+      fs::rename(temporary, path);
+    } else {
+      const int linked = ::link(temporary.c_str(), path.c_str());
+      const int error = errno;
+      fs::remove(temporary);
+      if (linked != 0) {
+        res.message = target + ": " + (error == EEXIST ? "exists; choose another file_name or set overwrite" : std::strerror(error));
+        return true;
+      }
+    }
+    const core::ImageGeometry& g = supine.image.geometry;
+    std::ostringstream s;
+    s.precision(3);
+    s << "wrote the simulated supine MRI of case '" << case_name << "' (" << shows << ") to " << target << ": " << g.size.x()
+      << " x " << g.size.y() << " x " << g.size.z() << " voxels of " << 1e3 * g.spacing_m.minCoeff() << " mm, "
+      << supine.body_voxels << " in the body, resampled in " << supine.seconds << " s";
+    res.success = true;
+    res.path = target;
+    res.message = s.str();
+    ROS_INFO_STREAM("breast_sim: " << res.message);
+  } catch (const std::exception& ex) {
+    std::error_code ignored;
+    fs::remove(temporary, ignored);
+    res.message = std::string("cannot write the supine MRI to ") + target + ": " + ex.what();
+  }
+  return true;
 }
 
 void BreastSimNode::goalCb(PrecomputeServer::GoalHandle goal) {

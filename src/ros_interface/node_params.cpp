@@ -40,6 +40,12 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   p.settings_file = param(pnh, "settings_file", p.settings_file);
   p.field_voxel_size_m = param(pnh, "field_voxel_size_m", p.field_voxel_size_m);
   p.frame_id = param(pnh, "frame_id", p.frame_id);
+  p.output_folder = param(pnh, "output_folder", p.output_folder);
+  if (p.output_folder.empty()) {
+    const char* ros_home = std::getenv("ROS_HOME");
+    const char* home = std::getenv("HOME");
+    p.output_folder = (ros_home && *ros_home ? std::string(ros_home) : std::string(home ? home : "/tmp") + "/.ros") + "/breast_sim";
+  }
   p.precompute_on_start = param(pnh, "precompute_on_start", p.precompute_on_start);
   p.gravity_frame = param(pnh, "gravity/frame", p.gravity_frame);
   p.follow_patient_pose = param(pnh, "gravity/follow_patient_pose", p.follow_patient_pose);
@@ -102,6 +108,8 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   require(p.target_elements >= 0, "target_elements", "must be ≥ 0 (0 keeps the case's meshing.target_elements)");
   require(p.field_voxel_size_m >= 0 && p.field_voxel_size_m < 0.1, "field_voxel_size_m", "must be in [0, 0.1) m");
   require(!p.frame_id.empty(), "frame_id", "must not be empty");
+  require(p.output_folder.front() == '/', "output_folder",
+          "must be an absolute path (or \"\" for $ROS_HOME/breast_sim), got '" + p.output_folder + "'");
   require(t.filter.voxel_leaf_m >= 0 && t.filter.voxel_leaf_m < 0.1, "tracking/voxel_leaf_m", "must be in [0, 0.1) m");
   require(t.filter.outlier_neighbours >= 1, "tracking/outlier_neighbours", "must be ≥ 1");
   require(t.filter.outlier_stddev > 0, "tracking/outlier_stddev", "must be > 0");

@@ -1,8 +1,9 @@
-// breast_sim_run: the whole prone-to-supine run of a case (the software phantom, a label image or a mesh):
-// builds the simulation model and writes it for ParaView / 3D Slicer / CalculiX, loads it with the
-// gravity of the supine position (stiffening, sliding), morphs it to the target surface (seed
-// Figure 2), and writes the deformed meshes, a ParaView series, the lesion positions, metrics and
-// cross-section images.
+// breast_sim_run: the whole prone-to-supine run of a case (the software phantom, a label image, a mesh
+// or a prone MRI, segmented first): builds the simulation model and writes it for ParaView / 3D Slicer
+// / CalculiX, loads it with the gravity of the supine position (stiffening, sliding), morphs it to the
+// target surface (seed Figure 2), and writes the deformed meshes, a ParaView series, the lesion
+// positions, metrics and cross-section images; for an MRI case also the segmentation and the
+// simulated supine MRI (seed Figure 4e).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -22,11 +23,14 @@
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/mri/mri_case.h"
+#include "breast_sim/core/mri/mri_cross_sections.h"
 #include "breast_sim/core/pipeline/case_file.h"
 #include "breast_sim/core/pipeline/lesion_uncertainty.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/core/reference/model_choice.h"
 #include "breast_sim/core/render/cross_section.h"
+#include "segmentation_summary.h"
 
 namespace fs = std::filesystem;
 using namespace breast_sim::core;
@@ -38,10 +42,10 @@ const char* kUsage = R"(usage: breast_sim_run --case CASE.yaml --out DIR [--targ
                       [--coarse-elements N]
                       [--frames N] [--json FILE] [--quiet]
 
-Builds the tetrahedral simulation model of a case and runs the prone-to-supine pipeline on it: gravity
-of the supine position with von Mises stiffening and sliding on the chest wall until it settles, then
-morphing to the target surface (the case's `simulation:`, `sliding:` and `morphing:` maps, see
-docs/case_files.md). Writes to DIR:
+Builds the tetrahedral simulation model of a case (an MRI case is segmented first) and runs the
+prone-to-supine pipeline on it: gravity of the supine position with von Mises stiffening and sliding
+on the chest wall until it settles, then morphing to the target surface (the case's `simulation:`,
+`sliding:` and `morphing:` maps, see docs/case_files.md). Writes to DIR:
   model.vtu             prone mesh with region labels, node sets and element quality (ParaView, 3D Slicer)
   model.inp             the same mesh for CalculiX / Abaqus (C3D4, mm)
   supine_gravity.vtu    after gravity (and sliding): displacement_mm, sliding_mm; von_mises_pa, modulus_factor
@@ -56,6 +60,14 @@ docs/case_files.md). Writes to DIR:
   model_summary.json    counts, timings, quality and volumes of the model
   case_effective.yaml   the case as it ran: every key with the value used (command-line overrides included)
   prone_labels.nrrd, prone_surface.obj, supine_target.obj   (phantom cases only)
+An MRI case (mri:) also writes:
+  prone_labels.nrrd     the segmentation the model is built from (on the MRI's grid; 3D Slicer)
+  segmentation.png      cross-sections of the prone MRI with the segmentation outlined
+  segmentation.json     volumes per class, nipples, levels, the chest wall's coverage, seconds; with
+                        mri.truth the Dice per class and the chest-wall boundary's distance to the truth
+  supine_mri.nii.gz, supine_mri.nrrd   the simulated supine MRI (float, the prone spacing; overlays the input)
+  supine_labels.nrrd    the segmentation carried into the supine shape
+  supine_mri.png        cross-sections of the prone and the simulated supine MRI, labels outlined
 Options:
   --case FILE            YAML case file (docs/case_files.md)
   --out DIR              output folder (created)
@@ -188,7 +200,7 @@ int main(int argc, char** argv) {
   try {
     const Args args = parse(argc, argv);
     const auto t0 = std::chrono::steady_clock::now();
-    ModelCase c = loadModelCase(args.case_file);
+    ModelCase c = loadModelCaseWithMri(args.case_file);
     if (c.mesh && (args.target_elements > 0 || args.max_lesion_error_mm > 0))
       throw std::invalid_argument(std::string(args.target_elements > 0 ? "--target-elements" : "--max-lesion-error-mm") +
                                   " chooses how an image is meshed, but case '" + c.name +
@@ -234,6 +246,25 @@ int main(int argc, char** argv) {
     const double mesh_volume = m.mesh.volume();
     nlohmann::json metrics;  // of the simulation, when it runs
     nlohmann::json s;
+    if (c.mri) {
+      // The segmentation the model is built from: labels, cross-sections and summary.
+      const MriCase& mri = *c.mri;
+      writeLabelImage((out / "prone_labels.nrrd").string(), c.image);
+      MriSectionRow row;
+      row.title = "prone T1 " + fs::path(mri.source.path).filename().string() + " with its segmentation";
+      row.image = &mri.volume.image;
+      row.labels = &c.image;
+      writeMriCrossSections((out / "segmentation.png").string(), {row});
+      nlohmann::json seg = breast_sim::tools::segmentationJson(mri.volume, mri.segmentation, mri.read_seconds,
+                                                               mri.scores ? &*mri.scores : nullptr, mri.source.truth);
+      seg["breasts"] = breastsName(mri.source.breasts);
+      if (!std::isnan(mri.midline_x_m)) seg["midline_x_mm"] = mri.midline_x_m * 1e3;
+      nlohmann::json simulated = nlohmann::json::array();
+      for (const Eigen::Vector3d& n : mri.nipples_m) simulated.push_back({1e3 * n.x(), 1e3 * n.y(), 1e3 * n.z()});
+      seg["simulated_nipples_mm"] = simulated;
+      std::ofstream(out / "segmentation.json") << seg.dump(2) << '\n';
+      s["segmentation"] = seg;
+    }
     s["case"] = c.name;
     s["elements"] = m.mesh.numTets();
     s["nodes"] = m.mesh.numNodes();
@@ -283,6 +314,7 @@ int main(int argc, char** argv) {
     std::vector<Points> lesion_rows;  // after gravity, final
     std::optional<LesionUncertainty> uncertainty;  // with `uncertainty:` enabled
     std::unique_ptr<ProneToSupinePipeline> pipe;
+    nlohmann::json supine_mri;  // an MRI case's simulated supine MRI
     bool ok = true;
     if (!args.model_only) {
       const auto ts = std::chrono::steady_clock::now();
@@ -385,6 +417,30 @@ int main(int argc, char** argv) {
         if (m.lesions.empty()) co.centre_m.setConstant(std::numeric_limits<double>::quiet_NaN());
         writeCrossSections((out / "cross_sections.png").string(), m.mesh, rows, co);
       }
+      if (c.mri) {
+        // The simulated supine MRI of the final state (seed Figure 4e).
+        const Points u = pipe->positions() - m.mesh.nodes();
+        const SupineImages supine = simulatedSupineMri(*c.mri, m.mesh, u);
+        writeMriVolume((out / "supine_mri.nii.gz").string(), supine.image);
+        writeMriVolume((out / "supine_mri.nrrd").string(), supine.image);
+        writeLabelImage((out / "supine_labels.nrrd").string(), supine.labels);
+        MriSectionRow prone_row, supine_row;
+        prone_row.title = "prone MRI with its segmentation";
+        prone_row.image = &c.mri->volume.image;
+        prone_row.labels = &c.image;
+        supine_row.title = "simulated supine MRI, labels carried along";
+        supine_row.image = &supine.image;
+        supine_row.labels = &supine.labels;
+        MriSectionOptions so;
+        if (!m.lesions.empty()) so.centre_m = m.lesions.front().position_m;
+        writeMriCrossSections((out / "supine_mri.png").string(), {prone_row, supine_row}, so);
+        const ImageGeometry& sg = supine.image.geometry;
+        supine_mri = {{"size", {sg.size.x(), sg.size.y(), sg.size.z()}},
+                      {"spacing_mm", {1e3 * sg.spacing_m.x(), 1e3 * sg.spacing_m.y(), 1e3 * sg.spacing_m.z()}},
+                      {"body_voxels", supine.body_voxels},
+                      {"seconds", supine.seconds},
+                      {"files", {"supine_mri.nii.gz", "supine_mri.nrrd", "supine_labels.nrrd", "supine_mri.png"}}};
+      }
       const StageReport& g = pipe->gravityReport();
       const StageReport& sl = pipe->slidingReport();
       const StageReport& mo = pipe->morphingReport();
@@ -451,6 +507,7 @@ int main(int argc, char** argv) {
                               {"morphing", mo.seconds}, {"compute", un.seconds + g.seconds + sl.seconds + mo.seconds},
                               {"total_with_output", t_sim}}},
                  {"vtu_frames", frames.size()}};
+      if (!supine_mri.is_null()) metrics["supine_mri"] = supine_mri;
       ok = g.converged && (!sl.ran || sl.converged) && (!morph || mo.converged) && fm.inverted_elements == 0;
       metrics["completed"] = ok;
       // The lesions' confidence regions: the ensemble over stiffness, Poisson ratio and path.
@@ -528,6 +585,19 @@ int main(int argc, char** argv) {
     if (c.phantom) std::printf(" (analytic %.1f, error %+.2f%%)", c.phantom->prone_volume_m3 * 1e6,
                                100.0 * (mesh_volume / c.phantom->prone_volume_m3 - 1.0));
     std::printf(", quality: %d inverted, min dihedral %.1f deg\n", m.quality.num_inverted, m.quality.min_dihedral_deg);
+    if (c.mri) {
+      const MriCase& mri = *c.mri;
+      const SegmentationReport& r = mri.segmentation.report;
+      const ImageGeometry& g = mri.volume.image.geometry;
+      std::printf("  %-26s %s (%s, %d x %d x %d voxels of %.2f mm), read in %.2f s\n", "prone MRI", mri.source.path.c_str(),
+                  mri.volume.info.format.c_str(), g.size.x(), g.size.y(), g.size.z(), 1e3 * g.spacing_m.minCoeff(), mri.read_seconds);
+      std::printf("  %-26s %.2f s: fat %.1f ml, fibroglandular %.1f ml, lesion %.1f ml; chest wall measured in %.0f %% of "
+                  "the breast's columns; %zu nipple(s), breasts: %s\n",
+                  "segmentation", r.seconds_total, r.volume_ml[1], r.volume_ml[2], r.volume_ml[4], 100.0 * r.boundary_coverage,
+                  mri.nipples_m.size(), breastsName(mri.source.breasts));
+      if (mri.scores)
+        std::printf("  %-26s %s\n", "segmentation vs truth", breast_sim::tools::scoresLine(*mri.scores).c_str());
+    }
     if (!metrics.is_null()) {
       const auto& st = metrics["stages"];
       auto line = [&](const char* name, const nlohmann::json& r, const char* extra) {
@@ -607,6 +677,10 @@ int main(int argc, char** argv) {
       }
       std::printf("\n");
     }
+    if (!supine_mri.is_null())
+      std::printf("  %-26s %d x %d x %d voxels, %ld in the body, %.2f s: supine_mri.nii.gz, supine_mri.nrrd\n", "simulated supine MRI",
+                  supine_mri["size"][0].get<int>(), supine_mri["size"][1].get<int>(), supine_mri["size"][2].get<int>(),
+                  supine_mri["body_voxels"].get<long>(), supine_mri["seconds"].get<double>());
     std::printf("  %-26s %s\n", "written to", fs::absolute(out).string().c_str());
     return ok || args.model_only ? 0 : 3;
   } catch (const std::exception& e) {

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <optional>
 #include <stdexcept>
 #include <string>
 
@@ -17,6 +18,7 @@
 #include "breast_sim/core/mri/mri_volume.h"
 #include "breast_sim/core/mri/segmentation_metrics.h"
 #include "mri_tool_args.h"
+#include "segmentation_summary.h"
 
 using namespace breast_sim::core;
 
@@ -89,64 +91,13 @@ int main(int argc, char** argv) try {
   row.labels = &seg.labels;
   writeMriCrossSections(png, {row});
 
-  const ImageGeometry& g = mri.image.geometry;
-  const SegmentationReport& r = seg.report;
-  std::printf("%s (%s%s): %d x %d x %d voxels of %.2f x %.2f x %.2f mm, read in %.2f s\n", in.c_str(), mri.info.format.c_str(),
-              mri.info.series_uid.empty() ? "" : (", series " + mri.info.series_uid).c_str(), g.size.x(), g.size.y(), g.size.z(),
-              1e3 * g.spacing_m.x(), 1e3 * g.spacing_m.y(), 1e3 * g.spacing_m.z(), read_s);
-  std::printf("segmented in %.2f s (bias %.2f, tissue %.2f, chest wall %.2f, labels %.2f): fat level %.0f, background %.0f "
-              "+- %.0f, body threshold %.0f, fat threshold %.0f, bias field %.2f-%.2f\n",
-              r.seconds_total, r.seconds_bias, r.seconds_tissue, r.seconds_boundary, r.seconds_labels, r.fat_level,
-              r.noise_level, r.noise_spread, r.body_threshold, r.fat_threshold, r.bias_min, r.bias_max);
-  std::printf("chest wall: %d of %d breast columns measured (%.0f %%), %d candidates rejected by the fit\n", r.measured_columns,
-              r.breast_columns, 100.0 * r.boundary_coverage, r.rejected_candidates);
-  const char* names[6] = {"air", "fat", "fibroglandular", "skin", "lesion", "chest_wall"};
-  std::printf("volumes [ml]: fat %.1f, fibroglandular %.1f, skin %.1f, lesion %.1f, chest wall %.1f\n", r.volume_ml[1],
-              r.volume_ml[2], r.volume_ml[3], r.volume_ml[4], r.volume_ml[5]);
-  std::string nipples;
-  for (const Eigen::Vector3d& n : r.nipples_m) {
-    char buf[96];
-    std::snprintf(buf, sizeof buf, "%s[%.1f, %.1f, %.1f]", nipples.empty() ? "" : ", ", 1e3 * n.x(), 1e3 * n.y(), 1e3 * n.z());
-    nipples += buf;
-  }
-  std::printf("nipples (the apex of each breast) [mm]: %s\n", nipples.c_str());
-  nlohmann::json j;
-  j["input"] = {{"path", in},
-                {"format", mri.info.format},
-                {"series_uid", mri.info.series_uid},
-                {"size", {g.size.x(), g.size.y(), g.size.z()}},
-                {"spacing_mm", {1e3 * g.spacing_m.x(), 1e3 * g.spacing_m.y(), 1e3 * g.spacing_m.z()}},
-                {"read_seconds", read_s}};
-  nlohmann::json volumes;
-  for (int c = 1; c < 6; ++c) volumes[names[c]] = r.volume_ml[c];
-  j["volumes_ml"] = volumes;
-  j["levels"] = {{"fat_level", r.fat_level}, {"background_level", r.noise_level}, {"background_spread", r.noise_spread},
-                 {"body_threshold", r.body_threshold}, {"fat_threshold", r.fat_threshold},
-                 {"bias_min", r.bias_min}, {"bias_max", r.bias_max}};
-  nlohmann::json nipple_list = nlohmann::json::array();
-  for (const Eigen::Vector3d& n : r.nipples_m) nipple_list.push_back({1e3 * n.x(), 1e3 * n.y(), 1e3 * n.z()});
-  j["nipples_mm"] = nipple_list;
-  j["chest_wall"] = {{"breast_columns", r.breast_columns}, {"measured_columns", r.measured_columns},
-                     {"coverage", r.boundary_coverage}, {"rejected_candidates", r.rejected_candidates}};
-  j["seconds"] = {{"bias_correction", r.seconds_bias}, {"tissue", r.seconds_tissue}, {"chest_wall", r.seconds_boundary},
-                  {"labels", r.seconds_labels}, {"total", r.seconds_total}};
+  std::optional<SegmentationScores> scores;
+  if (!truth_path.empty())
+    scores = scoreSegmentation(seg.labels, TissueLabels{}, readLabelImage(truth_path), TissueLabels{});
+  const SegmentationScores* scored = scores ? &*scores : nullptr;
+  breast_sim::tools::printSegmentationSummary(mri, seg, read_s, scored, truth_path);
+  nlohmann::json j = breast_sim::tools::segmentationJson(mri, seg, read_s, scored, truth_path);
   j["outputs"] = {{"labels", out}, {"png", png}};
-  if (!truth_path.empty()) {
-    const SegmentationScores s = scoreSegmentation(seg.labels, TissueLabels{}, readLabelImage(truth_path), TissueLabels{});
-    nlohmann::json dice;
-    std::printf("against %s: Dice", truth_path.c_str());
-    for (const ClassScore& c : s.classes) {
-      dice[c.name] = c.dice;
-      std::printf(" %s %.3f", c.name.c_str(), c.dice);
-    }
-    std::printf("; chest-wall boundary mean %.2f mm, p95 %.2f mm, max %.2f mm\n", s.boundary.mean_mm, s.boundary.p95_mm,
-                s.boundary.max_mm);
-    j["truth"] = {{"path", truth_path},
-                  {"dice", dice},
-                  {"boundary_mean_mm", s.boundary.mean_mm},
-                  {"boundary_p95_mm", s.boundary.p95_mm},
-                  {"boundary_max_mm", s.boundary.max_mm}};
-  }
   std::ofstream(json_path) << j.dump(2) << '\n';
   std::printf("wrote %s, %s, %s\n", out.c_str(), png.c_str(), json_path.c_str());
   return 0;

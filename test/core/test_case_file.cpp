@@ -149,7 +149,7 @@ TEST(CaseFile, EachKeyIsReadBackAsWrittenAndChangesNothingElse) {
 TEST(CaseFile, ShippedCasesKeepTheCodeDefaultsOfTheSimulation) {
   TempDir dir("breast_sim_case_file");
   const YAML::Node defaults = effective(dir, "phantom: {}\n");
-  for (const char* name : {"phantom_default.yaml", "victre_case.yaml"}) {
+  for (const char* name : {"phantom_default.yaml", "victre_case.yaml", "victre_mri_case.yaml"}) {
     SCOPED_TRACE(name);
     const YAML::Node shipped = YAML::Load(effectiveCaseYaml((kSource / "config" / name).string()));
     for (const char* section : {"simulation", "stiffening", "sliding"})

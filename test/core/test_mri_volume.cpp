@@ -2,8 +2,10 @@
 // of one volume segmented alike in mm, and each bad input's message.
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <limits>
 #include <string>
 
@@ -185,6 +187,42 @@ TEST(MriVolume, BadInputsAreClearErrors) {
   // An unknown extension to write.
   m = messageOf([&] { writeMriVolume(dir.path("v.png"), obliqueVolume()); });
   EXPECT_NE(m.find("unknown extension"), std::string::npos) << m;
+}
+
+// ITK's NIfTI reader aborts the process (vnl's SVD) on an orientation that is not finite
+// (fuzz_mri_nifti): the header's numbers are checked first, and such a file is an error naming the field.
+TEST(MriVolume, ANiftiHeaderWithoutFiniteOrientationIsAnErrorNotAnAbort) {
+  TempDir dir("breast_sim_mri_bad");
+  writeMriVolume(dir.path("good.nii"), obliqueVolume());
+  std::string header;
+  {
+    std::ifstream in(dir.path("good.nii"), std::ios::binary);
+    header.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  }
+  ASSERT_GT(header.size(), 348u);
+  const auto patched = [&](const std::string& name, int offset, float value, int code_offset) {
+    std::string bytes = header;
+    std::memcpy(&bytes[offset], &value, 4);
+    const std::int16_t code = 1;
+    std::memcpy(&bytes[code_offset], &code, 2);
+    std::ofstream(dir.path(name), std::ios::binary) << bytes;
+    return dir.path(name);
+  };
+  const std::string nan_srow = patched("nan_srow.nii", 296, std::numeric_limits<float>::quiet_NaN(), 254);
+  std::string m = messageOf([&] { readMriVolume(nan_srow); });
+  EXPECT_EQ(m.rfind(nan_srow + ": the NIfTI header's srow_y (entry 0) is nan: not a finite number", 0), 0u) << m;
+  const std::string huge_offset = patched("huge_qoffset.nii", 272, 7e22f, 252);
+  m = messageOf([&] { readMriVolume(huge_offset); });
+  EXPECT_NE(m.find(huge_offset + ": the NIfTI header's qoffset_x, y, z (entry 1) is 7e+22"), std::string::npos) << m;
+  EXPECT_NE(m.find("the header is damaged, export the image again"), std::string::npos) << m;
+  // The same numbers in an unused transform (its code 0) do not matter.
+  std::string unused = header;
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  std::memcpy(&unused[296], &nan, 4);
+  const std::int16_t zero = 0;
+  std::memcpy(&unused[254], &zero, 2);
+  std::ofstream(dir.path("unused.nii"), std::ios::binary) << unused;
+  EXPECT_NO_THROW(readMriVolume(dir.path("unused.nii")));
 }
 
 TEST(MriVolume, BadDicomSeriesAreClearErrors) {

@@ -1,8 +1,9 @@
 #pragma once
 /// @file breast_sim_node.h
-/// The breast_sim navigation node: loads a case, precomputes the prone-to-supine deformation on a
-/// worker thread, then follows the skin surface a tracker sees and publishes the deformed mesh, the
-/// lesions (messages, markers, tf2 frames), sliding vectors, its state and diagnostics.
+/// The breast_sim navigation node: loads a case (an MRI case is segmented first), precomputes the
+/// prone-to-supine deformation on a worker thread, then follows the skin surface a tracker sees and
+/// publishes the deformed mesh, the lesions (messages, markers, tf2 frames), sliding vectors, its
+/// state and diagnostics; on request it writes the simulated supine MRI of an MRI case to a file.
 ///
 /// Threads: ROS callbacks run on an AsyncSpinner and never compute; one worker runs the long jobs
 /// (case loading, precomputation) one at a time; one tracking thread processes the newest cloud (older
@@ -27,6 +28,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -47,6 +49,7 @@
 #include <breast_sim/PrecomputeAction.h>
 #include <breast_sim/StartPrecomputation.h>
 #include <breast_sim/StateFile.h>
+#include <breast_sim/WriteSupineMri.h>
 
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/pipeline/lesion_uncertainty.h"
@@ -90,7 +93,10 @@ class BreastSimNode {
   using PrecomputeServer = actionlib::ActionServer<breast_sim::PrecomputeAction>;
 
   // Long jobs (breast_sim_node_jobs.cpp).
-  std::unique_ptr<Engine> buildEngine(const std::string& case_file, int target_elements) const;
+  /// `stage` is called with each loading stage ("reading", "segmentation" for an MRI case, "meshing",
+  /// "setup") as it starts.
+  std::unique_ptr<Engine> buildEngine(const std::string& case_file, int target_elements,
+                                      const std::function<void(const std::string&)>& stage) const;
   bool startJob(std::function<void()> job, std::string* why);
   void loadCaseJob(const std::string& case_file, int target_elements, std::string* message, bool* ok);
   void precomputeJob(bool gravity_only, std::optional<PrecomputeServer::GoalHandle> goal);
@@ -109,6 +115,9 @@ class BreastSimNode {
   bool resetSrv(std_srvs::Trigger::Request& req, std_srvs::Trigger::Response& res);
   bool saveStateSrv(breast_sim::StateFile::Request& req, breast_sim::StateFile::Response& res);
   bool loadStateSrv(breast_sim::StateFile::Request& req, breast_sim::StateFile::Response& res);
+  /// The simulated supine MRI of the current state to ~output_folder: resampled outside the engine's
+  /// lock (the tracking thread goes on), written atomically, never over a file unless asked.
+  bool writeSupineMriSrv(breast_sim::WriteSupineMri::Request& req, breast_sim::WriteSupineMri::Response& res);
   void goalCb(PrecomputeServer::GoalHandle goal);
   void cancelGoalCb(PrecomputeServer::GoalHandle goal);
   /// After the pipeline loaded a state from `file`: the engine is precomputed, tracking restarts

@@ -27,6 +27,8 @@ struct NodeParams {
   std::string settings_file;          ///< "" = the case file's simulation/sliding/morphing maps; as case_file
   double field_voxel_size_m = 0.003;  ///< [m]; 0 = the settings' morphing.voxel_size_mm
   std::string frame_id = "breast_model";
+  /// Where ~write_supine_mri writes (absolute); "" at start = $ROS_HOME/breast_sim (~/.ros/breast_sim).
+  std::string output_folder;
   bool precompute_on_start = false;
   // gravity
   std::string gravity_frame = "world";

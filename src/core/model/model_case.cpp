@@ -151,8 +151,12 @@ void loadMeshSource(const YAML::Node& m, const std::string& file, ModelCase& c) 
 
 }  // namespace
 
-ModelCase loadModelCase(const std::string& yaml_path) {
+ModelCase loadModelCase(const std::string& yaml_path) { return loadModelCase(yaml_path, {}); }
+
+ModelCase loadModelCase(const std::string& yaml_path, const std::function<void(const std::string&)>& stage,
+                        const MriSourceReader& read_mri) {
   if (!fs::exists(yaml_path)) throw std::runtime_error(yaml_path + ": no such case file");
+  if (stage) stage("reading");
   const YAML::Node root = yaml_fields::loadFile(yaml_path);  // with its base: file, if any
   ModelCase c;
   c.source_path = yaml_path;
@@ -167,6 +171,11 @@ ModelCase loadModelCase(const std::string& yaml_path) {
     c.phantom = phantom;
   } else if (source == "mesh") {
     loadMeshSource(root["mesh"], yaml_path, c);
+  } else if (source == "mri") {
+    // Read and segmented by the MRI module (mri/mri_case.h); its labels carry the default label values.
+    if (!read_mri)
+      fail(yaml_path, "mri", "a prone MRI case is segmented before it is meshed: run it with breast_sim_run or the node");
+    read_mri(yaml_path, c);
   } else {
     const YAML::Node img = root["image"];
     checkKeys(img, {"path", "labels", "nipples_mm", "prone_gravity_direction"}, yaml_path, "image");

@@ -8,7 +8,9 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <memory>
 #include <sstream>
@@ -18,6 +20,7 @@
 #include <vector>
 
 #include <unistd.h>
+#include <zlib.h>
 
 #include <itkGDCMImageIO.h>
 #include <itkGDCMSeriesFileNames.h>
@@ -140,7 +143,58 @@ std::string dictionaryString(const itk::MetaDataDictionary& dict, const std::str
   return v;
 }
 
+// ITK's NiftiImageIO turns the header's qform or sform into a direction matrix with vnl's SVD, which
+// aborts the process on a value that is not finite (found by fuzz_mri_nifti). So the NIfTI-1 header's
+// spacing and the orientation it uses are checked first: finite and at most 1e7 in magnitude (mm, or
+// quaternion parts). gzread reads plain and gzip-compressed files alike, the 348 bytes only. A header
+// of another size (NIfTI-2, or no NIfTI) is left to ITK.
+void checkNiftiHeaderNumbers(const std::string& path) {
+  unsigned char h[348];
+  gzFile f = gzopen(path.c_str(), "rb");
+  if (!f) return;  // ITK names what is wrong with the file
+  const int got = gzread(f, h, sizeof h);
+  gzclose(f);
+  if (got != static_cast<int>(sizeof h)) return;
+  std::uint32_t size = 0;
+  std::memcpy(&size, h, 4);
+  const bool swap = size != 348;
+  if (swap && __builtin_bswap32(size) != 348) return;
+  const auto word = [&](int offset) {
+    std::uint32_t u = 0;
+    std::memcpy(&u, h + offset, 4);
+    return swap ? __builtin_bswap32(u) : u;
+  };
+  const auto code = [&](int offset) {
+    std::uint16_t u = 0;
+    std::memcpy(&u, h + offset, 2);
+    return swap ? static_cast<std::uint16_t>(__builtin_bswap16(u)) : u;
+  };
+  struct Field {
+    const char* name;
+    int offset, count;
+    bool used;
+  };
+  const bool qform = code(252) != 0, sform = code(254) != 0;
+  for (const Field& field : {Field{"pixdim", 76, 4, true}, Field{"quatern_b, c, d", 256, 3, qform},
+                             Field{"qoffset_x, y, z", 268, 3, qform}, Field{"srow_x", 280, 4, sform},
+                             Field{"srow_y", 296, 4, sform}, Field{"srow_z", 312, 4, sform}}) {
+    if (!field.used) continue;
+    for (int i = 0; i < field.count; ++i) {
+      const std::uint32_t u = word(field.offset + 4 * i);
+      float v = 0;
+      std::memcpy(&v, &u, 4);
+      if (!(std::abs(v) <= 1e7f)) {
+        char value[48];
+        std::snprintf(value, sizeof value, "%g", static_cast<double>(v));
+        fail(path, std::string("the NIfTI header's ") + field.name + " (entry " + std::to_string(i) + ") is " + value +
+                       ": not a finite number of at most 1e7; the header is damaged, export the image again");
+      }
+    }
+  }
+}
+
 Volume readSingleFile(const std::string& path, Candidate c, long max_voxels) {
+  if (c.format == "NIfTI") checkNiftiHeaderNumbers(path);
   try {
     c.io->SetFileName(path);
     c.io->ReadImageInformation();

@@ -1,9 +1,10 @@
 // A case's effective settings written back as a case file (pipeline/case_file.h). Each map below
 // names the keys its reader (model_case.cpp, phantom_io.cpp, simulation_settings.cpp,
-// pipeline_settings.cpp) accepts, in the same units; test_case_file changes every key in turn and
-// checks that the reader reads back exactly that change.
+// pipeline_settings.cpp, mri_case.cpp, segmentation_settings.cpp) accepts, in the same units;
+// test_case_file changes every key in turn and checks that the reader reads back exactly that change.
 #include "breast_sim/core/pipeline/case_file.h"
 
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <stdexcept>
@@ -12,6 +13,7 @@
 
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/mri/mri_case.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "../util/yaml_fields.h"
 
@@ -88,6 +90,41 @@ YAML::Node phantomMap(const PhantomParams& p) {
     lesions.push_back(y);
   }
   m.node("lesions", lesions);
+  return m.yaml();
+}
+
+/// The `mri:` map with every key (paths absolute; midline_x_mm `auto` when not given).
+YAML::Node mriMap(const MriCaseSource& m) {
+  Map out;
+  out.s("path", m.path).s("series_uid", m.series_uid).s("breasts", breastsName(m.breasts));
+  if (std::isnan(m.midline_x_m)) out.s("midline_x_mm", "auto");
+  else out.n("midline_x_mm", mm(m.midline_x_m));
+  out.s("lesion_labels", m.lesion_labels).s("truth", m.truth);
+  return out.yaml();
+}
+
+YAML::Node segmentationMap(const SegmentationSettings& s) {
+  Map m;
+  YAML::Node g(YAML::NodeType::Sequence);
+  for (int k = 0; k < 3; ++k) g.push_back(YAML::Load(num(s.prone_gravity_direction[k])));
+  g.SetStyle(YAML::EmitterStyle::Flow);
+  m.node("prone_gravity_direction", g)
+      .b("bias_correction", s.bias_correction)
+      .i("n4_shrink_factor", s.n4_shrink_factor)
+      .i("n4_fitting_levels", s.n4_fitting_levels)
+      .i("n4_iterations", s.n4_iterations)
+      .n("n4_spline_distance_mm", s.n4_spline_distance_mm)
+      .n("smoothing_sigma_mm", s.smoothing_sigma_mm)
+      .n("body_threshold", s.body_threshold)
+      .n("body_noise_margin", s.body_noise_margin)
+      .n("min_fat_component_share", s.min_fat_component_share)
+      .n("chest_wall_min_thickness_mm", s.chest_wall_min_thickness_mm)
+      .n("boundary_median_window_mm", s.boundary_median_window_mm)
+      .n("boundary_smoothing_mm", s.boundary_smoothing_mm)
+      .n("boundary_outlier_mm", s.boundary_outlier_mm)
+      .n("min_boundary_coverage", s.min_boundary_coverage)
+      .n("min_component_share", s.min_component_share)
+      .n("skin_thickness_mm", s.skin_thickness_mm);
   return m.yaml();
 }
 
@@ -275,6 +312,9 @@ std::string effectiveCaseYaml(const std::string& case_path, const MeshingOptions
   YAML::Node out(YAML::NodeType::Map);
   if (source == "phantom") {
     out["phantom"] = phantomMap(loadPhantomParams(case_path));
+  } else if (source == "mri") {
+    out["mri"] = mriMap(loadMriCaseSource(case_path));
+    out["segmentation"] = segmentationMap(loadSegmentationSettings(case_path));
   } else {
     YAML::Node map = YAML::Clone(root[source]);  // image: or mesh:, with its path made absolute
     if (map.IsMap() && map["path"] && map["path"].IsScalar()) {

@@ -149,14 +149,15 @@ YAML::Node loadWithBase(const std::string& path, std::vector<std::string>& chain
 }  // namespace
 
 std::string caseSource(const YAML::Node& root, const std::string& file) {
-  if (!root.IsMap()) throw std::runtime_error(file + ": expected a map with 'phantom:', 'image:' or 'mesh:' at the top");
+  if (!root.IsMap()) throw std::runtime_error(file + ": expected a map with 'phantom:', 'image:', 'mesh:' or 'mri:' at the top");
   std::string found;
   int count = 0;
-  for (const char* key : {"phantom", "image", "mesh"})
+  for (const char* key : {"phantom", "image", "mesh", "mri"})
     if (root[key]) found = key, ++count;
   if (count != 1)
-    throw std::runtime_error(file + ": give exactly one of 'phantom:' (the software phantom), 'image:' (a label image) "
-                                    "or 'mesh:' (a tetrahedral mesh), found " + (count == 0 ? "none" : std::to_string(count)));
+    throw std::runtime_error(file + ": give exactly one of 'phantom:' (the software phantom), 'image:' (a label image), "
+                                    "'mesh:' (a tetrahedral mesh) or 'mri:' (a prone T1 MRI), found " +
+                             (count == 0 ? "none" : std::to_string(count)));
   return found;
 }
 

@@ -33,7 +33,7 @@ std::string key(const YAML::Node& k, const std::string& file, const std::string&
 /// `map` is a map whose keys are all in `allowed` (plain scalars).
 void checkKeys(const YAML::Node& map, const std::set<std::string>& allowed, const std::string& file,
                const std::string& section);
-/// Which source of tissue a case file's root map names: "phantom", "image" or "mesh".
+/// Which source of tissue a case file's root map names: "phantom", "image", "mesh" or "mri".
 /// @throws std::runtime_error naming the file unless exactly one of them is there.
 std::string caseSource(const YAML::Node& root, const std::string& file);
 /// Loads a YAML file. A top-level `base: FILE` (relative to this file's folder) loads that file first

@@ -1,8 +1,10 @@
 #pragma once
 /// @file model_case.h
-/// A case: where the tissue comes from (the built-in phantom, a label image or a mesh of the user's),
-/// its lesions and how to mesh it; and the simulation model built from it.
+/// A case: where the tissue comes from (the built-in phantom, a label image, a mesh of the user's or a
+/// prone MRI segmented automatically), its lesions and how to mesh it; and the simulation model built
+/// from it.
 
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -20,6 +22,7 @@
 namespace breast_sim::core {
 
 struct Phantom;  // model/phantom.h
+struct MriCase;  // mri/mri_case.h
 
 /// Everything needed to build a simulation model.
 struct ModelCase {
@@ -42,6 +45,9 @@ struct ModelCase {
   std::shared_ptr<const TetMesh> mesh;
   UserMeshSource mesh_source;              ///< where that mesh came from (path made absolute)
   UserMeshReport mesh_report;              ///< what preparing it found
+  /// Set when the case is a prone MRI (`mri:`): the MRI, its segmentation (the case's image) and its
+  /// scores, for the simulated supine MRI and the reports.
+  std::shared_ptr<const MriCase> mri;
 };
 
 /// Voxels around a user's mesh in its label image [m]: room for the chest-wall field behind the wall
@@ -58,6 +64,11 @@ inline constexpr double kUserMeshImageMarginM = 20e-3;
 ///    {fat: [...], fibroglandular: [...], skin: [...], lesion: [...]} (element region labels),
 ///    voxel_size_mm (default 1), nipples_mm, prone_gravity_direction} (model/user_mesh.h); without
 ///    `lesions:` its pieces of lesion elements are the lesions (lesionsOfRegions);
+///  - `mri:` {path (a file or a DICOM folder, relative to the YAML file), series_uid, breasts: both |
+///    left | right, midline_x_mm, lesion_labels, truth} with the `segmentation:` map (mri/mri_case.h):
+///    the MRI is read and segmented (with `read_mri` below; mri/mri_case.h, loadModelCaseWithMri), and
+///    its labels (segmentationLabel values) are the case's image; nipples and the prone gravity
+///    direction come from the segmentation, the lesions of a lesion label image follow the listed ones;
 ///  - `lesions:` optional list of {name, position_mm: [x, y, z], radius_mm} (LPS patient space, mm),
 ///    added to the phantom's own lesions;
 ///  - `meshing:` {target_elements, interior_size_mm, skin_size_factor, grading_distance_mm,
@@ -66,6 +77,14 @@ inline constexpr double kUserMeshImageMarginM = 20e-3;
 /// Other top-level maps are left to later stages (simulation, sliding, …).
 /// @throws std::runtime_error naming the file, the key and what is expected.
 ModelCase loadModelCase(const std::string& yaml_path);
+/// Reads the tissue of an `mri:` case into `c` (image, nipples_m, prone_gravity_direction, mri): the
+/// MRI module (mri/mri_case.h, loadModelCaseWithMri) passes it, since the model layer does not segment.
+using MriSourceReader = std::function<void(const std::string& yaml_path, ModelCase& c)>;
+/// The same, saying which stage runs: `stage` is called with "reading" (the case file and its image)
+/// as it starts; `read_mri` reads an `mri:` case's tissue (without it such a case is an error naming
+/// the file).
+ModelCase loadModelCase(const std::string& yaml_path, const std::function<void(const std::string&)>& stage,
+                        const MriSourceReader& read_mri = {});
 
 /// The `meshing:` map of a case file alone (absent = the defaults of MeshingOptions), and its
 /// lesion_snap_tolerance_mm [m] into *lesion_snap_tolerance_m; reads no image.

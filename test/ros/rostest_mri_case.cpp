@@ -1,0 +1,313 @@
+// rostest client for mri_case.test: the node on the shipped MRI case (config/victre_mri_case.yaml),
+// its MRI rendered here from the VICTRE phantom as scripts/run_mri_case.sh renders it (a DICOM series
+// and its truth; a tighter field of view). The node starts without a case (its start-up case file
+// does not exist, and it says so); ~load_case reads, segments and meshes the case with each stage on
+// ~state; the precomputed lesion is published where the case puts it and moves; ~write_supine_mri
+// writes the simulated supine MRI of the current state into the output folder (what the core makes of
+// the published mesh), refuses names outside the folder and an existing file unless asked; bad input
+// (a non-MRI file, a 2-D image, a series with a missing slice, an image with no breast, a lesion
+// outside the breast) is refused with a message naming the file and the fix, the model kept.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <ros/ros.h>
+
+#include <breast_sim/LesionArray.h>
+#include <breast_sim/LoadCase.h>
+#include <breast_sim/NodeState.h>
+#include <breast_sim/StartPrecomputation.h>
+#include <breast_sim/TetrahedralMesh.h>
+#include <breast_sim/WriteSupineMri.h>
+
+#include "breast_sim/core/model/model_case.h"
+#include "breast_sim/core/mri/mri_case.h"
+#include "breast_sim/core/mri/synthetic_mri.h"
+#include "breast_sim/ros_interface/conversions.h"
+
+namespace fs = std::filesystem;
+
+namespace {
+
+std::mutex m;
+breast_sim::NodeState::ConstPtr state;
+std::vector<std::string> stages_seen;  ///< every stage ~state showed, in order, without repeats
+breast_sim::LesionArray::ConstPtr lesions;
+breast_sim::TetrahedralMesh::ConstPtr mesh;
+
+void onState(const breast_sim::NodeState::ConstPtr& msg) {
+  std::lock_guard<std::mutex> l(m);
+  state = msg;
+  if (stages_seen.empty() || stages_seen.back() != msg->stage) stages_seen.push_back(msg->stage);
+}
+void onLesions(const breast_sim::LesionArray::ConstPtr& msg) {
+  std::lock_guard<std::mutex> l(m);
+  lesions = msg;
+}
+void onMesh(const breast_sim::TetrahedralMesh::ConstPtr& msg) {
+  std::lock_guard<std::mutex> l(m);
+  mesh = msg;
+}
+
+bool waitUntil(const std::function<bool()>& done, double seconds) {
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(seconds);
+  while (std::chrono::steady_clock::now() < end) {
+    {
+      std::lock_guard<std::mutex> l(m);
+      if (done()) return true;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  std::lock_guard<std::mutex> l(m);
+  return done();
+}
+
+std::string param(const std::string& name) {
+  std::string v;
+  ros::NodeHandle("~").getParam(name, v);
+  return v;
+}
+
+breast_sim::WriteSupineMri::Response writeSupine(const std::string& name, bool overwrite) {
+  breast_sim::WriteSupineMri call;
+  call.request.file_name = name;
+  call.request.overwrite = overwrite;
+  EXPECT_TRUE(ros::service::call("/breast_sim/write_supine_mri", call));
+  return call.response;
+}
+
+/// ~load_case, asked again while a job from before still ends (a busy node refuses).
+breast_sim::LoadCase::Response load(const std::string& case_file, int target_elements) {
+  breast_sim::LoadCase call;
+  call.request.case_file = case_file;
+  call.request.target_elements = target_elements;
+  for (int attempt = 0; attempt < 300; ++attempt) {
+    EXPECT_TRUE(ros::service::call("/breast_sim/load_case", call));
+    if (call.response.message.find("busy") == std::string::npos) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  return call.response;
+}
+
+}  // namespace
+
+namespace {
+
+/// The shipped case on an MRI rendered here: `base:` the shipped case, its `mri:` paths replaced.
+std::string renderedCase() {
+  static const std::string file = [] {
+    using namespace breast_sim::core;
+    const std::string dir = param("output_folder") + "/victre_t1";
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+    SyntheticMriParams p;  // the generator's defaults but a field of view 5 mm around the tissue, 25 mm of thorax
+    p.margin_mm = 5.0;
+    p.thorax_depth_mm = 25.0;
+    const SyntheticMri mri = renderSyntheticT1(victrePhantomInLps(readLabelImage(param("victre_labels"))), TissueLabels{}, p);
+    writeDicomSeries(dir + "/dicom", mri.image);
+    writeLabelImage(dir + "/truth.nrrd", mri.truth);
+    const std::string case_file = dir + "/victre_mri_case.yaml";
+    std::ofstream(case_file) << "base: " << param("case_file") << "\nmri: {path: dicom, truth: truth.nrrd}\n";
+    return case_file;
+  }();
+  return file;
+}
+
+}  // namespace
+
+TEST(MriCase, WithoutItsStartUpCaseTheNodeSaysWhichFileIsMissing) {
+  ASSERT_TRUE(waitUntil([] { return state && state->state == breast_sim::NodeState::IDLE; }, 60.0));
+  std::lock_guard<std::mutex> l(m);
+  EXPECT_FALSE(state->model_loaded);
+  EXPECT_NE(state->message.find(param("start_up_case_file") + ": no such case file"), std::string::npos) << state->message;
+  EXPECT_NE(state->message.find("no model loaded"), std::string::npos) << state->message;
+}
+
+TEST(MriCase, TheNodeSegmentsMeshesAndPrecomputesTheMriCase) {
+  {
+    std::lock_guard<std::mutex> l(m);
+    stages_seen.clear();
+  }
+  const breast_sim::LoadCase::Response r = load(renderedCase(), 3000);
+  ASSERT_TRUE(r.success) << r.message;
+  EXPECT_NE(r.message.find("segmented in"), std::string::npos) << r.message;
+  EXPECT_NE(r.message.find("against the truth: breast Dice 0.9"), std::string::npos) << r.message;
+  ASSERT_TRUE(waitUntil([] { return state->state == breast_sim::NodeState::IDLE && state->model_loaded; }, 30.0));
+  {
+    std::lock_guard<std::mutex> l(m);
+    std::vector<std::string> loading;
+    for (const std::string& stage : stages_seen)
+      if (stage == "reading" || stage == "segmentation" || stage == "meshing" || stage == "setup") loading.push_back(stage);
+    EXPECT_EQ(loading, (std::vector<std::string>{"reading", "segmentation", "meshing", "setup"}));
+    EXPECT_EQ(state->stage, "idle");
+    EXPECT_FALSE(state->precomputed);
+  }
+  // Before the precomputation the supine MRI shows the rest shape.
+  const breast_sim::WriteSupineMri::Response rest = writeSupine("rest.nii.gz", true);
+  EXPECT_TRUE(rest.success) << rest.message;
+  EXPECT_NE(rest.message.find("the prone rest shape (not precomputed)"), std::string::npos) << rest.message;
+
+  breast_sim::StartPrecomputation start;
+  ASSERT_TRUE(ros::service::call("/breast_sim/start_precomputation", start));
+  ASSERT_TRUE(start.response.accepted) << start.response.message;
+  ASSERT_TRUE(waitUntil([] { return state->precomputed && state->state == breast_sim::NodeState::IDLE; }, 200.0))
+      << state->state_name + ": " + state->message;
+  ASSERT_TRUE(waitUntil([] { return lesions && lesions->valid && !lesions->lesions.empty(); }, 20.0));
+  std::lock_guard<std::mutex> l(m);
+  EXPECT_EQ(state->case_name, "victre_mri_case");
+  ASSERT_EQ(lesions->lesions.size(), 1u);
+  const breast_sim::Lesion& got = lesions->lesions[0];
+  EXPECT_EQ(got.id, "L1");
+  // Where the case puts it (LPS, the MRI's patient space), moved by the supine load.
+  EXPECT_NEAR(got.prone_position.x, -0.010, 1e-9);
+  EXPECT_NEAR(got.prone_position.y, -0.040, 1e-9);
+  EXPECT_NEAR(got.prone_position.z, -0.010, 1e-9);
+  const double moved = std::hypot(got.position.x - got.prone_position.x, got.position.y - got.prone_position.y,
+                                  got.position.z - got.prone_position.z);
+  EXPECT_GT(moved, 5e-3) << "the lesion moved " << moved * 1e3 << " mm";
+}
+
+// The supine MRI of the precomputed state: written where asked, the core's resampling of the published
+// mesh; names outside the folder and existing files refused.
+TEST(MriCase, WritesTheSupineMriOfTheCurrentStateOnRequest) {
+  ASSERT_TRUE(waitUntil([] { return state && state->precomputed && state->state == breast_sim::NodeState::IDLE && mesh; }, 200.0));
+  const std::string folder = param("output_folder");
+  ASSERT_FALSE(folder.empty());
+  fs::remove_all(folder + "/run1");
+  fs::remove(folder + "/supine_t1.nrrd");
+  const breast_sim::WriteSupineMri::Response first = writeSupine("run1/supine_t1.nii.gz", false);
+  ASSERT_TRUE(first.success) << first.message;
+  EXPECT_EQ(first.path, folder + "/run1/supine_t1.nii.gz");
+  EXPECT_NE(first.message.find("the precomputed supine state"), std::string::npos) << first.message;
+  ASSERT_TRUE(fs::exists(first.path));
+  for (const auto& entry : fs::directory_iterator(folder + "/run1"))  // no temporary left behind
+    EXPECT_EQ(entry.path().filename(), "supine_t1.nii.gz");
+
+  // The core's supine MRI of the published state is what was written.
+  breast_sim::TetrahedralMesh published;
+  {
+    std::lock_guard<std::mutex> l(m);
+    published = *mesh;
+  }
+  using namespace breast_sim;
+  const core::MriCase mri = core::loadMriCase(renderedCase());
+  const core::SupineImages expected = core::simulatedSupineMri(mri, ros_interface::meshFromMessage(published),
+                                                               ros_interface::displacementFromMessage(published));
+  const core::MriVolume written = core::readMriVolume(first.path);
+  ASSERT_TRUE(written.image.geometry.size == expected.image.geometry.size);
+  EXPECT_LE((written.image.geometry.origin_m - expected.image.geometry.origin_m).norm(), 1e-6);
+  long differ = 0;
+  for (std::size_t v = 0; v < expected.image.values.size(); ++v)
+    differ += std::abs(written.image.values[v] - expected.image.values[v]) > 1e-3f * (1.0f + std::abs(expected.image.values[v]));
+  EXPECT_LE(differ, static_cast<long>(expected.image.values.size() / 1000)) << differ << " voxels differ";
+  EXPECT_GT(expected.body_voxels, 100000);
+
+  const breast_sim::WriteSupineMri::Response again = writeSupine("run1/supine_t1.nii.gz", false);
+  EXPECT_FALSE(again.success);
+  EXPECT_NE(again.message.find("exists; choose another file_name or set overwrite"), std::string::npos) << again.message;
+  const breast_sim::WriteSupineMri::Response replaced = writeSupine("run1/supine_t1.nii.gz", true);
+  EXPECT_TRUE(replaced.success) << replaced.message;
+  const breast_sim::WriteSupineMri::Response nrrd = writeSupine("supine_t1.nrrd", false);
+  EXPECT_TRUE(nrrd.success) << nrrd.message;
+  for (const auto& [name, why] : std::vector<std::pair<std::string, std::string>>{
+           {"../outside.nii.gz", "leaves the output folder"},
+           {"/tmp/absolute.nii.gz", "is an absolute path"},
+           {"picture.png", "has no known extension; end it in one of .nii.gz, .nii, .nrrd, .mha"},
+           {"", "no file name given"}}) {
+    const breast_sim::WriteSupineMri::Response r = writeSupine(name, true);
+    EXPECT_FALSE(r.success) << name;
+    EXPECT_NE(r.message.find(why), std::string::npos) << r.message;
+  }
+  EXPECT_FALSE(fs::exists(fs::path(folder).parent_path() / "outside.nii.gz"));
+}
+
+// Bad input, each refused with the file and the fix named; the precomputed model stays.
+TEST(MriCase, BadInputIsRefusedAndTheModelKept) {
+  ASSERT_TRUE(waitUntil([] { return state && state->precomputed && state->state == breast_sim::NodeState::IDLE; }, 200.0));
+  const std::string dir = param("output_folder") + "/bad_inputs";
+  fs::create_directories(dir);
+  using namespace breast_sim::core;
+  std::ofstream(dir + "/notes.nii") << "not an image\n";
+  ScalarImage slice;
+  slice.geometry.size = Eigen::Vector3i(8, 8, 1);
+  slice.values.assign(64, 100.0f);
+  writeMriVolume(dir + "/slice.nii.gz", slice);
+  ScalarImage small;
+  small.geometry.size = Eigen::Vector3i(9, 7, 6);
+  small.values.assign(9 * 7 * 6, 500.0f);
+  fs::remove_all(dir + "/series");
+  writeDicomSeries(dir + "/series", small);
+  fs::remove(dir + "/series/IM00004.dcm");
+  ScalarImage empty;  // no breast: an image of air with a faint, even signal
+  empty.geometry.size = Eigen::Vector3i(40, 40, 40);
+  empty.values.assign(64000, 0.0f);
+  for (int v = 0; v < 64000; v += 7) empty.values[v] = 15.0f;
+  writeMriVolume(dir + "/empty.nii.gz", empty);
+  const std::string mri_path = loadMriCaseSource(renderedCase()).path;
+  const std::vector<std::tuple<std::string, std::string, std::string>> cases = {
+      {"mri: {path: " + dir + "/notes.nii}\n", dir + "/notes.nii", "not an image of a supported format"},
+      {"mri: {path: " + dir + "/slice.nii.gz}\n", dir + "/slice.nii.gz", "the MRI must be a 3-D volume"},
+      {"mri: {path: " + dir + "/series}\n", "IM00005.dcm", "a slice is missing or the series mixes acquisitions; export the complete series"},
+      {"mri: {path: " + dir + "/empty.nii.gz}\n", dir + "/empty.nii.gz", "breast MRI"},
+      {"mri: {path: " + mri_path + "}\nlesions: [{name: L9, position_mm: [40, -80, 45]}]\n", mri_path,
+       "lesion L9 at (40.0, -80.0, 45.0) mm lies in the air, not in the breast; check its position"},
+  };
+  for (const auto& [text, names, fix] : cases) {
+    SCOPED_TRACE(text);
+    const std::string file = dir + "/case.yaml";
+    std::ofstream(file) << text;
+    {
+      std::lock_guard<std::mutex> l(m);
+      stages_seen.clear();
+    }
+    const breast_sim::LoadCase::Response r = load(file, 0);
+    EXPECT_FALSE(r.success);
+    EXPECT_NE(r.message.find(file), std::string::npos) << r.message;
+    EXPECT_NE(r.message.find(names), std::string::npos) << r.message;
+    EXPECT_NE(r.message.find(fix), std::string::npos) << r.message;
+    // The answer comes when the job ends; ~state says so on its own topic, soon after.
+    const std::string fix_text = fix;
+    EXPECT_TRUE(waitUntil(
+        [&] {
+          return state->state == breast_sim::NodeState::IDLE && state->message.find(fix_text) != std::string::npos;
+        },
+        30.0));
+    std::lock_guard<std::mutex> l(m);
+    EXPECT_NE(state->message.find("the previous model stays"), std::string::npos) << state->message;
+    EXPECT_EQ(state->case_name, "victre_mri_case");
+    EXPECT_TRUE(state->model_loaded && state->precomputed);
+    EXPECT_EQ(state->stage, "done");
+    EXPECT_TRUE(lesions->valid);
+  }
+  {
+    std::lock_guard<std::mutex> l(m);
+    // The last load read the MRI and failed in its segmentation.
+    EXPECT_NE(std::find(stages_seen.begin(), stages_seen.end(), "segmentation"), stages_seen.end());
+  }
+  const breast_sim::WriteSupineMri::Response still = writeSupine("after_bad_inputs.nii.gz", true);
+  EXPECT_TRUE(still.success) << still.message;
+}
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  ros::init(argc, argv, "mri_case_test");
+  ros::NodeHandle nh;
+  ros::Subscriber s1 = nh.subscribe("/breast_sim/state", 100, onState);
+  ros::Subscriber s2 = nh.subscribe("/breast_sim/lesions", 10, onLesions);
+  ros::Subscriber s3 = nh.subscribe("/breast_sim/deformed_mesh", 2, onMesh);
+  ros::AsyncSpinner spinner(1);
+  spinner.start();
+  if (!ros::service::waitForService("/breast_sim/write_supine_mri", ros::Duration(60.0))) return 1;
+  const int result = RUN_ALL_TESTS();
+  ros::shutdown();
+  return result;
+}
