@@ -33,6 +33,7 @@
 #include "breast_sim/core/mri/mri_case.h"
 #include "breast_sim/core/mri/synthetic_mri.h"
 #include "breast_sim/ros_interface/conversions.h"
+#include "node_state_folder.h"
 
 namespace fs = std::filesystem;
 
@@ -128,7 +129,7 @@ TEST(MriCase, WithoutItsStartUpCaseTheNodeSaysWhichFileIsMissing) {
   ASSERT_TRUE(waitUntil([] { return state && state->state == breast_sim::NodeState::IDLE; }, 60.0));
   std::lock_guard<std::mutex> l(m);
   EXPECT_FALSE(state->model_loaded);
-  EXPECT_NE(state->message.find(param("start_up_case_file") + ": no such case file"), std::string::npos) << state->message;
+  EXPECT_NE(state->message.find("'" + param("start_up_case_file") + "' does not exist"), std::string::npos) << state->message;
   EXPECT_NE(state->message.find("no model loaded"), std::string::npos) << state->message;
 }
 
@@ -301,6 +302,7 @@ int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   ros::init(argc, argv, "mri_case_test");
   ros::NodeHandle nh;
+  const breast_sim::test_fixtures::NodeStateFolder state_folder;
   ros::Subscriber s1 = nh.subscribe("/breast_sim/state", 100, onState);
   ros::Subscriber s2 = nh.subscribe("/breast_sim/lesions", 10, onLesions);
   ros::Subscriber s3 = nh.subscribe("/breast_sim/deformed_mesh", 2, onMesh);
