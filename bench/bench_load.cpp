@@ -12,10 +12,11 @@
 //             3 mm distance field; every run starts from the same snapshot; the cloud is every k-th
 //             vertex of the phantom's supine skin (about --cloud-points), shifted by 0.1 mm more
 //             each frame (median and 95th percentile per frame).
+// --rounds times over, every round through every load level, each figure the median over the rounds.
 // Ratios against the idle run with one thread less (the cores the program keeps when another
 // process takes one) and against one thread under the same load come from the same run.
 //   bench_load [--elements 47895] [--steps 25] [--tracking-elements 20000] [--frames 30]
-//              [--cloud-points 10000] [--busy 0,1,2] [--busy-limit-s 600] [--json FILE]
+//              [--cloud-points 10000] [--rounds 3] [--busy 0,1,2] [--busy-limit-s 600] [--json FILE]
 #include <signal.h>
 #include <sys/prctl.h>
 #include <sys/wait.h>
@@ -107,7 +108,7 @@ Timing summarise(const std::vector<double>& seconds) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  int elements = 47895, steps = 25, tracking_elements = 20000, frames = 30, cloud_points = 10000;
+  int elements = 47895, steps = 25, tracking_elements = 20000, frames = 30, cloud_points = 10000, rounds = 3;
   unsigned busy_limit_s = 600;
   std::vector<double> busy_levels = {0, 1, 2};
   std::string json_path;
@@ -119,19 +120,26 @@ int main(int argc, char** argv) {
     else if (a == "--tracking-elements") tracking_elements = std::stoi(next());
     else if (a == "--frames") frames = std::stoi(next());
     else if (a == "--cloud-points") cloud_points = std::stoi(next());
+    else if (a == "--rounds") rounds = std::stoi(next());
     else if (a == "--busy") busy_levels = parseList(next());
     else if (a == "--busy-limit-s") busy_limit_s = static_cast<unsigned>(std::stoul(next()));
     else if (a == "--json") json_path = next();
     else {
       std::fprintf(stderr, "usage: bench_load [--elements 47895] [--steps 25] [--tracking-elements 20000] [--frames 30]\n"
-                           "                  [--cloud-points 10000] [--busy 0,1,2] [--busy-limit-s 600] [--json FILE]\n");
+                           "                  [--cloud-points 10000] [--rounds 3] [--busy 0,1,2] [--busy-limit-s 600] [--json FILE]\n");
       return 2;
     }
   }
-  if (steps < 1 || frames < 1 || busy_levels.empty() || busy_limit_s < 1) {
-    std::fprintf(stderr, "bench_load: --steps, --frames and --busy-limit-s must be at least 1, --busy not empty\n");
+  if (steps < 1 || frames < 1 || rounds < 1 || cloud_points < 1 || busy_levels.empty() || busy_limit_s < 1) {
+    std::fprintf(stderr, "bench_load: --steps, --frames, --rounds, --cloud-points and --busy-limit-s must be at least 1, "
+                         "--busy not empty\n");
     return 2;
   }
+  for (double level : busy_levels)
+    if (level < 0 || level > 64 || level != std::floor(level)) {
+      std::fprintf(stderr, "bench_load: --busy takes whole numbers of processes from 0 to 64, not %g\n", level);
+      return 2;
+    }
   const int threads = omp_get_max_threads();
   std::vector<int> thread_counts = {threads};
   if (threads > 1) thread_counts.push_back(1);
@@ -162,7 +170,7 @@ int main(int argc, char** argv) {
   const PipelineState settled = pipeline.state();
   // The cloud: every k-th vertex of the phantom's supine skin, about --cloud-points of them.
   const Points& skin_vertices = pipeline.target().vertices_m;
-  const Eigen::Index stride = std::max<Eigen::Index>(1, skin_vertices.rows() / std::max(1, cloud_points));
+  const Eigen::Index stride = std::max<Eigen::Index>(1, (skin_vertices.rows() + cloud_points - 1) / cloud_points);
   Points skin((skin_vertices.rows() + stride - 1) / stride, 3);
   for (Eigen::Index i = 0; i < skin.rows(); ++i) skin.row(i) = skin_vertices.row(i * stride);
   std::printf("step: %d elements, %d steps; frame: %d elements, a cloud of %ld points, %d frames\n",
@@ -197,72 +205,97 @@ int main(int argc, char** argv) {
     return summarise(t);
   };
 
+  // Rounds: every round runs every load level once, so slow drifts of the machine's own load fall
+  // on all levels alike; a cell's figure is the median over the rounds.
   struct Cell {
     int busy, threads;
-    Timing step, frame;
-    double load_average;
+    std::vector<double> step_ms, frame_ms, load_average;  // per round: mean step, median frame
   };
   std::vector<Cell> cells;
-  for (double level : busy_levels) {
-    const int busy = static_cast<int>(level);
-    BusyProcesses others(busy, busy_limit_s);
-    const double load = loadAverage();
-    for (int t : thread_counts) {
-      omp_set_num_threads(t);
-      Cell c{busy, t, runStep(), runFrames(), load};
-      cells.push_back(c);
-      std::printf("  %d busy, %d thread%s: step %.1f ms, frame %.1f ms\n", busy, t, t == 1 ? "" : "s", c.step.mean_ms,
-                  c.frame.median_ms);
-      std::fflush(stdout);
-    }
-    omp_set_num_threads(threads);
-  }
-
-  auto find = [&](int busy, int t) -> const Cell* {
-    for (const Cell& c : cells)
+  for (double level : busy_levels)
+    for (int t : thread_counts) cells.push_back({static_cast<int>(level), t, {}, {}, {}});
+  auto find = [&](int busy, int t) -> Cell* {
+    for (Cell& c : cells)
       if (c.busy == busy && c.threads == t) return &c;
     return nullptr;
   };
-  std::printf("\n%-26s %7s |", "", "threads");
-  for (double level : busy_levels) std::printf(" %9d busy", static_cast<int>(level));
-  std::printf(" | %-14s %-14s\n", "÷ idle, 1 less", "÷ 1 thread");
-  nlohmann::json rows = nlohmann::json::array();
-  const bool has_idle = std::find(busy_levels.begin(), busy_levels.end(), 0.0) != busy_levels.end();
-  for (int work = 0; work < 2; ++work) {
-    for (int t : thread_counts) {
-      char label[64];
-      if (work == 0) std::snprintf(label, sizeof label, "step, mean [ms] (%d el.)", step_model.mesh.numTets());
-      else std::snprintf(label, sizeof label, "frame, median [ms] (%d el.)", track_model.mesh.numTets());
-      std::printf("%-26s %7d |", t == thread_counts.front() ? label : "", t);
-      for (double level : busy_levels) {
-        const Cell* c = find(static_cast<int>(level), t);
-        std::printf(" %14.1f", work == 0 ? c->step.mean_ms : c->frame.median_ms);
+  nlohmann::json runs = nlohmann::json::array();
+  for (int round = 0; round < rounds; ++round) {
+    for (double level : busy_levels) {
+      const int busy = static_cast<int>(level);
+      BusyProcesses others(busy, busy_limit_s);
+      for (int t : thread_counts) {
+        omp_set_num_threads(t);
+        const double load = loadAverage();
+        const Timing step = runStep(), frame = runFrames();
+        Cell& c = *find(busy, t);
+        c.step_ms.push_back(step.mean_ms);
+        c.frame_ms.push_back(frame.median_ms);
+        c.load_average.push_back(load);
+        std::printf("  round %d, %d busy, %d thread%s: step %.1f ms (median %.1f), frame %.1f ms (p95 %.1f), load average %.2f\n",
+                    round + 1, busy, t, t == 1 ? "" : "s", step.mean_ms, step.median_ms, frame.median_ms, frame.p95_ms, load);
+        std::fflush(stdout);
+        runs.push_back({{"round", round + 1},
+                        {"busy_processes", busy},
+                        {"threads", t},
+                        {"load_average_at_start", load},
+                        {"step_ms_mean", step.mean_ms},
+                        {"step_ms_median", step.median_ms},
+                        {"step_ms_p95", step.p95_ms},
+                        {"frame_ms_mean", frame.mean_ms},
+                        {"frame_ms_median", frame.median_ms},
+                        {"frame_ms_p95", frame.p95_ms}});
       }
-      // With one other busy process: against the idle run with one thread less and against one
-      // thread under the same load (the program's thread count only).
-      const Cell* loaded = find(1, t);
-      const Cell* idle_less = find(0, std::max(1, t - 1));
-      const Cell* one = find(1, 1);
-      auto value = [&](const Cell* c) { return work == 0 ? c->step.mean_ms : c->frame.median_ms; };
-      double vs_idle = 0, vs_one = 0;
-      if (t == threads && threads > 1 && loaded && idle_less && has_idle) vs_idle = value(loaded) / value(idle_less);
-      if (t == threads && threads > 1 && loaded && one) vs_one = value(loaded) / value(one);
-      if (vs_idle > 0 || vs_one > 0) std::printf(" | %13.2fx %13.2fx", vs_idle, vs_one);
-      std::printf("\n");
+      omp_set_num_threads(threads);
     }
   }
-  for (const Cell& c : cells)
-    rows.push_back({{"busy_processes", c.busy},
-                    {"threads", c.threads},
-                    {"load_average_at_start", c.load_average},
-                    {"step_ms_mean", c.step.mean_ms},
-                    {"step_ms_median", c.step.median_ms},
-                    {"step_ms_p95", c.step.p95_ms},
-                    {"frame_ms_mean", c.frame.mean_ms},
-                    {"frame_ms_median", c.frame.median_ms},
-                    {"frame_ms_p95", c.frame.p95_ms}});
-  std::printf("(÷ idle, 1 less: one busy process beside the program's %d threads, against the idle run with one thread "
-              "less (target at most 2.5); ÷ 1 thread: against one thread beside the same busy process (target at most 1))\n",
+
+  const std::string over = "median over " + std::to_string(rounds) + (rounds == 1 ? " round" : " rounds");
+  std::printf("\n%-38s %7s |", over.c_str(), "threads");
+  for (double level : busy_levels) std::printf(" %9d busy", static_cast<int>(level));
+  std::printf(" | 1 busy ÷ idle at 1 thread less |");
+  for (double level : busy_levels)
+    if (level > 0) std::printf(" ÷ 1 thread, %d busy", static_cast<int>(level));
+  std::printf("\n");
+  nlohmann::json rows = nlohmann::json::array();
+  for (int work = 0; work < 2; ++work) {
+    const char* name = work == 0 ? "step" : "frame";
+    auto value = [&](int busy, int t) {
+      const Cell* c = find(busy, t);
+      return c ? median(work == 0 ? c->step_ms : c->frame_ms) : 0.0;
+    };
+    for (int t : thread_counts) {
+      char label[64];
+      if (work == 0) std::snprintf(label, sizeof label, "step, mean [ms], %d el.", step_model.mesh.numTets());
+      else std::snprintf(label, sizeof label, "frame, median [ms], %d el.", track_model.mesh.numTets());
+      std::printf("%-38s %7d |", t == thread_counts.front() ? label : "", t);
+      nlohmann::json row = {{"work", name}, {"threads", t}};
+      for (double level : busy_levels) {
+        const int busy = static_cast<int>(level);
+        std::printf(" %14.1f", value(busy, t));
+        row["ms_busy_" + std::to_string(busy)] = value(busy, t);
+      }
+      // The program's thread count beside busy processes, against the idle run with one thread less
+      // and against one thread beside the same processes.
+      if (t == threads && threads > 1) {
+        const double loaded = value(1, t), idle_less = value(0, t - 1);
+        const double vs_idle = loaded > 0 && idle_less > 0 ? loaded / idle_less : 0.0;
+        std::printf(" | %29.2fx |", vs_idle);
+        row["one_busy_vs_idle_one_thread_less"] = vs_idle;
+        for (double level : busy_levels) {
+          const int busy = static_cast<int>(level);
+          if (busy == 0) continue;
+          const double vs_one = value(busy, 1) > 0 ? value(busy, t) / value(busy, 1) : 0.0;
+          std::printf(" %17.2fx", vs_one);
+          row["vs_one_thread_busy_" + std::to_string(busy)] = vs_one;
+        }
+      }
+      std::printf("\n");
+      rows.push_back(row);
+    }
+  }
+  std::printf("(targets: one busy process beside the program's %d threads at most 2.5x the idle run with one thread less, "
+              "and never slower than one thread beside the same processes: at most 1x)\n",
               threads);
   if (!json_path.empty()) {
     nlohmann::json out = {{"bench", "load"},
@@ -275,7 +308,9 @@ int main(int argc, char** argv) {
                           {"frame_cloud_points", skin.rows()},
                           {"frames", frames},
                           {"tracker_relative_tolerance", kTrackerTolerance},
-                          {"rows", rows}};
+                          {"rounds", rounds},
+                          {"table", rows},
+                          {"runs", runs}};
     std::ofstream(json_path) << out.dump(2) << '\n';
   }
   return 0;
