@@ -14,10 +14,6 @@ export ROS_LOG_DIR="${ROS_HOME}/log"
 export ROS_IP="${ROS_IP:-127.0.0.1}"
 export ROS_MASTER_URI="${ROS_MASTER_URI:-http://127.0.0.1:11311}"
 unset ROS_HOSTNAME
-# OpenMP threads sleep while they wait instead of spinning (unless the caller chose otherwise): with
-# another busy process on one of the cores, spinning threads made a time step 10-100x slower; passive
-# costs ~20 % on an idle machine (docs/benchmarks.md, "Threads").
-export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-passive}"
 
 log() { printf '[breast_sim] %s\n' "$*"; }
 

@@ -1,0 +1,35 @@
+/* The OpenMP wait policy of every program that links the core, without the user setting anything.
+ *
+ * libgomp spins a waiting thread for up to 300,000 iterations (milliseconds) before it sleeps. With
+ * another busy process on one of the cores, a spinning thread holds the core its team-mate needs and
+ * every barrier waits out a scheduler slice: a time step became 30x slower (docs/load.md). libgomp
+ * reads OMP_WAIT_POLICY and GOMP_SPINCOUNT once, in its own initializer, before any initializer or
+ * main() of ours runs; setenv() then is too late, and so is setenv() in a DF_1_INITFIRST initializer,
+ * which runs before libc's own initializer resets the environment to the one the process started with.
+ *
+ * This library therefore defines getenv(): linked ahead of libc, it is the getenv every other library
+ * binds to, libgomp included, whatever order the initializers run in. It answers as libc's getenv
+ * does, except that OMP_WAIT_POLICY reads "passive" when neither OMP_WAIT_POLICY nor GOMP_SPINCOUNT
+ * is set: a user's own setting of either is kept. The environment itself is not changed (child
+ * processes inherit it as it was).
+ */
+#include <stddef.h>
+#include <string.h>
+
+extern char** environ;
+
+/* libc's getenv: the value of the first NAME=value entry of the environment. */
+static char* lookup(const char* name) {
+  if (environ == NULL || name[0] == '\0') return NULL;
+  const size_t n = strlen(name);
+  for (char** e = environ; *e != NULL; ++e)
+    if (strncmp(*e, name, n) == 0 && (*e)[n] == '=') return *e + n + 1;
+  return NULL;
+}
+
+__attribute__((visibility("default"))) char* getenv(const char* name) {
+  char* value = lookup(name);
+  if (value == NULL && strcmp(name, "OMP_WAIT_POLICY") == 0 && lookup("GOMP_SPINCOUNT") == NULL)
+    return (char*)"passive";
+  return value;
+}
