@@ -271,7 +271,10 @@ int main(int argc, char** argv) {
       auto stage = [](const StageReport& r) {
         char b[64];
         if (!r.ran) return std::string("-");
-        std::snprintf(b, sizeof b, "%d(%ld)%s", r.steps, r.reversed_steps, r.converged ? "" : r.stuck ? "S" : "X");
+        if (r.shortened_steps > 0)
+          std::snprintf(b, sizeof b, "%d(%ld,%lds)%s", r.steps, r.reversed_steps, r.shortened_steps, r.converged ? "" : r.stuck ? "S" : "X");
+        else
+          std::snprintf(b, sizeof b, "%d(%ld)%s", r.steps, r.reversed_steps, r.converged ? "" : r.stuck ? "S" : "X");
         if (r.coarse_elements > 0) return std::to_string(r.coarse_steps) + "(" + std::to_string(r.coarse_reversed_steps) + ")c+" + b;
         return std::string(b);
       };
@@ -315,6 +318,7 @@ int main(int argc, char** argv) {
       auto stageJson = [](const StageReport& r) {
         return nlohmann::json{{"ran", r.ran},       {"converged", r.converged},           {"stuck", r.stuck},
                               {"steps", r.steps},   {"reversed", r.reversed_steps},       {"seconds", r.seconds},
+                              {"shortened", r.shortened_steps},
                               {"alpha_per_pa", r.final_alpha_per_pa}, {"max_slide_mm", r.max_slide_m * 1e3},
                               {"elements", r.elements}, {"coarse_steps", r.coarse_steps},
                               {"coarse_reversed", r.coarse_reversed_steps}, {"coarse_elements", r.coarse_elements}};
@@ -361,7 +365,7 @@ int main(int argc, char** argv) {
     if (p.outside_seconds >= 0) std::printf("%-10.2f", p.outside_seconds);
     std::printf("\n");
   }
-  std::printf("\nsteps(reversed), X = not converged, S = stuck; n(r)c+: first on the coarse model (coarse_start); skin mean/p95: all skin -> target [mm]; pulled p95: the "
+  std::printf("\nsteps(reversed[,shortened s]), X = not converged, S = stuck; n(r)c+: first on the coarse model (coarse_start); skin mean/p95: all skin -> target [mm]; pulled p95: the "
               "morphing's vertices [mm]; lesion d: largest lesion position change from the first variant [mm]\n");
   if (!json_path.empty()) {
     if (ensemble.empty()) std::ofstream(json_path) << rows.dump(2) << '\n';

@@ -368,11 +368,12 @@ TEST(Stiffening, SettlesAtTheBaseMaterialsEquilibriumUnderALoadThatInvertsNothin
 
 // Where the base material inverts elements at its equilibrium (E 600 Pa here), the release keeps just
 // those elements stiffer: the rest of the model settles to within δ of its base material.
-TEST(Stiffening, AStepThatLeavesAnElementCollapsedIsRepeatedStiffer) {
+TEST(Stiffening, AStepThatWouldCollapseAnElementIsShortened) {
   // A 2×2×2 block of average-nodal-pressure tetrahedra (barrier J_b 0.3, so collapsed below 0.1),
   // bottom fixed, a top corner pulled by 0.109 N for one 0.33 s step: the plain step leaves an
-  // element at J ≈ 0.06 (not inverted), the stiffened step with reversal repeats it until none is
-  // below 0.1. The co-rotated tetrahedra count only inverted elements.
+  // element at J ≈ 0.06 (not inverted); with stiffening the step is shortened to the fraction that
+  // keeps every element at J ≥ 0.1 + kStepKeep (1 − 0.1) (they start at rest, J = 1), with no
+  // reversal. The co-rotated tetrahedra have no collapsed ratio: their steps are never shortened.
   const TetMesh m = makeBoxMesh({2, 2, 2}, {0.02, 0.02, 0.02});
   ElasticMaterial mat;
   mat.youngs_modulus_pa = 2000.0;
@@ -393,7 +394,7 @@ TEST(Stiffening, AStepThatLeavesAnElementCollapsedIsRepeatedStiffer) {
     return jmin;
   };
   double jmin[2];
-  long reversals = 0;
+  StiffeningStepResult r;
   for (int stiffened = 0; stiffened < 2; ++stiffened) {
     auto anp = std::make_unique<AnpTetFem>(m, mat);
     anp->setInversionBarrier(0.3);
@@ -409,9 +410,8 @@ TEST(Stiffening, AStepThatLeavesAnElementCollapsedIsRepeatedStiffer) {
       StiffeningParams p;
       p.alpha.initial_alpha_per_pa = 1e-7;
       StiffeningSimulation stiff(sim, m, p);
-      const StiffeningStepResult r = stiff.step();
-      EXPECT_TRUE(r.advanced);
-      reversals = r.reversals;
+      r = stiff.step();
+      EXPECT_EQ(stiff.stats().shortened_steps, 1);
     } else {
       sim.step();
     }
@@ -419,9 +419,62 @@ TEST(Stiffening, AStepThatLeavesAnElementCollapsedIsRepeatedStiffer) {
   }
   EXPECT_GT(jmin[0], 0.0);
   EXPECT_LT(jmin[0], 0.1);
-  EXPECT_GT(jmin[1], 0.1);
-  EXPECT_GE(reversals, 1);
+  EXPECT_TRUE(r.advanced);
+  EXPECT_EQ(r.reversals, 0);
+  EXPECT_GE(r.step_fraction, StiffeningSimulation::kMinStepFraction);
+  EXPECT_LT(r.step_fraction, 1.0);
+  EXPECT_GE(jmin[1], 0.1 + StiffeningSimulation::kStepKeep * 0.9 - 1e-9);
+  EXPECT_LT(jmin[1], 0.1 + StiffeningSimulation::kStepKeep * 0.9 + 0.01);  // shortened to the bound, not further
   EXPECT_EQ(CorotatedTetFem(m, mat).collapsedVolumeRatio(), 0.0);
+}
+
+// admissibleStepFraction against a dense scan of every element's volume ratio along the step.
+TEST(Stiffening, AdmissibleStepFractionIsTheFirstCrossingOfTheBound) {
+  const TetMesh m = makeBoxMesh({3, 3, 3}, {0.03, 0.03, 0.03});
+  const Eigen::VectorXd V0 = m.tetVolumes();
+  auto ratio = [&](const Eigen::VectorXd& u, int e) {
+    Eigen::Vector3d x[4];
+    for (int i = 0; i < 4; ++i)
+      x[i] = (m.nodes().row(m.tets()(e, i)) + u.segment<3>(3 * m.tets()(e, i)).transpose()).transpose();
+    return (x[1] - x[0]).dot((x[2] - x[0]).cross(x[3] - x[0])) / 6.0 / V0[e];
+  };
+  const double jc = 0.1, keep = 0.25;
+  int shortened = 0, whole = 0;
+  for (int seed = 1; seed <= 20; ++seed) {
+    std::srand(static_cast<unsigned>(seed));
+    const Eigen::VectorXd u0 = 4e-4 * Eigen::VectorXd::Random(3 * m.numNodes());
+    const Eigen::VectorXd u1 = u0 + (seed % 4 == 0 ? 5e-4 : 6e-3) * Eigen::VectorXd::Random(3 * m.numNodes());
+    const double s = admissibleStepFraction(m, u0, u1, jc, keep);
+    ASSERT_GE(s, 0.0);
+    ASSERT_LE(s, 1.0);
+    // Slow reference: 4000 samples of t in [0, 1] per element, from the start to the first sample
+    // below the element's bound.
+    double first = 1.0;
+    for (int e = 0; e < m.numTets(); ++e) {
+      const double j0 = ratio(u0, e);
+      if (!(j0 > jc)) continue;
+      const double bound = jc + keep * (j0 - jc);
+      for (int i = 1; i <= 4000; ++i) {
+        const double t = i / 4000.0;
+        if (ratio(u0 + t * (u1 - u0), e) < bound) {
+          first = std::min(first, t);
+          break;
+        }
+      }
+      // Every element keeps its bound up to s.
+      for (int i = 0; i <= 200; ++i) EXPECT_GE(ratio(u0 + (s * i / 200.0) * (u1 - u0), e), bound - 1e-9) << seed << " " << e;
+    }
+    if (first == 1.0) EXPECT_EQ(s, 1.0) << seed;
+    else EXPECT_NEAR(s, first, 1.0 / 4000.0) << seed;  // the first crossing, to the scan's resolution
+    (s < 1.0 ? shortened : whole) += 1;
+  }
+  EXPECT_GE(shortened, 5);  // both kinds of step were drawn
+  EXPECT_GE(whole, 1);
+  Eigen::VectorXd u = Eigen::VectorXd::Zero(3 * m.numNodes());
+  EXPECT_EQ(admissibleStepFraction(m, u, u, jc, keep), 1.0);
+  EXPECT_THROW(admissibleStepFraction(m, u, u.head(3), jc, keep), std::invalid_argument);
+  EXPECT_THROW(admissibleStepFraction(m, u, u, -0.1, keep), std::invalid_argument);
+  EXPECT_THROW(admissibleStepFraction(m, u, u, jc, 1.0), std::invalid_argument);
 }
 
 TEST(Stiffening, ReleaseStiffensOnlyTheElementsThatWouldInvert) {

@@ -176,6 +176,76 @@ void deformationMeasures(const TetMesh& mesh, const Eigen::VectorXd& u, double& 
   volume_change_percent = 100.0 * (v - v0) / v0;
 }
 
+double admissibleStepFraction(const TetMesh& mesh, const Eigen::VectorXd& u0, const Eigen::VectorXd& u1,
+                              double j_collapsed, double keep) {
+  const int nn = mesh.numNodes(), nt = mesh.numTets();
+  if (u0.size() != 3 * nn || u1.size() != 3 * nn)
+    throw std::invalid_argument("admissibleStepFraction: displacements of " + std::to_string(u0.size()) + " and " +
+                                std::to_string(u1.size()) + " DOFs for a mesh of " + std::to_string(nn) + " nodes");
+  if (!(j_collapsed >= 0) || !std::isfinite(j_collapsed))
+    bad("admissibleStepFraction", "j_collapsed", j_collapsed, "a finite volume ratio >= 0");
+  if (!(keep > 0 && keep < 1)) bad("admissibleStepFraction", "keep", keep, "a share in (0, 1), e.g. 0.25");
+  const Tets& tets = mesh.tets();
+  const Points& X = mesh.nodes();
+  double fraction = 1.0;
+#pragma omp parallel for schedule(static) reduction(min : fraction)
+  for (int e = 0; e < nt; ++e) {
+    // Edge matrices at the start (a), their change over the step (b) and at rest: J(t) = det(a + t b) / det(rest).
+    Eigen::Vector3d a[3], b[3], r[3];
+    const int n0 = tets(e, 0);
+    for (int k = 0; k < 3; ++k) {
+      const int n = tets(e, k + 1);
+      r[k] = (X.row(n) - X.row(n0)).transpose();
+      a[k] = r[k] + u0.segment<3>(3 * n) - u0.segment<3>(3 * n0);
+      b[k] = u1.segment<3>(3 * n) - u1.segment<3>(3 * n0) - (u0.segment<3>(3 * n) - u0.segment<3>(3 * n0));
+    }
+    const double rest = r[0].dot(r[1].cross(r[2]));
+    // det(a + t b) = c0 + c1 t + c2 t² + c3 t³ (c1 = tr(adj(a) b), c2 = tr(adj(b) a)).
+    const double c0 = a[0].dot(a[1].cross(a[2])) / rest;
+    const double c1 = (b[0].dot(a[1].cross(a[2])) + b[1].dot(a[2].cross(a[0])) + b[2].dot(a[0].cross(a[1]))) / rest;
+    const double c2 = (a[0].dot(b[1].cross(b[2])) + a[1].dot(b[2].cross(b[0])) + a[2].dot(b[0].cross(b[1]))) / rest;
+    const double c3 = b[0].dot(b[1].cross(b[2])) / rest;
+    if (!(c0 > j_collapsed)) continue;  // at or below the bound already: does not limit the step
+    const double bound = j_collapsed + keep * (c0 - j_collapsed);
+    auto below = [&](double t) { return !(c0 + t * (c1 + t * (c2 + t * c3)) >= bound); };  // NaN counts as below
+    // J(t) is monotone between the roots of J'(t) = c1 + 2 c2 t + 3 c3 t²: the first of those pieces
+    // of [0, 1] whose end is below the bound holds the first crossing, found by bisection.
+    double ends[4];
+    int count = 0;
+    const double qa = 3.0 * c3, qb = 2.0 * c2, qc = c1;
+    if (std::abs(qa) > 1e-14 * (std::abs(qb) + std::abs(qc))) {
+      const double disc = qb * qb - 4.0 * qa * qc;
+      if (disc > 0.0) {
+        const double sq = std::sqrt(disc);
+        const double q = -0.5 * (qb + (qb >= 0.0 ? sq : -sq));  // the stable form of the two roots
+        const double roots[2] = {q / qa, q != 0.0 ? qc / q : q / qa};
+        for (double t : roots)
+          if (t > 0.0 && t < 1.0) ends[count++] = t;
+      }
+    } else if (qb != 0.0) {
+      const double t = -qc / qb;
+      if (t > 0.0 && t < 1.0) ends[count++] = t;
+    }
+    std::sort(ends, ends + count);
+    ends[count++] = 1.0;
+    double lo = 0.0, hi = -1.0;
+    for (int i = 0; i < count; ++i) {
+      if (below(ends[i])) {
+        hi = ends[i];
+        break;
+      }
+      lo = ends[i];
+    }
+    if (hi < 0) continue;
+    while (hi - lo > 1e-9) {
+      const double m = 0.5 * (lo + hi);
+      (below(m) ? hi : lo) = m;
+    }
+    fraction = std::min(fraction, lo);
+  }
+  return fraction;
+}
+
 // ---------------------------------------------------------------------------------------------------
 StiffeningSimulation::StiffeningSimulation(DynamicSimulator& sim, const TetMesh& mesh, const StiffeningParams& params)
     : sim_(sim), mesh_(mesh), params_(params), controller_((params.validate(), params.alpha)) {
@@ -350,7 +420,21 @@ StiffeningStepResult StiffeningSimulation::step() {
       } catch (const std::runtime_error&) {
         solved = false;  // e.g. non-finite velocities: treated like an inversion
       }
-      const std::vector<int> inverted = solved ? invalidElements() : std::vector<int>{};
+      std::vector<int> inverted = solved ? invalidElements() : std::vector<int>{};
+      const double j_collapsed = sim_.elements().collapsedVolumeRatio();
+      if (solved && !inverted.empty() && j_collapsed > 0.0) {
+        // Shortened steps (see the class comment): the share s of the increment that keeps every
+        // element off the collapsed ratio, when it is large enough to be worth taking.
+        const double s = admissibleStepFraction(mesh_, saved.displacement_m, sim_.state().displacement_m, j_collapsed, kStepKeep);
+        if (s >= kMinStepFraction) {
+          shortened_ = sim_.state();
+          shortened_.displacement_m = saved.displacement_m + s * (shortened_.displacement_m - saved.displacement_m);
+          shortened_.velocity_mps *= s;
+          sim_.restore(shortened_);
+          inverted = invalidElements();  // empty, unless an element started at or below j_c
+          if (inverted.empty()) r.step_fraction = s;
+        }
+      }
       if (solved && inverted.empty()) {
         if (!hold_alpha_) {
           // Releasing: α halves (see the class comment); else the controller's decrease.
@@ -410,7 +494,8 @@ StiffeningStepResult StiffeningSimulation::step() {
     const Eigen::VectorXd& loads = sim_.springNodes().empty() ? sim_.externalForces() : with_springs;
     r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, loads, sim_.lumpedMass(),
                               sim_.params().gravity_mps2, fixed_node_);
-    settle_run_ = r.settle.below ? settle_run_ + 1 : 0;
+    if (r.step_fraction < 1.0) ++shortened_steps_;
+    settle_run_ = r.settle.below && r.step_fraction == 1.0 ? settle_run_ + 1 : 0;  // a shortened step is no settled one
     // The moduli this step ran with: how far its equilibrium is from the base material's.
     excess_ = params_.update_moduli ? modulusExcess() : 0.0;
     const bool shape_settled = settle_run_ >= params_.settle.consecutive_steps;
@@ -434,6 +519,7 @@ RunStats StiffeningSimulation::stats() const {
   s.reversed_steps = reversed_;
   s.reversal_fraction = accepted_ + reversed_ > 0 ? static_cast<double>(reversed_) / static_cast<double>(accepted_ + reversed_) : 0.0;
   s.reversal_limit_hits = limit_hits_;
+  s.shortened_steps = shortened_steps_;
   s.final_alpha_per_pa = params_.update_moduli ? alpha() : 0.0;
   s.inverted_elements = last_inverted_;
   s.nan = !sim_.state().displacement_m.allFinite();

@@ -112,6 +112,7 @@ IterationReport ProneToSupinePipeline::iterate() {
   last_advanced_ = r.advanced;
   it.advanced = r.advanced;
   it.reversals = r.reversals;
+  it.step_fraction = r.advanced ? r.step_fraction : 1.0;
   it.alpha_per_pa = r.alpha_per_pa;
   it.increment_m = mv.all_max;
   it.off_wall_increment_m = mv.off_wall_max;
@@ -192,7 +193,7 @@ StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progres
     // The volume (an O(elements) sum) only when everything else holds.
     if (still && it.alpha_held && ms.volume_tolerance_percent > 0)
       still = std::abs(volumeChangePercent()) <= ms.volume_tolerance_percent;
-    quiet = it.alpha_held && still ? quiet + 1 : 0;
+    quiet = it.alpha_held && still && it.step_fraction == 1.0 ? quiet + 1 : 0;
     if (progress)
       progress({stage_, rep.steps, ms.max_steps, it.increment_m, it.surface_mean_m, it.surface_p95_m, it.alpha_per_pa,
                 logFraction(first, it.surface_mean_m, ms.tolerance_mean_m)});

@@ -82,6 +82,7 @@ void ProneToSupinePipeline::closeReport(StageReport& r, const RunStats& before, 
   const RunStats after = stiff_->stats();
   r.reversed_steps = after.reversed_steps - before.reversed_steps;
   r.reversal_limit_hits = after.reversal_limit_hits - before.reversal_limit_hits;
+  r.shortened_steps = after.shortened_steps - before.shortened_steps;
   r.final_alpha_per_pa = stiff_->alpha();
   r.modulus_excess = after.max_modulus_excess;
   r.locally_stiffened_elements = after.locally_stiffened_elements;

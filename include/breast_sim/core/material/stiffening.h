@@ -2,9 +2,11 @@
 /// @file stiffening.h
 /// Non-linear material by von Mises stiffening with time-step reversal (seed paper, sections 2.3,
 /// 2.6 and 3.1): per element the modulus factor E_r = 1 + α · s_VM is set between time steps; a step
-/// that inverts an element (or collapses one below ElementFormulation::collapsedVolumeRatio) is
-/// reverted and repeated with a larger α; α is decreased again after good steps, with an oscillation
-/// detector that makes it settle; an undo history of n states.
+/// that inverts an element is reverted and repeated with a larger α; α is decreased again after good
+/// steps, with an oscillation detector that makes it settle; an undo history of n states. With a
+/// formulation that has a collapsed volume ratio (ElementFormulation::collapsedVolumeRatio > 0: the
+/// average-nodal-pressure element with its inversion barrier), a step that would leave an element at
+/// or below it is first shortened (admissibleStepFraction), and repeated stiffer only when that fails.
 ///
 /// Units: α in 1/Pa, stresses in Pa, E_r dimensionless (E = E_r · E0), speeds in m/s.
 ///
@@ -166,6 +168,9 @@ struct StiffeningStepResult {
   bool reversal_limit_hit = false;  ///< max_reversals_per_step reached: state left at the start of the call
   int inverted_elements = 0;   ///< at the end of the call (0 with reversal on, unless the start had some)
   double alpha_per_pa = 0.0;   ///< after the call [1/Pa]
+  /// The share of the solved step that was taken, in (0, 1]: below 1 when the step was shortened to
+  /// keep every element off its collapsed volume ratio (StiffeningSimulation, "Shortened steps").
+  double step_fraction = 1.0;
   SettleCheck settle;          ///< at the end of the call
 };
 
@@ -175,6 +180,7 @@ struct RunStats {
   long reversed_steps = 0;          ///< trial steps reverted
   double reversal_fraction = 0.0;   ///< reversed / (accepted + reversed)
   long reversal_limit_hits = 0;     ///< calls that could not advance
+  long shortened_steps = 0;         ///< accepted steps that were shortened ("Shortened steps")
   double final_alpha_per_pa = 0.0;  ///< 0 when α is not used
   int inverted_elements = 0;        ///< at the end
   bool nan = false;                 ///< non-finite displacement at the end (or the run stopped on one)
@@ -197,6 +203,20 @@ struct RunStats {
 /// Signed volume change [%] and largest displacement [m] of a displacement field (3N [m]).
 void deformationMeasures(const TetMesh& mesh, const Eigen::VectorXd& displacement_m, double& volume_change_percent,
                          double& max_displacement_m);
+
+/// Shortening a step whose elements would collapse (the fraction-to-the-boundary rule of barrier
+/// methods): the largest s ∈ [0, 1] such that along u0 + t (u1 − u0), t ∈ [0, s], every element e
+/// keeps its volume ratio J_e ≥ j_c + keep (J_e(u0) − j_c), i.e. loses at most the share 1 − keep of
+/// its distance to the collapsed ratio j_c. J_e along the step is the cubic det(D0 + t D1) / det(Dm)
+/// of the element's edge matrices; its first crossing is bracketed between the roots of its
+/// derivative (the cubic is monotone between them) and bisected to 1e-9. Elements that start at or below the bound (J_e(u0) ≤ j_c) do not limit s.
+/// @param mesh        rest mesh (its nodes and tets)
+/// @param u0, u1      displacements at the step's start and end, 3N [m]
+/// @param j_collapsed j_c, the collapsed volume ratio [1], ≥ 0
+/// @param keep        the share of the distance to j_c that every element keeps, in (0, 1)
+/// @throws std::invalid_argument for sizes that do not match the mesh or parameters out of range.
+double admissibleStepFraction(const TetMesh& mesh, const Eigen::VectorXd& u0, const Eigen::VectorXd& u1,
+                              double j_collapsed, double keep);
 
 /// The seed's loop around a DynamicSimulator:
 ///   save state → set moduli E_r = 1 + α s_VM → step → inverted elements (rest + u)?
@@ -223,8 +243,28 @@ void deformationMeasures(const TetMesh& mesh, const Eigen::VectorXd& displacemen
 /// this load: the local α's are dropped, the controller's α (valid where the shape settled) takes
 /// over, and settled is the shape's criterion, with RunStats::max_modulus_excess saying how far the
 /// state is from the base material's equilibrium.
+///
+/// Shortened steps: a formulation whose elements can lose their own volume while their nodes' stars
+/// keep theirs (the average-nodal-pressure element, where an element's own volume change meets only
+/// the shear modulus above its inversion barrier J_b) reports a collapsed volume ratio j_c > 0
+/// (ElementFormulation::collapsedVolumeRatio: J_b / 3). The linearised step does not see the barrier
+/// of an element that starts above J_b, so one step under a concentrated load (the first morphing
+/// pulls at the rim) takes it from J ≈ 1 through zero, and keeping such steps valid by stiffening
+/// the whole model takes an α ~30× the J − 1 tetrahedra's (docs/speed_accuracy.md, "ANP in the whole
+/// pipeline"). So a step that leaves an element at or below j_c (inverted or not) is first shortened
+/// to the fraction s = admissibleStepFraction(…, j_c, kStepKeep) of its increment: the state becomes
+/// u0 + s (u1 − u0) with velocity s v1 (backward Euler's), and the step counts as accepted. From
+/// J = 1 an element then stops near J_b (j_c + (1 − j_c)/4 = 0.325 at J_b 0.3), where the barrier's
+/// stiffness is in the next step's matrix. Only a fraction below kMinStepFraction is reverted and
+/// repeated stiffer as above. A shortened step does not count towards the settle criterion.
+/// With j_c = 0 (the linear tetrahedra) every step is as the seed's.
 class StiffeningSimulation {
  public:
+  /// Shortened steps: the share of its distance to the collapsed ratio every element keeps.
+  static constexpr double kStepKeep = 0.25;
+  /// Shortened steps: a smaller fraction is not taken; the step is reverted and repeated stiffer.
+  static constexpr double kMinStepFraction = 0.05;
+
   /// One undo-history entry: restores the simulation exactly.
   struct HistoryEntry {
     SimulationState state;
@@ -313,7 +353,8 @@ class StiffeningSimulation {
   Eigen::VectorXd base_stress_, trial_stress_, f_el_;
   Points x_;
   Eigen::VectorXd rest_volume_;  // per element [m³], for the collapsed check
-  long accepted_ = 0, reversed_ = 0, limit_hits_ = 0, steps_to_settle_ = -1;
+  long accepted_ = 0, reversed_ = 0, limit_hits_ = 0, shortened_steps_ = 0, steps_to_settle_ = -1;
+  SimulationState shortened_;  // a shortened step's state (kept buffer)
   int settle_run_ = 0;
   bool settled_ = false;
   bool releasing_ = false;

@@ -229,6 +229,9 @@ struct StageReport {
   int steps = 0;              ///< accepted steps
   long reversed_steps = 0;    ///< trial steps reverted (time-step reversal)
   long reversal_limit_hits = 0;
+  /// Accepted steps shortened to keep elements off their collapsed volume ratio (the
+  /// average-nodal-pressure element; StiffeningSimulation, "Shortened steps"), counted in steps too.
+  long shortened_steps = 0;
   /// Morphing: trial steps the divergence guard rejected (max_step_move_m, max_step_volume_change_percent;
   /// counted in reversed_steps too).
   long diverged_steps = 0;
@@ -264,6 +267,9 @@ struct IterationReport {
   bool forces_added = false;  ///< false after a call that could not advance (seed: skip the forces)
   bool diverged = false;      ///< the step ran away (divergence guard) and was taken back
   int reversals = 0;
+  /// The share of the solved step that was taken (< 1: shortened, StiffeningStepResult::step_fraction;
+  /// such a step does not count as a quiet one for the stop rule).
+  double step_fraction = 1.0;
   double increment_m = 0.0;
   double pulled_increment_p95_m = 0.0;  ///< 95th percentile of the pulled vertices' moves in the step [m]
   double off_wall_increment_m = 0.0;    ///< largest move of a node off the wall band [m] (all nodes without sliding; wallBandNodes())
