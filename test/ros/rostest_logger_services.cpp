@@ -19,6 +19,8 @@
 #include <breast_sim/LoadCase.h>
 #include <breast_sim/NodeState.h>
 
+#include "wait_until.h"
+
 namespace {
 
 using Clock = std::chrono::steady_clock;
@@ -40,16 +42,8 @@ void onRosout(const rosgraph_msgs::Log::ConstPtr& msg) {
 }
 
 template <class F>
-bool waitUntil(F condition, double timeout_s) {
-  const auto t0 = Clock::now();
-  while (std::chrono::duration<double>(Clock::now() - t0).count() < timeout_s) {
-    {
-      std::lock_guard<std::mutex> l(m);
-      if (condition()) return true;
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
-  return false;
+bool waitUntil(F&& condition, double timeout_s) {
+  return breast_sim::test_fixtures::waitUntil(m, std::forward<F>(condition), timeout_s);
 }
 
 std::string service(const char* name) { return std::string(kNode) + "/" + name; }

@@ -27,6 +27,7 @@
 #include "breast_sim/core/pipeline/case_file.h"
 #include "breast_sim/core/pipeline/lesion_uncertainty.h"
 #include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "wait_until.h"
 
 namespace {
 
@@ -50,17 +51,9 @@ void onRosout(const rosgraph_msgs::Log::ConstPtr& msg) {
   if (msg->name == "/breast_sim") node_log.push_back(*msg);
 }
 
-bool waitUntil(const std::function<bool()>& done, double seconds) {
-  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(seconds);
-  while (std::chrono::steady_clock::now() < end) {
-    {
-      std::lock_guard<std::mutex> l(m);
-      if (done()) return true;
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
-  std::lock_guard<std::mutex> l(m);
-  return done();
+template <class F>
+bool waitUntil(F&& condition, double timeout_s) {
+  return breast_sim::test_fixtures::waitUntil(m, std::forward<F>(condition), timeout_s);
 }
 
 TEST(MeshCase, TheNodePrecomputesTheMeshCaseOnStart) {

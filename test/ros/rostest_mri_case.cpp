@@ -34,6 +34,7 @@
 #include "breast_sim/core/mri/synthetic_mri.h"
 #include "breast_sim/ros_interface/conversions.h"
 #include "node_state_folder.h"
+#include "wait_until.h"
 
 namespace fs = std::filesystem;
 
@@ -59,17 +60,9 @@ void onMesh(const breast_sim::TetrahedralMesh::ConstPtr& msg) {
   mesh = msg;
 }
 
-bool waitUntil(const std::function<bool()>& done, double seconds) {
-  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(seconds);
-  while (std::chrono::steady_clock::now() < end) {
-    {
-      std::lock_guard<std::mutex> l(m);
-      if (done()) return true;
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
-  std::lock_guard<std::mutex> l(m);
-  return done();
+template <class F>
+bool waitUntil(F&& condition, double timeout_s) {
+  return breast_sim::test_fixtures::waitUntil(m, std::forward<F>(condition), timeout_s);
 }
 
 std::string param(const std::string& name) {

@@ -48,6 +48,7 @@
 #include "breast_sim/ros_interface/conversions.h"
 #include "breast_sim/ros_interface/surface_tracker.h"
 #include "breast_sim/ros_interface/tracker_simulation.h"
+#include "wait_until.h"
 
 using namespace breast_sim;
 
@@ -86,18 +87,9 @@ struct Recorder {
 Recorder rec;
 breast_sim::test_fixtures::SimulatedClock* sim_clock = nullptr;  ///< set in main()
 
-template <typename F>
-bool waitUntil(F condition, double timeout_s) {
-  const auto t0 = Clock::now();
-  while (since(t0) < timeout_s) {
-    {
-      std::lock_guard<std::mutex> l(rec.m);
-      if (condition()) return true;
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
-  std::lock_guard<std::mutex> l(rec.m);
-  return condition();
+template <class F>
+bool waitUntil(F&& condition, double timeout_s) {
+  return breast_sim::test_fixtures::waitUntil(rec.m, std::forward<F>(condition), timeout_s);
 }
 
 std::string stateText() {

@@ -44,6 +44,7 @@
 #include "breast_sim/core/pipeline/state_file.h"
 #include "breast_sim/ros_interface/conversions.h"
 #include "breast_sim/ros_interface/tracker_simulation.h"
+#include "wait_until.h"
 
 namespace fs = std::filesystem;
 using Clock = std::chrono::steady_clock;
@@ -74,17 +75,9 @@ const breast_sim::test_fixtures::NodeStateFolder* state_folder = nullptr;  ///< 
 
 double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
-bool waitUntil(const std::function<bool()>& done, double seconds) {
-  const auto end = Clock::now() + std::chrono::duration<double>(seconds);
-  while (Clock::now() < end) {
-    {
-      std::lock_guard<std::mutex> l(rec.m);
-      if (done()) return true;
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(10));
-  }
-  std::lock_guard<std::mutex> l(rec.m);
-  return done();
+template <class F>
+bool waitUntil(F&& condition, double timeout_s) {
+  return breast_sim::test_fixtures::waitUntil(rec.m, std::forward<F>(condition), timeout_s);
 }
 
 std::string stateText() {

@@ -39,6 +39,7 @@
 #include "breast_sim/core/morphing/target_surface.h"
 #include "breast_sim/ros_interface/conversions.h"
 #include "breast_sim/ros_interface/scene_recording.h"
+#include "wait_until.h"
 
 using namespace breast_sim;
 using ros_interface::SceneBadKind;
@@ -87,18 +88,9 @@ struct Recorder {
 Recorder rec;
 breast_sim::test_fixtures::SimulatedClock* sim_clock = nullptr;  ///< set in main()
 
-template <typename F>
-bool waitUntil(F condition, double timeout_s) {
-  const auto t0 = Clock::now();
-  while (since(t0) < timeout_s) {
-    {
-      std::lock_guard<std::mutex> l(rec.m);
-      if (condition()) return true;
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
-  std::lock_guard<std::mutex> l(rec.m);
-  return condition();
+template <class F>
+bool waitUntil(F&& condition, double timeout_s) {
+  return breast_sim::test_fixtures::waitUntil(rec.m, std::forward<F>(condition), timeout_s);
 }
 
 std::string stateText() {
