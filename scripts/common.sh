@@ -43,16 +43,21 @@ build_catkin_ws() {
       -DCMAKE_BUILD_TYPE=Release -DPYTHON_EXECUTABLE=/usr/bin/python3 "$@")
 }
 
+# A CMake build folder made for another source folder cannot be reused: remove it so it starts afresh.
+#   forget_foreign_build BUILD_DIR SOURCE_DIR
+forget_foreign_build() {
+  local cache="$1/CMakeCache.txt"
+  if [ -f "${cache}" ] && ! grep -qx "CMAKE_HOME_DIRECTORY:INTERNAL=$2" "${cache}"; then
+    log "the build folder $1 belongs to another checkout; rebuilding it"
+    rm -rf "$1"
+  fi
+}
+
 # Builds the ROS-free core with plain CMake (catkin is never looked for).
 build_core() {
   log "building the ROS-free core with plain CMake in ${BREAST_SIM_CORE_BUILD}"
   mkdir -p "${BREAST_SIM_WORK}"
-  # A build folder made for another checkout cannot be reused by CMake: start it afresh.
-  local cache="${BREAST_SIM_CORE_BUILD}/CMakeCache.txt"
-  if [ -f "${cache}" ] && ! grep -qx "CMAKE_HOME_DIRECTORY:INTERNAL=${BREAST_SIM_SRC}" "${cache}"; then
-    log "the core build folder belongs to another checkout; rebuilding it"
-    rm -rf "${BREAST_SIM_CORE_BUILD}"
-  fi
+  forget_foreign_build "${BREAST_SIM_CORE_BUILD}" "${BREAST_SIM_SRC}"
   cmake -S "${BREAST_SIM_SRC}" -B "${BREAST_SIM_CORE_BUILD}" -DBREAST_SIM_CORE_ONLY=ON \
         -DCMAKE_BUILD_TYPE=Release >"${BREAST_SIM_WORK}/core_configure.log" 2>&1 \
     || { cat "${BREAST_SIM_WORK}/core_configure.log"; return 1; }

@@ -35,6 +35,7 @@ mkdir -p "${work}"
 
 build_fuzz() {
   log "building the fuzz targets (clang, ASan + UBSan) in ${build}"
+  forget_foreign_build "${build}" "${BREAST_SIM_SRC}/fuzz"
   cmake -S "${BREAST_SIM_SRC}/fuzz" -B "${build}" -DCMAKE_C_COMPILER=clang-14 -DCMAKE_CXX_COMPILER=clang++-14 \
     >"${work}/configure.log" 2>&1 || { cat "${work}/configure.log"; return 1; }
   nice -n 10 cmake --build "${build}" -j"${BREAST_SIM_JOBS}" --target fuzz_targets fuzz_seeds
