@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "breast_sim/core/fem/equilibrium.h"
+#include "breast_sim/core/mesh/mesh_io.h"
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
@@ -626,4 +627,48 @@ TEST(Pipeline, AnUnloadedShapeThatCannotBeFoundIsAClearError) {
     EXPECT_NE(what.find("the unloaded (gravity-free) shape was not found: iteration "), std::string::npos) << what;
     EXPECT_NE(what.find("simulation.reference_state: prone"), std::string::npos) << what;
   }
+}
+
+// The multigrid's coarse levels written to Gmsh files and read back (what a restarted node does
+// instead of meshing them) give a pipeline whose steps equal, to the bit, those of the pipeline that
+// meshed them; levels that do not nest are refused.
+TEST(Pipeline, CoarseLevelsReadBackFromFilesStepToTheBitAsMeshedOnes) {
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.simulation.reference_state = SimulationSettings::ReferenceState::kProne;
+  s.morphing.enabled = false;
+  ASSERT_EQ(s.simulation.solver.kind, SolverSettings::Kind::kMultigrid);
+  ProneToSupinePipeline meshed(p.c, p.m, s);
+  ASSERT_GE(meshed.coarseMeshes().size(), 1u);
+  std::vector<TetMesh> read;
+  GmshOptions binary;
+  binary.binary = true;
+  for (size_t l = 0; l < meshed.coarseMeshes().size(); ++l) {
+    const fs::path file = fs::temp_directory_path() / ("breast_sim_coarse_level_" + std::to_string(l) + ".msh");
+    writeGmsh(file.string(), meshed.coarseMeshes()[l], binary);
+    read.push_back(readGmsh(file.string()));
+    fs::remove(file);
+    EXPECT_EQ(read.back().nodes(), meshed.coarseMeshes()[l].nodes()) << "level " << l + 1;
+    EXPECT_EQ(read.back().tets(), meshed.coarseMeshes()[l].tets()) << "level " << l + 1;
+  }
+  ProneToSupinePipeline given(p.c, p.m, s, read);
+  EXPECT_EQ(given.build().level_nodes, meshed.build().level_nodes);
+  for (int k = 0; k < 5; ++k) {
+    meshed.stiffening().step();
+    given.stiffening().step();
+  }
+  EXPECT_GT(meshed.displacement().norm(), 1e-4);
+  EXPECT_EQ(given.displacement(), meshed.displacement());
+
+  std::vector<TetMesh> moved = read;  // the first coarse level 5 cm off: the fine mesh is not in it
+  moved[0] = withNodes(moved[0], (moved[0].nodes().rowwise() + Eigen::RowVector3d(0.05, 0, 0)).eval());
+  try {
+    ProneToSupinePipeline bad(p.c, p.m, s, moved);
+    FAIL() << "a coarse level that does not hold the fine mesh was taken";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("does not fit in level 1"), std::string::npos) << e.what();
+  }
+  PipelineSettings direct = s;
+  direct.simulation.solver.kind = SolverSettings::Kind::kCholmod;
+  EXPECT_THROW(ProneToSupinePipeline(p.c, p.m, direct, read), std::invalid_argument);
 }

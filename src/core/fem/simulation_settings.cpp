@@ -285,13 +285,15 @@ SimulatorBuild buildSimulator(const TetMesh& mesh, const SimulationSettings& set
 }
 
 SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel& model,
-                              const SimulationSettings& settings) {
+                              const SimulationSettings& settings, std::optional<std::vector<TetMesh>> coarse_meshes) {
   // Invalid settings and a missing node set are reported before the (slow) coarse meshing.
   settings.validate();
   fixedNodes(model.mesh, settings, "model");
   std::vector<TetMesh> coarse;
   double meshing_seconds = 0.0;
-  if (settings.solver.kind == SolverSettings::Kind::kMultigrid) {
+  if (coarse_meshes) {
+    coarse = std::move(*coarse_meshes);
+  } else if (settings.solver.kind == SolverSettings::Kind::kMultigrid) {
     const auto t = std::chrono::steady_clock::now();
     coarse = buildCoarseMeshes(model_case, model, settings.solver.coarsening);
     meshing_seconds = since(t);

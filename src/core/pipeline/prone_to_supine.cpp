@@ -45,12 +45,11 @@ std::unique_ptr<SimulationModel> unloadedModel(const ModelCase& model_case, cons
   return model;
 }
 
-/// The multigrid's coarse levels for the rest shape `rest` of the prone model: meshed from the case's
-/// image (the prone domain) and moved by the displacement rest − prone interpolated at their nodes
-/// (a coarse node outside the fine mesh takes the value at its closest point).
+/// The multigrid's coarse levels `coarse` of the prone model's domain moved to the rest shape `rest`
+/// by the displacement rest − prone interpolated at their nodes (a coarse node outside the fine mesh
+/// takes the value at its closest point).
 std::vector<TetMesh> coarseMeshesOfRest(const ModelCase& model_case, const SimulationModel& prone, const TetMesh& rest,
-                                        const CoarseningOptions& options) {
-  std::vector<TetMesh> coarse = buildCoarseMeshes(model_case, prone, options);
+                                        std::vector<TetMesh> coarse) {
   const Points move = rest.nodes() - prone.mesh.nodes();
   const Eigen::Vector3d lo = prone.mesh.nodes().colwise().minCoeff().transpose();
   const Eigen::Vector3d hi = prone.mesh.nodes().colwise().maxCoeff().transpose();
@@ -103,7 +102,8 @@ const char* stageName(PipelineStage stage) {
 }
 
 ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model,
-                                             const PipelineSettings& settings)
+                                             const PipelineSettings& settings,
+                                             std::optional<std::vector<TetMesh>> coarse_meshes)
     : case_(model_case),
       settings_(validated(settings)),
       prone_model_(model),
@@ -113,18 +113,22 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
   rest_volume_m3_ = model_.mesh.volume();
   if (unloaded_model_) gravity_offset_mps2_ = proneGravity(case_, settings_.simulation);
   settings_.simulation.dynamics.gravity_mps2 = supineGravityLoad() + gravity_offset_mps2_;
-  if (!unloaded_model_) {
-    build_ = buildSimulator(case_, model_, settings_.simulation);  // fixes the fixed node set
-  } else {
-    std::vector<TetMesh> coarse;
-    double meshing_s = 0.0;
-    if (settings_.simulation.solver.kind == SolverSettings::Kind::kMultigrid) {
-      const auto t = std::chrono::steady_clock::now();
-      coarse = coarseMeshesOfRest(case_, prone_model_, model_.mesh, settings_.simulation.solver.coarsening);
-      meshing_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
-    }
-    build_ = buildSimulator(model_.mesh, settings_.simulation, std::move(coarse));
-    build_.hierarchy_seconds += meshing_s;
+  std::optional<std::vector<TetMesh>> coarse;
+  double meshing_s = 0.0;
+  if (settings_.simulation.solver.kind == SolverSettings::Kind::kMultigrid) {
+    const auto t = std::chrono::steady_clock::now();
+    coarse_meshes_ = coarse_meshes ? std::move(*coarse_meshes)
+                                   : buildCoarseMeshes(case_, prone_model_, settings_.simulation.solver.coarsening);
+    coarse = unloaded_model_ ? coarseMeshesOfRest(case_, prone_model_, model_.mesh, coarse_meshes_) : coarse_meshes_;
+    meshing_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+  } else if (coarse_meshes && !coarse_meshes->empty()) {
+    throw std::invalid_argument("ProneToSupinePipeline: " + std::to_string(coarse_meshes->size()) +
+                                " coarse meshes given, but they are used only by the solver 'multigrid' (the solver is '" +
+                                SolverSettings::kindName(settings_.simulation.solver.kind) + "')");
+  }
+  build_ = buildSimulator(case_, model_, settings_.simulation, std::move(coarse));  // fixes the fixed node set
+  build_.hierarchy_seconds += meshing_s;
+  if (unloaded_model_) {
     // The run starts at the prone shape, X0's equilibrium under prone gravity.
     SimulationState start = simulator().state();
     const Points& x0 = model_.mesh.nodes();

@@ -8,6 +8,7 @@
 #include <functional>
 #include <map>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -174,9 +175,14 @@ SimulatorBuild buildSimulator(const TetMesh& mesh, const SimulationSettings& set
 /// settings.solver.coarsening; none when the fine mesh is already small enough, which leaves the
 /// multigrid a direct solve), and hierarchy_seconds includes that meshing.
 /// @param model  its mesh must outlive the simulator
+/// @param coarse_meshes  solver 'multigrid': the coarse levels when they are meshed already (as
+///        buildCoarseMeshes gave them for this case, model and coarsening; an empty list is a
+///        multigrid of the fine level alone); nullopt meshes them here. Other solvers: nullopt.
 /// @throws std::invalid_argument for invalid settings or a missing node set (names it and the sets
-///         the model has); std::runtime_error as meshing the coarse levels does.
+///         the model has), coarse meshes that do not nest (MeshHierarchy); std::runtime_error as
+///         meshing the coarse levels does.
 SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel& model,
-                              const SimulationSettings& settings);
+                              const SimulationSettings& settings,
+                              std::optional<std::vector<TetMesh>> coarse_meshes = std::nullopt);
 
 }  // namespace breast_sim::core

@@ -32,6 +32,7 @@
 #include <atomic>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -322,10 +323,15 @@ class ProneToSupinePipeline {
   /// on, the chest-wall surface. `model_case` and `model` (the prone model) are kept by reference and
   /// must outlive this. The target of settings.morphing.target is read here ("phantom" needs a
   /// phantom case).
+  /// @param coarse_meshes  solver 'multigrid': the coarse levels of the prone domain as coarseMeshes()
+  ///        of an earlier pipeline of the same case, model and settings returned them (read back from
+  ///        a file, so that a restart does not mesh them again: meshing is most of the build); nullopt
+  ///        meshes them. Levels that do not nest are refused (MeshHierarchy).
   /// @throws std::invalid_argument / std::runtime_error for bad settings or a missing target;
   ///         std::runtime_error when X0 is not found (the recovery's reason, its residual, and the
   ///         way out: reference_state prone, or a stiffer material).
-  ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model, const PipelineSettings& settings);
+  ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model, const PipelineSettings& settings,
+                        std::optional<std::vector<TetMesh>> coarse_meshes = std::nullopt);
   ~ProneToSupinePipeline();
 
   /// Both stages in order (the morphing stage only with a target and morphing enabled); a cancelled
@@ -420,6 +426,9 @@ class ProneToSupinePipeline {
   void loadState(const std::string& path);
 
   const SimulatorBuild& build() const { return build_; }
+  /// Solver 'multigrid': its coarse levels of the prone domain (coarsest last; empty when the fine
+  /// level is small enough to be the only one), as meshed or given to the constructor. Else empty.
+  const std::vector<TetMesh>& coarseMeshes() const { return coarse_meshes_; }
   DynamicSimulator& simulator() { return *build_.simulator; }
   const DynamicSimulator& simulator() const { return *build_.simulator; }
   StiffeningSimulation& stiffening() { return *stiff_; }
@@ -483,6 +492,7 @@ class ProneToSupinePipeline {
   /// Gravity the rest shape feels besides the load (g_prone with reference_state unloaded, else 0)
   /// [m/s²]: the simulator's gravity is load + this.
   Eigen::Vector3d gravity_offset_mps2_ = Eigen::Vector3d::Zero();
+  std::vector<TetMesh> coarse_meshes_;  // the multigrid's coarse levels of the prone domain
   SimulatorBuild build_;
   std::unique_ptr<StiffeningSimulation> stiff_;
   std::unique_ptr<ChestWallSliding> sliding_;
