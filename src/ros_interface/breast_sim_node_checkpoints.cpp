@@ -1,6 +1,7 @@
 // BreastSimNode's checkpoints: the state written to ~state_folder after each precomputation, after a
 // loaded state and periodically while tracking, and read back on start, so that a node restarted
-// after a crash (the launch file respawns it) tracks again without precomputing.
+// after a crash (the launch file respawns it) tracks again without precomputing; and the multigrid's
+// coarse levels kept beside them, so that it does not mesh them again either.
 #include "breast_sim/ros_interface/breast_sim_node.h"
 
 #include "breast_sim/core/pipeline/case_file.h"
@@ -21,6 +22,40 @@ void BreastSimNode::fingerprintEngine(Engine& e) const {
   } catch (const std::exception& ex) {
     ROS_WARN_STREAM("breast_sim: case '" << e.model_case->name << "' has no fingerprint (" << ex.what()
                     << "): its state is not checkpointed, and a restarted node precomputes it again");
+  }
+}
+
+void BreastSimNode::buildPipeline(Engine& e) const {
+  const bool multigrid = e.settings.simulation.solver.kind == core::SolverSettings::Kind::kMultigrid;
+  std::optional<std::vector<core::TetMesh>> kept;
+  if (multigrid && e.fingerprint != 0) {
+    try {
+      kept = readMultigridLevels(*state_folder_, e.fingerprint);
+    } catch (const std::exception& ex) {
+      ROS_WARN_STREAM("breast_sim: " << ex.what() << "; the multigrid levels are meshed again");
+    }
+  }
+  if (kept) {
+    const auto t0 = Clock::now();
+    const size_t levels = kept->size();
+    try {
+      e.pipeline = std::make_unique<core::ProneToSupinePipeline>(*e.model_case, *e.model, e.settings, std::move(kept));
+      e.levels_read = static_cast<int>(levels);
+      ROS_INFO_STREAM("breast_sim: case '" << e.model_case->name << "': " << levels << " multigrid levels read from "
+                      << state_folder_->root() << ", built in " << seconds(Clock::now() - t0) << " s");
+      return;
+    } catch (const std::invalid_argument& ex) {
+      ROS_WARN_STREAM("breast_sim: the multigrid levels kept in " << state_folder_->root()
+                      << " do not fit the model (" << ex.what() << "); they are meshed again");
+    }
+  }
+  e.pipeline = std::make_unique<core::ProneToSupinePipeline>(*e.model_case, *e.model, e.settings);
+  if (!multigrid || e.fingerprint == 0 || e.pipeline->coarseMeshes().empty()) return;
+  try {
+    writeMultigridLevels(*state_folder_, e.fingerprint, e.pipeline->coarseMeshes());
+  } catch (const std::exception& ex) {
+    ROS_WARN_STREAM("breast_sim: the multigrid levels could not be kept (" << ex.what()
+                    << "); a restarted node meshes them again");
   }
 }
 
@@ -63,7 +98,10 @@ bool BreastSimNode::resumeFromCheckpoint(Engine& e) {
     }
     adoptLoadedState(e, file);
     last_checkpoint_ = Clock::now();
-    const std::string message = "resumed case '" + e.model_case->name + "' from checkpoint " + file +
+    const std::string levels = e.levels_read > 0 ? " (its " + std::to_string(e.levels_read) +
+                                                       " multigrid levels read from the state folder, not meshed)"
+                                                 : std::string();
+    const std::string message = "resumed case '" + e.model_case->name + "' from checkpoint " + file + levels +
                                 "; the model is precomputed and follows surface clouds";
     ROS_INFO_STREAM("breast_sim: " << message);
     endJob(breast_sim::NodeState::IDLE, message);

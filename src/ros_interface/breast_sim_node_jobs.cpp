@@ -38,7 +38,8 @@ std::unique_ptr<BreastSimNode::Engine> BreastSimNode::buildEngine(const std::str
   stage("setup");
   e->settings = core::loadPipelineSettings(params_.settings_file.empty() ? case_file : params_.settings_file);
   if (params_.field_voxel_size_m > 0) e->settings.morphing.field.voxel_size_m = params_.field_voxel_size_m;
-  e->pipeline = std::make_unique<core::ProneToSupinePipeline>(*e->model_case, *e->model, e->settings);
+  fingerprintEngine(*e);
+  buildPipeline(*e);
   const core::TetMesh& mesh = e->model->mesh;
   e->display = decimateSurface(mesh.nodes(), core::skinTriangles(mesh, mesh.nodeSet(core::node_sets::kSkin)),
                                params_.marker_max_triangles);
@@ -108,7 +109,6 @@ void BreastSimNode::loadCaseJob(const std::string& case_file, int target_element
   std::unique_ptr<Engine> e;
   try {
     e = buildEngine(case_file, target_elements, stage);
-    fingerprintEngine(*e);
   } catch (const std::exception& ex) {
     *ok = false;
     *message = std::string("cannot load case '") + case_file + "': " + ex.what();

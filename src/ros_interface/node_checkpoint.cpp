@@ -1,11 +1,22 @@
-// Case fingerprints and checkpoint names (node_checkpoint.h).
+// Case fingerprints, checkpoint names and the multigrid level files beside them (node_checkpoint.h).
 #include "breast_sim/ros_interface/node_checkpoint.h"
 
 #include <cstdio>
+#include <stdexcept>
+
+#include "breast_sim/core/mesh/mesh_io.h"
 
 namespace breast_sim::ros_interface {
 
 namespace {
+
+constexpr int kMaxMultigridLevels = 16;
+
+std::string hex16(std::uint64_t fingerprint) {
+  char hex[17];
+  std::snprintf(hex, sizeof hex, "%016llx", static_cast<unsigned long long>(fingerprint));
+  return hex;
+}
 
 std::uint64_t fnv1a(const void* data, std::size_t bytes, std::uint64_t h) {
   const auto* c = static_cast<const unsigned char*>(data);
@@ -26,12 +37,51 @@ std::uint64_t caseFingerprint(const core::TetMesh& mesh, const std::string& effe
   return h == 0 ? 1 : h;
 }
 
-std::string checkpointPrefix(std::uint64_t fingerprint) {
-  char hex[17];
-  std::snprintf(hex, sizeof hex, "%016llx", static_cast<unsigned long long>(fingerprint));
-  return std::string("checkpoint-") + hex;
-}
+std::string checkpointPrefix(std::uint64_t fingerprint) { return "checkpoint-" + hex16(fingerprint); }
 
 std::string checkpointName(std::uint64_t fingerprint) { return checkpointPrefix(fingerprint) + kCheckpointSuffix; }
+
+std::string multigridLevelName(std::uint64_t fingerprint, int level, int levels) {
+  return "multigrid-" + hex16(fingerprint) + "-" + std::to_string(level) + "of" + std::to_string(levels) + ".msh";
+}
+
+void writeMultigridLevels(const ConfinedFolder& folder, std::uint64_t fingerprint,
+                          const std::vector<core::TetMesh>& levels) {
+  core::GmshOptions binary;
+  binary.binary = true;
+  const int n = static_cast<int>(levels.size());
+  for (int l = 0; l < n; ++l)
+    folder.writeFile(multigridLevelName(fingerprint, l + 1, n), true,
+                     [&](const std::string& temp) { core::writeGmsh(temp, levels[static_cast<size_t>(l)], binary); });
+}
+
+std::optional<std::vector<core::TetMesh>> readMultigridLevels(const ConfinedFolder& folder, std::uint64_t fingerprint) {
+  const std::string prefix = "multigrid-" + hex16(fingerprint) + "-";
+  const std::vector<std::string> files = folder.newestFirst(prefix, ".msh");
+  if (files.empty()) return std::nullopt;
+  // The level count of the newest file; every level of that count must be there.
+  const std::string newest = files.front().substr(files.front().find_last_of('/') + 1);
+  int level = 0, levels = 0;
+  char end = 0;
+  if (std::sscanf(newest.c_str() + prefix.size(), "%dof%d.ms%c", &level, &levels, &end) != 3 || end != 'h' ||
+      levels < 1 || levels > kMaxMultigridLevels || level < 1 || level > levels || newest != multigridLevelName(fingerprint, level, levels))
+    throw std::runtime_error("multigrid level file " + files.front() + " is not named '" + prefix +
+                             "<level>of<levels>.msh' with 1 <= level <= levels <= " + std::to_string(kMaxMultigridLevels));
+  std::vector<core::TetMesh> out;
+  for (int l = 1; l <= levels; ++l) {
+    std::string path;
+    try {
+      path = folder.existingFile(multigridLevelName(fingerprint, l, levels));
+    } catch (const ConfinementError& e) {
+      throw std::runtime_error("the multigrid levels of " + files.front() + " are incomplete: " + e.what());
+    }
+    try {
+      out.push_back(core::readGmsh(path));
+    } catch (const std::exception& e) {
+      throw std::runtime_error("multigrid level file " + path + " does not read: " + e.what());
+    }
+  }
+  return out;
+}
 
 }  // namespace breast_sim::ros_interface

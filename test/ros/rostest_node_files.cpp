@@ -5,7 +5,8 @@
 //     one rewritten in place), and no temporary is left behind; the node checkpointed its
 //     precomputation;
 //  3. killed with SIGKILL while it tracks, the node (respawned by roslaunch) resumes from its newest
-//     checkpoint without precomputing, tracks again within RESTART_BOUND_S of its launch, and its
+//     checkpoint without precomputing and without meshing the multigrid levels (it kept them in its
+//     state folder), tracks again within RESTART_BOUND_S of its launch, and its
 //     lesions are those of a frame it published within one checkpoint period (and a frame) before
 //     the kill, to LESION_TOLERANCE_M.
 #include <gtest/gtest.h>
@@ -227,6 +228,11 @@ TEST(NodeFiles, AStateIsReplacedOnlyWhenAskedAndByARename) {
   for (const auto& entry : fs::directory_iterator(folder))
     checkpoints += entry.path().filename().string().rfind("checkpoint-", 0) == 0 ? 1 : 0;
   EXPECT_EQ(checkpoints, 1);
+  // And the multigrid's coarse levels were kept beside it, for a restart.
+  int levels = 0;
+  for (const auto& entry : fs::directory_iterator(folder))
+    levels += entry.path().filename().string().rfind("multigrid-", 0) == 0 ? 1 : 0;
+  EXPECT_GE(levels, 1);
 
   const auto first = saveState("saved.state", false);
   ASSERT_TRUE(first.success) << first.message;
@@ -311,9 +317,13 @@ TEST(NodeFiles, AfterSigkillTheRespawnedNodeTracksAgainWithTheSameLesions) {
   ASSERT_NE(new_pid, pid);
   // Tracking again: a state that says the checkpoint was resumed, then a tracked frame.
   bool resumed = false;
+  std::string resumed_message;
   ASSERT_TRUE(waitUntil([&] {
     for (const auto& s : rec.states) {
-      resumed = resumed || s->message.find("resumed case") != std::string::npos;
+      if (!resumed && s->message.find("resumed case") != std::string::npos) {
+        resumed = true;
+        resumed_message = s->message;
+      }
       if (resumed && s->state == breast_sim::NodeState::TRACKING) return true;
     }
     return false;
@@ -331,6 +341,7 @@ TEST(NodeFiles, AfterSigkillTheRespawnedNodeTracksAgainWithTheSameLesions) {
               "(bound %.1f s)\n", kill_to_tracking_s, launch_to_tracking_s, RESTART_BOUND_S);
   EXPECT_GT(launch_to_tracking_s, 0.0);
   EXPECT_LT(launch_to_tracking_s, RESTART_BOUND_S);
+  EXPECT_NE(resumed_message.find("multigrid levels read from the state folder"), std::string::npos) << resumed_message;
   for (const auto& s : states)
     EXPECT_NE(s->state, breast_sim::NodeState::PRECOMPUTING) << "the respawned node precomputed: " << s->message;
 

@@ -1,10 +1,17 @@
 // Checkpoint names and case fingerprints (ros_interface/node_checkpoint.h): the fingerprint changes
-// with any node coordinate, element index or setting, and is the same for the same case.
+// with any node coordinate, element index or setting, and is the same for the same case. The
+// multigrid levels kept beside the checkpoints read back to the bit, and an incomplete or damaged
+// set is an error naming the file.
 #include <gtest/gtest.h>
 
+#include <stdlib.h>
+
 #include <cmath>
+#include <filesystem>
+#include <fstream>
 #include <limits>
 #include <string>
+#include <vector>
 
 #include "breast_sim/ros_interface/node_checkpoint.h"
 
@@ -49,4 +56,75 @@ TEST(NodeCheckpoint, NamesHoldTheFingerprintInHex) {
   EXPECT_EQ(checkpointName(0x1234abcdULL), "checkpoint-000000001234abcd.state");
   EXPECT_EQ(checkpointPrefix(std::numeric_limits<std::uint64_t>::max()), "checkpoint-ffffffffffffffff");
   EXPECT_EQ(checkpointName(42), checkpointPrefix(42) + kCheckpointSuffix);
+}
+
+namespace {
+
+/// A fresh temporary folder as the node's ~state_folder.
+class LevelFolder : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::string pattern = (std::filesystem::temp_directory_path() / "multigrid_levels_XXXXXX").string();
+    ASSERT_NE(::mkdtemp(pattern.data()), nullptr);
+    base_ = pattern;
+    folder_ = std::make_unique<ConfinedFolder>(base_.string(), "~state_folder", false);
+  }
+  void TearDown() override {
+    std::error_code ec;
+    std::filesystem::remove_all(base_, ec);
+  }
+  std::filesystem::path base_;
+  std::unique_ptr<ConfinedFolder> folder_;
+};
+
+/// Two levels whose coordinates need every bit of a double.
+std::vector<TetMesh> twoLevels() {
+  TetMesh a = twoTets(1.0 / 3.0);
+  Points n = a.nodes();
+  n(4, 0) = std::nextafter(0.1, 1.0);
+  return {TetMesh(n, a.tets()), twoTets(std::sqrt(2.0))};
+}
+
+}  // namespace
+
+TEST_F(LevelFolder, MultigridLevelsReadBackToTheBit) {
+  EXPECT_EQ(multigridLevelName(0xabcULL, 1, 2), "multigrid-0000000000000abc-1of2.msh");
+  EXPECT_FALSE(readMultigridLevels(*folder_, 7).has_value());
+  const std::vector<TetMesh> levels = twoLevels();
+  writeMultigridLevels(*folder_, 7, levels);
+  writeMultigridLevels(*folder_, 8, {levels[1]});  // another case's level beside them
+  const auto read = readMultigridLevels(*folder_, 7);
+  ASSERT_TRUE(read.has_value());
+  ASSERT_EQ(read->size(), 2u);
+  for (size_t l = 0; l < 2; ++l) {
+    EXPECT_EQ((*read)[l].nodes(), levels[l].nodes()) << "level " << l + 1;
+    EXPECT_EQ((*read)[l].tets(), levels[l].tets()) << "level " << l + 1;
+  }
+  EXPECT_EQ(readMultigridLevels(*folder_, 8)->size(), 1u);
+  // Written again (the same case loaded again): replaced, not refused.
+  EXPECT_NO_THROW(writeMultigridLevels(*folder_, 7, levels));
+}
+
+TEST_F(LevelFolder, AnIncompleteOrDamagedSetIsAnErrorNamingTheFile) {
+  writeMultigridLevels(*folder_, 7, twoLevels());
+  std::filesystem::remove(base_ / multigridLevelName(7, 2, 2));
+  try {
+    readMultigridLevels(*folder_, 7);
+    FAIL() << "a set without its level 2 was read";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("incomplete"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(multigridLevelName(7, 2, 2)), std::string::npos) << e.what();
+  }
+  std::ofstream(base_ / multigridLevelName(7, 2, 2)) << "$MeshFormat\n2.2 1 8\n";  // cut short
+  try {
+    readMultigridLevels(*folder_, 7);
+    FAIL() << "a damaged level was read";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("does not read"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(multigridLevelName(7, 2, 2)), std::string::npos) << e.what();
+  }
+  std::filesystem::remove(base_ / multigridLevelName(7, 1, 2));
+  std::filesystem::remove(base_ / multigridLevelName(7, 2, 2));
+  std::ofstream(base_ / "multigrid-0000000000000007-3of99.msh") << "x";
+  EXPECT_THROW(readMultigridLevels(*folder_, 7), std::runtime_error);
 }

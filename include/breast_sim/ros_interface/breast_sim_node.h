@@ -89,6 +89,9 @@ class BreastSimNode {
     std::string region_status = "not computed";  ///< why there are no regions, or how they were made
     /// caseFingerprint of the case as loaded; 0 when it could not be made (then no checkpoints).
     std::uint64_t fingerprint = 0;
+    /// How many multigrid levels were read from ~state_folder instead of meshed (buildPipeline); 0
+    /// when they were meshed.
+    int levels_read = 0;
   };
   using PrecomputeServer = actionlib::ActionServer<breast_sim::PrecomputeAction>;
 
@@ -127,6 +130,10 @@ class BreastSimNode {
   // Checkpoints (breast_sim_node_checkpoints.cpp); all under engine_mutex_.
   /// Sets e.fingerprint (caseFingerprint); on failure 0, with a warning that no checkpoints are kept.
   void fingerprintEngine(Engine& e) const;
+  /// Builds e.pipeline (after fingerprintEngine) with the multigrid's coarse levels kept in
+  /// ~state_folder for e's fingerprint when they are there and nest; else meshes them and keeps them
+  /// there for a restart. A level file that does not read or fit is a warning, not an error.
+  void buildPipeline(Engine& e) const;
   /// Writes the engine's state to its checkpoint in ~state_folder, replacing the last one
   /// atomically; false (with a warning) when it cannot.
   bool writeCheckpoint(Engine& e, const char* after);
