@@ -30,6 +30,7 @@ void BreastSimNode::initialize() {
   params_ = NodeParams::fromRos(pnh_);
   data_folder_ = std::make_unique<ConfinedFolder>(params_.data_folder, "~data_folder", false);
   state_folder_ = std::make_unique<ConfinedFolder>(params_.state_folder, "~state_folder", true);
+  output_folder_ = std::make_unique<ConfinedFolder>(params_.output_folder, "~output_folder", true);
   if (!params_.settings_file.empty()) params_.settings_file = data_folder_->existingFile(params_.settings_file);
   guard_ = GuardedTracker(params_.tracker, params_.monitor);
   throttle_.setPeriod(params_.warn_throttle_s);

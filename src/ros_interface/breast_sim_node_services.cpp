@@ -3,11 +3,6 @@
 // they refuse with the reason.
 #include "breast_sim/ros_interface/breast_sim_node.h"
 
-#include <unistd.h>
-
-#include <atomic>
-#include <cerrno>
-#include <cstring>
 #include <condition_variable>
 #include <filesystem>
 #include <mutex>
@@ -174,21 +169,21 @@ void BreastSimNode::adoptLoadedState(Engine& e, const std::string& file) {
 }
 
 bool BreastSimNode::writeSupineMriSrv(breast_sim::WriteSupineMri::Request& req, breast_sim::WriteSupineMri::Response& res) {
-  namespace fs = std::filesystem;
   res.success = false;
   if (busy_) {
     res.message = "busy (loading or precomputing); write the supine MRI when ~state is idle or tracking";
     return true;
   }
-  static const std::vector<std::string> kExtensions = {".nii.gz", ".nii", ".nrrd", ".mha"};  // writeMriVolume's
-  std::string target;
-  const std::string bad = checkOutputFileName(params_.output_folder, req.file_name, kExtensions, &target);
-  if (!bad.empty()) {
-    res.message = bad;
-    return true;
+  // writeMriVolume's single-file formats (a .mhd or .nhdr would leave its data in a second file).
+  static const std::vector<std::string> kExtensions = {".nii.gz", ".nii", ".nrrd", ".mha"};
+  const std::string& name = req.file_name;
+  std::string extension, list;
+  for (const std::string& e : kExtensions) {
+    list += (list.empty() ? "" : ", ") + e;
+    if (extension.empty() && name.size() > e.size() && name.compare(name.size() - e.size(), e.size(), e) == 0) extension = e;
   }
-  if (!req.overwrite && fs::exists(target)) {
-    res.message = target + " exists; choose another file_name or set overwrite";
+  if (!name.empty() && extension.empty()) {  // an empty name: output_folder_ says so
+    res.message = "not written: '" + name + "' has no known extension; end it in one of " + list;
     return true;
   }
   // The state to resample, copied under the lock: the resampling runs while tracking goes on.
@@ -215,45 +210,37 @@ bool BreastSimNode::writeSupineMriSrv(breast_sim::WriteSupineMri::Request& req, 
             : engine_->precomputed                          ? "the precomputed supine state"
                                                             : "the prone rest shape (not precomputed)";
   }
-  // Written beside the target under a temporary name (with the target's extension, which chooses the
-  // format), then moved into place in one step; without overwrite the move is a hard link, which fails
-  // when the name was taken in the meantime.
-  const fs::path path(target);
-  std::string extension;
-  for (const std::string& e : kExtensions)
-    if (extension.empty() && target.size() > e.size() && target.compare(target.size() - e.size(), e.size(), e) == 0) extension = e;
-  static std::atomic<long> writes{0};  // two calls at once write to two temporaries
-  const fs::path temporary = path.parent_path() / ("." + path.filename().string() + ".writing." + std::to_string(::getpid()) +
-                                                   "." + std::to_string(writes++) + extension);
   try {
-    const core::SupineImages supine = core::simulatedSupineMri(*mri, rest, displacement);
-    fs::create_directories(path.parent_path());
-    core::writeMriVolume(temporary.string(), supine.image);
-    if (req.overwrite) {
-      fs::rename(temporary, path);
-    } else {
-      const int linked = ::link(temporary.c_str(), path.c_str());
-      const int error = errno;
-      fs::remove(temporary);
-      if (linked != 0) {
-        res.message = target + ": " + (error == EEXIST ? "exists; choose another file_name or set overwrite" : std::strerror(error));
-        return true;
+    core::SupineImages supine;
+    // The name is checked before the resampling; the temporary the folder gives has no extension, and
+    // ITK picks the format by it: written under the temporary's name plus the extension, then renamed
+    // onto the temporary, which the folder flushes and moves into place.
+    const std::string path = output_folder_->writeFile(name, req.replace, [&](const std::string& temp) {
+      supine = core::simulatedSupineMri(*mri, rest, displacement);
+      const std::string with_extension = temp + extension;
+      try {
+        core::writeMriVolume(with_extension, supine.image);
+        std::filesystem::rename(with_extension, temp);
+      } catch (...) {
+        std::error_code ignored;
+        std::filesystem::remove(with_extension, ignored);
+        throw;
       }
-    }
+    });
     const core::ImageGeometry& g = supine.image.geometry;
     std::ostringstream s;
     s.precision(3);
-    s << "wrote the simulated supine MRI of case '" << case_name << "' (" << shows << ") to " << target << ": " << g.size.x()
+    s << "wrote the simulated supine MRI of case '" << case_name << "' (" << shows << ") to " << path << ": " << g.size.x()
       << " x " << g.size.y() << " x " << g.size.z() << " voxels of " << 1e3 * g.spacing_m.minCoeff() << " mm, "
       << supine.body_voxels << " in the body, resampled in " << supine.seconds << " s";
     res.success = true;
-    res.path = target;
+    res.path = path;
     res.message = s.str();
     ROS_INFO_STREAM("breast_sim: " << res.message);
+  } catch (const ConfinementError& ex) {
+    res.message = std::string("not written: ") + ex.what();
   } catch (const std::exception& ex) {
-    std::error_code ignored;
-    fs::remove(temporary, ignored);
-    res.message = std::string("cannot write the supine MRI to ") + target + ": " + ex.what();
+    res.message = std::string("cannot write the supine MRI '") + name + "': " + ex.what();
   }
   return true;
 }

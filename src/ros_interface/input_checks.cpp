@@ -1,9 +1,8 @@
-// Checks of message stamps, poses and output file names before the node acts on them (see input_checks.h).
+// Checks of message stamps and poses before the node acts on them, and the warnings' throttle (see input_checks.h).
 #include "breast_sim/ros_interface/input_checks.h"
 
 #include <algorithm>
 #include <cmath>
-#include <filesystem>
 #include <sstream>
 
 namespace breast_sim::ros_interface {
@@ -83,28 +82,6 @@ bool PoseHistory::at(double stamp_s, double max_gap_s, double max_age_s, Eigen::
   if (std::abs(nearest->first - stamp_s) > max_age_s) return false;
   *pose = nearest->second;
   return true;
-}
-
-std::string checkOutputFileName(const std::string& folder, const std::string& name,
-                                const std::vector<std::string>& extensions, std::string* path) {
-  namespace fs = std::filesystem;
-  std::string list;
-  for (const std::string& e : extensions) list += (list.empty() ? "" : ", ") + e;
-  if (name.empty()) return "no file name given; name the file (" + list + ") relative to the output folder " + folder;
-  const fs::path p(name);
-  if (p.is_absolute() || p.has_root_name() || p.has_root_directory())
-    return "'" + name + "' is an absolute path; give a name relative to the output folder " + folder +
-           " (~output_folder)";
-  for (const fs::path& part : p)
-    if (part == "..") return "'" + name + "' leaves the output folder ('..'); give a name inside " + folder;
-  if (p.filename().empty() || p.filename() == ".")
-    return "'" + name + "' names a folder; give a file name (" + list + ")";
-  const bool known = std::any_of(extensions.begin(), extensions.end(), [&](const std::string& e) {
-    return name.size() > e.size() && name.compare(name.size() - e.size(), e.size(), e) == 0;
-  });
-  if (!known) return "'" + name + "' has no known extension; end it in one of " + list;
-  *path = (fs::path(folder) / p).lexically_normal().string();
-  return "";
 }
 
 bool KeyedThrottle::allow(const std::string& key, double now_s) {

@@ -4,7 +4,9 @@
 // does not exist, and it says so); ~load_case reads, segments and meshes the case with each stage on
 // ~state; the precomputed lesion is published where the case puts it and moves; ~write_supine_mri
 // writes the simulated supine MRI of the current state into the output folder (what the core makes of
-// the published mesh), refuses names outside the folder and an existing file unless asked; bad input
+// the published mesh) in each format, one file each, refuses names outside the folder (`..`, absolute
+// paths, links leaving it), a missing subfolder and an existing file unless asked, leaving nothing
+// behind, and replaces a file by a rename; bad input
 // (a non-MRI file, a 2-D image, a series with a missing slice, an image with no breast, a lesion
 // outside the breast) is refused with a message naming the file and the fix, the model kept.
 #include <gtest/gtest.h>
@@ -15,10 +17,14 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <map>
 #include <mutex>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <vector>
+
+#include <sys/stat.h>
 
 #include <ros/ros.h>
 
@@ -71,10 +77,10 @@ std::string param(const std::string& name) {
   return v;
 }
 
-breast_sim::WriteSupineMri::Response writeSupine(const std::string& name, bool overwrite) {
+breast_sim::WriteSupineMri::Response writeSupine(const std::string& name, bool replace) {
   breast_sim::WriteSupineMri call;
   call.request.file_name = name;
-  call.request.overwrite = overwrite;
+  call.request.replace = replace;
   EXPECT_TRUE(ros::service::call("/breast_sim/write_supine_mri", call));
   return call.response;
 }
@@ -90,6 +96,28 @@ breast_sim::LoadCase::Response load(const std::string& case_file, int target_ele
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
   return call.response;
+}
+
+ino_t inode(const std::string& path) {
+  struct stat st {};
+  return ::lstat(path.c_str(), &st) == 0 ? st.st_ino : 0;
+}
+
+/// Every entry under `folder` (links not followed) with its inode, size and modification time: two
+/// listings are equal when nothing was created, removed or written.
+std::map<std::string, std::tuple<ino_t, off_t, long>> listing(const fs::path& folder) {
+  std::map<std::string, std::tuple<ino_t, off_t, long>> entries;
+  for (const auto& entry : fs::recursive_directory_iterator(folder)) {
+    struct stat st {};
+    if (::lstat(entry.path().c_str(), &st) == 0)
+      entries[entry.path().string()] = {st.st_ino, st.st_size, st.st_mtim.tv_sec * 1000000000L + st.st_mtim.tv_nsec};
+  }
+  return entries;
+}
+
+std::string fileText(const fs::path& path) {
+  std::ifstream in(path);
+  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
 }
 
 }  // namespace
@@ -171,16 +199,17 @@ TEST(MriCase, TheNodeSegmentsMeshesAndPrecomputesTheMriCase) {
 }
 
 // The supine MRI of the precomputed state: written where asked, the core's resampling of the published
-// mesh; names outside the folder and existing files refused.
+// mesh; an existing file replaced only when asked, by a rename; each format one file.
 TEST(MriCase, WritesTheSupineMriOfTheCurrentStateOnRequest) {
   ASSERT_TRUE(waitUntil([] { return state && state->precomputed && state->state == breast_sim::NodeState::IDLE && mesh; }, 200.0));
   const std::string folder = param("output_folder");
   ASSERT_FALSE(folder.empty());
+  const std::string real = fs::canonical(folder).string();  // the answers name real paths
   fs::remove_all(folder + "/run1");
-  fs::remove(folder + "/supine_t1.nrrd");
+  fs::create_directories(folder + "/run1");  // the node makes no subfolder
   const breast_sim::WriteSupineMri::Response first = writeSupine("run1/supine_t1.nii.gz", false);
   ASSERT_TRUE(first.success) << first.message;
-  EXPECT_EQ(first.path, folder + "/run1/supine_t1.nii.gz");
+  EXPECT_EQ(first.path, real + "/run1/supine_t1.nii.gz");
   EXPECT_NE(first.message.find("the precomputed supine state"), std::string::npos) << first.message;
   ASSERT_TRUE(fs::exists(first.path));
   for (const auto& entry : fs::directory_iterator(folder + "/run1"))  // no temporary left behind
@@ -197,6 +226,7 @@ TEST(MriCase, WritesTheSupineMriOfTheCurrentStateOnRequest) {
   const core::SupineImages expected = core::simulatedSupineMri(mri, ros_interface::meshFromMessage(published),
                                                                ros_interface::displacementFromMessage(published));
   const core::MriVolume written = core::readMriVolume(first.path);
+  EXPECT_EQ(written.info.format, "NIfTI");
   ASSERT_TRUE(written.image.geometry.size == expected.image.geometry.size);
   EXPECT_LE((written.image.geometry.origin_m - expected.image.geometry.origin_m).norm(), 1e-6);
   long differ = 0;
@@ -205,23 +235,83 @@ TEST(MriCase, WritesTheSupineMriOfTheCurrentStateOnRequest) {
   EXPECT_LE(differ, static_cast<long>(expected.image.values.size() / 1000)) << differ << " voxels differ";
   EXPECT_GT(expected.body_voxels, 100000);
 
+  // An existing file: refused without replace (untouched), replaced with it by a rename (a new inode).
+  const ino_t first_inode = inode(first.path);
   const breast_sim::WriteSupineMri::Response again = writeSupine("run1/supine_t1.nii.gz", false);
   EXPECT_FALSE(again.success);
-  EXPECT_NE(again.message.find("exists; choose another file_name or set overwrite"), std::string::npos) << again.message;
+  EXPECT_NE(again.message.find("exists; set replace to true to replace it"), std::string::npos) << again.message;
+  EXPECT_EQ(inode(first.path), first_inode);
   const breast_sim::WriteSupineMri::Response replaced = writeSupine("run1/supine_t1.nii.gz", true);
-  EXPECT_TRUE(replaced.success) << replaced.message;
-  const breast_sim::WriteSupineMri::Response nrrd = writeSupine("supine_t1.nrrd", false);
-  EXPECT_TRUE(nrrd.success) << nrrd.message;
-  for (const auto& [name, why] : std::vector<std::pair<std::string, std::string>>{
-           {"../outside.nii.gz", "leaves the output folder"},
-           {"/tmp/absolute.nii.gz", "is an absolute path"},
-           {"picture.png", "has no known extension; end it in one of .nii.gz, .nii, .nrrd, .mha"},
-           {"", "no file name given"}}) {
-    const breast_sim::WriteSupineMri::Response r = writeSupine(name, true);
-    EXPECT_FALSE(r.success) << name;
-    EXPECT_NE(r.message.find(why), std::string::npos) << r.message;
+  ASSERT_TRUE(replaced.success) << replaced.message;
+  EXPECT_EQ(replaced.path, first.path);
+  EXPECT_NE(inode(first.path), first_inode) << "the file was rewritten in place, not replaced by a rename";
+  EXPECT_EQ(core::readMriVolume(first.path).image.values, written.image.values);
+  for (const auto& entry : fs::directory_iterator(folder + "/run1"))
+    EXPECT_EQ(entry.path().filename(), "supine_t1.nii.gz");
+
+  // Every format from its extension, each a single file with the same voxels; an absolute name inside
+  // the folder is taken as it is.
+  fs::remove_all(folder + "/formats");
+  fs::create_directories(folder + "/formats");
+  const std::vector<std::pair<std::string, std::string>> formats = {
+      {"formats/supine_t1.nii", "NIfTI"}, {"formats/supine_t1.nrrd", "NRRD"}, {real + "/formats/supine_t1.mha", "MetaImage"}};
+  for (const auto& [name, format] : formats) {
+    const breast_sim::WriteSupineMri::Response r = writeSupine(name, false);
+    ASSERT_TRUE(r.success) << name << ": " << r.message;
+    const core::MriVolume back = core::readMriVolume(r.path);
+    EXPECT_EQ(back.info.format, format) << r.path;
+    EXPECT_TRUE(back.image.geometry.size == written.image.geometry.size) << r.path;
+    EXPECT_LE((back.image.geometry.origin_m - written.image.geometry.origin_m).norm(), 1e-6) << r.path;  // NIfTI: float mm
+    EXPECT_EQ(back.image.values, written.image.values) << r.path;
   }
-  EXPECT_FALSE(fs::exists(fs::path(folder).parent_path() / "outside.nii.gz"));
+  std::vector<std::string> files;
+  for (const auto& entry : fs::directory_iterator(folder + "/formats")) files.push_back(entry.path().filename().string());
+  std::sort(files.begin(), files.end());
+  EXPECT_EQ(files, (std::vector<std::string>{"supine_t1.mha", "supine_t1.nii", "supine_t1.nrrd"}));
+}
+
+// Names that would reach outside ~output_folder, a missing subfolder, an unknown extension: each
+// refused with the reason, before any resampling, and nothing written, inside or out.
+TEST(MriCase, TheSupineMriIsWrittenOnlyInsideTheOutputFolder) {
+  ASSERT_TRUE(waitUntil([] { return state && state->precomputed && state->state == breast_sim::NodeState::IDLE; }, 200.0));
+  const fs::path folder = param("output_folder");
+  const fs::path outside = folder.parent_path() / "mri_case_test_outside";
+  fs::remove_all(outside);
+  fs::create_directories(outside);
+  std::ofstream(outside / "victim.nii.gz") << "not to be overwritten";
+  fs::remove(folder / "escape");
+  fs::remove(folder / "link.nii.gz");
+  fs::create_directory_symlink(outside, folder / "escape");
+  fs::create_symlink(outside / "victim.nii.gz", folder / "link.nii.gz");
+  fs::remove_all(folder / "missing");
+  const auto inside_before = listing(folder);
+  const auto outside_before = listing(outside);
+
+  const std::string outside_name = outside.filename().string();
+  for (const auto& [name, why] : std::vector<std::pair<std::string, std::string>>{
+           {"../" + outside_name + "/up.nii.gz", "has a '..' component, which is not allowed"},
+           {"run1/../inside_but_dotted.nii.gz", "has a '..' component, which is not allowed"},
+           {(outside / "absolute.nii.gz").string(), "is outside ~output_folder"},
+           {"escape/through_link.nii.gz", "a symbolic link leaves the folder"},
+           {"link.nii.gz", "is a symbolic link; the node never writes through one"},
+           {"missing/supine.nii.gz", "does not exist"},
+           {"picture.png", "has no known extension; end it in one of .nii.gz, .nii, .nrrd, .mha"},
+           {"supine.mhd", "has no known extension"},
+           {"", "no file name given"}}) {
+    for (const bool replace : {false, true}) {
+      const breast_sim::WriteSupineMri::Response r = writeSupine(name, replace);
+      EXPECT_FALSE(r.success) << name;
+      EXPECT_TRUE(r.path.empty()) << name;
+      EXPECT_NE(r.message.find(why), std::string::npos) << r.message;
+    }
+  }
+  EXPECT_EQ(listing(folder), inside_before) << "a refused request created, removed or changed a file";
+  EXPECT_EQ(listing(outside), outside_before);
+  EXPECT_EQ(fileText(outside / "victim.nii.gz"), "not to be overwritten");
+  EXPECT_FALSE(fs::exists(folder / "missing"));
+  fs::remove(folder / "escape");
+  fs::remove(folder / "link.nii.gz");
+  fs::remove_all(outside);
 }
 
 // Bad input, each refused with the file and the fix named; the precomputed model stays.

@@ -159,6 +159,25 @@ TEST_F(Folders, AFailedWriteLeavesTheOldFileAndNoTemporary) {
   EXPECT_EQ(entries, 1);
 }
 
+// A writer that needs a name of its own (ITK picks an image format by the extension, which the
+// temporary lacks: ~write_supine_mri) writes beside the temporary and renames its file onto it.
+TEST_F(Folders, AWriterMayRenameItsOwnFileOntoTheTemporary) {
+  write(in("image.nii.gz"), "old");
+  struct stat old {};
+  ASSERT_EQ(::stat(in("image.nii.gz").c_str(), &old), 0);
+  const std::string path = folder_->writeFile("image.nii.gz", true, [](const std::string& temp) {
+    std::ofstream(temp + ".nii.gz") << "new image";
+    fs::rename(temp + ".nii.gz", temp);
+  });
+  EXPECT_EQ(read(path), "new image");
+  struct stat st {};
+  ASSERT_EQ(::stat(path.c_str(), &st), 0);
+  EXPECT_NE(st.st_ino, old.st_ino);
+  int entries = 0;
+  for (const auto& e : fs::directory_iterator(base_ / "inside")) entries += e.is_regular_file() ? 1 : 0;
+  EXPECT_EQ(entries, 1);  // no temporary, no file of the writer's left
+}
+
 TEST_F(Folders, WritesGoOnlyIntoExistingFoldersInside) {
   const std::string why = refusal([&] { folder_->writeFile("no_such/a.state", true, writer("x")); });
   EXPECT_NE(why.find("does not exist"), std::string::npos) << why;

@@ -118,8 +118,9 @@ class BreastSimNode {
   bool resetSrv(std_srvs::Trigger::Request& req, std_srvs::Trigger::Response& res);
   bool saveStateSrv(breast_sim::StateFile::Request& req, breast_sim::StateFile::Response& res);
   bool loadStateSrv(breast_sim::StateFile::Request& req, breast_sim::StateFile::Response& res);
-  /// The simulated supine MRI of the current state to ~output_folder: resampled outside the engine's
-  /// lock (the tracking thread goes on), written atomically, never over a file unless asked.
+  /// The simulated supine MRI of the current state to a name in ~output_folder (output_folder_'s
+  /// rules): resampled outside the engine's lock (the tracking thread goes on), written atomically,
+  /// never over a file unless asked.
   bool writeSupineMriSrv(breast_sim::WriteSupineMri::Request& req, breast_sim::WriteSupineMri::Response& res);
   void goalCb(PrecomputeServer::GoalHandle goal);
   void cancelGoalCb(PrecomputeServer::GoalHandle goal);
@@ -179,7 +180,7 @@ class BreastSimNode {
 
   ros::NodeHandle nh_, pnh_;
   NodeParams params_;
-  std::unique_ptr<ConfinedFolder> data_folder_, state_folder_;
+  std::unique_ptr<ConfinedFolder> data_folder_, state_folder_, output_folder_;
   std::chrono::steady_clock::time_point last_checkpoint_;  ///< under engine_mutex_
   ros::Publisher mesh_pub_, lesions_pub_, lesion_markers_pub_, surface_pub_, sliding_pub_, state_pub_, diag_pub_;
   ros::Subscriber cloud_sub_, pose_sub_;

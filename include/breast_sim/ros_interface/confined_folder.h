@@ -1,8 +1,9 @@
 #pragma once
 /// @file confined_folder.h
 /// A folder the node reads or writes files in, and nowhere else: the node's file services
-/// (~load_case, ~save_state, ~load_state) take names from requests, and a request must not reach a
-/// file the node's user can reach outside the folders it was configured with (docs/ros.md, "Files").
+/// (~load_case, ~save_state, ~load_state, ~write_supine_mri) take names from requests, and a request
+/// must not reach a file the node's user can reach outside the folders it was configured with
+/// (docs/ros.md, "Files").
 ///
 /// A request names a file relative to the folder, or by an absolute path inside it. Refused, each
 /// with a reason that names the request and the folder: an empty name, a name with a `..` component

@@ -65,12 +65,6 @@ class PoseHistory {
   std::vector<std::pair<double, Eigen::Isometry3d>> poses_;  ///< by increasing stamp
 };
 
-/// The file a service writes for a client: `name` relative to `folder` (an absolute path), ending in one
-/// of `extensions`; an empty name, an absolute one or one with a `..` component is refused, so a
-/// client writes inside the folder only. On success *path is the normalised absolute path.
-std::string checkOutputFileName(const std::string& folder, const std::string& name,
-                                const std::vector<std::string>& extensions, std::string* path);
-
 /// One warning per key and period: a stream of the same bad input is logged once per period, each
 /// distinct kind of bad input (its key) on its own.
 class KeyedThrottle {
