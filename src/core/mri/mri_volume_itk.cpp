@@ -1,8 +1,9 @@
-// Reading and writing MRI volumes through ITK, behind plain types (itk_bridge.h). One of the two
-// sources that compile ITK's headers (mri_filters_itk.cpp is the other); it includes no Eigen (see
-// itk_bridge.h). Each format's ImageIO is created here by name rather than through ITK's factory, so
-// only the four formats of the contract are accepted: ITK would otherwise read a PNG or a JPEG as a
-// 2-D "MRI". Headers are read and checked before any voxel is allocated.
+// Reading NIfTI files and DICOM series and writing volumes through ITK, behind plain types
+// (itk_bridge.h). One of the two sources that compile ITK's headers (mri_filters_itk.cpp is the other);
+// it includes no Eigen (see itk_bridge.h). Each ImageIO is created here by name rather than through
+// ITK's factory, so nothing else (a PNG, a JPEG) is taken for an MRI. Headers are read and checked
+// before any voxel is allocated. GDCM only opens DICOM files that scanDicomFile (dicom_scan.h) has
+// walked: the caller lists a folder's series from those walks, not through itk::GDCMSeriesFileNames.
 #include "itk_image.h"
 
 #include <algorithm>
@@ -23,7 +24,6 @@
 #include <zlib.h>
 
 #include <itkGDCMImageIO.h>
-#include <itkGDCMSeriesFileNames.h>
 #include <itkImage.h>
 #include <itkImageFileReader.h>
 #include <itkImageFileWriter.h>
@@ -74,53 +74,17 @@ struct Candidate {
   std::string format;
 };
 
-// The ImageIO of a single file among NIfTI, NRRD and MetaImage, decided by content (CanReadFile).
-Candidate fileImageIo(const std::string& path) {
-  Candidate c;
-  if (auto io = itk::NiftiImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "NIfTI"};
-  else if (auto io = itk::NrrdImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "NRRD"};
-  else if (auto io = itk::MetaImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "MetaImage"};
-  else if (auto io = itk::GDCMImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "DICOM"};
-  return c;
-}
-
-const char* kFormats = "NIfTI (.nii, .nii.gz), NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd) or a folder of DICOM files";
-
-std::string sizeText(const std::vector<long>& size) {
-  std::string s;
-  for (std::size_t d = 0; d < size.size(); ++d) s += (d ? " x " : "") + std::to_string(size[d]);
-  return s;
-}
-
-// Checks what a header says before anything is allocated: 3-D, scalar, not too large.
+// Checks what a header says before anything is allocated: scalar, 3-D, not too large.
 void checkHeader(const std::string& path, itk::ImageIOBase& io, long max_voxels) {
-  const unsigned dims = io.GetNumberOfDimensions();
-  std::vector<long> size;
-  for (unsigned d = 0; d < dims; ++d) size.push_back(static_cast<long>(io.GetDimensions(d)));
-  if (dims < 3 || size[2] <= 1)
-    fail(path, "a 2-D image (" + sizeText(size) +
-                   " voxels); the MRI must be a 3-D volume: give the folder of the whole DICOM series or a 3-D "
-                   "NIfTI/NRRD export");
-  for (unsigned d = 3; d < dims; ++d)
-    if (size[d] > 1)
-      fail(path, "a " + std::to_string(dims) + "-D image (" + sizeText(size) +
-                     " voxels: several volumes, e.g. a time series); give one 3-D volume (export a single time point)");
   const unsigned components = io.GetNumberOfComponents();
   const auto pixel = io.GetPixelType();
   if (components != 1 || (pixel != itk::IOPixelEnum::SCALAR && pixel != itk::IOPixelEnum::UNKNOWNPIXELTYPE))
     fail(path, "voxels of type " + itk::ImageIOBase::GetPixelTypeAsString(pixel) + " with " + std::to_string(components) +
                    " components; the MRI must be a scalar (magnitude) image: export the magnitude, not RGB, vector "
                    "or complex data");
-  // Overflow-safe: stop multiplying once past the cap.
-  long voxels = 1;
-  for (int d = 0; d < 3; ++d) {
-    if (size[d] < 1) fail(path, "the header gives a size of " + std::to_string(size[d]) + " voxels along axis " + std::to_string(d));
-    if (voxels > max_voxels / size[d])
-      fail(path, "the header gives " + sizeText({size[0], size[1], size[2]}) + " voxels, more than the " +
-                     std::to_string(max_voxels) + " accepted (MriReadOptions::max_voxels); a damaged header, or crop or "
-                     "resample the volume first");
-    voxels *= size[d];
-  }
+  std::vector<long> size;
+  for (unsigned d = 0; d < io.GetNumberOfDimensions(); ++d) size.push_back(static_cast<long>(io.GetDimensions(d)));
+  checkVolumeSize(path, size, max_voxels);
 }
 
 Volume fromItk(const FloatImage& image) {
@@ -232,32 +196,11 @@ struct SliceHeader {
   long columns = 0, rows = 0, frames = 0;
 };
 
-Volume readDicomSeries(const std::string& folder, std::string uid, long max_voxels, double tolerance) {
-  auto names = itk::GDCMSeriesFileNames::New();
-  names->SetUseSeriesDetails(false);
-  std::vector<std::string> uids;
-  try {
-    names->SetDirectory(folder);
-    uids = names->GetSeriesUIDs();
-  } catch (const itk::ExceptionObject& e) {
-    fail(folder, std::string("cannot scan the folder for DICOM files: ") + e.GetDescription());
-  }
-  if (uids.empty())
-    fail(folder, std::string("no DICOM image in this folder; give a folder holding one DICOM series, or a file in ") + kFormats);
-  const auto listSeries = [&] {
-    std::string s;
-    for (const std::string& u : uids) s += "\n  " + u + " (" + std::to_string(names->GetFileNames(u).size()) + " files)";
-    return s;
-  };
-  if (uid.empty()) {
-    if (uids.size() > 1)
-      fail(folder, "holds " + std::to_string(uids.size()) + " DICOM series; name the one to read by its series UID "
-                   "(MriReadOptions::series_uid, --series-uid):" + listSeries());
-    uid = uids.front();
-  } else if (std::find(uids.begin(), uids.end(), uid) == uids.end()) {
-    fail(folder, "holds no DICOM series with UID " + uid + "; the series here are:" + listSeries());
-  }
-  const std::vector<std::string> files = names->GetFileNames(uid);
+}  // namespace
+
+Volume readDicomSeries(const std::string& folder, const std::string& uid, const std::vector<std::string>& files,
+                       long max_voxels, double tolerance) {
+  quietItk();
   const std::string where = folder + " (series " + uid + ")";
 
   // Every slice's header first: sizes, orientation and positions are checked before the voxels are read.
@@ -390,6 +333,8 @@ Volume readDicomSeries(const std::string& folder, std::string uid, long max_voxe
   return out;
 }
 
+namespace {
+
 // A name beside `path` for writing before the rename, with the same extension (ITK picks the
 // encoding by extension, e.g. .nii.gz).
 std::string temporaryBeside(const std::string& path, const std::string& extension) {
@@ -405,31 +350,14 @@ std::string dicomNumber(double v) {
 
 }  // namespace
 
-Volume readVolume(const std::string& path, const std::string& series_uid, long max_voxels, double slice_tolerance) {
+bool isNifti(const std::string& path) {
   quietItk();
-  std::error_code ec;
-  if (!fs::exists(path, ec))
-    fail(path, "no such file or folder; check the path (a relative path is read from the working directory)");
-  if (fs::is_directory(path, ec)) return readDicomSeries(path, series_uid, max_voxels, slice_tolerance);
-  const Candidate c = fileImageIo(path);
-  if (!c.io) fail(path, std::string("not an image of a supported format; give ") + kFormats);
-  if (c.format == "DICOM") {
-    // One file of a series: read its folder, the series it belongs to unless another is named.
-    std::string uid = series_uid;
-    if (uid.empty()) {
-      auto io = itk::GDCMImageIO::New();
-      try {
-        io->SetFileName(path);
-        io->ReadImageInformation();
-      } catch (const itk::ExceptionObject& e) {
-        fail(path, std::string("cannot read this DICOM file: ") + e.GetDescription());
-      }
-      uid = dictionaryString(io->GetMetaDataDictionary(), "0020|000e");
-    }
-    const fs::path parent = fs::path(path).parent_path();
-    return readDicomSeries(parent.empty() ? "." : parent.string(), uid, max_voxels, slice_tolerance);
-  }
-  return readSingleFile(path, c, max_voxels);
+  return itk::NiftiImageIO::New()->CanReadFile(path.c_str());
+}
+
+Volume readNifti(const std::string& path, long max_voxels) {
+  quietItk();
+  return readSingleFile(path, {itk::NiftiImageIO::New(), "NIfTI"}, max_voxels);
 }
 
 void writeVolume(const std::string& path, const Grid& grid, const std::vector<float>& values) {
