@@ -1,7 +1,7 @@
-// The walk over DICOM files before GDCM opens them (mri/dicom_scan.h): small hand-made files in each
-// transfer syntax that walk to the end, each way of claiming more than a file holds refused with the
-// element, its claim and the file's size, and a folder holding a damaged slice refused by name while
-// the same folder without it reads as before.
+// The core's DICOM reader (mri/dicom_scan.h): small hand-made files in each transfer syntax that walk
+// to the end, each way of claiming more than a file holds refused with the element, its claim and the
+// file's size, a folder holding a damaged slice refused by name while the same folder without it reads
+// as before, and slices whose attributes GDCM would abort on refused with the attribute.
 #include <cstdint>
 #include <filesystem>
 #include <fstream>
@@ -86,6 +86,53 @@ std::string image(bool explicit_vr = false, bool big = false) {
   b.element(0x0020, 0x000E, "UI", uid("1.2.3.4"));
   b.element(0x7FE0, 0x0010, "OW", std::string(16, '\x01'));
   return b.str();
+}
+
+// A whole slice: the attributes readDicomSeries needs, then 2 x 3 pixels of `bits` bits (values as
+// given, already in the stored bit layout). `edit` changes one attribute's value before writing.
+struct Slice {
+  bool explicit_vr = false, big = false;
+  int bits = 16, stored = 16, high = 15, sign = 0;
+  double z_mm = 0;
+  std::vector<std::uint32_t> pixels = {1, 2, 3, 4, 5, 6};
+  std::string samples = "1", photometric = "MONOCHROME2", frames = "1", slope = "1", intercept = "0";
+  bool position = true;
+};
+
+std::string us(std::uint16_t v, bool big) {
+  return big ? std::string{static_cast<char>(v >> 8), static_cast<char>(v & 0xFF)}
+             : std::string{static_cast<char>(v & 0xFF), static_cast<char>(v >> 8)};
+}
+
+std::string even(std::string text) { return text.size() % 2 ? text + " " : text; }
+
+std::string slice(const Slice& c) {
+  Bytes b(c.explicit_vr, c.big);
+  b.element(0x0008, 0x103E, "LO", even("hand-made"));
+  b.element(0x0020, 0x000E, "UI", uid("1.2.3.4"));
+  if (c.position) b.element(0x0020, 0x0032, "DS", even("-10\\20.5\\" + std::to_string(c.z_mm)));
+  b.element(0x0020, 0x0037, "DS", even("0\\1\\0\\-1\\0\\0"));
+  b.element(0x0028, 0x0002, "US", us(static_cast<std::uint16_t>(std::stoi(c.samples)), c.big));
+  b.element(0x0028, 0x0004, "CS", even(c.photometric));
+  b.element(0x0028, 0x0008, "IS", even(c.frames));
+  b.element(0x0028, 0x0010, "US", us(2, c.big));
+  b.element(0x0028, 0x0011, "US", us(3, c.big));
+  b.element(0x0028, 0x0030, "DS", even("0.5\\0.25"));
+  b.element(0x0028, 0x0100, "US", us(static_cast<std::uint16_t>(c.bits), c.big));
+  b.element(0x0028, 0x0101, "US", us(static_cast<std::uint16_t>(c.stored), c.big));
+  b.element(0x0028, 0x0102, "US", us(static_cast<std::uint16_t>(c.high), c.big));
+  b.element(0x0028, 0x0103, "US", us(static_cast<std::uint16_t>(c.sign), c.big));
+  b.element(0x0028, 0x1052, "DS", even(c.intercept));
+  b.element(0x0028, 0x1053, "DS", even(c.slope));
+  std::string pixels;
+  for (std::uint32_t v : c.pixels) {
+    if (c.bits == 8) pixels += static_cast<char>(v);
+    else if (c.bits == 16) pixels += us(static_cast<std::uint16_t>(v), c.big);
+    else pixels += c.big ? us(static_cast<std::uint16_t>(v >> 16), true) + us(static_cast<std::uint16_t>(v), true)
+                         : us(static_cast<std::uint16_t>(v), false) + us(static_cast<std::uint16_t>(v >> 16), false);
+  }
+  b.element(0x7FE0, 0x0010, c.bits == 8 ? "OB" : "OW", pixels);
+  return part10(c.big ? kBig : c.explicit_vr ? kExplicit : kImplicit, b.str());
 }
 
 std::string write(const TempDir& dir, const std::string& name, const std::string& bytes) {
@@ -206,9 +253,9 @@ TEST(DicomScan, ClaimsBeyondTheFileAreRefusedNamingElementClaimAndSize) {
   }
 }
 
-// The fuzz finding: one file of a series whose pixel data claim 1.4 GB. GDCM allocated the claim while
-// ITK listed the folder; now the folder is refused naming the file before GDCM opens any, and the
-// folder without it reads as before. Files that are not images are skipped.
+// The fuzz finding: one file of a series whose pixel data claim 1.4 GB (GDCM allocated the claim while
+// ITK listed the folder): the folder is refused naming the file, and the folder without it reads as
+// before. Files that are not images are skipped.
 TEST(DicomScan, AFolderWithADamagedSliceIsRefusedNamingItAndReadsWithoutIt) {
   TempDir dir("breast_sim_dicom_folder");
   ScalarImage volume;
@@ -244,4 +291,90 @@ TEST(DicomScan, AFolderWithADamagedSliceIsRefusedNamingItAndReadsWithoutIt) {
   }
   std::filesystem::remove(damaged);
   EXPECT_EQ(readMriVolume(dir.path("series")).image.values, clean.image.values);
+}
+
+// Slices written by hand in each byte order and bit layout read to their values; a slice whose
+// attributes GDCM would abort on or misread (found by fuzz_mri_dicom: SamplesPerPixel 2 stopped the
+// process in gdcm::PixelFormat) is refused naming the file and the attribute.
+TEST(DicomScan, SlicesReadByTheirAttributesOrAreRefusedNamingOne) {
+  TempDir dir("breast_sim_dicom_slices");
+  // 12 bits stored at bits 4..15 (high bit 15), signed, with a rescale: the value is the stored bits,
+  // sign-extended, times the slope plus the intercept; the bits below are not part of it.
+  Slice twelve;
+  twelve.big = true;
+  twelve.explicit_vr = true;
+  twelve.stored = 12;
+  twelve.sign = 1;
+  twelve.slope = "2";
+  twelve.intercept = "-1";
+  twelve.pixels = {0x0010 | 0x7, 0x0FF0, 0xFFF0, 0x8000 | 0xF, 0x0000, 0x7FF0};
+  for (int k = 0; k < 3; ++k) {
+    twelve.z_mm = 1.5 * k;
+    write(dir, "twelve/s" + std::to_string(k) + ".dcm", (std::filesystem::create_directories(dir.path("twelve")), slice(twelve)));
+  }
+  const MriVolume v = readMriVolume(dir.path("twelve"));
+  EXPECT_EQ(v.info.files, 3);
+  EXPECT_EQ(v.info.pixel_type, "short");
+  EXPECT_EQ(v.info.series_description, "hand-made");
+  const std::vector<float> one = {2 * 1 - 1, 2 * 255 - 1, 2 * -1 - 1, 2 * -2048 - 1, -1, 2 * 2047 - 1};
+  for (int k = 0; k < 3; ++k)
+    for (int p = 0; p < 6; ++p) EXPECT_EQ(v.image.values[6 * k + p], one[p]) << k << " " << p;
+  // Geometry: 3 columns along i at 0.25 mm, 2 rows along j at 0.5 mm, slices 1.5 mm apart.
+  EXPECT_EQ(v.image.geometry.size, Eigen::Vector3i(3, 2, 3));
+  EXPECT_LT((v.image.geometry.spacing_m - Eigen::Vector3d(0.25e-3, 0.5e-3, 1.5e-3)).norm(), 1e-12);
+  EXPECT_LT((v.image.geometry.origin_m - Eigen::Vector3d(-10e-3, 20.5e-3, 0)).norm(), 1e-12);
+  // 8-bit unsigned in implicit VR.
+  Slice byte;
+  byte.bits = byte.stored = 8;
+  byte.high = 7;
+  byte.pixels = {0, 1, 2, 253, 254, 255};
+  std::filesystem::create_directories(dir.path("bytes"));
+  for (int k = 0; k < 2; ++k) {
+    byte.z_mm = k;
+    write(dir, "bytes/s" + std::to_string(k) + ".dcm", slice(byte));
+  }
+  EXPECT_EQ(readMriVolume(dir.path("bytes")).image.values[5], 255.0f);
+
+  struct Bad {
+    const char* name;
+    Slice slice;
+    std::string says;
+  };
+  std::vector<Bad> bad(8, Bad{"", Slice{}, ""});
+  bad[0] = {"samples", Slice{}, "voxels with 2 components"};
+  bad[0].slice.samples = "2";
+  bad[1] = {"colour", Slice{}, "PhotometricInterpretation (0028,0004) is 'RGB'"};
+  bad[1].slice.photometric = "RGB";
+  bad[2] = {"frames", Slice{}, "a multi-frame DICOM file (4 frames), which is not read"};
+  bad[2].slice.frames = "4";
+  bad[3] = {"bits", Slice{}, "BitsAllocated (0028,0100) is 12"};
+  bad[3].slice.bits = 12;
+  bad[4] = {"stored", Slice{}, "BitsStored (0028,0101) 17 and HighBit (0028,0102) 15 do not fit"};
+  bad[4].slice.stored = 17;
+  bad[5] = {"position", Slice{}, "no ImagePositionPatient (0020,0032)"};
+  bad[5].slice.position = false;
+  bad[6] = {"slope", Slice{}, "RescaleSlope (0028,1053) is 'x1': not 1 finite number"};
+  bad[6].slice.slope = "x1";
+  bad[7] = {"short", Slice{}, "the pixel data hold 10 bytes, where 2 rows x 3 columns x 2 bytes need 12"};
+  bad[7].slice.pixels.pop_back();
+  for (const Bad& b : bad) {
+    SCOPED_TRACE(b.name);
+    std::filesystem::create_directories(dir.path(b.name));
+    write(dir, std::string(b.name) + "/good.dcm", slice(Slice{}));
+    Slice second = b.slice;
+    second.z_mm = 1;
+    const std::string path = write(dir, std::string(b.name) + "/bad.dcm", slice(second));
+    const std::string m = messageOf([&] { readMriVolume(dir.path(b.name)); });
+    EXPECT_EQ(m.rfind(path + ": ", 0), 0u) << m;
+    EXPECT_NE(m.find(b.says), std::string::npos) << m;
+  }
+  // Compressed pixel data: not read, with the way to convert them.
+  Bytes jpeg(true);
+  jpeg.element(0x0020, 0x000E, "UI", uid("1.2.3.4"))
+      .head(0x7FE0, 0x0010, "OB", kUndefined).head(0xFFFE, 0xE000, "", 0).head(0xFFFE, 0xE0DD, "", 0);
+  std::filesystem::create_directories(dir.path("jpeg"));
+  const std::string path = write(dir, "jpeg/a.dcm", part10(kJpeg, jpeg.str()));
+  const std::string m = messageOf([&] { readMriVolume(path); });
+  EXPECT_NE(m.find(path + ": compressed DICOM (transfer syntax 1.2.840.10008.1.2.4.50), which is not read"), std::string::npos) << m;
+  EXPECT_NE(m.find("gdcmconv --raw"), std::string::npos) << m;
 }

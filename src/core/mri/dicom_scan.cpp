@@ -1,14 +1,18 @@
 // dicom_scan.h: a walk over DICOM data element headers (PS3.5 section 7), reading values only for the
-// transfer syntax and the series UID, and skipping the rest by its length. Files are read through a
-// window of 64 kB, so a folder of slices costs about one read per file plus a few header reads.
+// attributes of an image volume and skipping the rest by its length; native pixel data converted to
+// float (PS3.5 section 8). Files are read through a window of 64 kB, so a folder of slices costs about
+// one read per file for the walk plus one for the pixels.
 #include "breast_sim/core/mri/dicom_scan.h"
 
 #include <algorithm>
 #include <cerrno>
+#include <cmath>
+#include <cstdlib>
 #include <cstdint>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <memory>
 #include <stdexcept>
 #include <system_error>
 #include <vector>
@@ -34,6 +38,7 @@ struct Tag {
 };
 constexpr Tag kItem{0xFFFE, 0xE000}, kItemEnd{0xFFFE, 0xE00D}, kSequenceEnd{0xFFFE, 0xE0DD};
 constexpr Tag kTransferSyntax{0x0002, 0x0010}, kSeriesUid{0x0020, 0x000E}, kPixelData{0x7FE0, 0x0010};
+constexpr std::uint64_t kMaxAttributeBytes = 1024;  // an attribute of DicomFileScan, as text or binary
 
 std::string tagText(Tag t) {
   char s[16];
@@ -69,13 +74,13 @@ class FileWindow {
       filled_ = 0;
       const std::size_t want = static_cast<std::size_t>(std::min<std::uint64_t>(kWindow, size_ - offset));
       while (filled_ < want) {
-        const ssize_t got = ::pread(fd_, buffer_.data() + filled_, want - filled_, static_cast<off_t>(offset + filled_));
+        const ssize_t got = ::pread(fd_, buffer_.get() + filled_, want - filled_, static_cast<off_t>(offset + filled_));
         if (got < 0 && errno == EINTR) continue;
         if (got <= 0) fail(path_, std::string("read error (") + (got < 0 ? std::strerror(errno) : "the file shrank") + ")");
         filled_ += static_cast<std::size_t>(got);
       }
     }
-    return buffer_.data() + (offset - begin_);
+    return buffer_.get() + (offset - begin_);
   }
 
   static constexpr std::size_t kWindow = 64 * 1024;
@@ -86,7 +91,7 @@ class FileWindow {
   std::uint64_t size_ = 0;
   std::uint64_t begin_ = 0;
   std::size_t filled_ = 0;
-  std::vector<unsigned char> buffer_ = std::vector<unsigned char>(kWindow);
+  std::unique_ptr<unsigned char[]> buffer_{new unsigned char[kWindow]};  // filled by pread before it is read
 };
 
 bool isLongVr(const char* vr) {
@@ -118,6 +123,7 @@ class Walker {
     while (startsGroup(p, 0x0002)) p = element(p, file_.size(), Syntax::kExplicitLittle, 0);
     in_meta_ = false;
     const Syntax syntax = syntaxOf(out_.transfer_syntax);
+    out_.big_endian = syntax == Syntax::kExplicitBig;
     // A writer bug GDCM works around by switching to explicit VR: refused instead, so GDCM cannot read
     // the file otherwise than it was checked here.
     if (syntax == Syntax::kImplicitLittle && p + 6 <= file_.size()) {
@@ -235,7 +241,10 @@ class Walker {
     if (depth == 0 && h.tag == kPixelData) out_.has_pixel_data = true;
     if (h.length == kUndefined) {
       if (sq) return sequence(h.value, kNoEnd, limit, nested, depth + 1);
-      if (h.tag == kPixelData && (ob_ow || un || !h.explicit_vr)) return fragments(h.value, limit, s);
+      if (h.tag == kPixelData && (ob_ow || un || !h.explicit_vr)) {
+        if (depth == 0) out_.encapsulated = true;
+        return fragments(h.value, limit, s);
+      }
       if (un || !h.explicit_vr) return sequence(h.value, kNoEnd, limit, nested, depth + 1);
       damaged("element " + tagText(h.tag) + " at byte " + std::to_string(p) + " of VR " + std::string(h.vr, 2) +
               " has an undefined length, which only sequences, UN and encapsulated pixel data may have");
@@ -248,14 +257,103 @@ class Walker {
       sequence(h.value, end, end, nested, depth + 1);  // it stops exactly at `end` or throws
       return end;
     }
-    if ((in_meta_ && h.tag == kTransferSyntax) || (!in_meta_ && depth == 0 && h.tag == kSeriesUid)) {
-      if (h.length > 64)
-        damaged("the UID " + tagText(h.tag) + " at byte " + std::to_string(h.value) + " is " + std::to_string(h.length) +
-                " bytes long; a UID has at most 64");
-      const std::string uid = trimmedUid(file_.at(h.value, h.length), h.length);
-      (h.tag == kTransferSyntax ? out_.transfer_syntax : out_.series_uid) = uid;
+    if (in_meta_ && h.tag == kTransferSyntax) {
+      out_.transfer_syntax = trimmedUid(valueBytes(h), h.length);
+    } else if (!in_meta_ && depth == 0) {
+      if (h.tag == kPixelData) {
+        out_.pixel_offset = h.value;
+        out_.pixel_length = h.length;
+      } else {
+        attribute(h, s);
+      }
     }
     return end;
+  }
+
+  const unsigned char* valueBytes(const Header& h) {
+    if (h.length > kMaxAttributeBytes)
+      damaged("the value of " + tagText(h.tag) + " at byte " + std::to_string(h.value) + " is " + std::to_string(h.length) +
+              " bytes long; at most " + std::to_string(kMaxAttributeBytes) + " are expected");
+    return file_.at(h.value, h.length);
+  }
+
+  // The value of one of DicomFileScan's attributes, decoded; anything else is skipped.
+  void attribute(const Header& h, Syntax s) {
+    const std::uint32_t key = std::uint32_t{h.tag.group} << 16 | h.tag.element;
+    switch (key) {
+      case 0x0020000E: case 0x0008103E: case 0x00280010: case 0x00280011: case 0x00280002: case 0x00280100:
+      case 0x00280101: case 0x00280102: case 0x00280103: case 0x00280008: case 0x00280004: case 0x00200032:
+      case 0x00200037: case 0x00280030: case 0x00281052: case 0x00281053: break;
+      default: return;
+    }
+    const unsigned char* v = valueBytes(h);
+    const std::string text = trimmedUid(v, h.length);  // the text value, its padding removed
+    const auto us = [&](const char* name, long& into) {
+      if (h.length < 2) return bad(name, h.tag, "holds " + std::to_string(h.length) + " bytes, not an unsigned short");
+      into = u16(v, s == Syntax::kExplicitBig);
+    };
+    const auto ds = [&](const char* name, double* into, int count) {
+      if (decimals(text, into, count)) return true;
+      bad(name, h.tag, "is '" + printable(text) + "': not " + std::to_string(count) + " finite number" + (count > 1 ? "s" : ""));
+      return false;
+    };
+    long n = 0;
+    switch (key) {
+      case 0x0020000E:
+        if (h.length > 64) damaged("the UID (0020,000E) at byte " + std::to_string(h.value) + " is " + std::to_string(h.length) + " bytes long; a UID has at most 64");
+        out_.series_uid = text;
+        break;
+      case 0x0008103E: out_.series_description = text; break;
+      case 0x00280010: us("Rows", out_.rows); break;
+      case 0x00280011: us("Columns", out_.columns); break;
+      case 0x00280002: us("SamplesPerPixel", n), out_.samples_per_pixel = static_cast<int>(n); break;
+      case 0x00280100: us("BitsAllocated", n), out_.bits_allocated = static_cast<int>(n); break;
+      case 0x00280101: us("BitsStored", n), out_.bits_stored = static_cast<int>(n); break;
+      case 0x00280102: n = -1, us("HighBit", n), out_.high_bit = static_cast<int>(n); break;
+      case 0x00280103: us("PixelRepresentation", n), out_.is_signed = n == 1; break;
+      case 0x00280004: out_.photometric = text; break;
+      case 0x00280008: {
+        double frames = 1;
+        if (!decimals(text, &frames, 1) || frames != std::floor(frames) || frames < 1 || frames > 1e9)
+          bad("NumberOfFrames", h.tag, "is '" + printable(text) + "': not a whole number from 1");
+        else out_.frames = static_cast<long>(frames);
+        break;
+      }
+      case 0x00200032: out_.has_position = ds("ImagePositionPatient", out_.position_mm, 3); break;
+      case 0x00200037: out_.has_orientation = ds("ImageOrientationPatient", out_.orientation, 6); break;
+      case 0x00280030: out_.has_spacing = ds("PixelSpacing", out_.pixel_spacing_mm, 2); break;
+      case 0x00281052: ds("RescaleIntercept", &out_.rescale_intercept, 1); break;
+      case 0x00281053: ds("RescaleSlope", &out_.rescale_slope, 1); break;
+    }
+  }
+
+  void bad(const char* name, Tag t, const std::string& what) {
+    if (out_.bad_value.empty()) out_.bad_value = std::string(name) + " " + tagText(t) + " " + what;
+  }
+
+  // `count` backslash-separated decimal numbers (DS, IS), each finite.
+  static bool decimals(const std::string& text, double* into, int count) {
+    std::size_t start = 0;
+    for (int i = 0; i < count; ++i) {
+      const std::size_t stop = i + 1 < count ? text.find('\\', start) : text.size();
+      if (stop == std::string::npos) return false;
+      std::string part = text.substr(start, stop - start);
+      while (!part.empty() && part.front() == ' ') part.erase(part.begin());
+      while (!part.empty() && part.back() == ' ') part.pop_back();
+      char* end = nullptr;
+      const double x = std::strtod(part.c_str(), &end);
+      if (part.empty() || end != part.c_str() + part.size() || !std::isfinite(x)) return false;
+      into[i] = x;
+      start = stop + 1;
+    }
+    return true;
+  }
+
+  static std::string printable(const std::string& s) {
+    std::string out = s.substr(0, 60);
+    for (char& c : out)
+      if (static_cast<unsigned char>(c) < 32 || static_cast<unsigned char>(c) > 126) c = '?';
+    return out;
   }
 
   // The elements of a data set from p: to `end`, or (end = kNoEnd) to its item delimiter (FFFE,E00D).
@@ -336,6 +434,7 @@ class Walker {
 
 DicomFileScan scanDicomFile(const std::string& path) {
   DicomFileScan out;
+  out.path = path;
   FileWindow file(path);
   if (file.size() < 132) return out;
   const unsigned char* magic = file.at(128, 4);
@@ -361,9 +460,48 @@ DicomFolder scanDicomFolder(const std::string& folder) {
     if (scan.series_uid.empty())
       fail(f, "a DICOM image without a SeriesInstanceUID (0020,000E), so it belongs to no series; export the series "
               "again, or remove the file from the folder");
-    out.series[scan.series_uid].push_back(f);
+    out.series[scan.series_uid].push_back(scan);
   }
   return out;
+}
+
+namespace {
+
+template <typename T>
+T load(const unsigned char* p, bool swap) {
+  unsigned char b[sizeof(T)];
+  for (std::size_t i = 0; i < sizeof(T); ++i) b[i] = swap ? p[sizeof(T) - 1 - i] : p[i];
+  T v;
+  std::memcpy(&v, b, sizeof(T));
+  return v;
+}
+
+}  // namespace
+
+void readDicomPixels(const DicomFileScan& scan, float* out) {
+  const std::size_t bytes = static_cast<std::size_t>(scan.bits_allocated / 8);
+  const std::uint64_t count = static_cast<std::uint64_t>(scan.rows) * static_cast<std::uint64_t>(scan.columns);
+  FileWindow file(scan.path);
+  if (scan.pixel_offset + count * bytes > file.size()) fail(scan.path, "the file changed since it was checked; read it again");
+  // PS3.5 8.1.1: the value is bits_stored bits ending at high_bit; the bits around it are not the value.
+  const int shift = scan.high_bit - scan.bits_stored + 1;
+  const std::uint32_t mask = scan.bits_stored >= 32 ? 0xFFFFFFFFu : (std::uint32_t{1} << scan.bits_stored) - 1;
+  const bool swap = scan.big_endian;
+  const std::uint64_t chunk = FileWindow::kWindow / bytes;
+  for (std::uint64_t first = 0; first < count; first += chunk) {
+    const std::uint64_t n = std::min(chunk, count - first);
+    const unsigned char* p = file.at(scan.pixel_offset + first * bytes, static_cast<std::size_t>(n * bytes));
+    for (std::uint64_t v = 0; v < n; ++v, p += bytes) {
+      std::uint32_t raw = bytes == 1 ? *p : bytes == 2 ? load<std::uint16_t>(p, swap) : load<std::uint32_t>(p, swap);
+      raw = (raw >> shift) & mask;
+      double value = static_cast<double>(raw);
+      if (scan.is_signed && scan.bits_stored < 32 && (raw >> (scan.bits_stored - 1)) & 1u)
+        value -= static_cast<double>(std::uint64_t{1} << scan.bits_stored);
+      else if (scan.is_signed && scan.bits_stored == 32)
+        value = static_cast<double>(static_cast<std::int32_t>(raw));
+      out[first + v] = static_cast<float>(value * scan.rescale_slope + scan.rescale_intercept);
+    }
+  }
 }
 
 }  // namespace breast_sim::core

@@ -24,9 +24,8 @@ struct Grid {
 struct Volume {
   Grid grid;
   std::vector<float> values;
-  std::string format;              ///< "NIfTI", "NRRD", "MetaImage", "DICOM"
-  std::string series_uid, series_description, pixel_type;
-  int files = 1;
+  std::string format;              ///< "NIfTI"
+  std::string pixel_type;          ///< ITK's name of the stored type, e.g. "short"
 };
 
 // ---- mri_volume.cpp, for the ITK sources ----
@@ -40,11 +39,7 @@ void checkVolumeSize(const std::string& path, const std::vector<long>& sizes, lo
 bool isNifti(const std::string& path);
 /// A NIfTI file, its header checked first (see readMriVolume, mri_volume.h).
 Volume readNifti(const std::string& path, long max_voxels);
-/// One DICOM series from its files (each checked by scanDicomFile, dicom_scan.h): every slice's header,
-/// then sizes, orientations, sorting along the normal, even spacing and `max_voxels`, then the voxels.
-/// `folder` and `uid` name the series in messages.
-Volume readDicomSeries(const std::string& folder, const std::string& uid, const std::vector<std::string>& files,
-                       long max_voxels, double slice_tolerance);
+
 /// Writes float voxels; format by extension (.nii, .nii.gz, .nrrd, .mha), atomically (rename).
 void writeVolume(const std::string& path, const Grid& grid, const std::vector<float>& values);
 

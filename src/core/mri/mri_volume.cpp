@@ -1,8 +1,8 @@
 // mri_volume.h: which reader takes which input, our image types on the ITK bridge's plain ones (ITK's
 // part is in mri_volume_itk.cpp), and the checks that need no ITK. NRRD and MetaImage are read by the
 // core's own parsers (scalar_image_io.h): ITK's NrrdIO and MetaIO leak memory on malformed files, and
-// ours read the same files 1.8-3.8 times faster (docs/mri.md). ITK reads NIfTI and, through GDCM,
-// DICOM: every DICOM file is walked by scanDicomFile before GDCM opens it (dicom_scan.h).
+// ours read the same files faster (docs/mri.md). DICOM is read by the core too (dicom_scan.h says why
+// GDCM is not). ITK reads NIfTI, its header checked first.
 #include "breast_sim/core/mri/mri_volume.h"
 
 #include <cctype>
@@ -17,6 +17,7 @@
 
 #include "breast_sim/core/image/scalar_image_io.h"
 #include "breast_sim/core/mri/dicom_scan.h"
+#include "dicom_series.h"
 #include "grid_conversion.h"
 
 namespace breast_sim::core {
@@ -136,14 +137,11 @@ MriVolume fromBridge(const std::string& path, itk_bridge::Volume v) {
   if (!g.origin_m.allFinite()) fail(path, "the origin is not a finite point");
   out.image.values = std::move(v.values);
   out.info.format = v.format;
-  out.info.series_uid = v.series_uid;
-  out.info.series_description = v.series_description;
-  out.info.files = v.files;
   out.info.pixel_type = v.pixel_type;
   return out;
 }
 
-// The images of a DICOM folder, every file checked before GDCM opens any: the series `uid`, or the only one.
+// The images of a DICOM folder: the series `uid`, or the only one.
 MriVolume readDicomFolder(const std::string& folder, std::string uid, const MriReadOptions& options) {
   const DicomFolder found = scanDicomFolder(folder);
   if (found.series.empty())
@@ -162,8 +160,7 @@ MriVolume readDicomFolder(const std::string& folder, std::string uid, const MriR
   }
   const auto it = found.series.find(uid);
   if (it == found.series.end()) fail(folder, "holds no DICOM series with UID " + uid + "; the series here are:" + listSeries());
-  return fromBridge(folder, itk_bridge::readDicomSeries(folder, uid, it->second, options.max_voxels,
-                                                        options.slice_spacing_tolerance));
+  return readDicomSeries(folder, uid, it->second, options.max_voxels, options.slice_spacing_tolerance);
 }
 
 MriVolume readAnyVolume(const std::string& path, const MriReadOptions& options) {
