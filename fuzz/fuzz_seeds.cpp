@@ -161,7 +161,7 @@ void handMadeImageSeeds(Corpus& c, const LabelImage& image) {
   c.add("fuzz_nifti", "method1.nii", no_orientation);
 }
 
-// ---- MRI volumes (readMriVolume, ITK) -------------------------------------------------------------
+// ---- MRI volumes (readMriVolume) ------------------------------------------------------------------
 
 /// Float volumes as writeMriVolume writes them in every format, and DICOM series of four slices as
 /// writeDicomSeries writes them: whole, with a slice missing, and on an oblique grid.
