@@ -418,19 +418,6 @@ bool hostIsBigEndian() {
 
 namespace {
 
-template <typename T>
-T loadValue(const char* p, bool swap) {
-  T v;
-  if (!swap) {
-    std::memcpy(&v, p, sizeof(T));
-  } else {
-    char b[sizeof(T)];
-    for (std::size_t i = 0; i < sizeof(T); ++i) b[i] = p[sizeof(T) - 1 - i];
-    std::memcpy(&v, b, sizeof(T));
-  }
-  return v;
-}
-
 std::string formatValue(double v) {
   std::ostringstream s;
   s.precision(12);

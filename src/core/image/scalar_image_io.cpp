@@ -4,7 +4,6 @@
 #include "breast_sim/core/image/scalar_image_io.h"
 
 #include <cstdint>
-#include <cstring>
 #include <stdexcept>
 
 #include "breast_sim/core/image/image_io_detail.h"
@@ -17,18 +16,8 @@ using image_io::ScalarType;
 
 template <typename T>
 void toFloat(const char* bytes, bool swap, long n, float* out) {
-  for (long v = 0; v < n; ++v) {
-    const char* p = bytes + static_cast<std::size_t>(v) * sizeof(T);
-    T x;
-    if (!swap) {
-      std::memcpy(&x, p, sizeof(T));
-    } else {
-      char b[sizeof(T)];
-      for (std::size_t i = 0; i < sizeof(T); ++i) b[i] = p[sizeof(T) - 1 - i];
-      std::memcpy(&x, b, sizeof(T));
-    }
-    out[v] = static_cast<float>(x);
-  }
+  for (long v = 0; v < n; ++v)
+    out[v] = static_cast<float>(image_io::loadValue<T>(bytes + static_cast<std::size_t>(v) * sizeof(T), swap));
 }
 
 void decodeFloats(const char* bytes, ScalarType type, bool big_endian, long n, float* out) {

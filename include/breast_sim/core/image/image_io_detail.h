@@ -5,6 +5,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <cstring>
 #include <functional>
 #include <string>
 #include <vector>
@@ -105,6 +106,19 @@ ScalarType narrowestLabelType(const LabelImage& image);
 /// Labels as little-endian uint8 or uint16 bytes.
 std::string encodeLabels(const LabelImage& image, ScalarType type);
 bool hostIsBigEndian();
+/// The value of type T at p, its bytes reversed when `swap`.
+template <typename T>
+T loadValue(const char* p, bool swap) {
+  T v;
+  if (!swap) {
+    std::memcpy(&v, p, sizeof(T));
+  } else {
+    char b[sizeof(T)];
+    for (std::size_t i = 0; i < sizeof(T); ++i) b[i] = p[sizeof(T) - 1 - i];
+    std::memcpy(&v, b, sizeof(T));
+  }
+  return v;
+}
 
 // ---- geometry -------------------------------------------------------------------------------------
 /// Splits axis vectors (columns, any length unit) into lengths and an orthonormal direction
