@@ -83,8 +83,8 @@ TEST(DicomScan, FilesOfEverySyntaxWalkToTheirEnd) {
   const DicomFileScan jpeg = scanDicomFile(write(dir, "jpeg.dcm", part10(kJpeg, b.str())));
   EXPECT_TRUE(jpeg.has_pixel_data);
   EXPECT_EQ(jpeg.series_uid, "1.2.3.4");
-  // An implicit-VR value of 13 bytes is read as 10 by GDCM (a workaround for an old GE writer); the
-  // walk goes on where GDCM does, so the element after it is found.
+  // An implicit-VR value of 13 bytes holds 10 (a GE writer's bug, read as GDCM reads it): the element
+  // after its 10 bytes is found.
   Bytes ge(false);
   ge.head(0x0010, 0x0010, "", 13).raw("DOE^JOHN^^");  // 10 bytes of the value, then the next element
   const std::string ge_file = part10(kImplicit, ge.str() + image());

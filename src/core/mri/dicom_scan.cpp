@@ -124,8 +124,8 @@ class Walker {
     in_meta_ = false;
     const Syntax syntax = syntaxOf(out_.transfer_syntax);
     out_.big_endian = syntax == Syntax::kExplicitBig;
-    // A writer bug GDCM works around by switching to explicit VR: refused instead, so GDCM cannot read
-    // the file otherwise than it was checked here.
+    // A writer bug (explicit VRs in a file that declares implicit VR): refused by name rather than
+    // read as other elements.
     if (syntax == Syntax::kImplicitLittle && p + 6 <= file_.size()) {
       const unsigned char* h = file_.at(p, 6);
       const char vr[2] = {static_cast<char>(h[4]), static_cast<char>(h[5])};
@@ -196,7 +196,7 @@ class Walker {
     if (isShortVr(h.vr)) {
       h.length = u16(b + 6, big);
       h.value = p + 8;
-      // GDCM reads 4 of these 6 bytes (a workaround for a Siemens writer) and goes on from there.
+      // A Siemens writer's UL of 6 bytes holds 4; read as GDCM and DCMTK read it.
       if (h.length == 6 && h.vr[0] == 'U' && h.vr[1] == 'L' && h.tag.group == 0x0009) h.length = 4;
     } else if (isLongVr(h.vr)) {
       need(12);
@@ -221,17 +221,13 @@ class Walker {
       damaged("sequences nest deeper than " + std::to_string(kMaxDicomNesting) + " levels at byte " + std::to_string(p));
   }
 
-  bool startsWithItem(std::uint64_t p, std::uint64_t end, Syntax s) {
-    return p + 8 <= end && tagAt(p, end, s) == kItem;
-  }
-
   // One element at p; returns the offset after it.
   std::uint64_t element(std::uint64_t p, std::uint64_t limit, Syntax s, int depth) {
     Header h = header(p, limit, s);
     if (h.tag.group == 0xFFFE)
       damaged("an item tag " + tagText(h.tag) + " at byte " + std::to_string(p) + " where a data element belongs");
-    // GDCM reads 10 bytes of an implicit-VR value of 13 (a workaround for a GE writer) and goes on
-    // from there; the walk follows it, so both see the same elements.
+    // A GE writer's implicit-VR value of 13 bytes holds 10 (except in the two elements its fix left
+    // alone); read as GDCM reads it.
     if (!h.explicit_vr && h.length == 13 && !(h.tag == Tag{0x0008, 0x0070}) && !(h.tag == Tag{0x0008, 0x0080})) h.length = 10;
     const bool sq = h.explicit_vr && h.vr[0] == 'S' && h.vr[1] == 'Q';
     const bool un = h.explicit_vr && h.vr[0] == 'U' && h.vr[1] == 'N';
@@ -251,9 +247,7 @@ class Walker {
     }
     requireFits(h, limit);
     const std::uint64_t end = h.value + h.length;
-    // GDCM parses a value in implicit VR or UN as a sequence when it is asked for one (GetValueAsSQ):
-    // so one that starts with an item is walked as one too. Pixel data never are.
-    if (sq || ((un || !h.explicit_vr) && !(h.tag == kPixelData) && startsWithItem(h.value, end, nested))) {
+    if (sq) {
       sequence(h.value, end, end, nested, depth + 1);  // it stops exactly at `end` or throws
       return end;
     }

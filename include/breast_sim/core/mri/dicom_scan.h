@@ -54,9 +54,10 @@ struct DicomFileScan {
 /// in its transfer syntax (implicit VR little endian; explicit VR little endian, also for the
 /// compressed syntaxes; explicit VR big endian). Each defined length must fit in what is left of the
 /// file (and of the item or sequence holding it); elements of undefined length (sequences, UN,
-/// encapsulated pixel data) are walked item by item to their delimiters; a defined-length SQ, or a value
-/// in implicit VR or UN that starts with an item tag, is walked as a sequence within its length.
-/// Sequences may nest at most kMaxDicomNesting deep. An attribute's value is checked when it is used
+/// encapsulated pixel data) are walked item by item to their delimiters, and a defined-length SQ as a
+/// sequence within its length. Sequences may nest at most kMaxDicomNesting deep. Two writer bugs are read
+/// as GDCM reads them: an implicit-VR value of 13 bytes holds 10 (a GE writer), a UL of 6 bytes in group
+/// 0009 holds 4 (a Siemens writer). An attribute's value is checked when it is used
 /// (readDicomSeries), not here.
 /// @returns is_dicom = false, and nothing else read, for a file that is not DICOM Part 10 (shorter than
 ///          132 bytes, or no "DICM" at byte 128): such files are not DICOM here.
