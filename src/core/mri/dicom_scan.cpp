@@ -196,7 +196,7 @@ class Walker {
     if (isShortVr(h.vr)) {
       h.length = u16(b + 6, big);
       h.value = p + 8;
-      // A Siemens writer's UL of 6 bytes holds 4; read as GDCM and DCMTK read it.
+      // A Siemens writer's UL of 6 bytes holds 4; read as GDCM reads it.
       if (h.length == 6 && h.vr[0] == 'U' && h.vr[1] == 'L' && h.tag.group == 0x0009) h.length = 4;
     } else if (isLongVr(h.vr)) {
       need(12);

@@ -1,5 +1,5 @@
-// dicom_series.h: the checks of a series' slices (which GDCM and ITK made before, by their own rules),
-// sorting along the normal, and the voxels through readDicomPixels.
+// dicom_series.h: the checks of each slice and of the series, sorting along the slice normal, and the
+// voxels through readDicomPixels.
 #include "dicom_series.h"
 
 #include <algorithm>
