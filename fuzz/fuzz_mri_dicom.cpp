@@ -1,4 +1,4 @@
-// Fuzz target: the MRI reader (readMriVolume, GDCM through ITK) on a folder of DICOM files: the
+// Fuzz target: the MRI reader (readMriVolume: the core's DICOM reader) on a folder of DICOM files: the
 // input's parts are the slices IM00001.dcm … IM00004.dcm (as writeDicomSeries names them), and the
 // folder is read as a series (sorting, spacing and acquisition checks included).
 #include <cstddef>

@@ -1,5 +1,5 @@
-// Fuzz target: the MRI reader (readMriVolume, ITK's MetaImage ImageIO) on a MetaImage file, attached
-// (.mha) or with a detached data file named 'data' (the input's second part).
+// Fuzz target: the MRI reader (readMriVolume: the core's MetaImage parser, values as float) on a
+// MetaImage file, attached (.mha) or with a detached data file named 'data' (the input's second part).
 #include <cstddef>
 #include <cstdint>
 

@@ -1,5 +1,5 @@
-// Fuzz target: the MRI reader (readMriVolume, ITK's NRRD ImageIO) on an NRRD file, attached or with a
-// detached data file named 'data' (the input's second part).
+// Fuzz target: the MRI reader (readMriVolume: the core's NRRD parser, values as float) on an NRRD file,
+// attached or with a detached data file named 'data' (the input's second part).
 #include <cstddef>
 #include <cstdint>
 

@@ -28,6 +28,7 @@
 #include "breast_sim/core/mri/mri_volume.h"
 #include "breast_sim/core/pipeline/state_file.h"
 #include "fuzz_files.h"
+#include "../test/core/dicom_test_files.h"
 
 namespace {
 
@@ -161,7 +162,7 @@ void handMadeImageSeeds(Corpus& c, const LabelImage& image) {
   c.add("fuzz_nifti", "method1.nii", no_orientation);
 }
 
-// ---- MRI volumes (readMriVolume, ITK) -------------------------------------------------------------
+// ---- MRI volumes (readMriVolume) ------------------------------------------------------------------
 
 /// Float volumes as writeMriVolume writes them in every format, and DICOM series of four slices as
 /// writeDicomSeries writes them: whole, with a slice missing, and on an oblique grid.
@@ -190,6 +191,51 @@ void mriSeeds(Corpus& c) {
     c.add("fuzz_mri_dicom", tag + "_4_slices", joinParts(slices));
     c.add("fuzz_mri_dicom", tag + "_slice_3_missing", joinParts({slices[0], slices[1], "", slices[3]}));
   }
+  // Hand-made series in the encodings GDCM does not write: explicit VR little and big endian, 8 and
+  // 12 bits, sequences of defined and undefined length (items of both kinds, a UN sequence) in front
+  // of a slice's attributes, and encapsulated (JPEG) pixel data.
+  namespace dicom = breast_sim::test::dicom;
+  const auto series = [](dicom::Slice s, int count) {
+    std::vector<std::string> files;
+    for (int k = 0; k < count; ++k, s.z_mm += 1.5) files.push_back(dicom::slice(s));
+    return files;
+  };
+  dicom::Slice explicit_bytes;
+  explicit_bytes.explicit_vr = true;
+  explicit_bytes.bits = explicit_bytes.stored = 8;
+  explicit_bytes.high = 7;
+  c.add("fuzz_mri_dicom", "explicit_8_bits", joinParts(series(explicit_bytes, 3)));
+  dicom::Slice big;
+  big.explicit_vr = big.big = true;
+  big.stored = 12;
+  big.high = 15;
+  big.sign = 1;
+  big.slope = "2";
+  c.add("fuzz_mri_dicom", "big_endian_12_bits", joinParts(series(big, 4)));
+  dicom::Bytes item(true);
+  item.element(0x0008, 0x1150, "UI", dicom::uid("1.2.840.10008.5.1.4.1.1.4"));
+  dicom::Bytes nested;
+  nested.element(0x0008, 0x0100, "SH", "CODE01");
+  dicom::Bytes sequences(true);
+  sequences.head(0x0008, 0x1140, "SQ", dicom::kUndefined)
+      .head(0xFFFE, 0xE000, "", dicom::kUndefined).raw(item.str()).head(0xFFFE, 0xE00D, "", 0)
+      .head(0xFFFE, 0xE000, "", static_cast<std::uint32_t>(item.str().size())).raw(item.str())
+      .head(0xFFFE, 0xE0DD, "", 0)
+      .head(0x0008, 0x1250, "SQ", static_cast<std::uint32_t>(8 + item.str().size()))
+      .head(0xFFFE, 0xE000, "", static_cast<std::uint32_t>(item.str().size())).raw(item.str())
+      .head(0x0009, 0x1010, "UN", dicom::kUndefined)
+      .head(0xFFFE, 0xE000, "", static_cast<std::uint32_t>(nested.str().size())).raw(nested.str())
+      .head(0xFFFE, 0xE0DD, "", 0);
+  dicom::Slice plain;
+  plain.explicit_vr = true;
+  std::vector<std::string> with_sequences;
+  for (int k = 0; k < 3; ++k, plain.z_mm += 1.5) with_sequences.push_back(dicom::part10(dicom::kExplicit, sequences.str() + dicom::sliceDataSet(plain)));
+  c.add("fuzz_mri_dicom", "sequences", joinParts(with_sequences));
+  dicom::Bytes jpeg(true);
+  jpeg.element(0x0020, 0x000E, "UI", dicom::uid("1.2.3.4"))
+      .head(0x7FE0, 0x0010, "OB", dicom::kUndefined).head(0xFFFE, 0xE000, "", 0)
+      .head(0xFFFE, 0xE000, "", 4).raw(std::string("\xFF\xD8\xFF\xD9", 4)).head(0xFFFE, 0xE0DD, "", 0);
+  c.add("fuzz_mri_dicom", "jpeg", dicom::part10(dicom::kJpeg, jpeg.str()));
 }
 
 // ---- meshes ---------------------------------------------------------------------------------------

@@ -8,6 +8,7 @@
 #include <iterator>
 #include <limits>
 #include <string>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -187,6 +188,93 @@ TEST(MriVolume, BadInputsAreClearErrors) {
   // An unknown extension to write.
   m = messageOf([&] { writeMriVolume(dir.path("v.png"), obliqueVolume()); });
   EXPECT_NE(m.find("unknown extension"), std::string::npos) << m;
+}
+
+// NRRD and MetaImage are read by the core's parsers (image/scalar_image_io.h): every value type as
+// float, the byte order, ASCII data, detached data and a RAS space as readLabelImage takes them.
+TEST(MriVolume, NrrdAndMetaImageOfEveryValueTypeReadAsFloat) {
+  TempDir dir("breast_sim_mri_types");
+  const auto big16 = [](std::int16_t v) { return std::string{static_cast<char>((v >> 8) & 0xFF), static_cast<char>(v & 0xFF)}; };
+  std::string shorts;
+  for (int v = 0; v < 8; ++v) shorts += big16(static_cast<std::int16_t>(-300 + 100 * v));
+  writeText(dir.path("short.nrrd"), "NRRD0004\ntype: short\ndimension: 3\nsizes: 2 2 2\nendian: big\nencoding: raw\n"
+                                    "space: right-anterior-superior\nspace directions: (-1,0,0) (0,-2,0) (0,0,3)\n"
+                                    "space origin: (10,20,30)\n\n" + shorts);
+  MriVolume v = readMriVolume(dir.path("short.nrrd"));
+  EXPECT_EQ(v.info.format, "NRRD");
+  EXPECT_EQ(v.info.pixel_type, "short");
+  EXPECT_EQ(v.image.values, (std::vector<float>{-300, -200, -100, 0, 100, 200, 300, 400}));
+  EXPECT_LT((v.image.geometry.spacing_m - Eigen::Vector3d(1e-3, 2e-3, 3e-3)).norm(), 1e-12);
+  EXPECT_LT((v.image.geometry.origin_m - Eigen::Vector3d(-10e-3, -20e-3, 30e-3)).norm(), 1e-12);  // RAS to LPS
+  EXPECT_LT((v.image.geometry.direction - Eigen::Matrix3d::Identity()).norm(), 1e-12);
+  writeText(dir.path("text.nrrd"), "NRRD0004\ntype: double\ndimension: 3\nsizes: 2 1 2\nencoding: ascii\n\n0.5 -1e10\n2.25, 7\n");
+  v = readMriVolume(dir.path("text.nrrd"));
+  EXPECT_EQ(v.info.pixel_type, "double");
+  EXPECT_EQ(v.image.values, (std::vector<float>{0.5f, -1e10f, 2.25f, 7.0f}));
+  std::string longs;
+  for (int k = 0; k < 4; ++k) longs += std::string(7, '\0') + static_cast<char>(k + 1);  // uint64, most significant byte first
+  writeText(dir.path("u64.mha"), "ObjectType = Image\nNDims = 3\nDimSize = 1 2 2\nElementType = MET_ULONG_LONG\n"
+                                 "BinaryDataByteOrderMSB = True\nElementSpacing = 0.5 0.5 0.5\nElementDataFile = LOCAL\n" + longs);
+  v = readMriVolume(dir.path("u64.mha"));
+  EXPECT_EQ(v.info.format, "MetaImage");
+  EXPECT_EQ(v.info.pixel_type, "unsigned_long_long");
+  EXPECT_EQ(v.image.values, (std::vector<float>{1, 2, 3, 4}));
+  const float floats[4] = {-1.5f, 0.0f, 3.75f, 1e30f};
+  writeText(dir.path("f.raw"), std::string(reinterpret_cast<const char*>(floats), sizeof floats));
+  writeText(dir.path("f.mhd"), "ObjectType = Image\nNDims = 3\nDimSize = 2 2 1\nElementType = MET_FLOAT\nElementDataFile = f.raw\n");
+  // A volume of one slice is not an MRI; the same data as 1 x 2 x 2 is.
+  EXPECT_NE(messageOf([&] { readMriVolume(dir.path("f.mhd")); }).find("a 2-D image (2 x 2 x 1 voxels)"), std::string::npos);
+  writeText(dir.path("f.mhd"), "ObjectType = Image\nNDims = 3\nDimSize = 1 2 2\nElementType = MET_FLOAT\nElementDataFile = f.raw\n");
+  EXPECT_EQ(readMriVolume(dir.path("f.mhd")).image.values, std::vector<float>(floats, floats + 4));
+}
+
+// The inputs on which ITK's NRRD and MetaImage readers leaked (fuzz_mri_nrrd, fuzz_mri_metaimage): gzip
+// or zlib data that fail while they are read, and malformed headers. Each is a clear error naming the
+// file; the core's readers free what they allocated (the fuzz targets check it under ASan).
+TEST(MriVolume, NrrdAndMetaImageWhoseDataFailAreClearErrors) {
+  TempDir dir("breast_sim_mri_bad_data");
+  ScalarImage image = obliqueVolume();
+  writeMriVolume(dir.path("good.nrrd"), image);
+  writeMriVolume(dir.path("good.mha"), image);
+  std::string nrrd, mha;
+  {
+    std::ifstream a(dir.path("good.nrrd"), std::ios::binary), b(dir.path("good.mha"), std::ios::binary);
+    nrrd.assign(std::istreambuf_iterator<char>(a), std::istreambuf_iterator<char>());
+    mha.assign(std::istreambuf_iterator<char>(b), std::istreambuf_iterator<char>());
+  }
+  const std::size_t nrrd_data = nrrd.find("\n\n") + 2, mha_data = mha.find("ElementDataFile = LOCAL\n") + 24;
+  ASSERT_LT(nrrd_data, nrrd.size());
+  ASSERT_LT(mha_data, mha.size());
+  struct Case {
+    const char* name;
+    std::string bytes;
+    std::vector<std::string> says;
+  };
+  std::string corrupt_nrrd = nrrd, corrupt_mha = mha;
+  for (std::size_t i = nrrd_data + 20; i < nrrd.size(); i += 7) corrupt_nrrd[i] = static_cast<char>(corrupt_nrrd[i] ^ 0x5A);
+  for (std::size_t i = mha_data + 10; i < mha.size(); i += 7) corrupt_mha[i] = static_cast<char>(corrupt_mha[i] ^ 0x5A);
+  const std::string values = std::to_string(9 * 7 * 6 * 4);
+  const std::vector<Case> cases = {
+      {"truncated.nrrd", nrrd.substr(0, nrrd_data + (nrrd.size() - nrrd_data) / 2),
+       {"voxel data is truncated: expected " + values + " bytes after decompression"}},
+      {"corrupt.nrrd", corrupt_nrrd, {"compressed data is corrupt (zlib:"}},
+      {"truncated.mha", mha.substr(0, mha_data + (mha.size() - mha_data) / 2), {"compressed voxel data is truncated"}},
+      {"corrupt.mha", corrupt_mha, {"compressed data is corrupt (zlib:"}},
+      {"comma.mha", mha.substr(0, mha_data - 7) + ",LOCAL\n" + mha.substr(mha_data), {"data file:", ",LOCAL"}},
+      {"rgb.nrrd", "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 3 4 4\nkinds: RGB-color domain domain\nencoding: raw\n\n" +
+                       std::string(48, '\1'), {"voxels of 3 components", "scalar (magnitude) image"}},
+      {"time.nrrd", "NRRD0004\ntype: uint8\ndimension: 4\nsizes: 2 2 2 3\nencoding: raw\n\n" + std::string(24, '\1'),
+       {"a 4-D image (2 x 2 x 2 x 3 voxels: several volumes"}},
+      {"flat.nrrd", "NRRD0004\ntype: uint8\ndimension: 2\nsizes: 8 8\nencoding: raw\n\n" + std::string(64, '\1'),
+       {"a 2-D image (8 x 8 voxels)"}},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.name);
+    writeText(dir.path(c.name), c.bytes);
+    const std::string m = messageOf([&] { readMriVolume(dir.path(c.name)); });
+    EXPECT_EQ(m.rfind(dir.path(c.name) + ": ", 0), 0u) << m;
+    for (const std::string& part : c.says) EXPECT_NE(m.find(part), std::string::npos) << "missing '" << part << "' in: " << m;
+  }
 }
 
 // ITK's NIfTI reader aborts the process (vnl's SVD) on an orientation that is not finite

@@ -418,19 +418,6 @@ bool hostIsBigEndian() {
 
 namespace {
 
-template <typename T>
-T loadValue(const char* p, bool swap) {
-  T v;
-  if (!swap) {
-    std::memcpy(&v, p, sizeof(T));
-  } else {
-    char b[sizeof(T)];
-    for (std::size_t i = 0; i < sizeof(T); ++i) b[i] = p[sizeof(T) - 1 - i];
-    std::memcpy(&v, b, sizeof(T));
-  }
-  return v;
-}
-
 std::string formatValue(double v) {
   std::ostringstream s;
   s.precision(12);
@@ -514,41 +501,68 @@ void decodeLabels(const char* bytes, ScalarType type, bool big_endian, const Eig
   }
 }
 
-void decodeAsciiLabels(const char* begin, const char* end, const Eigen::Vector3i& size,
-                       const std::string& path, std::vector<std::uint16_t>& labels) {
-  const long n = static_cast<long>(size.x()) * size.y() * size.z();
-  // Each value takes a digit and a separator (the last none): checked before the labels are
+void requireAsciiRoom(const char* begin, const char* end, long count, const std::string& path) {
+  // Each value takes a digit and a separator (the last none): checked before the values are
   // allocated, so a header cannot claim 2^31 values over a few bytes of text.
   const std::size_t most = (static_cast<std::size_t>(end - begin) + 1) / 2;
-  if (static_cast<std::size_t>(n) > most) {
-    fail(path, "ASCII voxel data is truncated: expected " + std::to_string(n) + " values, but its " +
+  if (static_cast<std::size_t>(count) > most) {
+    fail(path, "ASCII voxel data is truncated: expected " + std::to_string(count) + " values, but its " +
                    std::to_string(end - begin) + " bytes hold at most " + std::to_string(most));
   }
-  labels.resize(static_cast<std::size_t>(n));
+}
+
+void forEachAsciiValue(const char* begin, const char* end, long count, const std::string& path,
+                       const std::function<void(long index, double value)>& take) {
   const std::string text(begin, end);  // NUL-terminated for strtod
   const char* p = text.c_str();
   const char* stop = p + text.size();
-  long count = 0;
+  long found = 0;
   for (;;) {
     while (p < stop && (std::isspace(static_cast<unsigned char>(*p)) || *p == ',')) ++p;
     if (p >= stop) break;
     char* after = nullptr;
     const double d = std::strtod(p, &after);
     if (after == p) {
-      fail(path, "ASCII voxel data: value " + std::to_string(count + 1) + " ('" +
+      fail(path, "ASCII voxel data: value " + std::to_string(found + 1) + " ('" +
                      std::string(p, std::min<std::size_t>(20, stop - p)) + "') is not a number");
     }
-    if (count == n) {
-      fail(path, "ASCII voxel data has more than the expected " + std::to_string(n) + " values");
+    if (found == count) {
+      fail(path, "ASCII voxel data has more than the expected " + std::to_string(count) + " values");
     }
-    if (!(d >= 0.0 && d <= 65535.0 && d == std::floor(d))) badLabel(path, size, count, formatValue(d));
-    labels[count++] = static_cast<std::uint16_t>(d);
+    take(found++, d);
     p = after;
   }
-  if (count < n) {
-    fail(path, "ASCII voxel data is truncated: expected " + std::to_string(n) + " values, found " +
-                   std::to_string(count));
+  if (found < count) {
+    fail(path, "ASCII voxel data is truncated: expected " + std::to_string(count) + " values, found " +
+                   std::to_string(found));
   }
+}
+
+void decodeAsciiLabels(const char* begin, const char* end, const Eigen::Vector3i& size,
+                       const std::string& path, std::vector<std::uint16_t>& labels) {
+  const long n = static_cast<long>(size.x()) * size.y() * size.z();
+  requireAsciiRoom(begin, end, n, path);
+  labels.resize(static_cast<std::size_t>(n));
+  forEachAsciiValue(begin, end, n, path, [&](long index, double d) {
+    if (!(d >= 0.0 && d <= 65535.0 && d == std::floor(d))) badLabel(path, size, index, formatValue(d));
+    labels[index] = static_cast<std::uint16_t>(d);
+  });
+}
+
+VoxelSink labelSink(const std::string& path, LabelImage& image) {
+  VoxelSink sink;
+  sink.shape = [path](const ImageFileShape&, const std::string& not_a_volume) {
+    if (!not_a_volume.empty()) {
+      fail(path, not_a_volume + "; only 3-D label images of one value per voxel are supported");
+    }
+  };
+  sink.binary = [path, &image](const char* bytes, ScalarType type, bool big_endian, const Eigen::Vector3i& size) {
+    decodeLabels(bytes, type, big_endian, size, path, image.labels);
+  };
+  sink.ascii = [path, &image](const char* begin, const char* end, ScalarType, const Eigen::Vector3i& size) {
+    decodeAsciiLabels(begin, end, size, path, image.labels);
+  };
+  return sink;
 }
 
 ScalarType narrowestLabelType(const LabelImage& image) {

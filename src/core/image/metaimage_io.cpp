@@ -27,13 +27,16 @@ bool metaType(const std::string& name, ScalarType& type) {
   return true;
 }
 
+/// A bound on NDims, so a header's per-axis lists stay short (NRRD allows 16 axes, as here).
+constexpr long kMaxMetaDimension = 16;
+
 const char* metaTypeName(ScalarType type) {
   return type == ScalarType::kUint8 ? "MET_UCHAR" : "MET_USHORT";
 }
 
 }  // namespace
 
-LabelImage readMetaImage(const std::string& path) {
+void readMetaImage(const std::string& path, LabelImage& image, const VoxelSink& sink) {
   const std::string file = readFileBytes(path);
 
   // ---- header: "Key = Value" lines up to and including ElementDataFile ----
@@ -86,6 +89,14 @@ LabelImage readMetaImage(const std::string& path) {
     if (b == "false" || b == "0") return false;
     fail(path, "header field '" + key + "' is " + quoted(*v) + "; expected True or False");
   };
+  if (const std::string* ot = get("ObjectType"); ot != nullptr && toLower(*ot) != "image") {
+    fail(path, "header field 'ObjectType' is " + quoted(*ot) + "; expected Image");
+  }
+  long ndims = 0;
+  if (!parseLong(require("NDims"), ndims) || ndims < 1 || ndims > kMaxMetaDimension) {
+    fail(path, "header field 'NDims' is " + quoted(require("NDims")) + "; expected an integer from 1 to " +
+                   std::to_string(kMaxMetaDimension));
+  }
   // n numbers of a field; `alias` fields are tried in order after `key`.
   const auto numbers = [&](std::vector<std::string> keys, std::size_t n,
                            std::vector<double>& out) -> bool {
@@ -95,7 +106,7 @@ LabelImage readMetaImage(const std::string& path) {
       const std::vector<std::string> words = splitWords(*v);
       if (words.size() != n) {
         fail(path, "header field '" + key + "' has " + std::to_string(words.size()) +
-                       " values, expected " + std::to_string(n) + " (NDims: 3)");
+                       " values, expected " + std::to_string(n) + " (NDims: " + std::to_string(ndims) + ")");
       }
       out.resize(n);
       for (std::size_t i = 0; i < n; ++i) {
@@ -109,20 +120,14 @@ LabelImage readMetaImage(const std::string& path) {
     return false;
   };
 
-  if (const std::string* ot = get("ObjectType"); ot != nullptr && toLower(*ot) != "image") {
-    fail(path, "header field 'ObjectType' is " + quoted(*ot) + "; expected Image");
-  }
-  long ndims = 0;
-  if (!parseLong(require("NDims"), ndims) || ndims != 3) {
-    fail(path, "header field 'NDims' is " + quoted(require("NDims")) +
-                   "; only 3-D label images are supported");
-  }
+  ImageFileShape shape;
+  std::string not_a_volume;
   if (const std::string* ch = get("ElementNumberOfChannels")) {
-    long c = 0;
-    if (!parseLong(*ch, c) || c != 1) {
+    if (!parseLong(*ch, shape.components) || shape.components < 1 || shape.components > INT_MAX) {
       fail(path, "header field 'ElementNumberOfChannels' is " + quoted(*ch) +
-                   "; a label image has 1 channel");
+                     "; expected an integer from 1 to " + std::to_string(INT_MAX));
     }
+    if (shape.components != 1) not_a_volume = "header field 'ElementNumberOfChannels' is " + std::to_string(shape.components);
   }
   ScalarType type = ScalarType::kUint8;
   if (!metaType(trim(require("ElementType")), type)) {
@@ -131,16 +136,21 @@ LabelImage readMetaImage(const std::string& path) {
                    "MET_ULONG, MET_LONG, MET_ULONG_LONG, MET_LONG_LONG, MET_FLOAT, MET_DOUBLE");
   }
 
-  LabelImage image;
   std::vector<double> v;
-  if (!numbers({"DimSize"}, 3, v)) fail(path, "header field 'DimSize' is missing");
-  for (int a = 0; a < 3; ++a) {
-    if (!(v[a] >= 1 && v[a] <= INT_MAX) || v[a] != std::floor(v[a])) {
-      fail(path, "header field 'DimSize' value " + formatNumber(v[a]) +
-                     " is not an integer from 1 to " + std::to_string(INT_MAX));
+  if (!numbers({"DimSize"}, static_cast<std::size_t>(ndims), v)) fail(path, "header field 'DimSize' is missing");
+  for (const double d : v) {
+    if (!(d >= 1 && d <= INT_MAX) || d != std::floor(d)) {
+      fail(path, "header field 'DimSize' value " + formatNumber(d) + " is not an integer from 1 to " +
+                     std::to_string(INT_MAX));
     }
-    image.size(a) = static_cast<int>(v[a]);
+    shape.sizes.push_back(static_cast<long>(d));
   }
+  if (not_a_volume.empty() && ndims != 3) not_a_volume = "header field 'NDims' is " + std::to_string(ndims);
+  if (sink.shape) sink.shape(shape, not_a_volume);
+  if (!not_a_volume.empty()) {
+    fail(path, not_a_volume + "; only 3-D images of one value per voxel are supported");
+  }
+  for (int a = 0; a < 3; ++a) image.size(a) = static_cast<int>(shape.sizes[a]);
   // Each size may fit while their product wraps (4194304·2097152·2097152 = 2^64 → 0 voxels).
   const std::int64_t num_voxels = requireVoxelCount(image.size, path, "DimSize", require("DimSize"));
   Eigen::Vector3d spacing_mm(1, 1, 1);
@@ -211,8 +221,7 @@ LabelImage readMetaImage(const std::string& path) {
   const std::string what = std::to_string(image.size.x()) + "×" + std::to_string(image.size.y()) +
                            "×" + std::to_string(image.size.z()) + " " + scalarName(type) + " values";
   if (!binary) {
-    decodeAsciiLabels(source->data() + begin, source->data() + source->size(), image.size, path,
-                      image.labels);
+    sink.ascii(source->data() + begin, source->data() + source->size(), type, image.size);
   } else if (compressed) {
     std::size_t n = source->size() - begin;
     if (const std::string* cs = get("CompressedDataSize")) {
@@ -232,7 +241,7 @@ LabelImage readMetaImage(const std::string& path) {
                      " bytes after decompression (" + what + "), found " +
                      std::to_string(raw.size()));
     }
-    decodeLabels(raw.data(), type, big_endian, image.size, path, image.labels);
+    sink.binary(raw.data(), type, big_endian, image.size);
   } else {
     const std::size_t available = source->size() - begin;
     if (available < expected) {
@@ -241,8 +250,13 @@ LabelImage readMetaImage(const std::string& path) {
     }
     // HeaderSize = -1: the data are the last bytes of the data file.
     if (header_size == -1) begin = source->size() - expected;
-    decodeLabels(source->data() + begin, type, big_endian, image.size, path, image.labels);
+    sink.binary(source->data() + begin, type, big_endian, image.size);
   }
+}
+
+LabelImage readMetaImage(const std::string& path) {
+  LabelImage image;
+  readMetaImage(path, image, labelSink(path, image));
   return image;
 }
 

@@ -1,6 +1,8 @@
 // NRRD reader and writer (http://teem.sourceforge.net/nrrd/format.html, NRRD0001–NRRD0005).
 
+#include <algorithm>
 #include <climits>
+#include <iterator>
 #include <cmath>
 #include <map>
 #include <sstream>
@@ -95,6 +97,22 @@ bool unitScale(std::string unit, double& scale) {
   return true;
 }
 
+/// Teem's NRRD_DIM_MAX.
+constexpr long kMaxNrrdDimension = 16;
+
+/// Whether a NRRD axis kind is a range kind (the axis holds the values of one voxel) rather than a
+/// domain kind (domain, space, time) or unknown (???, none).
+bool isRangeKind(const std::string& kind) {
+  static const char* const kRange[] = {
+      "list", "point", "vector", "covariant-vector", "normal", "stub", "scalar", "complex", "2-vector",
+      "3-color", "rgb-color", "hsv-color", "xyz-color", "4-color", "rgba-color", "3-vector",
+      "3-gradient", "3-normal", "4-vector", "quaternion", "2d-symmetric-matrix",
+      "2d-masked-symmetric-matrix", "2d-matrix", "2d-masked-matrix", "3d-symmetric-matrix",
+      "3d-masked-symmetric-matrix", "3d-matrix", "3d-masked-matrix"};
+  const std::string k = toLower(kind);
+  return std::any_of(std::begin(kRange), std::end(kRange), [&](const char* r) { return k == r; });
+}
+
 std::string sizeText(const Eigen::Vector3i& size, ScalarType type) {
   return std::to_string(size.x()) + "×" + std::to_string(size.y()) + "×" + std::to_string(size.z()) +
          " " + scalarName(type) + " values";
@@ -102,7 +120,7 @@ std::string sizeText(const Eigen::Vector3i& size, ScalarType type) {
 
 }  // namespace
 
-LabelImage readNrrd(const std::string& path) {
+void readNrrd(const std::string& path, LabelImage& image, const VoxelSink& sink) {
   const std::string file = readFileBytes(path);
   if (file.compare(0, 7, "NRRD000") != 0) {
     fail(path, "not a NRRD file: it does not start with the magic 'NRRD000x'");
@@ -153,14 +171,14 @@ LabelImage readNrrd(const std::string& path) {
     return *v;
   };
 
-  // ---- dimension, type, sizes, encoding, endian ----
+  // ---- dimension, type, sizes, kinds: the shape, before anything else ----
   long dimension = 0;
   if (!parseLong(require("dimension"), dimension)) {
     fail(path, "header field 'dimension' is " + quoted(require("dimension")) + ", not an integer");
   }
-  if (dimension != 3) {
-    fail(path, "header field 'dimension' is " + std::to_string(dimension) +
-                   "; only 3-D label images are supported");
+  if (dimension < 1 || dimension > kMaxNrrdDimension) {
+    fail(path, "header field 'dimension' is " + std::to_string(dimension) + "; NRRD allows 1 to " +
+                   std::to_string(kMaxNrrdDimension));
   }
   ScalarType type = ScalarType::kUint8;
   if (!nrrdType(toLower(require("type")), type)) {
@@ -168,20 +186,46 @@ LabelImage readNrrd(const std::string& path) {
                    "; supported: int8, uint8, int16, uint16, int32, uint32, int64, uint64, float, "
                    "double");
   }
+  const std::string dim_text = " (dimension: " + std::to_string(dimension) + ")";
   const std::vector<std::string> size_words = splitWords(require("sizes"));
-  if (size_words.size() != 3) {
-    fail(path, "header field 'sizes' has " + std::to_string(size_words.size()) +
-                   " values, expected 3 (dimension: 3)");
+  if (static_cast<long>(size_words.size()) != dimension) {
+    fail(path, "header field 'sizes' has " + std::to_string(size_words.size()) + " values, expected " +
+                   std::to_string(dimension) + dim_text);
   }
-  LabelImage image;
-  for (int a = 0; a < 3; ++a) {
-    long s = 0;
-    if (!parseLong(size_words[a], s) || s < 1 || s > INT_MAX) {
+  std::vector<long> sizes(size_words.size());
+  for (std::size_t a = 0; a < sizes.size(); ++a) {
+    if (!parseLong(size_words[a], sizes[a]) || sizes[a] < 1 || sizes[a] > INT_MAX) {
       fail(path, "header field 'sizes' value " + quoted(size_words[a]) +
                      " is not an integer from 1 to " + std::to_string(INT_MAX));
     }
-    image.size(a) = static_cast<int>(s);
   }
+  // Axes of a range kind hold the values of one voxel (an RGB colour, a vector); the others are the
+  // image's axes.
+  ImageFileShape shape;
+  std::string not_a_volume;
+  const std::string* kinds = get("kinds");
+  const std::vector<std::string> kind_words = kinds != nullptr ? splitWords(*kinds) : std::vector<std::string>{};
+  if (kinds != nullptr && static_cast<long>(kind_words.size()) != dimension) {
+    fail(path, "header field 'kinds' has " + std::to_string(kind_words.size()) + " values, expected " +
+                   std::to_string(dimension) + dim_text);
+  }
+  for (std::size_t a = 0; a < sizes.size(); ++a) {
+    if (kinds != nullptr && isRangeKind(kind_words[a])) {
+      shape.components = std::min(shape.components * sizes[a], 1L << 40);  // only ever reported
+      not_a_volume = "header field 'kinds' is " + quoted(*kinds) + ": axis " + std::to_string(a) +
+                     " holds the values of a voxel (" + kind_words[a] + ")";
+    } else {
+      shape.sizes.push_back(sizes[a]);
+    }
+  }
+  if (not_a_volume.empty() && dimension != 3) {
+    not_a_volume = "header field 'dimension' is " + std::to_string(dimension);
+  }
+  if (sink.shape) sink.shape(shape, not_a_volume);
+  if (!not_a_volume.empty()) {
+    fail(path, not_a_volume + "; only 3-D images of one value per voxel are supported");
+  }
+  for (int a = 0; a < 3; ++a) image.size(a) = static_cast<int>(sizes[a]);
   // Each size may fit while their product wraps (4194304·2097152·2097152 = 2^64 → 0 voxels).
   const std::int64_t num_voxels = requireVoxelCount(image.size, path, "sizes", require("sizes"));
   const std::string encoding = toLower(require("encoding"));
@@ -244,7 +288,7 @@ LabelImage readNrrd(const std::string& path) {
     for (int a = 0; a < 3; ++a) {
       if (vectors[a].empty()) {
         fail(path, "header field 'space directions' gives 'none' for axis " + std::to_string(a) +
-                       "; a 3-D label image needs three spatial axes");
+                       "; a 3-D image needs three spatial axes");
       }
       if (vectors[a].size() != 3) {
         fail(path, "header field 'space directions' vector " + std::to_string(a) + " has " +
@@ -356,8 +400,7 @@ LabelImage readNrrd(const std::string& path) {
   const std::size_t expected = static_cast<std::size_t>(num_voxels) * scalarSize(type);
   if (ascii) {
     if (byte_skip != 0) fail(path, "header field 'byte skip' is not valid with ascii encoding");
-    decodeAsciiLabels(source->data() + begin, source->data() + source->size(), image.size, path,
-                      image.labels);
+    sink.ascii(source->data() + begin, source->data() + source->size(), type, image.size);
   } else if (gzip) {
     if (byte_skip < 0) fail(path, "header field 'byte skip' is -1, which only raw encoding allows");
     const std::size_t skip = static_cast<std::size_t>(byte_skip);
@@ -369,7 +412,7 @@ LabelImage readNrrd(const std::string& path) {
                      (skip > 0 ? " after a byte skip of " + std::to_string(skip) : std::string()) +
                      "), found " + std::to_string(raw.size()));
     }
-    decodeLabels(raw.data() + skip, type, big_endian, image.size, path, image.labels);
+    sink.binary(raw.data() + skip, type, big_endian, image.size);
   } else {
     const std::size_t available = source->size() - begin;
     if (byte_skip == -1) {
@@ -387,8 +430,13 @@ LabelImage readNrrd(const std::string& path) {
       }
       begin += skip;
     }
-    decodeLabels(source->data() + begin, type, big_endian, image.size, path, image.labels);
+    sink.binary(source->data() + begin, type, big_endian, image.size);
   }
+}
+
+LabelImage readNrrd(const std::string& path) {
+  LabelImage image;
+  readNrrd(path, image, labelSink(path, image));
   return image;
 }
 

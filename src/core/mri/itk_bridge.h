@@ -24,14 +24,22 @@ struct Grid {
 struct Volume {
   Grid grid;
   std::vector<float> values;
-  std::string format;              ///< "NIfTI", "NRRD", "MetaImage", "DICOM"
-  std::string series_uid, series_description, pixel_type;
-  int files = 1;
+  std::string format;              ///< "NIfTI"
+  std::string pixel_type;          ///< ITK's name of the stored type, e.g. "short"
 };
 
+// ---- mri_volume.cpp, for the ITK sources ----
+/// readMriVolume's check of the sizes a header gives (all its axes), before anything is allocated: 3-D
+/// (a 2-D image, a volume of one slice or several volumes are errors) and at most `max_voxels`.
+/// @throws std::runtime_error naming `path` and the fix.
+void checkVolumeSize(const std::string& path, const std::vector<long>& sizes, long max_voxels);
+
 // ---- mri_volume_itk.cpp ----
-/// See readMriVolume (mri_volume.h): the same checks on headers, sizes and DICOM slices.
-Volume readVolume(const std::string& path, const std::string& series_uid, long max_voxels, double slice_tolerance);
+/// Whether ITK's NIfTI ImageIO takes the file (by its name and header).
+bool isNifti(const std::string& path);
+/// A NIfTI file, its header checked first (see readMriVolume, mri_volume.h).
+Volume readNifti(const std::string& path, long max_voxels);
+
 /// Writes float voxels; format by extension (.nii, .nii.gz, .nrrd, .mha), atomically (rename).
 void writeVolume(const std::string& path, const Grid& grid, const std::vector<float>& values);
 

@@ -1,8 +1,8 @@
-// Reading and writing MRI volumes through ITK, behind plain types (itk_bridge.h). One of the two
-// sources that compile ITK's headers (mri_filters_itk.cpp is the other); it includes no Eigen (see
-// itk_bridge.h). Each format's ImageIO is created here by name rather than through ITK's factory, so
-// only the four formats of the contract are accepted: ITK would otherwise read a PNG or a JPEG as a
-// 2-D "MRI". Headers are read and checked before any voxel is allocated.
+// Reading NIfTI files and writing volumes and DICOM series through ITK, behind plain types
+// (itk_bridge.h). One of the two sources that compile ITK's headers (mri_filters_itk.cpp is the other);
+// it includes no Eigen (see itk_bridge.h). The NIfTI ImageIO is created by name rather than through
+// ITK's factory, so nothing else (a PNG, a JPEG) is taken for an MRI; its header is checked before any
+// voxel is allocated. NRRD, MetaImage and DICOM are read by the core (mri_volume.cpp says why).
 #include "itk_image.h"
 
 #include <algorithm>
@@ -13,7 +13,6 @@
 #include <cstring>
 #include <filesystem>
 #include <memory>
-#include <sstream>
 #include <stdexcept>
 #include <string>
 #include <system_error>
@@ -23,11 +22,9 @@
 #include <zlib.h>
 
 #include <itkGDCMImageIO.h>
-#include <itkGDCMSeriesFileNames.h>
 #include <itkImage.h>
 #include <itkImageFileReader.h>
 #include <itkImageFileWriter.h>
-#include <itkImageSeriesReader.h>
 #include <itkImageSeriesWriter.h>
 #include <itkMetaDataObject.h>
 #include <itkMetaImageIO.h>
@@ -42,13 +39,6 @@ namespace fs = std::filesystem;
 using FloatImage = itk::Image<float, 3>;
 
 [[noreturn]] void fail(const std::string& path, const std::string& what) { throw std::runtime_error(path + ": " + what); }
-
-std::string fmt(double v, int precision = 3) {
-  std::ostringstream s;
-  s.precision(precision);
-  s << std::fixed << v;
-  return s.str();
-}
 
 std::string lower(std::string s) {
   std::transform(s.begin(), s.end(), s.begin(), [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
@@ -69,58 +59,17 @@ void quietItk() {
   (void)done;
 }
 
-struct Candidate {
-  itk::ImageIOBase::Pointer io;
-  std::string format;
-};
-
-// The ImageIO of a single file among NIfTI, NRRD and MetaImage, decided by content (CanReadFile).
-Candidate fileImageIo(const std::string& path) {
-  Candidate c;
-  if (auto io = itk::NiftiImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "NIfTI"};
-  else if (auto io = itk::NrrdImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "NRRD"};
-  else if (auto io = itk::MetaImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "MetaImage"};
-  else if (auto io = itk::GDCMImageIO::New(); io->CanReadFile(path.c_str())) c = {io, "DICOM"};
-  return c;
-}
-
-const char* kFormats = "NIfTI (.nii, .nii.gz), NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd) or a folder of DICOM files";
-
-std::string sizeText(const std::vector<long>& size) {
-  std::string s;
-  for (std::size_t d = 0; d < size.size(); ++d) s += (d ? " x " : "") + std::to_string(size[d]);
-  return s;
-}
-
-// Checks what a header says before anything is allocated: 3-D, scalar, not too large.
+// Checks what a header says before anything is allocated: scalar, 3-D, not too large.
 void checkHeader(const std::string& path, itk::ImageIOBase& io, long max_voxels) {
-  const unsigned dims = io.GetNumberOfDimensions();
-  std::vector<long> size;
-  for (unsigned d = 0; d < dims; ++d) size.push_back(static_cast<long>(io.GetDimensions(d)));
-  if (dims < 3 || size[2] <= 1)
-    fail(path, "a 2-D image (" + sizeText(size) +
-                   " voxels); the MRI must be a 3-D volume: give the folder of the whole DICOM series or a 3-D "
-                   "NIfTI/NRRD export");
-  for (unsigned d = 3; d < dims; ++d)
-    if (size[d] > 1)
-      fail(path, "a " + std::to_string(dims) + "-D image (" + sizeText(size) +
-                     " voxels: several volumes, e.g. a time series); give one 3-D volume (export a single time point)");
   const unsigned components = io.GetNumberOfComponents();
   const auto pixel = io.GetPixelType();
   if (components != 1 || (pixel != itk::IOPixelEnum::SCALAR && pixel != itk::IOPixelEnum::UNKNOWNPIXELTYPE))
     fail(path, "voxels of type " + itk::ImageIOBase::GetPixelTypeAsString(pixel) + " with " + std::to_string(components) +
                    " components; the MRI must be a scalar (magnitude) image: export the magnitude, not RGB, vector "
                    "or complex data");
-  // Overflow-safe: stop multiplying once past the cap.
-  long voxels = 1;
-  for (int d = 0; d < 3; ++d) {
-    if (size[d] < 1) fail(path, "the header gives a size of " + std::to_string(size[d]) + " voxels along axis " + std::to_string(d));
-    if (voxels > max_voxels / size[d])
-      fail(path, "the header gives " + sizeText({size[0], size[1], size[2]}) + " voxels, more than the " +
-                     std::to_string(max_voxels) + " accepted (MriReadOptions::max_voxels); a damaged header, or crop or "
-                     "resample the volume first");
-    voxels *= size[d];
-  }
+  std::vector<long> size;
+  for (unsigned d = 0; d < io.GetNumberOfDimensions(); ++d) size.push_back(static_cast<long>(io.GetDimensions(d)));
+  checkVolumeSize(path, size, max_voxels);
 }
 
 Volume fromItk(const FloatImage& image) {
@@ -134,13 +83,6 @@ Volume fromItk(const FloatImage& image) {
   const float* src = image.GetBufferPointer();
   out.values.assign(src, src + out.grid.count());
   return out;
-}
-
-std::string dictionaryString(const itk::MetaDataDictionary& dict, const std::string& key) {
-  std::string v;
-  itk::ExposeMetaData<std::string>(dict, key, v);
-  while (!v.empty() && (v.back() == ' ' || v.back() == '\0')) v.pop_back();
-  return v;
 }
 
 // ITK's NiftiImageIO turns the header's qform or sform into a direction matrix with vnl's SVD, which
@@ -193,201 +135,44 @@ void checkNiftiHeaderNumbers(const std::string& path) {
   }
 }
 
-Volume readSingleFile(const std::string& path, Candidate c, long max_voxels) {
-  if (c.format == "NIfTI") checkNiftiHeaderNumbers(path);
+}  // namespace
+
+bool isNifti(const std::string& path) {
+  quietItk();
+  return itk::NiftiImageIO::New()->CanReadFile(path.c_str());
+}
+
+Volume readNifti(const std::string& path, long max_voxels) {
+  quietItk();
+  checkNiftiHeaderNumbers(path);
+  auto io = itk::NiftiImageIO::New();
   try {
-    c.io->SetFileName(path);
-    c.io->ReadImageInformation();
+    io->SetFileName(path);
+    io->ReadImageInformation();
   } catch (const itk::ExceptionObject& e) {
-    fail(path, "cannot read the " + c.format + " header: " + e.GetDescription());
+    fail(path, std::string("cannot read the NIfTI header: ") + e.GetDescription());
   }
-  checkHeader(path, *c.io, max_voxels);
+  checkHeader(path, *io, max_voxels);
   auto reader = itk::ImageFileReader<FloatImage>::New();
-  reader->SetImageIO(c.io);
+  reader->SetImageIO(io);
   reader->SetFileName(path);
   try {
     reader->Update();
   } catch (const itk::ExceptionObject& e) {
-    fail(path, "cannot read the " + c.format + " voxels (truncated or damaged file?): " + e.GetDescription());
+    fail(path, std::string("cannot read the NIfTI voxels (truncated or damaged file?): ") + e.GetDescription());
   }
   Volume out = fromItk(*reader->GetOutput());
-  out.format = c.format;
-  out.pixel_type = itk::ImageIOBase::GetComponentTypeAsString(c.io->GetComponentType());
+  out.format = "NIfTI";
+  out.pixel_type = itk::ImageIOBase::GetComponentTypeAsString(io->GetComponentType());
   return out;
 }
+
+namespace {
 
 using Vec3 = std::array<double, 3>;
 double dot(const Vec3& a, const Vec3& b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 Vec3 cross(const Vec3& a, const Vec3& b) {
   return {a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]};
-}
-Vec3 minus(const Vec3& a, const Vec3& b) { return {a[0] - b[0], a[1] - b[1], a[2] - b[2]}; }
-
-// One slice file's header.
-struct SliceHeader {
-  std::string file;
-  Vec3 position_mm{};     // ImagePositionPatient
-  Vec3 row{}, column{};   // ImageOrientationPatient: the directions of axes i and j
-  double spacing_mm[2] = {1, 1};  // along i, along j
-  long columns = 0, rows = 0, frames = 0;
-};
-
-Volume readDicomSeries(const std::string& folder, std::string uid, long max_voxels, double tolerance) {
-  auto names = itk::GDCMSeriesFileNames::New();
-  names->SetUseSeriesDetails(false);
-  std::vector<std::string> uids;
-  try {
-    names->SetDirectory(folder);
-    uids = names->GetSeriesUIDs();
-  } catch (const itk::ExceptionObject& e) {
-    fail(folder, std::string("cannot scan the folder for DICOM files: ") + e.GetDescription());
-  }
-  if (uids.empty())
-    fail(folder, std::string("no DICOM image in this folder; give a folder holding one DICOM series, or a file in ") + kFormats);
-  const auto listSeries = [&] {
-    std::string s;
-    for (const std::string& u : uids) s += "\n  " + u + " (" + std::to_string(names->GetFileNames(u).size()) + " files)";
-    return s;
-  };
-  if (uid.empty()) {
-    if (uids.size() > 1)
-      fail(folder, "holds " + std::to_string(uids.size()) + " DICOM series; name the one to read by its series UID "
-                   "(MriReadOptions::series_uid, --series-uid):" + listSeries());
-    uid = uids.front();
-  } else if (std::find(uids.begin(), uids.end(), uid) == uids.end()) {
-    fail(folder, "holds no DICOM series with UID " + uid + "; the series here are:" + listSeries());
-  }
-  const std::vector<std::string> files = names->GetFileNames(uid);
-  const std::string where = folder + " (series " + uid + ")";
-
-  // Every slice's header first: sizes, orientation and positions are checked before the voxels are read.
-  std::vector<SliceHeader> slices;
-  std::string description;
-  for (const std::string& f : files) {
-    auto io = itk::GDCMImageIO::New();
-    try {
-      io->SetFileName(f);
-      io->ReadImageInformation();
-    } catch (const itk::ExceptionObject& e) {
-      fail(f, std::string("cannot read this DICOM file of ") + where + ": " + e.GetDescription());
-    }
-    if (io->GetNumberOfComponents() != 1)
-      fail(f, "voxels with " + std::to_string(io->GetNumberOfComponents()) +
-                  " components (e.g. RGB); the MRI must be a scalar (magnitude) image");
-    SliceHeader h;
-    h.file = f;
-    h.columns = static_cast<long>(io->GetDimensions(0));
-    h.rows = static_cast<long>(io->GetDimensions(1));
-    h.frames = io->GetNumberOfDimensions() > 2 ? static_cast<long>(io->GetDimensions(2)) : 1;
-    for (int r = 0; r < 3; ++r) {
-      h.position_mm[r] = io->GetOrigin(r);
-      h.row[r] = io->GetDirection(0)[r];
-      h.column[r] = io->GetDirection(1)[r];
-    }
-    h.spacing_mm[0] = io->GetSpacing(0);
-    h.spacing_mm[1] = io->GetSpacing(1);
-    if (description.empty()) description = dictionaryString(io->GetMetaDataDictionary(), "0008|103e");
-    slices.push_back(h);
-  }
-  const SliceHeader first = slices.front();
-  if (slices.size() == 1) {
-    if (first.frames > 1) {  // one multi-frame file is the whole volume
-      Volume v = readSingleFile(first.file, {itk::GDCMImageIO::New(), "DICOM"}, max_voxels);
-      v.series_uid = uid;
-      v.series_description = description;
-      return v;
-    }
-    fail(where, "a 2-D image (one slice of " + std::to_string(first.columns) + " x " + std::to_string(first.rows) +
-                    " voxels); the MRI must be a 3-D volume: copy the whole series into the folder");
-  }
-  const auto differs = [](const Vec3& a, const Vec3& b) {
-    return std::max({std::abs(a[0] - b[0]), std::abs(a[1] - b[1]), std::abs(a[2] - b[2])}) > 1e-4;
-  };
-  for (const SliceHeader& h : slices) {
-    if (h.frames != 1)
-      fail(h.file, "a multi-frame DICOM file (" + std::to_string(h.frames) + " frames) in a series of " +
-                       std::to_string(slices.size()) + " files; give a folder of single-slice files or the one multi-frame file");
-    if (h.columns != first.columns || h.rows != first.rows)
-      fail(h.file, "a slice of " + std::to_string(h.columns) + " x " + std::to_string(h.rows) + " voxels in " + where +
-                       " whose first slice has " + std::to_string(first.columns) + " x " + std::to_string(first.rows) +
-                       "; the series mixes acquisitions: give the series UID of one of them");
-    if (differs(h.row, first.row) || differs(h.column, first.column))
-      fail(h.file, "a slice orientation (ImageOrientationPatient) that differs from the first slice's in " + where +
-                       "; the series mixes acquisitions (e.g. a localizer): give the series UID of one of them");
-    if (std::abs(h.spacing_mm[0] - first.spacing_mm[0]) + std::abs(h.spacing_mm[1] - first.spacing_mm[1]) >
-        1e-4 * std::max(first.spacing_mm[0], first.spacing_mm[1]))
-      fail(h.file, "a pixel spacing that differs from the first slice's in " + where);
-  }
-  // Sort along the normal and check the spacing.
-  Vec3 normal = cross(first.row, first.column);
-  const double length = std::sqrt(dot(normal, normal));
-  if (length < 0.5) fail(first.file, "ImageOrientationPatient does not give two orthogonal directions");
-  for (double& x : normal) x /= length;
-  std::stable_sort(slices.begin(), slices.end(),
-                   [&](const SliceHeader& a, const SliceHeader& b) { return dot(normal, a.position_mm) < dot(normal, b.position_mm); });
-  const int n = static_cast<int>(slices.size());
-  std::vector<double> gaps(n - 1);
-  for (int s = 0; s + 1 < n; ++s) gaps[s] = dot(normal, minus(slices[s + 1].position_mm, slices[s].position_mm));
-  std::vector<double> sorted = gaps;
-  std::nth_element(sorted.begin(), sorted.begin() + sorted.size() / 2, sorted.end());
-  const double spacing = sorted[sorted.size() / 2];
-  const auto along = [&](int s) { return fmt(dot(normal, slices[s].position_mm), 2); };
-  for (int s = 0; s + 1 < n; ++s)
-    if (gaps[s] < 1e-3)
-      fail(where, "slices " + std::to_string(s + 1) + " and " + std::to_string(s + 2) + " (" + slices[s].file + ", " +
-                      slices[s + 1].file + ") lie at the same position (" + along(s) +
-                      " mm along the slice normal): the series holds several volumes (echoes, phases or repeats); "
-                      "export one volume");
-  for (int s = 0; s + 1 < n; ++s)
-    if (std::abs(gaps[s] - spacing) > tolerance * spacing)
-      fail(where, "slices are not evenly spaced: slice " + std::to_string(s + 2) + " (" + slices[s + 1].file + ", at " +
-                      along(s + 1) + " mm along the slice normal) follows slice " + std::to_string(s + 1) + " (at " +
-                      along(s) + " mm) by " + fmt(gaps[s], 2) + " mm where the slices are " + fmt(spacing, 2) +
-                      " mm apart: a slice is missing or the series mixes acquisitions; export the complete series");
-  // The positions must lie on one line along the normal (no in-plane shift, i.e. no gantry tilt).
-  for (int s = 1; s < n; ++s) {
-    const Vec3 d = minus(slices[s].position_mm, slices[0].position_mm);
-    const double a = dot(normal, d);
-    const Vec3 off = {d[0] - a * normal[0], d[1] - a * normal[1], d[2] - a * normal[2]};
-    if (std::sqrt(dot(off, off)) > 0.01 * std::max(spacing, 1.0) + 1e-3)
-      fail(where, "slice " + std::to_string(s + 1) + " (" + slices[s].file +
-                      ") is shifted within its plane against the first slice: a sheared grid (gantry tilt) is not "
-                      "supported; resample the series onto an orthogonal grid first");
-  }
-  if (first.columns * first.rows > max_voxels / n)
-    fail(where, std::to_string(first.columns) + " x " + std::to_string(first.rows) + " x " + std::to_string(n) +
-                    " voxels, more than the " + std::to_string(max_voxels) +
-                    " accepted (MriReadOptions::max_voxels); crop or resample the series first");
-
-  std::vector<std::string> sorted_files;
-  for (const SliceHeader& h : slices) sorted_files.push_back(h.file);
-  auto io = itk::GDCMImageIO::New();
-  auto reader = itk::ImageSeriesReader<FloatImage>::New();
-  reader->SetImageIO(io);
-  reader->SetFileNames(sorted_files);
-  try {
-    reader->Update();
-  } catch (const itk::ExceptionObject& e) {
-    fail(where, std::string("cannot read the slices' voxels: ") + e.GetDescription());
-  }
-  Volume out = fromItk(*reader->GetOutput());
-  // The geometry from the checked headers: the first slice along the normal, the median spacing.
-  Grid& g = out.grid;
-  for (int r = 0; r < 3; ++r) {
-    g.origin_mm[r] = slices.front().position_mm[r];
-    g.direction[3 * r + 0] = first.row[r];
-    g.direction[3 * r + 1] = first.column[r];
-    g.direction[3 * r + 2] = normal[r];
-  }
-  g.spacing_mm[0] = first.spacing_mm[0];
-  g.spacing_mm[1] = first.spacing_mm[1];
-  g.spacing_mm[2] = spacing;
-  out.format = "DICOM";
-  out.series_uid = uid;
-  out.series_description = description;
-  out.files = n;
-  out.pixel_type = itk::ImageIOBase::GetComponentTypeAsString(io->GetComponentType());
-  return out;
 }
 
 // A name beside `path` for writing before the rename, with the same extension (ITK picks the
@@ -404,33 +189,6 @@ std::string dicomNumber(double v) {
 }
 
 }  // namespace
-
-Volume readVolume(const std::string& path, const std::string& series_uid, long max_voxels, double slice_tolerance) {
-  quietItk();
-  std::error_code ec;
-  if (!fs::exists(path, ec))
-    fail(path, "no such file or folder; check the path (a relative path is read from the working directory)");
-  if (fs::is_directory(path, ec)) return readDicomSeries(path, series_uid, max_voxels, slice_tolerance);
-  const Candidate c = fileImageIo(path);
-  if (!c.io) fail(path, std::string("not an image of a supported format; give ") + kFormats);
-  if (c.format == "DICOM") {
-    // One file of a series: read its folder, the series it belongs to unless another is named.
-    std::string uid = series_uid;
-    if (uid.empty()) {
-      auto io = itk::GDCMImageIO::New();
-      try {
-        io->SetFileName(path);
-        io->ReadImageInformation();
-      } catch (const itk::ExceptionObject& e) {
-        fail(path, std::string("cannot read this DICOM file: ") + e.GetDescription());
-      }
-      uid = dictionaryString(io->GetMetaDataDictionary(), "0020|000e");
-    }
-    const fs::path parent = fs::path(path).parent_path();
-    return readDicomSeries(parent.empty() ? "." : parent.string(), uid, max_voxels, slice_tolerance);
-  }
-  return readSingleFile(path, c, max_voxels);
-}
 
 void writeVolume(const std::string& path, const Grid& grid, const std::vector<float>& values) {
   quietItk();

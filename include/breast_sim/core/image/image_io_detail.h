@@ -5,12 +5,15 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <cstring>
+#include <functional>
 #include <string>
 #include <vector>
 
 #include <Eigen/Core>
 
 #include "breast_sim/core/image/label_image.h"
+#include "breast_sim/core/image/scalar_image_io.h"
 
 namespace breast_sim::core::image_io {
 
@@ -91,11 +94,31 @@ void decodeLabels(const char* bytes, ScalarType type, bool big_endian, const Eig
 /// decodeLabels and a count check.
 void decodeAsciiLabels(const char* begin, const char* end, const Eigen::Vector3i& size,
                        const std::string& path, std::vector<std::uint16_t>& labels);
+/// The count check of ASCII voxel data, before anything is allocated: `count` values need at least
+/// a digit and a separator each (the last none). @throws via fail() when the text is too short.
+void requireAsciiRoom(const char* begin, const char* end, long count, const std::string& path);
+/// Calls take(index, value) for each of the `count` whitespace- (or comma-) separated numbers of
+/// [begin, end). @throws via fail() for text that is not a number, and for more or fewer values.
+void forEachAsciiValue(const char* begin, const char* end, long count, const std::string& path,
+                       const std::function<void(long index, double value)>& take);
 /// uint8 when every label is ≤ 255, else uint16.
 ScalarType narrowestLabelType(const LabelImage& image);
 /// Labels as little-endian uint8 or uint16 bytes.
 std::string encodeLabels(const LabelImage& image, ScalarType type);
 bool hostIsBigEndian();
+/// The value of type T at p, its bytes reversed when `swap`.
+template <typename T>
+T loadValue(const char* p, bool swap) {
+  T v;
+  if (!swap) {
+    std::memcpy(&v, p, sizeof(T));
+  } else {
+    char b[sizeof(T)];
+    for (std::size_t i = 0; i < sizeof(T); ++i) b[i] = p[sizeof(T) - 1 - i];
+    std::memcpy(&v, b, sizeof(T));
+  }
+  return v;
+}
 
 // ---- geometry -------------------------------------------------------------------------------------
 /// Splits axis vectors (columns, any length unit) into lengths and an orthonormal direction
@@ -110,6 +133,26 @@ double largestAxisCosine(const Eigen::Matrix3d& axes, int& a, int& b);
 std::string anatomicalOrientation(const Eigen::Matrix3d& direction);
 
 // ---- formats --------------------------------------------------------------------------------------
+/// Where the NRRD and MetaImage readers deliver what they read, so that one parser per format serves
+/// label images (readLabelImage) and intensity images (readScalarImageFile).
+struct VoxelSink {
+  /// Called once the header is read, before anything it claims is allocated, with the shape it
+  /// gives and, when that is not a 3-D image of one value per voxel, the header field that says so
+  /// (e.g. "header field 'dimension' is 2"; empty otherwise). Throws to refuse the file; a shape
+  /// that is not a volume is refused after it in any case.
+  std::function<void(const ImageFileShape& shape, const std::string& not_a_volume)> shape;
+  /// size.prod() binary values of `type` in the byte order `big_endian`, starting at `bytes`.
+  std::function<void(const char* bytes, ScalarType type, bool big_endian, const Eigen::Vector3i& size)> binary;
+  /// size.prod() values of the header's `type` as text in [begin, end) (not yet counted).
+  std::function<void(const char* begin, const char* end, ScalarType type, const Eigen::Vector3i& size)> ascii;
+};
+/// Read a file: its geometry into `grid` (labels left empty), its values into `sink`.
+void readNrrd(const std::string& path, LabelImage& grid, const VoxelSink& sink);
+void readMetaImage(const std::string& path, LabelImage& grid, const VoxelSink& sink);
+/// The sink of readLabelImage: a 3-D image of one value per voxel, whose values decode into
+/// `image.labels` (decodeLabels, decodeAsciiLabels).
+VoxelSink labelSink(const std::string& path, LabelImage& image);
+/// The label images of the two formats.
 LabelImage readNrrd(const std::string& path);
 void writeNrrd(const std::string& path, const LabelImage& image);
 LabelImage readMetaImage(const std::string& path);

@@ -1,8 +1,11 @@
 #pragma once
 /// @file mri_volume.h
 /// Intensity MRI volumes: reading NIfTI, NRRD, MetaImage files and DICOM series into a ScalarImage in
-/// LPS patient space, and writing volumes and DICOM series. ITK does the reading and writing (GDCM for
-/// DICOM); no ITK type appears here.
+/// LPS patient space, and writing volumes and DICOM series. ITK reads NIfTI and does the writing (GDCM
+/// for DICOM); NRRD and MetaImage are read by the core's parsers (image/scalar_image_io.h), which are
+/// memory-safe on malformed files where ITK's leak, and DICOM by the core's reader (dicom_scan.h), as
+/// GDCM allocates what a damaged file claims and aborts on values out of its range. No ITK type appears
+/// here.
 ///
 /// Geometry: the ScalarImage's origin, spacing and direction are in metres and LPS (x towards the
 /// patient's left, y posterior, z superior), as ITK gives them: NIfTI's RAS sform/qform is converted by
@@ -51,13 +54,20 @@ struct MriVolume {
 /// Reads a 3-D scalar MRI volume. `path` is a file (`.nii`, `.nii.gz`, `.nrrd`, `.nhdr`, `.mha`, `.mhd`,
 /// or one DICOM file of a series, whose folder is read) or a folder of DICOM files (one series, or the
 /// one `options.series_uid` names). DICOM slices are sorted along their normal and must be evenly
-/// spaced (a missing slice is an error, not a silent stretch).
+/// spaced (a missing slice is an error, not a silent stretch). DICOM files are DICOM Part 10 files (a
+/// 128-byte preamble, then "DICM") of uncompressed single-frame greyscale images (dicom_scan.h lists
+/// what is read); every file of the folder is walked by scanDicomFile: other files and DICOM files
+/// without an image are skipped, and a damaged DICOM file (an element claiming more than the file
+/// holds, …) is an error naming it, not skipped, since a skipped slice would silently change the volume.
 /// @throws std::runtime_error whose message starts with the path and names the fix, for: a path that
 ///         does not exist; a file that is no image of these formats; a 2-D image (or a volume of one
-///         slice); a non-scalar image (RGB, vector, complex, tensor); more than `max_voxels` voxels; a
-///         DICOM folder without DICOM images, with several series and no UID given, or whose UID is
-///         not there (the message lists the series); slices of different sizes or orientations;
-///         unevenly spaced slices (names the gap and its neighbours); non-finite voxel values.
+///         slice); a non-scalar image (RGB, vector, complex, tensor); more than `max_voxels` voxels
+///         (NRRD and MetaImage: also more than 2^31); a damaged or unreadable file (the readers' errors:
+///         truncated or corrupt data, a DICOM element and its claimed length); a DICOM file that is
+///         compressed or multi-frame, or lacks the attributes that place a slice; a DICOM folder without
+///         DICOM images, with several series and no UID given, or whose UID is not there (the message
+///         lists the series); slices of different sizes or orientations; unevenly spaced slices (names
+///         the gap and its neighbours); non-finite voxel values.
 MriVolume readMriVolume(const std::string& path, const MriReadOptions& options = {});
 
 /// Writes an intensity volume as float: `.nii`, `.nii.gz` (NIfTI-1, RAS on disk as ITK writes it),
