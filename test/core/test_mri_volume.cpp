@@ -303,6 +303,17 @@ TEST(MriVolume, ANiftiHeaderWithoutFiniteOrientationIsAnErrorNotAnAbort) {
   m = messageOf([&] { readMriVolume(huge_offset); });
   EXPECT_NE(m.find(huge_offset + ": the NIfTI header's qoffset_x, y, z (entry 1) is 7e+22"), std::string::npos) << m;
   EXPECT_NE(m.find("the header is damaged, export the image again"), std::string::npos) << m;
+  // A damaged sizeof_hdr does not hide the header: ITK reads it by its magic (found by fuzz_mri_nifti).
+  std::string bad_size = header;
+  const std::uint32_t damaged = 0xffff015cu;  // 348 in the low half only
+  std::memcpy(&bad_size[0], &damaged, 4);
+  const float nan_value = std::numeric_limits<float>::quiet_NaN();
+  std::memcpy(&bad_size[324], &nan_value, 4);  // srow_z, entry 3
+  const std::int16_t one = 1;
+  std::memcpy(&bad_size[254], &one, 2);
+  std::ofstream(dir.path("bad_size.nii"), std::ios::binary) << bad_size;
+  m = messageOf([&] { readMriVolume(dir.path("bad_size.nii")); });
+  EXPECT_NE(m.find("the NIfTI header's srow_z (entry 3) is nan"), std::string::npos) << m;
   // The same numbers in an unused transform (its code 0) do not matter.
   std::string unused = header;
   const float nan = std::numeric_limits<float>::quiet_NaN();

@@ -85,22 +85,8 @@ Volume fromItk(const FloatImage& image) {
   return out;
 }
 
-// ITK's NiftiImageIO turns the header's qform or sform into a direction matrix with vnl's SVD, which
-// aborts the process on a value that is not finite (found by fuzz_mri_nifti). So the NIfTI-1 header's
-// spacing and the orientation it uses are checked first: finite and at most 1e7 in magnitude (mm, or
-// quaternion parts). gzread reads plain and gzip-compressed files alike, the 348 bytes only. A header
-// of another size (NIfTI-2, or no NIfTI) is left to ITK.
-void checkNiftiHeaderNumbers(const std::string& path) {
-  unsigned char h[348];
-  gzFile f = gzopen(path.c_str(), "rb");
-  if (!f) return;  // ITK names what is wrong with the file
-  const int got = gzread(f, h, sizeof h);
-  gzclose(f);
-  if (got != static_cast<int>(sizeof h)) return;
-  std::uint32_t size = 0;
-  std::memcpy(&size, h, 4);
-  const bool swap = size != 348;
-  if (swap && __builtin_bswap32(size) != 348) return;
+// The spacing and the transforms in use of a NIfTI-1 header `h` in the byte order `swap` says.
+void checkNiftiHeaderNumbers(const std::string& path, const unsigned char* h, bool swap) {
   const auto word = [&](int offset) {
     std::uint32_t u = 0;
     std::memcpy(&u, h + offset, 4);
@@ -132,6 +118,40 @@ void checkNiftiHeaderNumbers(const std::string& path) {
                        ": not a finite number of at most 1e7; the header is damaged, export the image again");
       }
     }
+  }
+}
+
+// ITK's NiftiImageIO turns the header's qform or sform into a direction matrix with vnl's SVD, which
+// aborts the process on a value that is not finite (found by fuzz_mri_nifti). So the NIfTI-1 header's
+// spacing and the orientation it uses are checked first: finite and at most 1e7 in magnitude (mm, or
+// quaternion parts). gzread reads plain and gzip-compressed files alike, the 348 bytes only. A
+// NIfTI-1 header is one with sizeof_hdr 348 or the magic "n+1" / "ni1" (ITK reads a header whose
+// sizeof_hdr is damaged by its magic); its byte order is that of dim[0] in 1…7, as the NIfTI library
+// decides it, else that of sizeof_hdr; with neither, both orders are checked. Other files (NIfTI-2,
+// no NIfTI) are left to ITK.
+void checkNiftiHeaderNumbers(const std::string& path) {
+  unsigned char h[348];
+  gzFile f = gzopen(path.c_str(), "rb");
+  if (!f) return;  // ITK names what is wrong with the file
+  const int got = gzread(f, h, sizeof h);
+  gzclose(f);
+  if (got != static_cast<int>(sizeof h)) return;
+  std::uint32_t size = 0;
+  std::memcpy(&size, h, 4);
+  const bool magic = std::memcmp(h + 344, "n+1", 4) == 0 || std::memcmp(h + 344, "ni1", 4) == 0;
+  if (!magic && size != 348 && __builtin_bswap32(size) != 348) return;
+  std::uint16_t dim0 = 0;
+  std::memcpy(&dim0, h + 40, 2);
+  const std::uint16_t dim0_swapped = __builtin_bswap16(dim0);
+  if (dim0 >= 1 && dim0 <= 7) {
+    checkNiftiHeaderNumbers(path, h, false);
+  } else if (dim0_swapped >= 1 && dim0_swapped <= 7) {
+    checkNiftiHeaderNumbers(path, h, true);
+  } else if (size == 348 || __builtin_bswap32(size) == 348) {
+    checkNiftiHeaderNumbers(path, h, size != 348);
+  } else {
+    checkNiftiHeaderNumbers(path, h, false);
+    checkNiftiHeaderNumbers(path, h, true);
   }
 }
 
