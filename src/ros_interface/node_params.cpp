@@ -20,12 +20,12 @@ void require(bool ok, const std::string& name, const std::string& what) {
   if (!ok) throw std::invalid_argument("parameter ~" + name + ": " + what);
 }
 
-/// $ROS_HOME/breast_sim/states, ROS_HOME defaulting to ~/.ros as roslaunch's does.
-std::string defaultStateFolder() {
+/// $ROS_HOME/`sub`, ROS_HOME defaulting to ~/.ros as roslaunch's does.
+std::string rosHomeFolder(const std::string& sub) {
   const char* ros_home = std::getenv("ROS_HOME");
   const char* home = std::getenv("HOME");
   const std::string base = ros_home && *ros_home ? ros_home : std::string(home && *home ? home : "/tmp") + "/.ros";
-  return base + "/breast_sim/states";
+  return base + "/" + sub;
 }
 
 }  // namespace
@@ -33,7 +33,7 @@ std::string defaultStateFolder() {
 NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   NodeParams p;
   p.data_folder = param<std::string>(pnh, "data_folder", ros::package::getPath("breast_sim"));
-  p.state_folder = param<std::string>(pnh, "state_folder", defaultStateFolder());
+  p.state_folder = param<std::string>(pnh, "state_folder", rosHomeFolder("breast_sim/states"));
   p.checkpoint_period_s = param(pnh, "checkpoint/period_s", p.checkpoint_period_s);
   p.case_file = param<std::string>(pnh, "case_file", "config/phantom_default.yaml");
   p.target_elements = param(pnh, "target_elements", p.target_elements);
@@ -41,11 +41,7 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   p.field_voxel_size_m = param(pnh, "field_voxel_size_m", p.field_voxel_size_m);
   p.frame_id = param(pnh, "frame_id", p.frame_id);
   p.output_folder = param(pnh, "output_folder", p.output_folder);
-  if (p.output_folder.empty()) {
-    const char* ros_home = std::getenv("ROS_HOME");
-    const char* home = std::getenv("HOME");
-    p.output_folder = (ros_home && *ros_home ? std::string(ros_home) : std::string(home ? home : "/tmp") + "/.ros") + "/breast_sim";
-  }
+  if (p.output_folder.empty()) p.output_folder = rosHomeFolder("breast_sim");
   p.precompute_on_start = param(pnh, "precompute_on_start", p.precompute_on_start);
   p.gravity_frame = param(pnh, "gravity/frame", p.gravity_frame);
   p.follow_patient_pose = param(pnh, "gravity/follow_patient_pose", p.follow_patient_pose);
