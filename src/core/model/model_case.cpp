@@ -97,9 +97,7 @@ void loadMeshSource(const YAML::Node& m, const std::string& file, ModelCase& c) 
             file, "mesh");
   UserMeshSource& s = c.mesh_source;
   if (!m["path"]) fail(file, "mesh.path", "missing: give the mesh file (.msh .vtu .vtk .node/.ele .inp)");
-  fs::path p = text(m["path"], file, "mesh.path");
-  if (p.is_relative()) p = fs::absolute(fs::path(file).parent_path() / p);
-  s.path = p.lexically_normal().string();
+  s.path = pathBeside(file, text(m["path"], file, "mesh.path"));
   if (!m["units"]) fail(file, "mesh.units", "missing: say whether the file's coordinates are in m or mm");
   s.length_unit_m = choice(m["units"], file, "mesh.units", {"m", "mm"}) == "m" ? 1.0 : 1e-3;
   if (m["chest_wall"]) s.chest_wall_set = text(m["chest_wall"], file, "mesh.chest_wall");
@@ -180,9 +178,7 @@ ModelCase loadModelCase(const std::string& yaml_path, const std::function<void(c
     const YAML::Node img = root["image"];
     checkKeys(img, {"path", "labels", "nipples_mm", "prone_gravity_direction"}, yaml_path, "image");
     if (!img["path"]) fail(yaml_path, "image.path", "missing: give the label image file (NIfTI, NRRD or MetaImage)");
-    fs::path p = text(img["path"], yaml_path, "image.path");
-    if (p.is_relative()) p = fs::path(yaml_path).parent_path() / p;
-    c.image = readLabelImage(p.lexically_normal().string());
+    c.image = readLabelImage(pathBeside(yaml_path, text(img["path"], yaml_path, "image.path")));
     if (img["labels"]) {
       const YAML::Node l = img["labels"];
       checkKeys(l, {"fat", "fibroglandular", "skin", "lesion", "chest_wall"}, yaml_path, "image.labels");

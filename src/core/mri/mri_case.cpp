@@ -5,7 +5,6 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <filesystem>
 #include <map>
 #include <stdexcept>
 
@@ -17,15 +16,7 @@
 namespace breast_sim::core {
 namespace {
 
-namespace fs = std::filesystem;
 using namespace yaml_fields;
-
-std::string absolutePath(const YAML::Node& n, const std::string& file, const std::string& key) {
-  fs::path p = text(n, file, key);
-  if (p.empty()) return "";
-  if (p.is_relative()) p = fs::absolute(fs::path(file).parent_path() / p);
-  return p.lexically_normal().string();
-}
 
 std::string mm(double metres) {
   char b[32];
@@ -94,7 +85,7 @@ MriCaseSource loadMriCaseSource(const std::string& yaml_path) {
   checkKeys(m, {"path", "series_uid", "breasts", "midline_x_mm", "lesion_labels", "truth"}, yaml_path, "mri");
   MriCaseSource s;
   if (!m["path"]) fail(yaml_path, "mri.path", "missing: give the prone MRI (NIfTI, NRRD, MetaImage or a DICOM folder)");
-  s.path = absolutePath(m["path"], yaml_path, "mri.path");
+  s.path = pathBeside(yaml_path, text(m["path"], yaml_path, "mri.path"));
   if (s.path.empty()) fail(yaml_path, "mri.path", "empty: give the prone MRI (NIfTI, NRRD, MetaImage or a DICOM folder)");
   if (m["series_uid"]) s.series_uid = text(m["series_uid"], yaml_path, "mri.series_uid");
   if (m["breasts"]) {
@@ -105,8 +96,8 @@ MriCaseSource loadMriCaseSource(const std::string& yaml_path) {
   if (m["midline_x_mm"] && !(m["midline_x_mm"].IsScalar() && m["midline_x_mm"].as<std::string>() == "auto"))
     s.midline_x_m = 1e-3 * numberIn(m["midline_x_mm"], yaml_path, "mri.midline_x_mm", -1e4, 1e4, false, false,
                                     "mm (or auto: midway between the two breasts' nipples)");
-  if (m["lesion_labels"]) s.lesion_labels = absolutePath(m["lesion_labels"], yaml_path, "mri.lesion_labels");
-  if (m["truth"]) s.truth = absolutePath(m["truth"], yaml_path, "mri.truth");
+  if (m["lesion_labels"]) s.lesion_labels = pathBeside(yaml_path, text(m["lesion_labels"], yaml_path, "mri.lesion_labels"));
+  if (m["truth"]) s.truth = pathBeside(yaml_path, text(m["truth"], yaml_path, "mri.truth"));
   return s;
 }
 

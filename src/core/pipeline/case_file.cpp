@@ -6,7 +6,6 @@
 
 #include <cmath>
 #include <cstdio>
-#include <filesystem>
 #include <stdexcept>
 
 #include <yaml-cpp/yaml.h>
@@ -306,7 +305,6 @@ std::string effectiveCaseYaml(const std::string& case_path) {
 
 std::string effectiveCaseYaml(const std::string& case_path, const MeshingOptions& meshing,
                               double lesion_snap_tolerance_m, const PipelineSettings& settings) {
-  namespace fs = std::filesystem;
   const YAML::Node root = yaml_fields::loadFile(case_path);
   const std::string source = yaml_fields::caseSource(root, case_path);
   YAML::Node out(YAML::NodeType::Map);
@@ -317,11 +315,8 @@ std::string effectiveCaseYaml(const std::string& case_path, const MeshingOptions
     out["segmentation"] = segmentationMap(loadSegmentationSettings(case_path));
   } else {
     YAML::Node map = YAML::Clone(root[source]);  // image: or mesh:, with its path made absolute
-    if (map.IsMap() && map["path"] && map["path"].IsScalar()) {
-      fs::path p = map["path"].as<std::string>();
-      if (p.is_relative()) p = fs::absolute(fs::path(case_path).parent_path() / p);
-      map["path"] = p.lexically_normal().string();
-    }
+    if (map.IsMap() && map["path"] && map["path"].IsScalar())
+      map["path"] = yaml_fields::pathBeside(case_path, map["path"].as<std::string>());
     out[source] = map;
   }
   if (root["lesions"]) out["lesions"] = YAML::Clone(root["lesions"]);

@@ -41,6 +41,13 @@ std::string text(const YAML::Node& n, const std::string& file, const std::string
   return n.as<std::string>();
 }
 
+std::string pathBeside(const std::string& file, const std::string& path) {
+  if (path.empty()) return path;
+  std::filesystem::path p = path;
+  if (p.is_relative()) p = std::filesystem::absolute(std::filesystem::path(file).parent_path() / p);
+  return p.lexically_normal().string();
+}
+
 std::string choice(const YAML::Node& n, const std::string& file, const std::string& key,
                    const std::set<std::string>& choices) {
   const std::string v = text(n, file, key);

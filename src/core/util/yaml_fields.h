@@ -19,6 +19,9 @@ double number(const YAML::Node& n, const std::string& file, const std::string& k
 double numberIn(const YAML::Node& n, const std::string& file, const std::string& key, double lo, double hi,
                 bool lo_open = false, bool hi_open = false, const std::string& unit = "");
 std::string text(const YAML::Node& n, const std::string& file, const std::string& key);
+/// A path a case file names: relative to the file's folder unless absolute; made absolute and normal.
+/// An empty path stays empty.
+std::string pathBeside(const std::string& file, const std::string& path);
 /// One of `choices`.
 std::string choice(const YAML::Node& n, const std::string& file, const std::string& key,
                    const std::set<std::string>& choices);
