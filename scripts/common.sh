@@ -63,3 +63,17 @@ build_core() {
     || { cat "${BREAST_SIM_WORK}/core_configure.log"; return 1; }
   cmake --build "${BREAST_SIM_CORE_BUILD}" -j"${BREAST_SIM_JOBS}" "$@"
 }
+
+# Runs breast_sim_run on a case and exits with its status, except exit 3 (a stage stopped at its step
+# limit or short of its tolerance; every output is written, see metrics.json): a note, and exit 0.
+#   run_case CASE_FILE OUT_DIR [breast_sim_run options]
+run_case() {
+  local case_file="$1" out="$2" status=0
+  shift 2
+  "${BREAST_SIM_WS}/devel/lib/breast_sim/breast_sim_run" --case "${case_file}" --out "${out}" "$@" || status=$?
+  if [ "${status}" -eq 3 ]; then
+    log "NOTE: a stage did not converge or reach its tolerance (exit 3); the results are written, see ${out}/metrics.json"
+    exit 0
+  fi
+  exit "${status}"
+}

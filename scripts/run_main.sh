@@ -9,13 +9,5 @@ out="${1:-${BREAST_SIM_SRC}/output}"; shift || true
 mkdir -p "${BREAST_SIM_WORK}"
 install_deps
 build_catkin_ws
-tool="${BREAST_SIM_WS}/devel/lib/breast_sim/breast_sim_run"
 log "main job: phantom model, supine gravity and morphing to the supine target → ${out}"
-status=0
-"${tool}" --case "${BREAST_SIM_SRC}/config/phantom_default.yaml" --out "${out}" "$@" || status=$?
-if [ "${status}" -eq 3 ]; then
-  # Every output is written; a stage stopped at its step limit (see metrics.json and docs/status.md).
-  log "NOTE: a stage did not converge or reach its tolerance (exit 3); the results are written, see ${out}/metrics.json"
-  exit 0
-fi
-exit "${status}"
+run_case "${BREAST_SIM_SRC}/config/phantom_default.yaml" "${out}" "$@"
