@@ -58,6 +58,10 @@ TEST(TetMesh, CubeBoundaryIsClosedWithOutwardNormals) {
     vol += signedTetVolume(Eigen::Vector3d::Zero(), m.nodes().row(b.triangles(f, 0)),
                            m.nodes().row(b.triangles(f, 1)), m.nodes().row(b.triangles(f, 2)));
   EXPECT_NEAR(vol, m.volume(), 1e-15);
+  // The total kept at construction is the sum of the elements' rest volumes, to the bit, in a copy too.
+  EXPECT_EQ(m.volume(), m.tetVolumes().sum());
+  const TetMesh copy = m;
+  EXPECT_EQ(copy.volume(), m.tetVolumes().sum());
 }
 
 TEST(TetMesh, OpenSurfaceIsNotClosed) {

@@ -60,6 +60,7 @@ TetMesh::TetMesh(Points nodes_m, Tets tets, std::vector<int> region_labels)
     if (vol < 0.0) std::swap(tets_(t, 2), tets_(t, 3));
   }
   boundary_ = extractBoundary(tets_, nodes_);
+  volume_m3_ = tetVolumes().sum();
 }
 
 void TetMesh::setNodeSet(const std::string& name, std::vector<int> node_indices) {
@@ -141,7 +142,6 @@ Eigen::VectorXd TetMesh::tetVolumes() const {
   return v;
 }
 
-double TetMesh::volume() const { return tetVolumes().sum(); }
 
 Eigen::Vector3d TetMesh::boundsMin() const {
   return numNodes() ? Eigen::Vector3d(nodes_.colwise().minCoeff().transpose()) : Eigen::Vector3d::Zero();

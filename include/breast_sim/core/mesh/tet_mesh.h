@@ -91,8 +91,9 @@ class TetMesh {
 
   /// Rest volume of each tetrahedron [m³].
   Eigen::VectorXd tetVolumes() const;
-  /// Total rest volume [m³].
-  double volume() const;
+  /// Total rest volume [m³] (the sum of tetVolumes(), computed once at construction: the rest
+  /// shape never changes, and per-step volume measures divide by it).
+  double volume() const { return volume_m3_; }
   /// Axis-aligned bounds of the rest positions [m].
   Eigen::Vector3d boundsMin() const;
   Eigen::Vector3d boundsMax() const;
@@ -106,6 +107,7 @@ class TetMesh {
   std::vector<int> region_labels_;
   std::map<std::string, std::vector<int>> node_sets_;
   BoundarySurface boundary_;
+  double volume_m3_ = 0.0;
 };
 
 /// Signed volume (b−a)·((c−a)×(d−a)) / 6 of a tetrahedron [m³]; positive when (a, b, c, d) is
