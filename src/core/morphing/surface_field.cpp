@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstdint>
 #include <cmath>
 #include <limits>
 #include <sstream>
@@ -166,26 +167,40 @@ Eigen::Vector3d SurfaceVectorField::vectorToSurface(const Eigen::Vector3d& p_m) 
     i0[c] = std::min(static_cast<int>(std::clamp(t[c], 0.0, static_cast<double>(size_[c] - 1))), size_[c] - 2);
   const long nx = size_.x(), nxy = nx * size_.y();
   const int nyv = size_.y(), nzv = size_.z();
-  std::int32_t voxels[8], elements[64];
-  int nv = 0, ne = 0;
+  std::int32_t voxels[8];
+  int nv = 0;
   double best = std::numeric_limits<double>::infinity();
   Eigen::Vector3d best_q = p_m;
-  auto consider = [&](std::int32_t e) {
-    if (e < 0 || std::find(elements, elements + ne, e) != elements + ne) return;
-    if (ne < 64) elements[ne++] = e;
-    Eigen::Vector3d q;
-    if (target_.isPointCloud()) {
-      q = target_.vertices_m.row(e).transpose();
-    } else {
-      q = closestPointOnTriangle(p_m, target_.vertices_m.row(target_.triangles(e, 0)).transpose(),
-                                 target_.vertices_m.row(target_.triangles(e, 1)).transpose(),
-                                 target_.vertices_m.row(target_.triangles(e, 2)).transpose());
-    }
+  auto offer = [&](const Eigen::Vector3d& q) {
     const double d2 = (q - p_m).squaredNorm();
-    if (d2 < best) {
+    if (d2 < best) {  // strictly closer: of equal candidates the first offered wins
       best = d2;
       best_q = q;
     }
+  };
+  // Neighbouring voxels share their nearest triangle, so candidates repeat (up to 8 × 27 of them):
+  // each triangle's closest point is computed once, its index kept in a small open-addressing set
+  // (more slots than candidates, so it never fills). A point costs less than the look-up: points repeat.
+  constexpr int kSlots = 256;
+  std::int32_t seen[kSlots];
+  const bool cloud = target_.isPointCloud();
+  if (!cloud) std::fill(seen, seen + kSlots, -1);
+  auto consider = [&](std::int32_t e) {
+    if (e < 0) return;
+    if (cloud) {
+      offer(target_.vertices_m.row(e).transpose());
+      return;
+    }
+    for (unsigned h = (static_cast<std::uint32_t>(e) * 2654435761u) >> 24;; h = (h + 1) & (kSlots - 1)) {
+      if (seen[h] == e) return;
+      if (seen[h] < 0) {
+        seen[h] = e;
+        break;
+      }
+    }
+    offer(closestPointOnTriangle(p_m, target_.vertices_m.row(target_.triangles(e, 0)).transpose(),
+                                 target_.vertices_m.row(target_.triangles(e, 1)).transpose(),
+                                 target_.vertices_m.row(target_.triangles(e, 2)).transpose()));
   };
   for (int corner = 0; corner < 8; ++corner) {
     const long idx = (i0[0] + (corner & 1)) + nx * (i0[1] + ((corner >> 1) & 1)) + nxy * (i0[2] + ((corner >> 2) & 1));
