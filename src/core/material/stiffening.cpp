@@ -372,7 +372,16 @@ double StiffeningSimulation::modulusExcess() const {
 }
 
 void StiffeningSimulation::pushHistory() {
-  history_.push_front(HistoryEntry{sim_.state(), sim_.elements().modulusFactors(), controller_.state()});
+  // A full history hands its oldest entry's storage to the new one (equal sizes: no allocation).
+  HistoryEntry entry;
+  if (!history_.empty() && static_cast<int>(history_.size()) >= params_.history_size) {
+    entry = std::move(history_.back());
+    history_.pop_back();
+  }
+  entry.state = sim_.state();
+  entry.modulus_factors = sim_.elements().modulusFactors();
+  entry.controller = controller_.state();
+  history_.push_front(std::move(entry));
   while (static_cast<int>(history_.size()) > params_.history_size) history_.pop_back();
 }
 
@@ -410,7 +419,8 @@ StiffeningStepResult StiffeningSimulation::step() {
     sim_.step();  // a solver failure propagates: nothing to fall back to without reversal
     r.advanced = true;
   } else {
-    const SimulationState saved = sim_.state();
+    SimulationState& saved = step_start_;  // a kept buffer: no allocation per step
+    saved = sim_.state();
     Eigen::VectorXd stress = base_stress_;
     for (int attempt = 1;; ++attempt) {
       setModuli(stress);

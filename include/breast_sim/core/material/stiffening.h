@@ -354,7 +354,8 @@ class StiffeningSimulation {
   Points x_;
   Eigen::VectorXd rest_volume_;  // per element [m³], for the collapsed check
   long accepted_ = 0, reversed_ = 0, limit_hits_ = 0, shortened_steps_ = 0, steps_to_settle_ = -1;
-  SimulationState shortened_;  // a shortened step's state (kept buffer)
+  SimulationState shortened_;   // a shortened step's state (kept buffer)
+  SimulationState step_start_;  // step(): the state a reverted trial goes back to (kept buffer)
   int settle_run_ = 0;
   bool settled_ = false;
   bool releasing_ = false;
