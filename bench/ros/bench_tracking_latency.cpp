@@ -136,8 +136,8 @@ int main(int argc, char** argv) {
               << " iteration(s) per frame, ICP " << (icp ? "on" : "off") << ", PCG tolerance per frame "
               << (solver_tol > 0 ? std::to_string(solver_tol) : std::string("of the case")) << ", " << frames
               << " frames (medians, p95) [ms]\n";
-    std::cout << "  voxel[mm]  convert  filter     icp   field iterate  publish |   total    p95 |  rate[Hz]  surf.mean[mm]"
-                 "  ICP applied  search (valid frames)\n";
+    std::cout << "  voxel[mm]  convert  filter     icp   field iterate  (PCG it.)  publish |   total    p95 |  rate[Hz]"
+                 "  surf.mean[mm]  ICP applied  search (valid frames)\n";
     core::Points grid_final;  // final positions of the grid run, compared with the reference run
     for (double v : loop_voxels) for (const bool reference : {false, true}) {
       if (reference && !pcl_reference) continue;
@@ -149,7 +149,7 @@ int main(int argc, char** argv) {
       ros_interface::GuardedTracker tracker(to, ros_interface::MonitorLimits{});  // the node's: tracker and monitor
       tracker.start(p);
       ros_interface::TrackerSimulation frame_sim(c, so);
-      std::vector<double> conv, filt, icps, field, iter, pub, total;
+      std::vector<double> conv, filt, icps, field, iter, pub, total, pcg;
       double last_mean = -1;
       int icp_applied = 0, valid_frames = 0;
       for (int k = 0; k < frames; ++k) {
@@ -161,7 +161,9 @@ int main(int argc, char** argv) {
         const ros_interface::CloudPoints cp = ros_interface::pointsFromCloud(msg, 300000);
         const core::Points cloud = ros_interface::transformPoints(model_from_tracker, cp.points_m);
         const double conv_s = since(f0);
+        const long pcg_before = p.simulator().totals().iterations;
         const ros_interface::GuardedFrame g = tracker.frame(p, cloud);
+        const long pcg_frame = p.simulator().totals().iterations - pcg_before;
         const ros_interface::TrackResult& r = g.track;
         const auto p0 = Clock::now();
         const core::Points xs = p.positions();
@@ -179,6 +181,7 @@ int main(int argc, char** argv) {
         iter.push_back(r.iterate_s);
         pub.push_back(pub_s);
         total.push_back(total_s);
+        pcg.push_back(static_cast<double>(pcg_frame));
         last_mean = r.seen_mean_m;
         valid_frames += g.valid ? 1 : 0;
         icp_applied += r.icp_applied ? 1 : 0;
@@ -198,15 +201,16 @@ int main(int argc, char** argv) {
       std::cout << "  " << std::setw(9) << (v > 0 ? v : 1e3 * settings.morphing.field.voxel_size_m) << std::fixed
                 << std::setprecision(2) << std::setw(9) << 1e3 * bench::median(conv) << std::setw(8)
                 << 1e3 * bench::median(filt) << std::setw(8) << 1e3 * bench::median(icps) << std::setw(8)
-                << 1e3 * bench::median(field) << std::setw(8) << 1e3 * bench::median(iter) << std::setw(9)
-                << 1e3 * bench::median(pub) << " |" << std::setw(8) << 1e3 * bench::median(total) << std::setw(7)
+                << 1e3 * bench::median(field) << std::setw(8) << 1e3 * bench::median(iter) << std::setw(11)
+                << bench::median(pcg) << std::setw(9) << 1e3 * bench::median(pub) << " |" << std::setw(8) << 1e3 * bench::median(total) << std::setw(7)
                 << 1e3 * p95(total) << " |" << std::setw(10) << rate << std::setw(15) << 1e3 * last_mean << std::setw(8)
                 << icp_applied << "/" << std::setw(3) << std::left << total.size() << std::right << "  " << search << " ("
                 << valid_frames << " valid)\n";
       out["frames"].push_back({{"voxel_mm", v > 0 ? v : 1e3 * settings.morphing.field.voxel_size_m},
                                {"convert_ms", 1e3 * bench::median(conv)}, {"filter_ms", 1e3 * bench::median(filt)},
                                {"icp_ms", 1e3 * bench::median(icps)}, {"field_ms", 1e3 * bench::median(field)},
-                               {"iterate_ms", 1e3 * bench::median(iter)}, {"publish_ms", 1e3 * bench::median(pub)},
+                               {"iterate_ms", 1e3 * bench::median(iter)},
+                               {"pcg_iterations_median", bench::median(pcg)}, {"publish_ms", 1e3 * bench::median(pub)},
                                {"total_median_ms", 1e3 * bench::median(total)}, {"total_p95_ms", 1e3 * p95(total)},
                                {"rate_hz", rate}, {"surface_mean_mm", 1e3 * last_mean},
                                {"icp_applied", icp_applied}, {"frames_timed", total.size()}, {"valid_frames", valid_frames},

@@ -260,9 +260,16 @@ void PointGrid::selfNearestK(int k, float* d2, int* found) const {
   std::fill(found, found + points_.size(), 0);
   if (k <= 0 || finite_ == 0) return;
   constexpr uint64_t kAxis = (uint64_t(1) << 21) - 1;
+  // Cell by cell in parallel: each point's answer is written by the thread of its cell alone, so the
+  // result does not depend on the thread count.
+  const long slots = static_cast<long>(table_.size());
+#pragma omp parallel if (points_.size() > 2048)
+  {
   std::vector<float> bx, by, bz, dist;
   std::vector<int> scratch(static_cast<size_t>(k));
-  for (const Slot& slot : table_) {
+#pragma omp for schedule(dynamic, 64)
+  for (long t = 0; t < slots; ++t) {
+    const Slot& slot = table_[static_cast<size_t>(t)];
     if (slot.key == kEmpty) continue;
     const int64_t c[3] = {static_cast<int64_t>(slot.key & kAxis), static_cast<int64_t>((slot.key >> 21) & kAxis),
                           static_cast<int64_t>(slot.key >> 42)};
@@ -323,6 +330,7 @@ void PointGrid::selfNearestK(int k, float* d2, int* found) const {
         found[index] = nearestK(q, k, scratch.data(), out);
       }
     }
+  }
   }
 }
 

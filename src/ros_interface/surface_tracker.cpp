@@ -368,27 +368,38 @@ std::vector<int> SkinIndex::near(const core::Points& cloud_m) const {
   std::vector<int> kept;
   if (!impl_ || impl_->points.rows() == 0 || !(impl_->gate_m > 0)) return kept;
   const double gate2 = static_cast<double>(static_cast<float>(impl_->gate_m * impl_->gate_m));
-  for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
+  // Each point's test in parallel, kept in the cloud's order.
+  const long n_points = static_cast<long>(cloud_m.rows());
+  std::vector<char> keep(static_cast<size_t>(n_points), 0);
+#pragma omp parallel for schedule(static) if (n_points > 2048)
+  for (long i = 0; i < n_points; ++i) {
     const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
     float d2 = 0;
     int n = -1;
-    if (impl_->fine->nearestK(q, 1, &n, &d2, gate2) < 1 || impl_->rim[static_cast<size_t>(n)]) continue;
-    kept.push_back(static_cast<int>(i));
+    keep[static_cast<size_t>(i)] = impl_->fine->nearestK(q, 1, &n, &d2, gate2) >= 1 && !impl_->rim[static_cast<size_t>(n)];
   }
+  for (long i = 0; i < n_points; ++i)
+    if (keep[static_cast<size_t>(i)]) kept.push_back(static_cast<int>(i));
   return kept;
 }
 
 Correspondences SkinIndex::fit(const core::Points& cloud_m, double gate_m) const {
   if (!impl_ || cloud_m.rows() == 0 || impl_->points.rows() == 0 || !(gate_m > 0)) return Correspondences{};
-  std::vector<float> d2s;
-  d2s.reserve(static_cast<size_t>(cloud_m.rows()));
   const double gate2 = static_cast<double>(static_cast<float>(gate_m * gate_m));
-  for (Eigen::Index i = 0; i < cloud_m.rows(); ++i) {
+  // Each point's nearest skin sample in parallel; the pairs kept in the cloud's order.
+  const long n_points = static_cast<long>(cloud_m.rows());
+  std::vector<float> d2_all(static_cast<size_t>(n_points), -1.0f);  // −1: no sample within the gate
+#pragma omp parallel for schedule(static) if (n_points > 2048)
+  for (long i = 0; i < n_points; ++i) {
     float d2 = 0;
     int index = -1;
     const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
-    if (impl_->fine->nearestK(q, 1, &index, &d2, gate2) > 0) d2s.push_back(d2);
+    if (impl_->fine->nearestK(q, 1, &index, &d2, gate2) > 0) d2_all[static_cast<size_t>(i)] = d2;
   }
+  std::vector<float> d2s;
+  d2s.reserve(static_cast<size_t>(n_points));
+  for (const float d2 : d2_all)
+    if (d2 >= 0.0f) d2s.push_back(d2);
   return trimmedFit(std::move(d2s), cloud_m.rows());
 }
 
