@@ -2,8 +2,8 @@
 
 #include <algorithm>
 #include <chrono>
-#include <cstdint>
 #include <cmath>
+#include <cstdint>
 #include <limits>
 #include <sstream>
 #include <stdexcept>
@@ -180,7 +180,8 @@ Eigen::Vector3d SurfaceVectorField::vectorToSurface(const Eigen::Vector3d& p_m) 
   };
   // Neighbouring voxels share their nearest triangle, so candidates repeat (up to 8 × 27 of them):
   // each triangle's closest point is computed once, its index kept in a small open-addressing set
-  // (more slots than candidates, so it never fills). A point costs less than the look-up: points repeat.
+  // (more slots than candidates, so it never fills). A point cloud's candidates skip the set: a
+  // point's distance costs less than the look-up.
   constexpr int kSlots = 256;
   std::int32_t seen[kSlots];
   const bool cloud = target_.isPointCloud();
