@@ -9,8 +9,9 @@
 // drift, the seen skin's residual, frames taken back and frames whose lesions were valid:
 //   bench_tracking_drift [--case FILE] [--settings FILE] [--target-elements N] [--frames N] [--rate-hz R] [--breath-mm A]
 //                        [--points N] [--noise-mm S] [--slide-mm D] [--slide-start K] [--slide-frames K]
-//                        [--block N] [--no-icp] [--json FILE]
-// (--no-icp: without the rigid pre-alignment, so that the monitor alone has to catch the slide.)
+//                        [--block N] [--no-icp] [--solver-tol T] [--json FILE]
+// (--no-icp: without the rigid pre-alignment, so that the monitor alone has to catch the slide;
+// --solver-tol: a tracking frame's PCG tolerance, TrackerOptions::solver_relative_tolerance.)
 // docs/tracking.md.
 #include <fstream>
 #include <iomanip>
@@ -35,6 +36,7 @@ int main(int argc, char** argv) {
   int target = 5000, frames = 3000, points = 2500, slide_start = -1, slide_frames = 20, block = 300;
   double rate_hz = 10.0, breath_mm = 2.0, noise_mm = 0.5, slide_mm = 0.0;
   bool icp = true;
+  double solver_tol = ros_interface::TrackerOptions{}.solver_relative_tolerance;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto next = [&]() -> std::string { return i + 1 < argc ? argv[++i] : ""; };
@@ -51,6 +53,7 @@ int main(int argc, char** argv) {
     else if (a == "--slide-frames") slide_frames = std::stoi(next());
     else if (a == "--block") block = std::stoi(next());
     else if (a == "--no-icp") icp = false;
+    else if (a == "--solver-tol") solver_tol = std::stod(next());
     else if (a == "--json") json_path = next();
     else {
       std::cerr << "bench_tracking_drift: unknown option '" << a << "'\n";
@@ -74,17 +77,20 @@ int main(int argc, char** argv) {
     ros_interface::SkinScanner scanner(x0, core::skinTriangles(model.mesh, model.mesh.nodeSet(core::node_sets::kSkin)), 1);
     ros_interface::TrackerOptions options;  // the node's defaults (config/node.yaml)
     options.icp.enabled = icp;
+    options.solver_relative_tolerance = solver_tol;
     ros_interface::GuardedTracker tracker(options);
     tracker.start(p);
     std::cout << "bench_tracking_drift: " << model.mesh.numTets() << " elements, " << frames << " frames at " << rate_hz
               << " Hz, " << points << " points, breathing " << breath_mm << " mm, noise " << noise_mm << " mm";
     if (!icp) std::cout << ", no ICP";
+    std::cout << ", PCG tolerance per frame " << solver_tol;
     if (slide_mm != 0) std::cout << ", scan slid " << slide_mm << " mm along the wall from frame " << slide_start;
     std::cout << "\n  frames        lesion err max [mm]  wall drift max [mm]  model drift max [mm]  seen mean [mm]"
                  "  taken back  valid\n";
     nlohmann::json out = {{"elements", model.mesh.numTets()}, {"frames", frames}, {"rate_hz", rate_hz},
                           {"breath_mm", breath_mm}, {"noise_mm", noise_mm}, {"slide_mm", slide_mm},
-                          {"slide_start", slide_start}, {"blocks", nlohmann::json::array()}};
+                          {"slide_start", slide_start}, {"solver_relative_tolerance", solver_tol},
+                          {"blocks", nlohmann::json::array()}};
     double worst_valid = 0, worst = 0;
     int first_invalid_after_slide = -1, taken_back_total = 0, valid_total = 0;
     double err = 0, wall_drift = 0, model_drift = 0, seen = 0;

@@ -66,11 +66,12 @@ struct TrackerOptions {
   int iterations_per_frame = 1;  ///< Figure-2 iterations per frame
   /// Relative residual at which the step's PCG solve stops during a tracking frame; 0 = the case's
   /// own (simulation.solver_relative_tolerance, 1e-2 in the shipped cases). Each frame is one step
-  /// that starts from the last, so a looser solve here is corrected by the frames after it:
-  /// measured at 20.8k elements, 0.1 takes ~9 PCG iterations instead of ~14 at the same skin residual
-  /// (1.47 vs 1.51 mm; docs/ros/bench_tracking_latency_20k.txt). Restored after the frame, so a precomputation
-  /// keeps its tolerance. Ignored by a direct solver.
-  double solver_relative_tolerance = 0.1;
+  /// that starts from the last, so a looser solve here is corrected by the frames after it: on the
+  /// phantom 0.3 takes 4 PCG iterations per frame where 0.1 takes 7 (20.8k and 48.8k elements), at
+  /// the same skin residual and with the lesions of a 5-minute scan of the model's own skin within
+  /// 0.732 mm (0.734 at 0.1, 0.738 at 0.5; docs/tracking.md, "Latency"). Restored after the frame,
+  /// so a precomputation keeps its tolerance. Ignored by a direct solver.
+  double solver_relative_tolerance = 0.3;
   /// A scanner sees only part of the skin. Skin vertices farther than this from every cloud point are
   /// unseen: their current positions are added to the target, so the morphing holds them where they
   /// are instead of pulling them onto the rim of the seen patch [m]. 0 = off (every skin vertex is
