@@ -142,7 +142,6 @@ Eigen::VectorXd TetMesh::tetVolumes() const {
   return v;
 }
 
-
 Eigen::Vector3d TetMesh::boundsMin() const {
   return numNodes() ? Eigen::Vector3d(nodes_.colwise().minCoeff().transpose()) : Eigen::Vector3d::Zero();
 }

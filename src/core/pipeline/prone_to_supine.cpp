@@ -109,8 +109,6 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
       prone_model_(model),
       unloaded_model_(unloadedModel(model_case, model, settings_, unloaded_)),
       model_(unloaded_model_ ? *unloaded_model_ : model) {
-  mesh_volume_m3_ = prone_model_.mesh.volume();
-  rest_volume_m3_ = model_.mesh.volume();
   if (unloaded_model_) gravity_offset_mps2_ = proneGravity(case_, settings_.simulation);
   settings_.simulation.dynamics.gravity_mps2 = supineGravityLoad() + gravity_offset_mps2_;
   std::optional<std::vector<TetMesh>> coarse;
@@ -244,7 +242,7 @@ double ProneToSupinePipeline::volumeChangePercent() const {
   double volume_percent = 0.0, max_u = 0.0;
   deformationMeasures(model_.mesh, simulator().state().displacement_m, volume_percent, max_u);
   // Of the prone volume (the rest shape's differs with reference_state unloaded).
-  return 100.0 * (rest_volume_m3_ * (1.0 + 0.01 * volume_percent) / mesh_volume_m3_ - 1.0);
+  return 100.0 * (model_.mesh.volume() * (1.0 + 0.01 * volume_percent) / prone_model_.mesh.volume() - 1.0);
 }
 
 void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
@@ -300,7 +298,7 @@ PipelineMetrics ProneToSupinePipeline::metrics() const {
   const Points x = positions();
   const QualityStats q = qualityStats(model_.mesh.tets(), x);
   m.inverted_elements = q.num_inverted;
-  m.volume_change_percent = 100.0 * (q.total_volume_m3 / mesh_volume_m3_ - 1.0);
+  m.volume_change_percent = 100.0 * (q.total_volume_m3 / prone_model_.mesh.volume() - 1.0);
   m.max_displacement_m = displacement().rowwise().norm().maxCoeff();
   m.max_modulus_factor = modulusFactors().maxCoeff();
   m.final_alpha_per_pa = stiff_->alpha();

@@ -535,8 +535,6 @@ class ProneToSupinePipeline {
   SimulationState step_start_;
   Eigen::VectorXd step_start_factors_;
   PipelineState guard_before_;
-  double mesh_volume_m3_ = 0.0;  // of the prone shape
-  double rest_volume_m3_ = 0.0;  // of the rest shape
 };
 
 }  // namespace breast_sim::core
