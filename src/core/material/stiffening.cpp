@@ -323,7 +323,8 @@ void StiffeningSimulation::refreshStress() {
 void StiffeningSimulation::setModuli(const Eigen::VectorXd& stress) {
   const double a = alpha();
   const Eigen::VectorXd& current = sim_.elements().modulusFactors();
-  Eigen::VectorXd er(stress.size());
+  Eigen::VectorXd& er = modulus_buffer_;  // a kept buffer: setModuli runs every step
+  er.resize(stress.size());
   for (Eigen::Index e = 0; e < stress.size(); ++e) {
     const double s = std::isfinite(stress[e]) ? stress[e] : 0.0;
     er[e] = std::min(1.0 + std::max(a, element_alpha_[e]) * s, params_.max_modulus_factor);
@@ -421,7 +422,8 @@ StiffeningStepResult StiffeningSimulation::step() {
   } else {
     SimulationState& saved = step_start_;  // a kept buffer: no allocation per step
     saved = sim_.state();
-    Eigen::VectorXd stress = base_stress_;
+    Eigen::VectorXd& stress = trial_stress_;  // the stress the trials' moduli follow (a kept buffer)
+    stress = base_stress_;
     for (int attempt = 1;; ++attempt) {
       setModuli(stress);
       bool solved = true;
@@ -457,9 +459,12 @@ StiffeningStepResult StiffeningSimulation::step() {
       if (solved) {
         // Stress at the rejected end of the trial (see the file comment); NaN entries are ignored.
         sim_.elasticForces();
-        const Eigen::VectorXd trial = sim_.elements().vonMisesStress().cwiseQuotient(sim_.elements().modulusFactors());
-        for (Eigen::Index e = 0; e < stress.size(); ++e)
-          if (std::isfinite(trial[e]) && trial[e] > stress[e]) stress[e] = trial[e];
+        const Eigen::VectorXd& vm = sim_.elements().vonMisesStress();
+        const Eigen::VectorXd& er = sim_.elements().modulusFactors();
+        for (Eigen::Index e = 0; e < stress.size(); ++e) {
+          const double trial = vm[e] / er[e];
+          if (std::isfinite(trial) && trial > stress[e]) stress[e] = trial;
+        }
       }
       sim_.restore(saved);
       ++reversed_;

@@ -351,6 +351,7 @@ class StiffeningSimulation {
   bool hold_alpha_ = false;
   std::vector<char> fixed_node_;  // per node: constrained in the simulator (refreshed per accepted step)
   Eigen::VectorXd base_stress_, trial_stress_, f_el_;
+  Eigen::VectorXd modulus_buffer_;  // setModuli(): the new factors before they are handed on (kept buffer)
   Points x_;
   Eigen::VectorXd rest_volume_;  // per element [m³], for the collapsed check
   long accepted_ = 0, reversed_ = 0, limit_hits_ = 0, shortened_steps_ = 0, steps_to_settle_ = -1;
