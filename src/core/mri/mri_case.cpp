@@ -96,7 +96,8 @@ MriCaseSource loadMriCaseSource(const std::string& yaml_path) {
   if (m["midline_x_mm"] && !(m["midline_x_mm"].IsScalar() && m["midline_x_mm"].as<std::string>() == "auto"))
     s.midline_x_m = 1e-3 * numberIn(m["midline_x_mm"], yaml_path, "mri.midline_x_mm", -1e4, 1e4, false, false,
                                     "mm (or auto: midway between the two breasts' nipples)");
-  if (m["lesion_labels"]) s.lesion_labels = pathBeside(yaml_path, text(m["lesion_labels"], yaml_path, "mri.lesion_labels"));
+  if (m["lesion_labels"])
+    s.lesion_labels = pathBeside(yaml_path, text(m["lesion_labels"], yaml_path, "mri.lesion_labels"));
   if (m["truth"]) s.truth = pathBeside(yaml_path, text(m["truth"], yaml_path, "mri.truth"));
   return s;
 }

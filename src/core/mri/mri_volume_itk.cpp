@@ -86,7 +86,7 @@ Volume fromItk(const FloatImage& image) {
 }
 
 // The spacing and the transforms in use of a NIfTI-1 header `h` in the byte order `swap` says.
-void checkNiftiHeaderNumbers(const std::string& path, const unsigned char* h, bool swap) {
+void checkNiftiNumbersInOrder(const std::string& path, const unsigned char* h, bool swap) {
   const auto word = [&](int offset) {
     std::uint32_t u = 0;
     std::memcpy(&u, h + offset, 4);
@@ -144,14 +144,14 @@ void checkNiftiHeaderNumbers(const std::string& path) {
   std::memcpy(&dim0, h + 40, 2);
   const std::uint16_t dim0_swapped = __builtin_bswap16(dim0);
   if (dim0 >= 1 && dim0 <= 7) {
-    checkNiftiHeaderNumbers(path, h, false);
+    checkNiftiNumbersInOrder(path, h, false);
   } else if (dim0_swapped >= 1 && dim0_swapped <= 7) {
-    checkNiftiHeaderNumbers(path, h, true);
+    checkNiftiNumbersInOrder(path, h, true);
   } else if (size == 348 || __builtin_bswap32(size) == 348) {
-    checkNiftiHeaderNumbers(path, h, size != 348);
+    checkNiftiNumbersInOrder(path, h, size != 348);
   } else {
-    checkNiftiHeaderNumbers(path, h, false);
-    checkNiftiHeaderNumbers(path, h, true);
+    checkNiftiNumbersInOrder(path, h, false);
+    checkNiftiNumbersInOrder(path, h, true);
   }
 }
 
