@@ -202,7 +202,8 @@ int main(int argc, char** argv) {
                 << std::setprecision(2) << std::setw(9) << 1e3 * bench::median(conv) << std::setw(8)
                 << 1e3 * bench::median(filt) << std::setw(8) << 1e3 * bench::median(icps) << std::setw(8)
                 << 1e3 * bench::median(field) << std::setw(8) << 1e3 * bench::median(iter) << std::setw(11)
-                << bench::median(pcg) << std::setw(9) << 1e3 * bench::median(pub) << " |" << std::setw(8) << 1e3 * bench::median(total) << std::setw(7)
+                << bench::median(pcg) << std::setw(9) << 1e3 * bench::median(pub) << " |" << std::setw(8)
+                << 1e3 * bench::median(total) << std::setw(7)
                 << 1e3 * p95(total) << " |" << std::setw(10) << rate << std::setw(15) << 1e3 * last_mean << std::setw(8)
                 << icp_applied << "/" << std::setw(3) << std::left << total.size() << std::right << "  " << search << " ("
                 << valid_frames << " valid)\n";

@@ -265,72 +265,72 @@ void PointGrid::selfNearestK(int k, float* d2, int* found) const {
   const long slots = static_cast<long>(table_.size());
 #pragma omp parallel if (points_.size() > 2048)
   {
-  std::vector<float> bx, by, bz, dist;
-  std::vector<int> scratch(static_cast<size_t>(k));
+    std::vector<float> bx, by, bz, dist;
+    std::vector<int> scratch(static_cast<size_t>(k));
 #pragma omp for schedule(dynamic, 64)
-  for (long t = 0; t < slots; ++t) {
-    const Slot& slot = table_[static_cast<size_t>(t)];
-    if (slot.key == kEmpty) continue;
-    const int64_t c[3] = {static_cast<int64_t>(slot.key & kAxis), static_cast<int64_t>((slot.key >> 21) & kAxis),
-                          static_cast<int64_t>(slot.key >> 42)};
-    // The points of the 27 cells around this one, coordinates apart (the distance loop vectorizes),
-    // nearest cells first (own, faces, edges, corners) so that the k best fill early and most later
-    // candidates are refused by one comparison.
-    bx.clear();
-    by.clear();
-    bz.clear();
-    for (const auto& o : kNeighbourOffsets) {
-      const int64_t x = c[0] + o[0], y = c[1] + o[1], z = c[2] + o[2];
-      if (x < 0 || y < 0 || z < 0 || x >= extent_[0] || y >= extent_[1] || z >= extent_[2]) continue;
-      const Slot* s = find(x, y, z);
-      if (!s) continue;
-      for (uint32_t m = s->begin; m < s->end; ++m) {
-        bx.push_back(sorted_[m].x());
-        by.push_back(sorted_[m].y());
-        bz.push_back(sorted_[m].z());
-      }
-    }
-    const size_t nb = bx.size();
-    dist.resize(nb);
-    bool all = true;  // the 27 cells are every occupied cell
-    for (int a = 0; a < 3; ++a) all = all && c[a] - 1 <= 0 && c[a] + 1 >= extent_[a] - 1;
-    for (uint32_t m = slot.begin; m < slot.end; ++m) {
-      const float qx = sorted_[m].x(), qy = sorted_[m].y(), qz = sorted_[m].z();
-      for (size_t b = 0; b < nb; ++b) {
-        // squaredDistanceF(q, b), written out so that it vectorizes (same operations per lane).
-        const float dx = qx - bx[b], dy = qy - by[b], dz = qz - bz[b];
-        float r = dx * dx;
-        r += dy * dy;
-        r += dz * dz;
-        dist[b] = r;
-      }
-      const int index = sorted_index_[m];
-      float* out = d2 + static_cast<size_t>(index) * static_cast<size_t>(k);
-      int n = 0;
-      for (size_t b = 0; b < nb; ++b) {
-        const float d = dist[b];
-        if (n == k) {
-          if (!(d < out[k - 1])) continue;
-          --n;
+    for (long t = 0; t < slots; ++t) {
+      const Slot& slot = table_[static_cast<size_t>(t)];
+      if (slot.key == kEmpty) continue;
+      const int64_t c[3] = {static_cast<int64_t>(slot.key & kAxis), static_cast<int64_t>((slot.key >> 21) & kAxis),
+                            static_cast<int64_t>(slot.key >> 42)};
+      // The points of the 27 cells around this one, coordinates apart (the distance loop vectorizes),
+      // nearest cells first (own, faces, edges, corners) so that the k best fill early and most later
+      // candidates are refused by one comparison.
+      bx.clear();
+      by.clear();
+      bz.clear();
+      for (const auto& o : kNeighbourOffsets) {
+        const int64_t x = c[0] + o[0], y = c[1] + o[1], z = c[2] + o[2];
+        if (x < 0 || y < 0 || z < 0 || x >= extent_[0] || y >= extent_[1] || z >= extent_[2]) continue;
+        const Slot* s = find(x, y, z);
+        if (!s) continue;
+        for (uint32_t m = s->begin; m < s->end; ++m) {
+          bx.push_back(sorted_[m].x());
+          by.push_back(sorted_[m].y());
+          bz.push_back(sorted_[m].z());
         }
-        int j = n++;
-        for (; j > 0 && out[j - 1] > d; --j) out[j] = out[j - 1];
-        out[j] = d;
       }
-      // Points outside the 27 cells are at least `bound` away.
-      double bound = std::numeric_limits<double>::infinity();
-      const Eigen::Vector3f& q = sorted_[m];
-      for (int a = 0; a < 3; ++a) {
-        bound = std::min(bound, q[a] - (origin_[a] + static_cast<double>(c[a] - 1) * cell_));
-        bound = std::min(bound, origin_[a] + static_cast<double>(c[a] + 2) * cell_ - q[a]);
-      }
-      if (all || (n == k && bound > 0 && static_cast<double>(out[k - 1]) < bound * bound * (1 - kMargin))) {
-        found[index] = n;
-      } else {
-        found[index] = nearestK(q, k, scratch.data(), out);
+      const size_t nb = bx.size();
+      dist.resize(nb);
+      bool all = true;  // the 27 cells are every occupied cell
+      for (int a = 0; a < 3; ++a) all = all && c[a] - 1 <= 0 && c[a] + 1 >= extent_[a] - 1;
+      for (uint32_t m = slot.begin; m < slot.end; ++m) {
+        const float qx = sorted_[m].x(), qy = sorted_[m].y(), qz = sorted_[m].z();
+        for (size_t b = 0; b < nb; ++b) {
+          // squaredDistanceF(q, b), written out so that it vectorizes (same operations per lane).
+          const float dx = qx - bx[b], dy = qy - by[b], dz = qz - bz[b];
+          float r = dx * dx;
+          r += dy * dy;
+          r += dz * dz;
+          dist[b] = r;
+        }
+        const int index = sorted_index_[m];
+        float* out = d2 + static_cast<size_t>(index) * static_cast<size_t>(k);
+        int n = 0;
+        for (size_t b = 0; b < nb; ++b) {
+          const float d = dist[b];
+          if (n == k) {
+            if (!(d < out[k - 1])) continue;
+            --n;
+          }
+          int j = n++;
+          for (; j > 0 && out[j - 1] > d; --j) out[j] = out[j - 1];
+          out[j] = d;
+        }
+        // Points outside the 27 cells are at least `bound` away.
+        double bound = std::numeric_limits<double>::infinity();
+        const Eigen::Vector3f& q = sorted_[m];
+        for (int a = 0; a < 3; ++a) {
+          bound = std::min(bound, q[a] - (origin_[a] + static_cast<double>(c[a] - 1) * cell_));
+          bound = std::min(bound, origin_[a] + static_cast<double>(c[a] + 2) * cell_ - q[a]);
+        }
+        if (all || (n == k && bound > 0 && static_cast<double>(out[k - 1]) < bound * bound * (1 - kMargin))) {
+          found[index] = n;
+        } else {
+          found[index] = nearestK(q, k, scratch.data(), out);
+        }
       }
     }
-  }
   }
 }
 

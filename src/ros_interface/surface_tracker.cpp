@@ -364,42 +364,48 @@ const std::vector<char>& SkinIndex::rim() const {
   return impl_ ? impl_->rim : none;
 }
 
-std::vector<int> SkinIndex::near(const core::Points& cloud_m) const {
-  std::vector<int> kept;
-  if (!impl_ || impl_->points.rows() == 0 || !(impl_->gate_m > 0)) return kept;
-  const double gate2 = static_cast<double>(static_cast<float>(impl_->gate_m * impl_->gate_m));
-  // Each point's test in parallel, kept in the cloud's order.
+namespace {
+
+/// Each cloud point's nearest point of `grid` within squared distance `max_d2` (float coordinates),
+/// point by point in parallel: `index` −1 where there is none. Each point's answer is its own, so the
+/// result does not depend on the thread count.
+void nearestWithin(const PointGrid& grid, const core::Points& cloud_m, double max_d2, std::vector<int>& index,
+                   std::vector<float>& d2) {
   const long n_points = static_cast<long>(cloud_m.rows());
-  std::vector<char> keep(static_cast<size_t>(n_points), 0);
+  index.assign(static_cast<size_t>(n_points), -1);
+  d2.assign(static_cast<size_t>(n_points), 0.0f);
 #pragma omp parallel for schedule(static) if (n_points > 2048)
   for (long i = 0; i < n_points; ++i) {
     const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
-    float d2 = 0;
     int n = -1;
-    keep[static_cast<size_t>(i)] = impl_->fine->nearestK(q, 1, &n, &d2, gate2) >= 1 && !impl_->rim[static_cast<size_t>(n)];
+    float d = 0;
+    if (grid.nearestK(q, 1, &n, &d, max_d2) > 0) index[static_cast<size_t>(i)] = n, d2[static_cast<size_t>(i)] = d;
   }
-  for (long i = 0; i < n_points; ++i)
-    if (keep[static_cast<size_t>(i)]) kept.push_back(static_cast<int>(i));
+}
+
+}  // namespace
+
+std::vector<int> SkinIndex::near(const core::Points& cloud_m) const {
+  std::vector<int> kept;
+  if (!impl_ || impl_->points.rows() == 0 || !(impl_->gate_m > 0)) return kept;
+  std::vector<int> nearest;
+  std::vector<float> d2;
+  const double gate2 = static_cast<double>(static_cast<float>(impl_->gate_m * impl_->gate_m));
+  nearestWithin(*impl_->fine, cloud_m, gate2, nearest, d2);
+  for (size_t i = 0; i < nearest.size(); ++i)
+    if (nearest[i] >= 0 && !impl_->rim[static_cast<size_t>(nearest[i])]) kept.push_back(static_cast<int>(i));
   return kept;
 }
 
 Correspondences SkinIndex::fit(const core::Points& cloud_m, double gate_m) const {
   if (!impl_ || cloud_m.rows() == 0 || impl_->points.rows() == 0 || !(gate_m > 0)) return Correspondences{};
-  const double gate2 = static_cast<double>(static_cast<float>(gate_m * gate_m));
-  // Each point's nearest skin sample in parallel; the pairs kept in the cloud's order.
-  const long n_points = static_cast<long>(cloud_m.rows());
-  std::vector<float> d2_all(static_cast<size_t>(n_points), -1.0f);  // −1: no sample within the gate
-#pragma omp parallel for schedule(static) if (n_points > 2048)
-  for (long i = 0; i < n_points; ++i) {
-    float d2 = 0;
-    int index = -1;
-    const Eigen::Vector3f q(static_cast<float>(cloud_m(i, 0)), static_cast<float>(cloud_m(i, 1)), static_cast<float>(cloud_m(i, 2)));
-    if (impl_->fine->nearestK(q, 1, &index, &d2, gate2) > 0) d2_all[static_cast<size_t>(i)] = d2;
-  }
+  std::vector<int> nearest;
+  std::vector<float> d2;
+  nearestWithin(*impl_->fine, cloud_m, static_cast<double>(static_cast<float>(gate_m * gate_m)), nearest, d2);
   std::vector<float> d2s;
-  d2s.reserve(static_cast<size_t>(n_points));
-  for (const float d2 : d2_all)
-    if (d2 >= 0.0f) d2s.push_back(d2);
+  d2s.reserve(d2.size());
+  for (size_t i = 0; i < nearest.size(); ++i)
+    if (nearest[i] >= 0) d2s.push_back(d2[i]);
   return trimmedFit(std::move(d2s), cloud_m.rows());
 }
 
