@@ -428,6 +428,70 @@ TEST(Stiffening, AStepThatWouldCollapseAnElementIsShortened) {
   EXPECT_EQ(CorotatedTetFem(m, mat).collapsedVolumeRatio(), 0.0);
 }
 
+TEST(Stiffening, AnElementInvalidAtTheStartHoldsTheStepBackOnlyIfItLosesVolume) {
+  // A 2×2×2 block of average-nodal-pressure tetrahedra (barrier J_b 0.3), bottom fixed, starts from
+  // a state with its top corner pushed through the block's diagonal (elements inverted), as a state
+  // interpolated from a coarser model can. Unloaded, a 2 ms step raises the inverted elements'
+  // volume ratios part of the way (−0.25 to about −0.2): it is taken, with no reversal, and says how
+  // many elements were recovering. Pushed on further by 200 N, the trials lower them: they are
+  // reverted as any step that leaves an element invalid.
+  const TetMesh m = makeBoxMesh({2, 2, 2}, {0.02, 0.02, 0.02});
+  ElasticMaterial mat;
+  mat.youngs_modulus_pa = 2000.0;
+  mat.poisson_ratio = 0.48;
+  int corner = -1;
+  for (int n = 0; n < m.numNodes(); ++n)
+    if ((m.nodes().row(n).array() > 0.019).all()) corner = n;
+  ASSERT_GE(corner, 0);
+  const Eigen::VectorXd V0 = m.tetVolumes();
+  auto minRatio = [&](const Eigen::VectorXd& u) {
+    double jmin = 1e9;
+    for (int e = 0; e < m.numTets(); ++e) {
+      Eigen::Vector3d x[4];
+      for (int i = 0; i < 4; ++i)
+        x[i] = (m.nodes().row(m.tets()(e, i)) + u.segment<3>(3 * m.tets()(e, i)).transpose()).transpose();
+      jmin = std::min(jmin, (x[1] - x[0]).dot((x[2] - x[0]).cross(x[3] - x[0])) / 6.0 / V0[e]);
+    }
+    return jmin;
+  };
+  SimulationState start;
+  start.displacement_m = Eigen::VectorXd::Zero(3 * m.numNodes());
+  start.velocity_mps = Eigen::VectorXd::Zero(3 * m.numNodes());
+  start.displacement_m.segment<3>(3 * corner) = Eigen::Vector3d::Constant(-0.0125);
+  const double j_start = minRatio(start.displacement_m);
+  ASSERT_LT(j_start, 0.0);
+  ASSERT_GT(j_start, -1.0);
+  for (int pushed = 0; pushed < 2; ++pushed) {
+    auto anp = std::make_unique<AnpTetFem>(m, mat);
+    anp->setInversionBarrier(0.3);
+    DynamicsParams dp;
+    dp.time_step_s = 0.002;
+    dp.gravity_mps2 = Eigen::Vector3d::Zero();
+    DynamicSimulator sim(m, std::move(anp), mat, dp, std::make_unique<CholmodSolver>());
+    sim.fixNodes(m.nodeSet("z_min"));
+    if (pushed) {
+      Points f(1, 3);
+      f << -200.0, -200.0, -200.0;
+      sim.addNodalForces({corner}, f);
+    }
+    sim.restore(start);
+    StiffeningParams p;
+    p.alpha.initial_alpha_per_pa = 1e-7;
+    p.max_reversals_per_step = 3;
+    StiffeningSimulation stiff(sim, m, p);
+    const StiffeningStepResult r = stiff.step();
+    if (!pushed) {
+      EXPECT_TRUE(r.advanced);
+      EXPECT_EQ(r.reversals, 0);
+      EXPECT_GE(r.recovering_elements, 1);
+      EXPECT_GT(minRatio(sim.state().displacement_m), j_start);
+    } else {
+      EXPECT_GE(r.reversals, 1);
+      EXPECT_EQ(r.recovering_elements, 0);
+    }
+  }
+}
+
 // admissibleStepFraction against a dense scan of every element's volume ratio along the step.
 TEST(Stiffening, AdmissibleStepFractionIsTheFirstCrossingOfTheBound) {
   const TetMesh m = makeBoxMesh({3, 3, 3}, {0.03, 0.03, 0.03});

@@ -361,6 +361,27 @@ std::vector<int> StiffeningSimulation::invalidElements() {
   return out;
 }
 
+int StiffeningSimulation::dropRecovering(std::vector<int>& invalid, const Eigen::VectorXd& u_start) const {
+  const double j_min = sim_.elements().collapsedVolumeRatio();
+  const Eigen::VectorXd& u = sim_.state().displacement_m;
+  auto ratio = [&](int e, const Eigen::VectorXd& d) {
+    Eigen::Vector3d x[4];
+    for (int k = 0; k < 4; ++k) {
+      const int n = mesh_.tets()(e, k);
+      x[k] = mesh_.nodes().row(n).transpose() + d.segment<3>(3 * n);
+    }
+    return (x[1] - x[0]).dot((x[2] - x[0]).cross(x[3] - x[0])) / (6.0 * rest_volume_[e]);
+  };
+  const size_t before = invalid.size();
+  invalid.erase(std::remove_if(invalid.begin(), invalid.end(),
+                               [&](int e) {
+                                 const double j0 = ratio(e, u_start);
+                                 return j0 <= j_min && ratio(e, u) > j0;  // false for NaN
+                               }),
+                invalid.end());
+  return static_cast<int>(before - invalid.size());
+}
+
 int StiffeningSimulation::countInverted() { return static_cast<int>(invertedElements().size()); }
 
 double StiffeningSimulation::modulusExcess() const {
@@ -433,6 +454,7 @@ StiffeningStepResult StiffeningSimulation::step() {
         solved = false;  // e.g. non-finite velocities: treated like an inversion
       }
       std::vector<int> inverted = solved ? invalidElements() : std::vector<int>{};
+      int recovering = inverted.empty() ? 0 : dropRecovering(inverted, saved.displacement_m);
       const double j_collapsed = sim_.elements().collapsedVolumeRatio();
       if (solved && !inverted.empty() && j_collapsed > 0.0) {
         // Shortened steps (see the class comment): the share s of the increment that keeps every
@@ -443,7 +465,8 @@ StiffeningStepResult StiffeningSimulation::step() {
           shortened_.displacement_m = saved.displacement_m + s * (shortened_.displacement_m - saved.displacement_m);
           shortened_.velocity_mps *= s;
           sim_.restore(shortened_);
-          inverted = invalidElements();  // empty, unless an element started at or below j_c
+          inverted = invalidElements();
+          recovering = inverted.empty() ? 0 : dropRecovering(inverted, saved.displacement_m);
           if (inverted.empty()) r.step_fraction = s;
         }
       }
@@ -454,6 +477,7 @@ StiffeningStepResult StiffeningSimulation::step() {
           else controller_.onAccepted();
         }
         r.advanced = true;
+        r.recovering_elements = recovering;
         break;
       }
       if (solved) {
@@ -494,8 +518,9 @@ StiffeningStepResult StiffeningSimulation::step() {
     }
   }
   refreshStress();
-  // An accepted step with reversal was just checked: no element is inverted at this state.
-  last_inverted_ = reversal && r.advanced ? 0 : countInverted();
+  // An accepted step with reversal was just checked: no element is inverted at this state, unless
+  // one is still recovering.
+  last_inverted_ = reversal && r.advanced && r.recovering_elements == 0 ? 0 : countInverted();
   if (r.advanced) {
     ++accepted_;
     // Constrained nodes and external forces as the simulator has them, however they were set
@@ -510,7 +535,8 @@ StiffeningStepResult StiffeningSimulation::step() {
     r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, loads, sim_.lumpedMass(),
                               sim_.params().gravity_mps2, fixed_node_);
     if (r.step_fraction < 1.0) ++shortened_steps_;
-    settle_run_ = r.settle.below && r.step_fraction == 1.0 ? settle_run_ + 1 : 0;  // a shortened step is no settled one
+    // A shortened step, or one with a recovering element, is no settled one.
+    settle_run_ = r.settle.below && r.step_fraction == 1.0 && r.recovering_elements == 0 ? settle_run_ + 1 : 0;
     // The moduli this step ran with: how far its equilibrium is from the base material's.
     excess_ = params_.update_moduli ? modulusExcess() : 0.0;
     const bool shape_settled = settle_run_ >= params_.settle.consecutive_steps;

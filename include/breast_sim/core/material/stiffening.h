@@ -171,6 +171,9 @@ struct StiffeningStepResult {
   /// The share of the solved step that was taken, in (0, 1]: below 1 when the step was shortened to
   /// keep every element off its collapsed volume ratio (StiffeningSimulation, "Shortened steps").
   double step_fraction = 1.0;
+  /// Elements that were already invalid (inverted, or at or below the collapsed volume ratio) at the
+  /// start of the accepted step and gained volume in it (StiffeningSimulation, "Recovering elements").
+  int recovering_elements = 0;
   SettleCheck settle;          ///< at the end of the call
 };
 
@@ -258,6 +261,16 @@ double admissibleStepFraction(const TetMesh& mesh, const Eigen::VectorXd& u0, co
 /// stiffness is in the next step's matrix. Only a fraction below kMinStepFraction is reverted and
 /// repeated stiffer as above. A shortened step does not count towards the settle criterion.
 /// With j_c = 0 (the linear tetrahedra) every step is as the seed's.
+///
+/// Recovering elements: a state this class did not step to (one restored, or handed over from a
+/// coarser model, whose interpolated displacement can invert a fine element) may start a step with
+/// an invalid element. No α makes such a step valid by itself, since the element is invalid before
+/// it moves: the step would be reverted until a stiffer one happened to lift the element above j_c
+/// (on the fast phantom run's 48.8k-element ANP model: an element at J −0.14 after the hand-over,
+/// four reverted 47 ms steps, α from 1e-7 to 1e-4 /Pa). So an element invalid at the start of the
+/// step does not hold the step back while the step raises its volume ratio (StiffeningStepResult::
+/// recovering_elements); one that loses volume does, as any other. Such a step does not count
+/// towards the settle criterion.
 class StiffeningSimulation {
  public:
   /// Shortened steps: the share of its distance to the collapsed ratio every element keeps.
@@ -341,6 +354,9 @@ class StiffeningSimulation {
   // Inverted elements and, when the formulation says so (collapsedVolumeRatio), collapsed ones:
   // what a step must not leave.
   std::vector<int> invalidElements();
+  // Removes from `invalid` the elements that were invalid at displacement u_start too and whose
+  // volume ratio rose since ("Recovering elements"); returns how many.
+  int dropRecovering(std::vector<int>& invalid, const Eigen::VectorXd& u_start) const;
   double modulusExcess() const;  // largest E_r − 1 over elements without a local α above the global one
 
   DynamicSimulator& sim_;
