@@ -19,8 +19,13 @@ namespace multigrid_detail {
 using Clock = std::chrono::steady_clock;
 inline double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
-// Levels below this many nodes run on one thread: waking the second costs more than it saves.
-constexpr int kParallelMinNodes = 400;
+// Levels with fewer 3×3 blocks than this run on one thread: the second thread sleeps between
+// parallel regions (src/openmp_wait), and waking it for a sweep of less work costs more than it
+// saves. A block is one sweep's unit of work (9 float multiply-adds): the fine level of a
+// 4.8k-element model has about 19,000 of them and solves 30 % faster on one thread, the fine level
+// of an 8.9k one about 35,000 (even), the first coarse level of a 48.8k one 73,000 (ANP: 130,000).
+// Measured with bench_anp_split (docs/benchmarks.md, "Threads").
+constexpr size_t kParallelMinBlocks = 25000;
 
 // Checks the 3×3-block layout of fem/block_pattern.h and returns the neighbour lists
 // (block columns) of every node: start (N + 1) and node indices.
@@ -33,6 +38,7 @@ struct MultigridPreconditioner::Level {
   const SparseMatrix* A = nullptr;  // level 0: the caller's matrix; else the Galerkin operator
   SparseMatrix* owned = nullptr;    // coarse levels: writable (unit diagonals of empty rows)
   int nodes = 0;
+  bool parallel = false;        // its sweeps, transfers and set-up on the team (kParallelMinBlocks)
   std::vector<int> diag_block;  // per node: block index of its diagonal block
   std::vector<double> dinv;     // per node: inverse of its 3×3 diagonal block, row-major
   std::vector<double> free;     // per DOF: 1 free, 0 decoupled (fixed)

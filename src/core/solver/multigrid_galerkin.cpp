@@ -52,7 +52,13 @@ void blockGraph(const SparseMatrix& A, const std::string& who, std::vector<int>&
 }  // namespace multigrid_detail
 
 using multigrid_detail::blockGraph;
-using multigrid_detail::kParallelMinNodes;
+
+namespace {
+// Galerkin products over fewer fine nodes than this run on one thread. Each fine block meets every
+// pair of its nodes' coarse parents (about 16 products of 3×3 blocks), so the product pays for the
+// team's wake-up at far smaller levels than a sweep does (multigrid_detail::kParallelMinBlocks).
+constexpr int kGalerkinParallelMinNodes = 400;
+}  // namespace
 
 // ---------------------------------------------------------------------------------------------------
 // Galerkin product [GW10]: A_c row I = Σ_{i child of I} w_iI · (row i of A) · P. Each coarse row is
@@ -212,7 +218,7 @@ void GalerkinProduct::compute(const SparseMatrix& A, const double* free) {
   const int* cout = coarse_.outerIndexPtr();
   double* cval = coarse_.valuePtr();
   const int threads = static_cast<int>(buffers_.size());
-#pragma omp parallel num_threads(threads) if (P_.rows() > kParallelMinNodes)
+#pragma omp parallel num_threads(threads) if (P_.rows() > kGalerkinParallelMinNodes)
   {
     double* C = buffers_[omp_get_thread_num()].data();
 #pragma omp for schedule(dynamic, 32)

@@ -13,8 +13,14 @@ namespace breast_sim::core {
 
 namespace {
 
-// Vectors of a few thousand entries are not worth waking a second thread for.
+// Matrix rows: products and scans of fewer rows than this run on one thread.
 constexpr Eigen::Index kParallelMin = 4096;
+// Vector operations (x += αp, r −= αq with rᵀr; rᵀz; p = z + βp) of fewer entries than this run on
+// one thread: three streams of 8 bytes per entry take about as long as waking the second thread from
+// its sleep between parallel regions (src/openmp_wait) up to about 30,000 entries; on one thread the
+// 20.8k model's multigrid-PCG solve took 0.5–1.5 ms less per step, the 48.8k one's the same
+// (bench_anp_split, docs/benchmarks.md, "Threads").
+constexpr Eigen::Index kParallelMinVector = 32768;
 // Up to this many iterations the recursive residual is reported at the iteration limit.
 constexpr int kRecursiveResidualMaxIterations = 8;
 
@@ -58,7 +64,7 @@ double multiplyDot(const SparseMatrix& A, const Eigen::VectorXd& p, Eigen::Vecto
 double update(double alpha, const Eigen::VectorXd& p, const Eigen::VectorXd& q, Eigen::VectorXd& x,
               Eigen::VectorXd& r) {
   const Eigen::Index n = x.size();
-  return util::orderedSum(n, n > kParallelMin, [&](long i) {
+  return util::orderedSum(n, n > kParallelMinVector, [&](long i) {
     x[i] += alpha * p[i];
     const double ri = r[i] - alpha * q[i];
     r[i] = ri;
@@ -67,19 +73,19 @@ double update(double alpha, const Eigen::VectorXd& p, const Eigen::VectorXd& q, 
 }
 
 double dot(const Eigen::VectorXd& a, const Eigen::VectorXd& b) {
-  return util::orderedSum(a.size(), a.size() > kParallelMin, [&](long i) { return a[i] * b[i]; });
+  return util::orderedSum(a.size(), a.size() > kParallelMinVector, [&](long i) { return a[i] * b[i]; });
 }
 
 // p = z + β p
 void updateDirection(double beta, const Eigen::VectorXd& z, Eigen::VectorXd& p) {
   const Eigen::Index n = p.size();
-#pragma omp parallel for schedule(static) if (n > kParallelMin)
+#pragma omp parallel for schedule(static) if (n > kParallelMinVector)
   for (Eigen::Index i = 0; i < n; ++i) p[i] = z[i] + beta * p[i];
 }
 
 void copy(const Eigen::VectorXd& from, Eigen::VectorXd& to) {
   const Eigen::Index n = from.size();
-#pragma omp parallel for schedule(static) if (n > kParallelMin)
+#pragma omp parallel for schedule(static) if (n > kParallelMinVector)
   for (Eigen::Index i = 0; i < n; ++i) to[i] = from[i];
 }
 
@@ -203,7 +209,7 @@ void JacobiPreconditioner::factorizeWithRankOne(const SparseMatrix& S, const Ran
 
 void JacobiPreconditioner::apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) {
   const Eigen::Index n = r.size();
-#pragma omp parallel for schedule(static) if (n > kParallelMin)
+#pragma omp parallel for schedule(static) if (n > kParallelMinVector)
   for (Eigen::Index i = 0; i < n; ++i) z[i] = inverse_diagonal_[i] * r[i];
 }
 
