@@ -22,9 +22,9 @@ inline double since(Clock::time_point t0) { return std::chrono::duration<double>
 // Levels with fewer 3×3 blocks than this run on one thread: the second thread sleeps between
 // parallel regions (src/openmp_wait), and waking it for a sweep of less work costs more than it
 // saves. A block is one sweep's unit of work (9 float multiply-adds): the fine level of a
-// 4.8k-element model has about 19,000 of them and solves 30 % faster on one thread, the fine level
-// of an 8.9k one about 35,000 (even), the first coarse level of a 48.8k one 73,000 (ANP: 130,000).
-// Measured with bench_anp_split (docs/benchmarks.md, "Threads").
+// 4.8k-element model has 15,700 of them and solves up to 30 % faster on one thread; the fine level
+// of an 8.9k one has 27,100, the first coarse level of a 20.8k one 34,600, of a 48.8k one 73,000
+// (ANP: 130,000). Measured with bench_anp_split (docs/benchmarks.md, "Threads").
 constexpr size_t kParallelMinBlocks = 25000;
 
 // Checks the 3×3-block layout of fem/block_pattern.h and returns the neighbour lists
