@@ -72,6 +72,32 @@ PhantomSim makePhantomSim(double dt, const StiffeningParams& p, double E = 600.0
   return s;
 }
 
+// A 2×2×2 block of tetrahedra, 2 cm on a side, of 2 kPa tissue at ν 0.48, and its top corner node.
+struct SmallBlock {
+  TetMesh m = makeBoxMesh({2, 2, 2}, {0.02, 0.02, 0.02});
+  ElasticMaterial mat;
+  int corner = -1;
+  SmallBlock() {
+    mat.youngs_modulus_pa = 2000.0;
+    mat.poisson_ratio = 0.48;
+    for (int n = 0; n < m.numNodes(); ++n)
+      if ((m.nodes().row(n).array() > 0.019).all()) corner = n;
+  }
+};
+
+// The smallest volume ratio J = V / V0 over the elements of m displaced by u.
+double minVolumeRatio(const TetMesh& m, const Eigen::VectorXd& u) {
+  const Eigen::VectorXd V0 = m.tetVolumes();
+  double jmin = 1e9;
+  for (int e = 0; e < m.numTets(); ++e) {
+    Eigen::Vector3d x[4];
+    for (int i = 0; i < 4; ++i)
+      x[i] = (m.nodes().row(m.tets()(e, i)) + u.segment<3>(3 * m.tets()(e, i)).transpose()).transpose();
+    jmin = std::min(jmin, (x[1] - x[0]).dot((x[2] - x[0]).cross(x[3] - x[0])) / 6.0 / V0[e]);
+  }
+  return jmin;
+}
+
 }  // namespace
 
 TEST(AlphaController, InvalidParametersThrowNamingTheField) {
@@ -366,46 +392,28 @@ TEST(Stiffening, SettlesAtTheBaseMaterialsEquilibriumUnderALoadThatInvertsNothin
             << "); speed and residual alone: " << 1e3 * d_seed << " mm (alpha " << r.alpha_per_pa << " /Pa)\n";
 }
 
-// Where the base material inverts elements at its equilibrium (E 600 Pa here), the release keeps just
-// those elements stiffer: the rest of the model settles to within δ of its base material.
 TEST(Stiffening, AStepThatWouldCollapseAnElementIsShortened) {
   // A 2×2×2 block of average-nodal-pressure tetrahedra (barrier J_b 0.3, so collapsed below 0.1),
   // bottom fixed, a top corner pulled by 0.109 N for one 0.33 s step: the plain step leaves an
   // element at J ≈ 0.06 (not inverted); with stiffening the step is shortened to the fraction that
   // keeps every element at J ≥ 0.1 + kStepKeep (1 − 0.1) (they start at rest, J = 1), with no
   // reversal. The co-rotated tetrahedra have no collapsed ratio: their steps are never shortened.
-  const TetMesh m = makeBoxMesh({2, 2, 2}, {0.02, 0.02, 0.02});
-  ElasticMaterial mat;
-  mat.youngs_modulus_pa = 2000.0;
-  mat.poisson_ratio = 0.48;
-  int corner = -1;
-  for (int n = 0; n < m.numNodes(); ++n)
-    if ((m.nodes().row(n).array() > 0.019).all()) corner = n;
-  ASSERT_GE(corner, 0);
-  auto minVolumeRatio = [&](const DynamicSimulator& sim) {
-    const Eigen::VectorXd V0 = m.tetVolumes();
-    double jmin = 1e9;
-    for (int e = 0; e < m.numTets(); ++e) {
-      Eigen::Vector3d x[4];
-      for (int i = 0; i < 4; ++i)
-        x[i] = (m.nodes().row(m.tets()(e, i)) + sim.state().displacement_m.segment<3>(3 * m.tets()(e, i)).transpose()).transpose();
-      jmin = std::min(jmin, (x[1] - x[0]).dot((x[2] - x[0]).cross(x[3] - x[0])) / 6.0 / V0[e]);
-    }
-    return jmin;
-  };
+  const SmallBlock b;
+  ASSERT_GE(b.corner, 0);
+  const TetMesh& m = b.m;
   double jmin[2];
   StiffeningStepResult r;
   for (int stiffened = 0; stiffened < 2; ++stiffened) {
-    auto anp = std::make_unique<AnpTetFem>(m, mat);
+    auto anp = std::make_unique<AnpTetFem>(m, b.mat);
     anp->setInversionBarrier(0.3);
     EXPECT_DOUBLE_EQ(anp->collapsedVolumeRatio(), 0.1);
     DynamicsParams dp;
     dp.time_step_s = 0.33;
-    DynamicSimulator sim(m, std::move(anp), mat, dp, std::make_unique<CholmodSolver>());
+    DynamicSimulator sim(m, std::move(anp), b.mat, dp, std::make_unique<CholmodSolver>());
     sim.fixNodes(m.nodeSet("z_min"));
     Points f(1, 3);
     f << -0.109, -0.109, -0.109;
-    sim.addNodalForces({corner}, f);
+    sim.addNodalForces({b.corner}, f);
     if (stiffened) {
       StiffeningParams p;
       p.alpha.initial_alpha_per_pa = 1e-7;
@@ -415,7 +423,7 @@ TEST(Stiffening, AStepThatWouldCollapseAnElementIsShortened) {
     } else {
       sim.step();
     }
-    jmin[stiffened] = minVolumeRatio(sim);
+    jmin[stiffened] = minVolumeRatio(m, sim.state().displacement_m);
   }
   EXPECT_GT(jmin[0], 0.0);
   EXPECT_LT(jmin[0], 0.1);
@@ -425,7 +433,7 @@ TEST(Stiffening, AStepThatWouldCollapseAnElementIsShortened) {
   EXPECT_LT(r.step_fraction, 1.0);
   EXPECT_GE(jmin[1], 0.1 + StiffeningSimulation::kStepKeep * 0.9 - 1e-9);
   EXPECT_LT(jmin[1], 0.1 + StiffeningSimulation::kStepKeep * 0.9 + 0.01);  // shortened to the bound, not further
-  EXPECT_EQ(CorotatedTetFem(m, mat).collapsedVolumeRatio(), 0.0);
+  EXPECT_EQ(CorotatedTetFem(m, b.mat).collapsedVolumeRatio(), 0.0);
 }
 
 TEST(Stiffening, AnElementInvalidAtTheStartHoldsTheStepBackOnlyIfItLosesVolume) {
@@ -435,44 +443,28 @@ TEST(Stiffening, AnElementInvalidAtTheStartHoldsTheStepBackOnlyIfItLosesVolume) 
   // volume ratios part of the way (−0.25 to about −0.2): it is taken, with no reversal, and says how
   // many elements were recovering. Pushed on further by 200 N, the trials lower them: they are
   // reverted as any step that leaves an element invalid.
-  const TetMesh m = makeBoxMesh({2, 2, 2}, {0.02, 0.02, 0.02});
-  ElasticMaterial mat;
-  mat.youngs_modulus_pa = 2000.0;
-  mat.poisson_ratio = 0.48;
-  int corner = -1;
-  for (int n = 0; n < m.numNodes(); ++n)
-    if ((m.nodes().row(n).array() > 0.019).all()) corner = n;
-  ASSERT_GE(corner, 0);
-  const Eigen::VectorXd V0 = m.tetVolumes();
-  auto minRatio = [&](const Eigen::VectorXd& u) {
-    double jmin = 1e9;
-    for (int e = 0; e < m.numTets(); ++e) {
-      Eigen::Vector3d x[4];
-      for (int i = 0; i < 4; ++i)
-        x[i] = (m.nodes().row(m.tets()(e, i)) + u.segment<3>(3 * m.tets()(e, i)).transpose()).transpose();
-      jmin = std::min(jmin, (x[1] - x[0]).dot((x[2] - x[0]).cross(x[3] - x[0])) / 6.0 / V0[e]);
-    }
-    return jmin;
-  };
+  const SmallBlock b;
+  ASSERT_GE(b.corner, 0);
+  const TetMesh& m = b.m;
   SimulationState start;
   start.displacement_m = Eigen::VectorXd::Zero(3 * m.numNodes());
   start.velocity_mps = Eigen::VectorXd::Zero(3 * m.numNodes());
-  start.displacement_m.segment<3>(3 * corner) = Eigen::Vector3d::Constant(-0.0125);
-  const double j_start = minRatio(start.displacement_m);
+  start.displacement_m.segment<3>(3 * b.corner) = Eigen::Vector3d::Constant(-0.0125);
+  const double j_start = minVolumeRatio(m, start.displacement_m);
   ASSERT_LT(j_start, 0.0);
   ASSERT_GT(j_start, -1.0);
   for (int pushed = 0; pushed < 2; ++pushed) {
-    auto anp = std::make_unique<AnpTetFem>(m, mat);
+    auto anp = std::make_unique<AnpTetFem>(m, b.mat);
     anp->setInversionBarrier(0.3);
     DynamicsParams dp;
     dp.time_step_s = 0.002;
     dp.gravity_mps2 = Eigen::Vector3d::Zero();
-    DynamicSimulator sim(m, std::move(anp), mat, dp, std::make_unique<CholmodSolver>());
+    DynamicSimulator sim(m, std::move(anp), b.mat, dp, std::make_unique<CholmodSolver>());
     sim.fixNodes(m.nodeSet("z_min"));
     if (pushed) {
       Points f(1, 3);
       f << -200.0, -200.0, -200.0;
-      sim.addNodalForces({corner}, f);
+      sim.addNodalForces({b.corner}, f);
     }
     sim.restore(start);
     StiffeningParams p;
@@ -484,7 +476,7 @@ TEST(Stiffening, AnElementInvalidAtTheStartHoldsTheStepBackOnlyIfItLosesVolume) 
       EXPECT_TRUE(r.advanced);
       EXPECT_EQ(r.reversals, 0);
       EXPECT_GE(r.recovering_elements, 1);
-      EXPECT_GT(minRatio(sim.state().displacement_m), j_start);
+      EXPECT_GT(minVolumeRatio(m, sim.state().displacement_m), j_start);
     } else {
       EXPECT_GE(r.reversals, 1);
       EXPECT_EQ(r.recovering_elements, 0);
@@ -541,6 +533,8 @@ TEST(Stiffening, AdmissibleStepFractionIsTheFirstCrossingOfTheBound) {
   EXPECT_THROW(admissibleStepFraction(m, u, u, jc, 1.0), std::invalid_argument);
 }
 
+// Where the base material inverts elements at its equilibrium (E 600 Pa here), the release keeps just
+// those elements stiffer: the rest of the model settles to within δ of its base material.
 TEST(Stiffening, ReleaseStiffensOnlyTheElementsThatWouldInvert) {
   PhantomSim full = makePhantomSim(0.33, StiffeningParams{});
   ASSERT_TRUE(settleDriver(full, 400));
