@@ -14,7 +14,6 @@
 
 namespace breast_sim::core {
 
-
 void MultigridPreconditioner::scanLevel(int l) {
   Level& lv = *levels_[l];
   const SparseMatrix& M = *lv.A;
