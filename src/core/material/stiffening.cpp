@@ -341,9 +341,8 @@ std::vector<int> StiffeningSimulation::invertedElements() {
   return invertedTets(mesh_.tets(), x_);
 }
 
-std::vector<int> StiffeningSimulation::invalidElements() {
-  const double j_min = sim_.elements().collapsedVolumeRatio();
-  if (!(j_min > 0.0)) return invertedElements();
+std::vector<int> StiffeningSimulation::invalidElements(const Eigen::VectorXd& u_start, int& recovering) {
+  const double j_min = sim_.elements().collapsedVolumeRatio();  // 0: inverted elements only
   const Eigen::VectorXd& u = sim_.state().displacement_m;
   for (int n = 0; n < mesh_.numNodes(); ++n) x_.row(n) = mesh_.nodes().row(n) + u.segment<3>(3 * n).transpose();
   const Tets& tets = mesh_.tets();
@@ -351,35 +350,28 @@ std::vector<int> StiffeningSimulation::invalidElements() {
   std::vector<char> bad(static_cast<size_t>(nt), 0);
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < nt; ++e) {
-    const Eigen::RowVector3d a = x_.row(tets(e, 0));
-    const double v = (x_.row(tets(e, 1)) - a).dot((x_.row(tets(e, 2)) - a).cross(x_.row(tets(e, 3)) - a)) / 6.0;
+    const double v = signedTetVolume(x_.row(tets(e, 0)), x_.row(tets(e, 1)), x_.row(tets(e, 2)), x_.row(tets(e, 3)));
     bad[static_cast<size_t>(e)] = !(v > j_min * rest_volume_[e]);  // NaN counts too
   }
-  std::vector<int> out;
-  for (int e = 0; e < nt; ++e)
-    if (bad[static_cast<size_t>(e)]) out.push_back(e);
-  return out;
-}
-
-int StiffeningSimulation::dropRecovering(std::vector<int>& invalid, const Eigen::VectorXd& u_start) const {
-  const double j_min = sim_.elements().collapsedVolumeRatio();
-  const Eigen::VectorXd& u = sim_.state().displacement_m;
-  auto ratio = [&](int e, const Eigen::VectorXd& d) {
-    Eigen::Vector3d x[4];
+  // The few invalid ones: were they invalid at the start too, and did they gain volume since?
+  auto startVolume = [&](int e) {
+    Eigen::Vector3d p[4];
     for (int k = 0; k < 4; ++k) {
-      const int n = mesh_.tets()(e, k);
-      x[k] = mesh_.nodes().row(n).transpose() + d.segment<3>(3 * n);
+      const int n = tets(e, k);
+      p[k] = mesh_.nodes().row(n).transpose() + u_start.segment<3>(3 * n);
     }
-    return (x[1] - x[0]).dot((x[2] - x[0]).cross(x[3] - x[0])) / (6.0 * rest_volume_[e]);
+    return signedTetVolume(p[0], p[1], p[2], p[3]);
   };
-  const size_t before = invalid.size();
-  invalid.erase(std::remove_if(invalid.begin(), invalid.end(),
-                               [&](int e) {
-                                 const double j0 = ratio(e, u_start);
-                                 return j0 <= j_min && ratio(e, u) > j0;  // false for NaN
-                               }),
-                invalid.end());
-  return static_cast<int>(before - invalid.size());
+  std::vector<int> out;
+  recovering = 0;
+  for (int e = 0; e < nt; ++e) {
+    if (!bad[static_cast<size_t>(e)]) continue;
+    const double v0 = startVolume(e);
+    const double v = signedTetVolume(x_.row(tets(e, 0)), x_.row(tets(e, 1)), x_.row(tets(e, 2)), x_.row(tets(e, 3)));
+    if (!(v0 > j_min * rest_volume_[e]) && v > v0) ++recovering;  // false for NaN
+    else out.push_back(e);
+  }
+  return out;
 }
 
 int StiffeningSimulation::countInverted() { return static_cast<int>(invertedElements().size()); }
@@ -453,8 +445,8 @@ StiffeningStepResult StiffeningSimulation::step() {
       } catch (const std::runtime_error&) {
         solved = false;  // e.g. non-finite velocities: treated like an inversion
       }
-      std::vector<int> inverted = solved ? invalidElements() : std::vector<int>{};
-      int recovering = inverted.empty() ? 0 : dropRecovering(inverted, saved.displacement_m);
+      int recovering = 0;
+      std::vector<int> inverted = solved ? invalidElements(saved.displacement_m, recovering) : std::vector<int>{};
       const double j_collapsed = sim_.elements().collapsedVolumeRatio();
       if (solved && !inverted.empty() && j_collapsed > 0.0) {
         // Shortened steps (see the class comment): the share s of the increment that keeps every
@@ -465,8 +457,7 @@ StiffeningStepResult StiffeningSimulation::step() {
           shortened_.displacement_m = saved.displacement_m + s * (shortened_.displacement_m - saved.displacement_m);
           shortened_.velocity_mps *= s;
           sim_.restore(shortened_);
-          inverted = invalidElements();
-          recovering = inverted.empty() ? 0 : dropRecovering(inverted, saved.displacement_m);
+          inverted = invalidElements(saved.displacement_m, recovering);
           if (inverted.empty()) r.step_fraction = s;
         }
       }

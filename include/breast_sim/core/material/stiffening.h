@@ -352,11 +352,9 @@ class StiffeningSimulation {
   int countInverted();
   std::vector<int> invertedElements();
   // Inverted elements and, when the formulation says so (collapsedVolumeRatio), collapsed ones:
-  // what a step must not leave.
-  std::vector<int> invalidElements();
-  // Removes from `invalid` the elements that were invalid at displacement u_start too and whose
-  // volume ratio rose since ("Recovering elements"); returns how many.
-  int dropRecovering(std::vector<int>& invalid, const Eigen::VectorXd& u_start) const;
+  // what a step from displacement u_start must not leave. Elements already invalid at u_start whose
+  // volume ratio rose are left out and counted in `recovering` ("Recovering elements").
+  std::vector<int> invalidElements(const Eigen::VectorXd& u_start, int& recovering);
   double modulusExcess() const;  // largest E_r − 1 over elements without a local α above the global one
 
   DynamicSimulator& sim_;
