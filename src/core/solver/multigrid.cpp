@@ -15,7 +15,6 @@ namespace breast_sim::core {
 
 using multigrid_detail::blockGraph;
 using multigrid_detail::Clock;
-using multigrid_detail::kParallelMinBlocks;
 using multigrid_detail::since;
 
 // ---------------------------------------------------------------------------------------------------
@@ -154,7 +153,6 @@ void MultigridPreconditioner::analyzeLevels(const SparseMatrix& A, const std::ve
     for (int i = 0; i < n; ++i) lv->colour_node[fill[colour[i]]++] = i;
     lv->block_start = std::move(start);
     lv->block_col = std::move(nbr);
-    lv->parallel = lv->block_col.size() >= kParallelMinBlocks;
     if (l + 1 < L) {  // a smoothed level (the coarsest is solved directly as it is)
       lv->block_val.assign(9 * lv->block_col.size(), 0.0f);
       const NodeProlongation& P = prolongations_[l];
@@ -334,7 +332,7 @@ void MultigridPreconditioner::vcycle(int l, const double* b, double* x) {
   const double* fr = lv.free.data();
   double* bc = next.b.data();
   const int nc = next.nodes;
-#pragma omp parallel for schedule(static) if (lv.parallel)
+#pragma omp parallel for schedule(static) if (lv.parallel())
   for (int I = 0; I < nc; ++I) {
     double s0 = 0.0, s1 = 0.0, s2 = 0.0;
     for (int k = lv.child_start[I]; k < lv.child_start[I + 1]; ++k) {
@@ -364,7 +362,7 @@ void MultigridPreconditioner::vcycle(int l, const double* b, double* x) {
   const int* pin = P.innerIndexPtr();
   const double* pval = P.valuePtr();
   const double* xc = next.x.data();
-#pragma omp parallel for schedule(static) if (lv.parallel)
+#pragma omp parallel for schedule(static) if (lv.parallel())
   for (int i = 0; i < lv.nodes; ++i) {
     double s0 = 0.0, s1 = 0.0, s2 = 0.0;
     for (int k = pout[i]; k < pout[i + 1]; ++k) {

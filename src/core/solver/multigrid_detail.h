@@ -38,7 +38,6 @@ struct MultigridPreconditioner::Level {
   const SparseMatrix* A = nullptr;  // level 0: the caller's matrix; else the Galerkin operator
   SparseMatrix* owned = nullptr;    // coarse levels: writable (unit diagonals of empty rows)
   int nodes = 0;
-  bool parallel = false;        // its sweeps, transfers and set-up on the team (kParallelMinBlocks)
   std::vector<int> diag_block;  // per node: block index of its diagonal block
   std::vector<double> dinv;     // per node: inverse of its 3×3 diagonal block, row-major
   std::vector<double> free;     // per DOF: 1 free, 0 decoupled (fixed)
@@ -48,6 +47,8 @@ struct MultigridPreconditioner::Level {
   // matrix. Refreshed from A whenever A changes.
   std::vector<int> block_start, block_col;  // per node: its blocks; per block: its column node
   std::vector<float> block_val;             // per block: 9 values, row-major
+  // Its sweeps, transfers and set-up on the team (multigrid_detail::kParallelMinBlocks).
+  bool parallel() const { return block_col.size() >= multigrid_detail::kParallelMinBlocks; }
   // Transfer to the next coarser level: children (Pᵀ) of each coarse node.
   std::vector<int> child_start, child;
   std::vector<double> child_weight;

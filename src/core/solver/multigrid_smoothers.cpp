@@ -23,7 +23,7 @@ void MultigridPreconditioner::scanLevel(int l) {
   // The coarsest level is solved directly: it only needs its empty rows fixed.
   const bool smoother = l + 1 < numLevels() || numLevels() == 1;
   int bad = -1;
-#pragma omp parallel for schedule(static) if (lv.parallel)
+#pragma omp parallel for schedule(static) if (lv.parallel())
   for (int i = 0; i < lv.nodes; ++i) {
     double d[9];
     for (int r = 0; r < 3; ++r) {
@@ -106,11 +106,11 @@ void MultigridPreconditioner::estimateDamping(int l) {
   static constexpr double kZero[3] = {0.0, 0.0, 0.0};
   double lambda = 0.0;
   for (int it = 0; it < iterations; ++it) {
-#pragma omp parallel for schedule(static) if (lv.parallel)
+#pragma omp parallel for schedule(static) if (lv.parallel())
     for (int i = 0; i < lv.nodes; ++i) blockRowResidual(bval, bcol, bstart[i], bstart[i + 1], kZero, v, Av + 3 * i);
     if (l == 0 && rank_one_) addRankOneProduct(R_, v, -1.0, Av, rank_one_work_.data());
     // The norms in a fixed order (util/ordered_sum.h): the same estimate on any thread count.
-    const auto sums = util::orderedSums<2>(lv.nodes, lv.parallel, [&](long i) {
+    const auto sums = util::orderedSums<2>(lv.nodes, lv.parallel(), [&](long i) {
       const double* d = dinv + 9 * i;
       const double* a = Av + 3 * i;
       double* y = v + 3 * i;
@@ -141,7 +141,7 @@ void MultigridPreconditioner::toBlocks(int l) {
   const int* outer = M.outerIndexPtr();
   const double* val = M.valuePtr();
   float* out = lv.block_val.data();
-#pragma omp parallel for schedule(static) if (lv.parallel)
+#pragma omp parallel for schedule(static) if (lv.parallel())
   for (int i = 0; i < lv.nodes; ++i) {
     const int b0 = lv.block_start[i], nb = lv.block_start[i + 1] - b0;
     for (int r = 0; r < 3; ++r) {
@@ -158,7 +158,7 @@ void MultigridPreconditioner::residual(int l, const double* b, const double* x, 
   const float* val = lv.block_val.data();
   const int* col = lv.block_col.data();
   const int* start = lv.block_start.data();
-  blockResidual(val, col, start, b, x, t, lv.nodes, options_.simd_kernels, lv.parallel);
+  blockResidual(val, col, start, b, x, t, lv.nodes, options_.simd_kernels, lv.parallel());
   if (l == 0 && rank_one_) addRankOneProduct(R_, x, -1.0, t, rank_one_work_.data());
 }
 
@@ -173,7 +173,7 @@ void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool for
       residual(l, b, x, lv.t.data());
       t = lv.t.data();
     }
-#pragma omp parallel for schedule(static) if (lv.parallel)
+#pragma omp parallel for schedule(static) if (lv.parallel())
     for (int i = 0; i < n; ++i) {
       const double* d = dinv + 9 * i;
       const double* s = t + 3 * i;
@@ -199,7 +199,7 @@ void MultigridPreconditioner::smooth(int l, const double* b, double* x, bool for
     x[3 * i + 2] += d[6] * r[0] + d[7] * r[1] + d[8] * r[2];
   };
   const int colours = static_cast<int>(lv.colour_start.size()) - 1;
-#pragma omp parallel if (lv.parallel)
+#pragma omp parallel if (lv.parallel())
   for (int cc = 0; cc < colours; ++cc) {
     const int c = forward ? cc : colours - 1 - cc;
 #pragma omp for schedule(static)
@@ -235,7 +235,7 @@ void MultigridPreconditioner::chebyshev(int l, const double* b, double* x, int d
       addRankOneProduct(R_, x, -1.0, rank_one_rhs_.data(), rank_one_work_.data());
       bk = rank_one_rhs_.data();
     }
-#pragma omp parallel if (lv.parallel)
+#pragma omp parallel if (lv.parallel())
     {
 #pragma omp for schedule(static)
       for (int i = 0; i < n; ++i) {
