@@ -347,7 +347,8 @@ std::vector<int> StiffeningSimulation::invalidElements(const Eigen::VectorXd& u_
   for (int n = 0; n < mesh_.numNodes(); ++n) x_.row(n) = mesh_.nodes().row(n) + u.segment<3>(3 * n).transpose();
   const Tets& tets = mesh_.tets();
   const int nt = mesh_.numTets();
-  std::vector<char> bad(static_cast<size_t>(nt), 0);
+  std::vector<char>& bad = invalid_flags_;  // a kept buffer: this runs after every trial step
+  bad.resize(static_cast<size_t>(nt));
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < nt; ++e) {
     const double v = signedTetVolume(x_.row(tets(e, 0)), x_.row(tets(e, 1)), x_.row(tets(e, 2)), x_.row(tets(e, 3)));

@@ -366,6 +366,7 @@ class StiffeningSimulation {
   std::vector<char> fixed_node_;  // per node: constrained in the simulator (refreshed per accepted step)
   Eigen::VectorXd base_stress_, trial_stress_, f_el_;
   Eigen::VectorXd modulus_buffer_;  // setModuli(): the new factors before they are handed on (kept buffer)
+  std::vector<char> invalid_flags_;  // invalidElements(): per element, invalid at the end of the trial (kept buffer)
   Points x_;
   Eigen::VectorXd rest_volume_;  // per element [m³], for the collapsed check
   long accepted_ = 0, reversed_ = 0, limit_hits_ = 0, shortened_steps_ = 0, steps_to_settle_ = -1;
