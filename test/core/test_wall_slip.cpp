@@ -137,6 +137,41 @@ TEST(WallSlip, AHeldWallDoesNotSlipAboveTheFrictionAngleAndStopsASlippingNode) {
   }
 }
 
+TEST(WallSlip, NodesOfTheSetFarFromTheWallStayWhereTheyAre) {
+  // A wall node set that also holds nodes far from the wall (here the block's top, 10 mm up; on a
+  // label image, faces that cut through the body at the image border): the wall field gives them no
+  // level to slide on and no normal load, so free they would fall with the block. They are held at
+  // their rest points; the bottom still slides, sheared against them.
+  Block b(Eigen::Vector3d(4.0, 0.0, -9.81), 0.01);
+  std::vector<int> set = b.mesh.nodeSet("z_min"), top = b.mesh.nodeSet("z_max");
+  set.insert(set.end(), top.begin(), top.end());
+  SlidingSettings s;
+  s.gaussian_limit = false;
+  s.thickness_limit = false;
+  s.rim_band = false;
+  auto wall = std::make_shared<const ChestWallSurface>(b.image, std::set<std::uint16_t>{Block::kWall});
+  auto geometry = std::make_shared<ChestWallSliding>(b.mesh, set, wall, s, nullptr, TissueLabels{},
+                                                     std::vector<Eigen::Vector3d>{}, Eigen::Vector3d::UnitZ());
+  ASSERT_EQ(geometry->heldNodes(), static_cast<int>(top.size()));
+  WallSlipSettings ws;
+  ws.tether_stiffness_pa_per_m = 0;
+  ws.contact = false;
+  WallSlip slip(geometry, b.mesh, ws);
+  slip.attach(*b.sim);
+  for (int k = 0; k < 20; ++k) {
+    slip.beforeStep(*b.sim);
+    b.sim->step();
+    slip.afterStep(*b.sim);
+  }
+  double top_move = 0;
+  for (int v : top) top_move = std::max(top_move, b.sim->state().displacement_m.segment<3>(3 * v).norm());
+  std::printf("[ measure  ] top held: top nodes moved at most %.4f mm, bottom %.3f mm along x\n", 1e3 * top_move,
+              1e3 * b.meanBottom(0));
+  EXPECT_LT(top_move, 0.01e-3);
+  EXPECT_GT(b.meanBottom(0), 0.01e-3);
+  EXPECT_LT(std::abs(b.meanBottom(2)), 0.01e-3);
+}
+
 TEST(WallSlip, ExtraSpringsAreSetWithTheWallsAndSummedOnASharedNode) {
   // The morphing's implicit pull goes to the simulator with the wall's springs (one set per
   // simulator): on a wall node the two blocks are summed, elsewhere the extra spring is its own.

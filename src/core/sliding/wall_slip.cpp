@@ -140,6 +140,7 @@ void WallSlip::beforeStep(DynamicSimulator& sim, const NodeSprings* extra) {
   const Eigen::VectorXd& vel = sim.state().velocity_mps;
   const double dt = sim.params().time_step_s;
   const double kn = settings_.normal_stiffness_pa_per_m, kf = settings_.friction_stiffness_pa_per_m;
+  const std::vector<char>& held_nodes = geometry_->heldFlags();
   std::vector<int> nodes = nodes_;
   std::vector<Eigen::Matrix3d> k(nodes_.size());
   Points anchors(static_cast<Eigen::Index>(nodes_.size()), 3);
@@ -148,6 +149,11 @@ void WallSlip::beforeStep(DynamicSimulator& sim, const NodeSprings* extra) {
   for (size_t i = 0; i < nodes_.size(); ++i) {
     const int v = nodes_[i];
     const Eigen::Index r = static_cast<Eigen::Index>(i);
+    if (held_nodes[i]) {  // kept at its rest point (stick_ never moves)
+      k[i] = area_[r] * kn * Eigen::Matrix3d::Identity();
+      anchors.row(r) = stick_.row(r);
+      continue;
+    }
     const WallPoint w = wallPoint(wall, mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v));
     const Eigen::Vector3d &x = w.x, &n = w.n;
     const double h = w.h;
@@ -249,12 +255,14 @@ WallSlipStats WallSlip::afterStep(const DynamicSimulator& sim) {
   const ChestWallSurface& wall = geometry_->surface();
   const Eigen::VectorXd& u = sim.state().displacement_m;
   const double kn = settings_.normal_stiffness_pa_per_m, kf = settings_.friction_stiffness_pa_per_m;
+  const std::vector<char>& held_nodes = geometry_->heldFlags();
   double max_normal_error = 0, max_slide = 0;
   int slipping = 0;
 #pragma omp parallel for schedule(static) reduction(max : max_normal_error, max_slide) reduction(+ : slipping)
   for (size_t i = 0; i < nodes_.size(); ++i) {
     const int v = nodes_[i];
     const Eigen::Index r = static_cast<Eigen::Index>(i);
+    if (held_nodes[i]) continue;
     const WallPoint w = wallPoint(wall, mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v));
     const Eigen::Vector3d &x = w.x, &n = w.n;
     const double h = w.h;

@@ -308,6 +308,8 @@ class ChestWallSliding {
   const Eigen::VectorXd& tissueThickness() const { return thickness_m_; }  ///< [m]; 0 when off
   const Eigen::VectorXd& nodeAreas() const { return area_; }  ///< wall area per node [m²]
   int heldNodes() const { return held_; }  ///< nodes too far from the wall to slide
+  /// Per node of nodes(): 1 if held (too far from the wall surface at rest to slide), else 0.
+  const std::vector<char>& heldFlags() const { return held_flag_; }
   /// Chest-wall plane frame of the Gaussian limit: origin [m], unit axes u and v.
   Eigen::Vector3d planeOrigin() const { return plane_origin_; }
   Eigen::Vector3d planeU() const { return plane_u_; }
