@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <random>
+#include <set>
 
 #include <Eigen/Geometry>
 
@@ -199,6 +200,35 @@ InclineRun runIncline(double theta_deg, const SlidingSettings& s, int steps,
 // friction give for the block's mean traction (the bottom also spreads sideways under its weight
 // and the traction is not uniform, so the measured speed is lower), straight down the slope on
 // average, and never into the plane (its bottom stays within 0.1 mm of it).
+TEST(Sliding, WallNodesWhereTheFieldDescribesNoWallAreHeld) {
+  // The block's bottom (20 × 20 mm, 5 × 5 nodes 5 mm apart) as the wall set, on wall images that
+  // differ in where the image starts along x and how deep the wall reaches into the block.
+  const TetMesh mesh = makeBoxMesh({4, 4, 2}, {0.02, 0.02, 0.01});
+  SlidingSettings s = unlimited();
+  s.rim_band = false;
+  auto held = [&](double x_lo_m, double wall_top_m) {
+    const LabelImage im = maskImage(Eigen::Vector3d(x_lo_m, -0.03, -0.02), Eigen::Vector3d(0.05, 0.05, 0.02), 1e-3,
+                                    [&](const Eigen::Vector3d& p) { return p.z() < wall_top_m; });
+    auto wall = std::make_shared<const ChestWallSurface>(im, std::set<std::uint16_t>{kWall});
+    const ChestWallSliding cw(mesh, mesh.nodeSet("z_min"), wall, s, nullptr, TissueLabels{}, {}, Eigen::Vector3d::UnitZ());
+    std::vector<double> xs;  // the held nodes' x [m]
+    for (size_t i = 0; i < cw.nodes().size(); ++i)
+      if (cw.heldFlags()[i]) xs.push_back(mesh.nodes()(cw.nodes()[i], 0));
+    EXPECT_EQ(cw.heldNodes(), static_cast<int>(xs.size()));
+    return xs;
+  };
+  // On the wall, the image 30 mm beyond the block: every node slides.
+  EXPECT_TRUE(held(-0.03, 0.0).empty());
+  // The image starts 1 mm before the block (within σ = 2 mm): the column at x = 0 is held, the one at
+  // 5 mm is not.
+  const std::vector<double> border = held(-0.001, 0.0);
+  EXPECT_EQ(border.size(), 5u);
+  for (double x : border) EXPECT_NEAR(x, 0.0, 1e-12);
+  // 3 mm deep in the wall mask (more than σ): all held; 1 mm deep: none.
+  EXPECT_EQ(held(-0.03, 0.0035).size(), 25u);
+  EXPECT_TRUE(held(-0.03, 0.0015).empty());
+}
+
 TEST(Sliding, BlockSlidesDownASteepInclineWithoutPenetrating) {
   SlidingSettings s = unlimited();
   s.static_friction = 0.3;

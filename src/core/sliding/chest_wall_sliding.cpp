@@ -164,12 +164,15 @@ ChestWallSliding::ChestWallSliding(const TetMesh& mesh, std::vector<int> nodes,
       if (!(area_[i] > 0)) area_[i] = median;
   }
 
-  // Rest distance to the wall; nodes too far are held.
+  // Rest distance to the wall. Held: nodes too far from the wall, deeper than σ inside the wall mask
+  // (tissue the segmentation encloses in the wall: its level is a tube, not the wall), and within σ
+  // of the image border (the levels there run straight out of the image).
   h0_.resize(n);
   held_flag_.assign(n, 0);
+  const double sigma = surface_->options().sigma_m;
   for (int i = 0; i < n; ++i) {
     const double h = surface_->signedDistance(rest_.row(i).transpose());
-    if (h > settings_.max_wall_distance_m) {
+    if (h > settings_.max_wall_distance_m || h < -sigma || surface_->borderDistance(rest_.row(i).transpose()) < sigma) {
       held_flag_[i] = 1;
       ++held_;
     }

@@ -1,6 +1,7 @@
 #include "breast_sim/core/sliding/chest_wall_surface.h"
 
 #include <algorithm>
+#include <limits>
 #include <chrono>
 #include <cmath>
 #include <sstream>
@@ -90,6 +91,14 @@ Eigen::Vector3d ChestWallSurface::normal(const Eigen::Vector3d& p_m) const {
   // |∇S| peaks at 1/(σ√(2π)) on a planar surface; below 1e-9 of that there is no direction.
   if (!(n > 1e-9 * kInvSqrt2Pi / options_.sigma_m)) return Eigen::Vector3d::Zero();
   return -g / n;
+}
+
+double ChestWallSurface::borderDistance(const Eigen::Vector3d& p_m) const {
+  const ImageGeometry& g = smoothed_.geometry;
+  const Eigen::Vector3d c = g.physicalToIndex(p_m);
+  double d = std::numeric_limits<double>::infinity();
+  for (int a = 0; a < 3; ++a) d = std::min({d, c[a] * g.spacing_m[a], (g.size[a] - 1 - c[a]) * g.spacing_m[a]});
+  return d;
 }
 
 double ChestWallSurface::signedDistance(const Eigen::Vector3d& p_m) const {

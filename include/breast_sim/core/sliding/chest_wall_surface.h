@@ -74,6 +74,11 @@ class ChestWallSurface {
   /// @param tolerance_m  stop when |h − target| ≤ this [m]
   WallProjection project(const Eigen::Vector3d& p_m, double target_m = 0.0, int max_iterations = 8,
                          double tolerance_m = 1e-7) const;
+  /// Distance from p to the nearest face of the segmentation's grid (the centres of its outer voxels)
+  /// [m], negative outside the grid. The smoothing clamps the image at its border, so within about σ
+  /// of a face the levels that meet it run straight on out of the image: there the field describes
+  /// the image's edge, not the wall.
+  double borderDistance(const Eigen::Vector3d& p_m) const;
 
  private:
   ChestWallFieldOptions options_;
