@@ -35,11 +35,9 @@
 ///    phantom, medial rim nodes with z ≈ 0.15 slid as far as with z = 1). Without a tether (κ_0 = 0)
 ///    only friction holds the wall, and a breast whose tangential load exceeds μ_k times its normal
 ///    load slides off;
-///  - held nodes: a node of the set farther than max_wall_distance_m from the wall at rest
-///    (ChestWallSliding::heldFlags; on a label image, faces that cut through the body at the image
-///    border, where no wall is) gets K_i = A_i κ_n I anchored at its rest point: the field gives it
-///    no level to slide on and no normal load, so free it would move with the tissue unopposed
-///    (measured on the VICTRE label image: 35 of its 715 wall nodes, and the sliding stage never settled);
+///  - held nodes: a node of the set where the field describes no wall (ChestWallSliding::heldFlags:
+///    farther than max_wall_distance_m from it, deeper than σ inside the mask, or within σ of the
+///    image border) gets K_i = A_i κ_n I anchored at its rest point: it has no level to slide on;
 ///  - contact: free skin nodes may not enter the wall: a node whose h is below contact_gap_m gets a
 ///    normal penalty to that level (unilateral, decided from x_t each step).
 /// All stiffnesses are per unit wall area [Pa/m], so they do not depend on the mesh size.
