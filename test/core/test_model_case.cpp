@@ -250,3 +250,33 @@ TEST(ModelCase, ACaseFileStartsFromItsBase) {
   writeTemp("base_empty.yaml", "");
   expectErrorMentions(writeTemp("base_of_empty.yaml", "base: base_empty.yaml\nphantom: {}\n"), "is not a map");
 }
+
+// A relative path is relative to the file that names it: a case in another folder can start from
+// config/victre_case.yaml (whose image path is relative to config/) and name a target of its own.
+TEST(ModelCase, ABaseFilesPathsAreRelativeToItsOwnFolder) {
+  const fs::path dir = fs::temp_directory_path() / "breast_sim_base_paths" / "mine";
+  fs::create_directories(dir);
+  const std::string derived = (dir / "case.yaml").string();
+  {
+    std::ofstream f(derived);
+    f << "base: " << fs::relative(fs::path(kConfig) / "victre_case.yaml", dir).string() << "\n"
+      << "meshing: {target_elements: 3000}\nmorphing: {target: supine.stl}\n";
+  }
+  const ModelCase c = loadModelCase(derived);
+  const ModelCase v = loadModelCase(kConfig + "victre_case.yaml");
+  EXPECT_EQ(c.image.size, v.image.size);
+  EXPECT_EQ(c.image.labels, v.image.labels);
+  EXPECT_EQ(c.meshing.target_elements, 3000);
+  EXPECT_EQ(loadPipelineSettings(derived).morphing.target, (dir / "supine.stl").string());  // the top file's own
+  // A chain: the middle file names the image relative to its folder, the top file overrides nothing.
+  const fs::path mid = fs::temp_directory_path() / "breast_sim_base_paths" / "mid";
+  fs::create_directories(mid);
+  {
+    std::ofstream f(mid / "image_case.yaml");
+    f << "base: " << fs::relative(fs::path(kConfig) / "victre_case.yaml", mid).string() << "\n"
+      << "image: {path: " << fs::relative(fs::path(kConfig) / "../test/data/victre_labels_1mm.nrrd", mid).string() << "}\n";
+    std::ofstream g(dir / "chain.yaml");
+    g << "base: ../mid/image_case.yaml\n";
+  }
+  EXPECT_EQ(loadModelCase((dir / "chain.yaml").string()).image.labels, v.image.labels);
+}

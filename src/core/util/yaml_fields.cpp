@@ -119,6 +119,23 @@ YAML::Node merged(const YAML::Node& base, const YAML::Node& over, const std::str
   return out;
 }
 
+/// The file-valued keys of a case file: a relative path in a base file is relative to the base's
+/// folder, so it is made absolute before the base is merged (the keys of the file given are resolved
+/// against it by their readers).
+void anchorPaths(YAML::Node& root, const std::string& file) {
+  static const std::pair<const char*, const char*> kPathKeys[] = {{"image", "path"}, {"mesh", "path"},
+                                                                  {"mri", "path"},   {"mri", "lesion_labels"},
+                                                                  {"mri", "truth"},  {"morphing", "target"}};
+  if (!root.IsMap()) return;
+  for (const auto& [section, key] : kPathKeys) {
+    YAML::Node m = root[section];
+    if (!m || !m.IsMap() || !m[key] || !m[key].IsScalar()) continue;  // wrong types: the readers name them
+    const std::string v = m[key].Scalar();
+    if (std::string(key) == "target" && (v == "phantom" || v == "auto")) continue;
+    m[key] = pathBeside(file, v);
+  }
+}
+
 YAML::Node loadWithBase(const std::string& path, std::vector<std::string>& chain) {
   const std::string of = chain.empty() ? std::string() : " (the base of " + chain.back() + ")";
   std::error_code ec;
@@ -145,9 +162,10 @@ YAML::Node loadWithBase(const std::string& path, std::vector<std::string>& chain
   if (std::find(chain.begin(), chain.end(), base_path.string()) != chain.end())
     fail(path, "base", "'" + b.as<std::string>() + "' is this file or one of its own bases (a cycle)");
   if (chain.size() > 8) fail(path, "base", "more than 8 files deep; flatten the chain of bases");
-  const YAML::Node base = loadWithBase(base_path.string(), chain);
+  YAML::Node base = loadWithBase(base_path.string(), chain);
   if (!base.IsMap())
     fail(path, "base", "'" + b.as<std::string>() + "' is not a map of keys (empty, or a list); name a case file");
+  anchorPaths(base, base_path.string());
   chain.pop_back();
   root.remove("base");
   return merged(base, root, path, "");

@@ -42,8 +42,9 @@ std::string caseSource(const YAML::Node& root, const std::string& file);
 /// Loads a YAML file. A top-level `base: FILE` (relative to this file's folder) loads that file first
 /// and this file's keys replace its keys, map by map (a map merges into the base's map of the same
 /// key, anything else replaces it); bases may have bases (at most 8 deep, no cycles). The `base` key
-/// itself is not in the result. Relative paths among the values (image.path, morphing.target) are
-/// not rewritten: the readers resolve them against the top file's folder.
+/// itself is not in the result. A relative path is relative to the folder of the file that names
+/// it: a base's file-valued keys (image.path, mesh.path, mri.path, mri.lesion_labels, mri.truth,
+/// morphing.target) come back absolute; the readers resolve the top file's own against its folder.
 /// @throws std::runtime_error naming the file and line, or the base that cannot be read.
 YAML::Node loadFile(const std::string& path);
 
