@@ -183,8 +183,8 @@ TEST(Pipeline, TheVictreLabelImageSettlesWithItsWallSlidingWithEitherElement) {
   // The shipped VICTRE case (a label image no one here designed: a curved pectoral wall cut off by
   // the image border just behind it, chest-wall faces where the border cuts the body, a one-voxel
   // tissue filament in the muscle): gravity with the wall fixed, then sliding, as the main job runs
-  // it, with the J - 1 and the ANP element. With the wall nodes the field cannot guide free to slide,
-  // the stage did not settle (J - 1: stuck with nodes 217 mm away, or 400 steps; ANP: 400 steps).
+  // it, with the J - 1 and the ANP element. With the wall nodes the field cannot guide left free to
+  // slide, the stage does not settle (J - 1: stuck with nodes 217 mm away, or 400 steps; ANP: 400 steps).
   ModelCase c = loadModelCase(kConfigDir + "victre_case.yaml");
   c.meshing.target_elements = 10000;
   const SimulationModel m = buildSimulationModel(c);

@@ -311,11 +311,11 @@ class ChestWallSliding {
   int heldNodes() const { return held_; }  ///< nodes the wall field cannot guide (heldFlags())
   /// Per node of nodes(): 1 if held where it is, else 0: where the wall field describes no wall to
   /// slide on. Measured on the VICTRE label image (config/victre_case.yaml, 21.8k elements, 715 wall
-  /// nodes): 35 farther than max_wall_distance_m (faces where the image border cuts the body, at the
-  /// field's saturation: free, the breast never stopped sliding); 15 deeper than σ in the muscle
-  /// (among them 5 of a one-voxel tissue filament, which slid 61–217 mm along its tube); 102 within σ
-  /// of the image border (with the ANP element a few of them kept switching between stick and slip,
-  /// moving 1–3 mm per step, and the stage never settled).
+  /// nodes), with each kind left free: 35 farther than max_wall_distance_m (faces where the image
+  /// border cuts the body, at the field's saturation: the breast does not stop sliding); 15 deeper
+  /// than σ in the muscle (among them 5 of a one-voxel tissue filament, which slide 61–217 mm along
+  /// its tube); 102 within σ of the image border (with the ANP element a few of them switch between
+  /// stick and slip, moving 1–3 mm per step, and the stage does not settle).
   const std::vector<char>& heldFlags() const { return held_flag_; }
   /// Chest-wall plane frame of the Gaussian limit: origin [m], unit axes u and v.
   Eigen::Vector3d planeOrigin() const { return plane_origin_; }
