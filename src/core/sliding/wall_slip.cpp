@@ -149,9 +149,9 @@ void WallSlip::beforeStep(DynamicSimulator& sim, const NodeSprings* extra) {
   for (size_t i = 0; i < nodes_.size(); ++i) {
     const int v = nodes_[i];
     const Eigen::Index r = static_cast<Eigen::Index>(i);
-    if (held_nodes[i]) {  // kept at its rest point (stick_ never moves)
+    if (held_nodes[i]) {  // kept at its rest point
       k[i] = area_[r] * kn * Eigen::Matrix3d::Identity();
-      anchors.row(r) = stick_.row(r);
+      anchors.row(r) = mesh_.nodes().row(v);
       continue;
     }
     const WallPoint w = wallPoint(wall, mesh_.nodes().row(v).transpose() + u.segment<3>(3 * v));
