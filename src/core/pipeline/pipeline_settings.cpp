@@ -212,8 +212,7 @@ PipelineSettings loadPipelineSettings(const std::string& yaml_path) {
     if (m["enabled"]) d.enabled = boolean(m["enabled"], f, key("enabled"));
     if (m["target"]) {
       d.target = m["target"].IsNull() ? "" : text(m["target"], f, key("target"));
-      if (!d.target.empty() && d.target != "phantom" && d.target != "auto" && std::filesystem::path(d.target).is_relative())
-        d.target = (std::filesystem::path(yaml_path).parent_path() / d.target).string();
+      if (!isTargetKeyword(d.target)) d.target = pathBeside(yaml_path, d.target);
     }
     if (m["target_unit_mm"]) d.target_length_unit_m = 1e-3 * numberIn(m["target_unit_mm"], f, key("target_unit_mm"), 0, 1e6, true, false, "mm per file unit");
     if (m["gain_pa_per_mm"]) d.forces.gain_pa_per_m = 1e3 * numberIn(m["gain_pa_per_mm"], f, key("gain_pa_per_mm"), 0, inf, false, false, "Pa/mm");

@@ -48,6 +48,8 @@ std::string pathBeside(const std::string& file, const std::string& path) {
   return p.lexically_normal().string();
 }
 
+bool isTargetKeyword(const std::string& target) { return target == "phantom" || target == "auto"; }
+
 std::string choice(const YAML::Node& n, const std::string& file, const std::string& key,
                    const std::set<std::string>& choices) {
   const std::string v = text(n, file, key);
@@ -131,7 +133,7 @@ void anchorPaths(YAML::Node& root, const std::string& file) {
     YAML::Node m = root[section];
     if (!m || !m.IsMap() || !m[key] || !m[key].IsScalar()) continue;  // wrong types: the readers name them
     const std::string v = m[key].Scalar();
-    if (std::string(key) == "target" && (v == "phantom" || v == "auto")) continue;
+    if (std::string(key) == "target" && isTargetKeyword(v)) continue;
     m[key] = pathBeside(file, v);
   }
 }

@@ -22,6 +22,8 @@ std::string text(const YAML::Node& n, const std::string& file, const std::string
 /// A path a case file names: relative to the file's folder unless absolute; made absolute and normal.
 /// An empty path stays empty.
 std::string pathBeside(const std::string& file, const std::string& path);
+/// morphing.target's words that name no file ("phantom", "auto"): they are not paths.
+bool isTargetKeyword(const std::string& target);
 /// One of `choices`.
 std::string choice(const YAML::Node& n, const std::string& file, const std::string& key,
                    const std::set<std::string>& choices);
