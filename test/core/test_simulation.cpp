@@ -1,9 +1,13 @@
 // Simulation settings (the `simulation:` map), building a simulator from a model, and settling.
 #include <gtest/gtest.h>
 
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "breast_sim/core/fem/corotated_tet_fem.h"
 #include "breast_sim/core/fem/equilibrium.h"
@@ -414,4 +418,125 @@ TEST(DynamicSimulator, NodeSpringForceMatchesItsStiffnessAndBadSpringsAreRefused
   EXPECT_EQ(sim.springNodes(), std::vector<int>{1});
   sim.clearNodeSprings();
   EXPECT_TRUE(sim.springNodes().empty());
+}
+
+// Matrix reuse (setMatrixReuse) against assembling every step. With linear (not co-rotated)
+// elements the matrix is the same at every state, so a reused one must give the very bits of a
+// fresh assembly: this checks the right-hand side of the reusing steps (forces, springs with moving
+// anchors, moving target constraints, eliminated columns) and the reactions.
+TEST(DynamicSimulator, AReusedMatrixGivesTheAssembledStepsBitsWhenTheMatrixIsConstant) {
+  const TetMesh m = makeBoxMesh({6, 2, 2}, {0.06, 0.02, 0.02});
+  ElasticMaterial mat;
+  mat.youngs_modulus_pa = 20e3;
+  DynamicsParams p;
+  p.gravity_mps2 = {0.5, -1.0, -9.81};
+  auto make = [&] {
+    auto fem = std::make_unique<CorotatedTetFem>(m, mat);
+    fem->setCorotated(false);
+    DynamicSimulator sim(m, std::move(fem), mat, p, std::make_unique<CholmodSolver>());
+    sim.fixNodes(m.nodeSet("x_min"));
+    return sim;
+  };
+  DynamicSimulator reusing = make(), assembling = make();
+  reusing.setMatrixReuse(3);
+  const std::vector<int>& tip = m.nodeSet("x_max");
+  std::vector<int> sprung = {tip[0], tip[1]};
+  std::vector<Eigen::Matrix3d> ks(2, 50.0 * Eigen::Matrix3d::Identity());
+  std::vector<bool> reused;
+  for (int s = 0; s < 7; ++s) {
+    // Targets and anchors move every step; the constrained DOFs and the spring stiffness stay.
+    Points targets = Points::Constant(static_cast<Eigen::Index>(tip.size()) - 2, 3, 1e-4 * s);
+    std::vector<int> moved(tip.begin() + 2, tip.end());
+    Points anchors(2, 3);
+    for (int i = 0; i < 2; ++i) anchors.row(i) = m.nodes().row(sprung[i]) + Eigen::RowVector3d(0, 0, -1e-4 * s);
+    for (DynamicSimulator* sim : {&reusing, &assembling}) {
+      sim->setNodeTargets(moved, targets);
+      sim->setNodeSprings(sprung, ks, anchors);
+    }
+    reused.push_back(reusing.step().matrix_reused);
+    EXPECT_FALSE(assembling.step().matrix_reused);
+    ASSERT_EQ(reusing.state().displacement_m, assembling.state().displacement_m) << "step " << s;
+    ASSERT_EQ(reusing.constraintForces(), assembling.constraintForces()) << "step " << s;
+  }
+  EXPECT_EQ(reused, (std::vector<bool>{false, true, true, false, true, true, false}));
+  EXPECT_THROW(reusing.setMatrixReuse(0), std::invalid_argument);
+}
+
+// With co-rotated elements a reused matrix lags the rotations: close to the assembled step, not
+// equal. Whatever else enters the matrix makes the next step assemble: then both give the same bits
+// from the same state.
+TEST(DynamicSimulator, AReusedMatrixLagsOnlyTheRotationsAndAnyOtherChangeAssemblesAgain) {
+  const TetMesh m = makeBoxMesh({6, 2, 2}, {0.06, 0.02, 0.02});
+  DynamicsParams p;
+  p.gravity_mps2 = {0.5, -1.0, -9.81};
+  DynamicSimulator reusing = cantileverSim(m, p), assembling = cantileverSim(m, p);
+  for (DynamicSimulator* sim : {&reusing, &assembling}) sim->fixNodes(m.nodeSet("x_min"));
+  // Hanging at rest, then a tenth more weight: the motion of the next steps is a fraction of the
+  // sag, as a tracking frame's is of the supine deformation.
+  SettleOptions o;
+  o.increment_tolerance_m = 1e-9;
+  ASSERT_TRUE(settle(assembling, o).settled);
+  const Eigen::VectorXd hanging = assembling.state().displacement_m;
+  reusing.restore(assembling.state());
+  for (DynamicSimulator* sim : {&reusing, &assembling}) sim->setGravity(1.1 * p.gravity_mps2);
+  reusing.setMatrixReuse(100);
+  for (int s = 0; s < 12; ++s) {
+    const bool reused = reusing.step().matrix_reused;
+    assembling.step();
+    EXPECT_EQ(reused, s > 0);
+  }
+  const Eigen::VectorXd& ur = reusing.state().displacement_m;
+  const Eigen::VectorXd& ua = assembling.state().displacement_m;
+  const double sag = hanging.cwiseAbs().maxCoeff(), moved = (ua - hanging).cwiseAbs().maxCoeff();
+  EXPECT_GT(sag, 5e-3);
+  EXPECT_GT(moved, 0.02 * sag);
+  std::printf("sag %.3f mm, moved %.3f mm over 12 steps, reused against assembled %.2e mm\n", 1e3 * sag, 1e3 * moved,
+              1e3 * (ur - ua).cwiseAbs().maxCoeff());
+  EXPECT_GT((ur - ua).cwiseAbs().maxCoeff(), 1e-9 * moved);  // the reused matrix lags
+  EXPECT_LT((ur - ua).cwiseAbs().maxCoeff(), 0.005 * moved);
+
+  // Each change below, made to both from the same state: the reusing one assembles, the same bits.
+  const std::vector<int>& tip = m.nodeSet("x_max");
+  const std::vector<std::pair<std::string, std::function<void(DynamicSimulator&)>>> changes = {
+      {"restore", [](DynamicSimulator&) {}},
+      {"time step", [](DynamicSimulator& s) {
+         DynamicsParams q = s.params();
+         q.time_step_s = 0.05;
+         s.setParams(q);
+       }},
+      {"damping", [](DynamicSimulator& s) {
+         DynamicsParams q = s.params();
+         q.stiffness_damping_s = 0.03;
+         s.setParams(q);
+       }},
+      {"springs", [&](DynamicSimulator& s) {
+         s.setNodeSprings({tip[0]}, {30.0 * Eigen::Matrix3d::Identity()}, m.nodes().row(tip[0]));
+       }},
+      {"spring stiffness", [&](DynamicSimulator& s) {
+         s.setNodeSprings({tip[0]}, {60.0 * Eigen::Matrix3d::Identity()}, m.nodes().row(tip[0]));
+       }},
+      {"no springs", [](DynamicSimulator& s) { s.clearNodeSprings(); }},
+      {"constraints", [&](DynamicSimulator& s) { s.fixNodes({tip[1]}); }},
+  };
+  for (const auto& [name, change] : changes) {
+    // The reusing one assembled at its last step: without the change it would reuse now.
+    assembling.restore(reusing.state());
+    change(reusing);
+    change(assembling);
+    if (name == "restore") reusing.restore(reusing.state());
+    EXPECT_FALSE(reusing.step().matrix_reused) << name;
+    assembling.step();
+    EXPECT_EQ(reusing.state().displacement_m, assembling.state().displacement_m) << name;
+  }
+  // Anchors do not enter the matrix, and a spring block that changed by a little of what holds its
+  // node lags as the rotations do: reused. A change of the spring's own size is a change.
+  const Eigen::Matrix3d k = 30.0 * Eigen::Matrix3d::Identity();
+  reusing.setNodeSprings({tip[0]}, {k}, m.nodes().row(tip[0]));
+  EXPECT_FALSE(reusing.step().matrix_reused);
+  reusing.setNodeSprings({tip[0]}, {k}, m.nodes().row(tip[0]) + Eigen::RowVector3d(0, 0, 1e-3));
+  EXPECT_TRUE(reusing.step().matrix_reused);
+  reusing.setNodeSprings({tip[0]}, {1.001 * k}, m.nodes().row(tip[0]));
+  EXPECT_TRUE(reusing.step().matrix_reused);
+  reusing.setNodeSprings({tip[0]}, {10.0 * k}, m.nodes().row(tip[0]));
+  EXPECT_FALSE(reusing.step().matrix_reused);
 }

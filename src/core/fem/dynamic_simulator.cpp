@@ -147,8 +147,18 @@ StepStats DynamicSimulator::step() {
   const int* outer = A_.outerIndexPtr();
   const int* inner = A_.innerIndexPtr();
   const double stiffness_scale = dt * (dt + params_.stiffness_damping_s);
-  if (split_) elements_->assignCompactStiffness(stiffness_scale, A_);
-  else elements_->assignStiffness(stiffness_scale, A_);
+  // Matrix reuse: the matrix (and the solver's set-up) of an earlier step, if nothing that enters
+  // it changed since (the element linearisation lags by design, setMatrixReuse).
+  const bool reuse = !split_ && matrix_reuse_ > 1 && !matrix_stale_ && matrix_age_ < matrix_reuse_ &&
+                     elim_for_ == constrained_ && dt == assembled_params_.time_step_s &&
+                     params_.mass_damping_per_s == assembled_params_.mass_damping_per_s &&
+                     params_.stiffness_damping_s == assembled_params_.stiffness_damping_s && springsAsAssembled();
+  st.matrix_reused = reuse;
+  if (!reuse) {
+    matrix_stale_ = true;  // until the solver's set-up below succeeded
+    if (split_) elements_->assignCompactStiffness(stiffness_scale, A_);
+    else elements_->assignStiffness(stiffness_scale, A_);
+  }
   const double mass_scale = 1.0 + dt * params_.mass_damping_per_s;
   const double* mass = mass_.data();
   const double* vel = state_.velocity_mps.data();
@@ -161,7 +171,7 @@ StepStats DynamicSimulator::step() {
   for (int n = 0; n < num_nodes_; ++n)
     for (int c = 0; c < 3; ++c) {
       const int r = 3 * n + c;
-      values[diag[r]] += mass_scale * mass[n];
+      if (!reuse) values[diag[r]] += mass_scale * mass[n];
       rhs[r] = mass[n] * vel[r] + dt * (fext[r] + mass[n] * g[c] + fel[r]);
     }
 
@@ -202,6 +212,7 @@ StepStats DynamicSimulator::step() {
   // dt f_s(x_t) on the right-hand side. The node's own 3×3 block is contiguous in each of its rows
   // (columns sorted, the diagonal at diag_pos_).
   spring_force_.setZero(n3);
+  if (!reuse) assembled_spring_scale_.resize(spring_nodes_.size());
   for (size_t i = 0; i < spring_nodes_.size(); ++i) {
     const int n = spring_nodes_[i];
     const Eigen::Vector3d x = rest_.row(n).transpose() + state_.displacement_m.segment<3>(3 * n);
@@ -211,7 +222,12 @@ StepStats DynamicSimulator::step() {
     for (int c = 0; c < 3; ++c) {
       const int r = 3 * n + c;
       double* block = values + diag[r] - c;  // columns 3n, 3n+1, 3n+2 of row r
-      for (int d = 0; d < 3; ++d) block[d] += dt * dt * spring_k_[i](c, d);
+      if (!reuse) {
+        // What holds the node without its spring: its smallest diagonal entry (mass and tissue).
+        double& held = assembled_spring_scale_[i];
+        held = c == 0 ? block[c] : std::min(held, block[c]);
+        for (int d = 0; d < 3; ++d) block[d] += dt * dt * spring_k_[i](c, d);
+      }
       rhs[r] += dt * f[c];
     }
   }
@@ -219,28 +235,37 @@ StepStats DynamicSimulator::step() {
   const double* cv = constraint_velocity_.data();
   saved_values_.resize(static_cast<size_t>(saved_start_.back()));
   saved_rhs_.resize(static_cast<size_t>(num_constrained));
+  elim_values_.resize(elim_pos_.size());
+  double* elim_values = elim_values_.data();
 #pragma omp parallel
   {
 #pragma omp for schedule(static) nowait
     for (int q = 0; q < num_constrained; ++q) {
       const int r = constrained_rows_[q];
-      // The full row and right-hand side, kept for the reaction force after the solve.
-      std::copy(values + outer[r], values + outer[r + 1], saved_values_.data() + saved_start_[q]);
+      // The full row and right-hand side, kept for the reaction force after the solve (a reused
+      // matrix keeps the rows of its assembly).
+      if (!reuse) {
+        std::copy(values + outer[r], values + outer[r + 1], saved_values_.data() + saved_start_[q]);
+        std::fill(values + outer[r], values + outer[r + 1], 0.0);
+        values[diag[r]] = 1.0;
+      }
       saved_rhs_[q] = rhs[r];
-      std::fill(values + outer[r], values + outer[r + 1], 0.0);
-      values[diag[r]] = 1.0;
       rhs[r] = cv[r];
     }
     // Move the known constrained velocities to the right-hand side and drop their columns (in
-    // ascending column order, as a pass over the whole row would).
+    // ascending column order, as a pass over the whole row would); the dropped values are kept for
+    // the steps that reuse the matrix.
 #pragma omp for schedule(static)
     for (int q = 0; q < static_cast<int>(elim_row_.size()); ++q) {
       const int r = elim_row_[q];
       double b = rhs[r];
       for (int p = elim_start_[q]; p < elim_start_[q + 1]; ++p) {
         const int k = elim_pos_[p];
-        b -= values[k] * cv[inner[k]];
-        values[k] = 0.0;
+        if (!reuse) {
+          elim_values[p] = values[k];
+          values[k] = 0.0;
+        }
+        b -= elim_values[p] * cv[inner[k]];
       }
       rhs[r] = b;
     }
@@ -267,8 +292,17 @@ StepStats DynamicSimulator::step() {
   st.assembly_seconds = since(t0);
 
   const auto t1 = std::chrono::steady_clock::now();
-  if (split_) solver_->factorizeWithRankOne(A_, R);
-  else solver_->factorize(A_);
+  if (reuse) {
+    ++matrix_age_;
+  } else {
+    if (split_) solver_->factorizeWithRankOne(A_, R);
+    else solver_->factorize(A_);
+    matrix_stale_ = false;
+    matrix_age_ = 1;
+    assembled_params_ = params_;
+    assembled_spring_nodes_ = spring_nodes_;
+    assembled_spring_k_ = spring_k_;
+  }
   st.setup_seconds = since(t1);
   v_next_ = state_.velocity_mps;  // warm start
   st.solve = solver_->solve(rhs_, v_next_);
@@ -353,6 +387,29 @@ void DynamicSimulator::restore(const SimulationState& s) {
     throw std::invalid_argument("restore: the state has " + std::to_string(s.displacement_m.size()) +
                                 " DOFs, the model " + std::to_string(3 * num_nodes_));
   state_ = s;
+  matrix_stale_ = true;
+}
+
+bool DynamicSimulator::springsAsAssembled() const {
+  // A spring block may differ from the one in the reused matrix (a wall spring turning with the
+  // wall as its node moves) while dt² ‖ΔK‖ (Frobenius) stays within this share of the smallest
+  // diagonal entry its node has without the spring (mass and tissue): the difference acts as an
+  // explicit spring. Measured in tracking frames: a wall spring lagged by 1.26 times that entry
+  // doubled the largest move every frame (6.6 mm after six frames); the frames' own drift is about
+  // 1e-9 of it. A spring added or removed always assembles.
+  constexpr double kDrift = 0.05;
+  if (spring_nodes_ != assembled_spring_nodes_) return false;
+  const double dt2 = params_.time_step_s * params_.time_step_s;
+  for (size_t i = 0; i < spring_k_.size(); ++i)
+    if (!(dt2 * (spring_k_[i] - assembled_spring_k_[i]).norm() <= kDrift * assembled_spring_scale_[i])) return false;
+  return true;
+}
+
+void DynamicSimulator::setMatrixReuse(int steps) {
+  if (steps < 1)
+    throw std::invalid_argument("setMatrixReuse: " + std::to_string(steps) +
+                                " steps per assembly; give at least 1 (1 = assemble every step)");
+  matrix_reuse_ = steps;
 }
 
 Points DynamicSimulator::displacement() const {

@@ -21,6 +21,10 @@ inline constexpr int kMaxStuckCalls = 5;
 /// reverse again, so the passes only catch nodes that reverse because others stopped.
 inline constexpr int kMaxFrictionPasses = 3;
 
+/// Tracking mode: the step matrix is assembled at every this-many-th frame and reused in between
+/// (DynamicSimulator::setMatrixReuse; measured in docs/tracking.md, "Latency").
+inline constexpr int kTrackingMatrixReuse = 10;
+
 /// FNV-1a hash of the rest mesh (node coordinates and connectivity), cut to 52 bits so that a double
 /// holds it exactly (never 0): which mesh a saved state (its nodes must be numbered the same way) or
 /// a kept embedding belongs to.

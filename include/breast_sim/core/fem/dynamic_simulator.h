@@ -39,6 +39,8 @@ struct StepStats {
   double assembly_seconds = 0.0;  ///< rotations, forces and matrix [s]
   double setup_seconds = 0.0;     ///< solver factorize() [s]
   double total_seconds = 0.0;
+  /// The step solved with the matrix and solver set-up of an earlier step (setMatrixReuse).
+  bool matrix_reused = false;
 };
 
 /// What all step() calls of a simulator did, summed (a profile of a run: where its time went).
@@ -109,6 +111,23 @@ class DynamicSimulator {
 
   /// One implicit time step. @throws std::runtime_error if the solver fails.
   StepStats step();
+  /// Matrix reuse: the step matrix assembled at one step, with the solver's set-up for it, serves
+  /// up to `steps` − 1 following steps as well; their right-hand sides (elastic forces at x_t,
+  /// springs, constraints) are computed as always. Such a step solves with the linearisation of a
+  /// nearby earlier state (its rotations and modulus factors), as an inexact solve does, and the
+  /// following steps correct it. A spring's stiffness block may lag in the same way while the
+  /// change, times dt², is within 5 % of its node's smallest diagonal entry without the spring (a
+  /// wall spring turning with the wall; more than that acts as an explicit spring and diverges).
+  /// Anything else that enters the matrix makes the next step assemble: the time step or damping,
+  /// the constrained DOFs, the spring nodes, a spring block changed by more than that, and restore().
+  /// Why: a tracking frame moves the model by a fraction of a millimetre, and at 48.8k elements
+  /// the matrix gather and the solver's set-up are about a fifth of the frame's step
+  /// (docs/tracking.md, "Latency"). 1 (the default): every step assembles. A split stiffness
+  /// (splitStiffness()) assembles every step: its rank-one part lives in the element formulation's
+  /// arrays, which every element update rewrites.
+  /// @throws std::invalid_argument for steps < 1 (names the value).
+  void setMatrixReuse(int steps);
+  int matrixReuse() const { return matrix_reuse_; }
   /// Whether the step's matrix is the formulation's compact part with its rank-one part applied
   /// by the solver (ElementFormulation::compactPattern and LinearSolver::acceptsRankOneSum), rather
   /// than the whole assembled stiffness.
@@ -182,6 +201,18 @@ class DynamicSimulator {
   std::vector<double> free_mask_;
   std::vector<double> rank_one_work_;
   Eigen::VectorXd rank_one_product_;
+  // Matrix reuse (setMatrixReuse): steps per assembly, steps since the last one, whether something
+  // that enters the matrix changed since, the dynamics it was assembled with, and the values of the
+  // eliminated constrained columns (elim_pos_ order) that the right-hand side needs.
+  int matrix_reuse_ = 1;
+  int matrix_age_ = 0;
+  bool matrix_stale_ = true;
+  DynamicsParams assembled_params_;
+  std::vector<int> assembled_spring_nodes_;
+  std::vector<Eigen::Matrix3d> assembled_spring_k_;
+  std::vector<double> assembled_spring_scale_;  // per spring: its node's smallest diagonal entry without it
+  std::vector<double> elim_values_;
+  bool springsAsAssembled() const;  // the springs match the reused matrix's (setMatrixReuse)
 };
 
 }  // namespace breast_sim::core
