@@ -307,6 +307,22 @@ StepStats DynamicSimulator::step() {
   v_next_ = state_.velocity_mps;  // warm start
   st.solve = solver_->solve(rhs_, v_next_);
   if (!v_next_.allFinite()) throw std::runtime_error("DynamicSimulator: the " + solver_->name() + " solve returned non-finite velocities");
+  // A lagged linearisation can let a mode grow (an element turning fast, a spring turning): a
+  // reusing step whose largest node move more than doubles the last step's is solved again with an
+  // assembled matrix. Moves under a micrometre never count as growth.
+  double largest_move = 0.0;
+  for (int n = 0; n < num_nodes_; ++n) largest_move = std::max(largest_move, v_next_.segment<3>(3 * n).norm());
+  largest_move *= dt;
+  if (reuse && largest_move > 2.0 * last_largest_move_ && largest_move > 1e-6) {
+    matrix_stale_ = true;
+    ++totals_.steps;  // this solve is discarded
+    totals_.iterations += st.solve.iterations;
+    totals_.solve_seconds += st.solve.seconds;
+    StepStats again = step();
+    again.matrix_reused = false;
+    return again;
+  }
+  last_largest_move_ = largest_move;
   // Reaction at each constrained DOF: the full row's residual, (A_r v − b_r) / dt [N].
   constraint_force_.setZero(n3);
   if (split_ && num_constrained > 0) {  // the rank-one part of the constrained rows, unmasked

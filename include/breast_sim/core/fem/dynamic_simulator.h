@@ -212,6 +212,7 @@ class DynamicSimulator {
   std::vector<Eigen::Matrix3d> assembled_spring_k_;
   std::vector<double> assembled_spring_scale_;  // per spring: its node's smallest diagonal entry without it
   std::vector<double> elim_values_;
+  double last_largest_move_ = 0.0;  // the last step's largest node move [m]
   bool springsAsAssembled() const;  // the springs match the reused matrix's (setMatrixReuse)
 };
 
