@@ -152,6 +152,7 @@ int main(int argc, char** argv) {
       std::vector<double> conv, filt, icps, field, iter, pub, total, pcg;
       double last_mean = -1;
       int icp_applied = 0, valid_frames = 0;
+      const core::StepTotals steps_before = p.simulator().totals();
       for (int k = 0; k < frames; ++k) {
         const double t = k / 30.0;
         const sensor_msgs::PointCloud2 msg =
@@ -186,6 +187,11 @@ int main(int argc, char** argv) {
         valid_frames += g.valid ? 1 : 0;
         icp_applied += r.icp_applied ? 1 : 0;
       }
+      // Steps that solved with an earlier frame's matrix (tracking reuses it, DynamicSimulator::
+      // setMatrixReuse) and reusing solves done again assembled.
+      const core::StepTotals& steps_after = p.simulator().totals();
+      const long reused = steps_after.reused_matrix - steps_before.reused_matrix;
+      const long resolved = steps_after.resolved_assembled - steps_before.resolved_assembled;
       std::string search = reference ? "PCL (reference)" : "grid";
       double max_diff_mm = -1;
       if (!reference) {
@@ -206,7 +212,8 @@ int main(int argc, char** argv) {
                 << 1e3 * bench::median(total) << std::setw(7)
                 << 1e3 * p95(total) << " |" << std::setw(10) << rate << std::setw(15) << 1e3 * last_mean << std::setw(8)
                 << icp_applied << "/" << std::setw(3) << std::left << total.size() << std::right << "  " << search << " ("
-                << valid_frames << " valid)\n";
+                << valid_frames << " valid), matrix reused in " << reused << " of " << frames
+                << " frames, solved again " << resolved << "\n";
       out["frames"].push_back({{"voxel_mm", v > 0 ? v : 1e3 * settings.morphing.field.voxel_size_m},
                                {"convert_ms", 1e3 * bench::median(conv)}, {"filter_ms", 1e3 * bench::median(filt)},
                                {"icp_ms", 1e3 * bench::median(icps)}, {"field_ms", 1e3 * bench::median(field)},
@@ -216,7 +223,8 @@ int main(int argc, char** argv) {
                                {"rate_hz", rate}, {"surface_mean_mm", 1e3 * last_mean},
                                {"icp_applied", icp_applied}, {"frames_timed", total.size()}, {"valid_frames", valid_frames},
                                {"search", reference ? "pcl" : "grid"}, {"max_diff_from_grid_mm", max_diff_mm},
-                               {"solver_relative_tolerance", solver_tol}});
+                               {"solver_relative_tolerance", solver_tol}, {"frames", frames},
+                               {"matrix_reused_frames", reused}, {"solved_again_assembled", resolved}});
     }
   } catch (const std::exception& e) {
     std::cerr << "bench_tracking_latency: " << e.what() << "\n";

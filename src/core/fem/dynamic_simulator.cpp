@@ -316,6 +316,7 @@ StepStats DynamicSimulator::step() {
   if (reuse && largest_move > 2.0 * last_largest_move_ && largest_move > 1e-6) {
     matrix_stale_ = true;
     ++totals_.steps;  // this solve is discarded
+    ++totals_.resolved_assembled;
     totals_.iterations += st.solve.iterations;
     totals_.solve_seconds += st.solve.seconds;
     StepStats again = step();
@@ -344,6 +345,7 @@ StepStats DynamicSimulator::step() {
   st.total_seconds = since(t0);
   ++totals_.steps;
   totals_.iterations += st.solve.iterations;
+  totals_.reused_matrix += reuse;
   totals_.assembly_seconds += st.assembly_seconds;
   totals_.setup_seconds += st.setup_seconds;
   totals_.solve_seconds += st.solve.seconds;
