@@ -324,10 +324,12 @@ TEST(DynamicSimulator, ConstraintForcesBalanceTheWeightAtRest) {
 }
 
 namespace {
-DynamicSimulator cantileverSim(const TetMesh& m, const DynamicsParams& p) {
+DynamicSimulator cantileverSim(const TetMesh& m, const DynamicsParams& p, bool corotated = true) {
   ElasticMaterial mat;
   mat.youngs_modulus_pa = 20e3;
-  return DynamicSimulator(m, std::make_unique<CorotatedTetFem>(m, mat), mat, p, std::make_unique<CholmodSolver>());
+  auto fem = std::make_unique<CorotatedTetFem>(m, mat);
+  fem->setCorotated(corotated);
+  return DynamicSimulator(m, std::move(fem), mat, p, std::make_unique<CholmodSolver>());
 }
 }  // namespace
 
@@ -426,18 +428,10 @@ TEST(DynamicSimulator, NodeSpringForceMatchesItsStiffnessAndBadSpringsAreRefused
 // anchors, moving target constraints, eliminated columns) and the reactions.
 TEST(DynamicSimulator, AReusedMatrixGivesTheAssembledStepsBitsWhenTheMatrixIsConstant) {
   const TetMesh m = makeBoxMesh({6, 2, 2}, {0.06, 0.02, 0.02});
-  ElasticMaterial mat;
-  mat.youngs_modulus_pa = 20e3;
   DynamicsParams p;
   p.gravity_mps2 = {0.5, -1.0, -9.81};
-  auto make = [&] {
-    auto fem = std::make_unique<CorotatedTetFem>(m, mat);
-    fem->setCorotated(false);
-    DynamicSimulator sim(m, std::move(fem), mat, p, std::make_unique<CholmodSolver>());
-    sim.fixNodes(m.nodeSet("x_min"));
-    return sim;
-  };
-  DynamicSimulator reusing = make(), assembling = make();
+  DynamicSimulator reusing = cantileverSim(m, p, false), assembling = cantileverSim(m, p, false);
+  for (DynamicSimulator* sim : {&reusing, &assembling}) sim->fixNodes(m.nodeSet("x_min"));
   reusing.setMatrixReuse(3);
   const std::vector<int>& tip = m.nodeSet("x_max");
   std::vector<int> sprung = {tip[0], tip[1]};
@@ -462,23 +456,40 @@ TEST(DynamicSimulator, AReusedMatrixGivesTheAssembledStepsBitsWhenTheMatrixIsCon
   EXPECT_THROW(reusing.setMatrixReuse(0), std::invalid_argument);
 }
 
+namespace {
+// The cantilever block (its x_min face fixed) settled hanging under gravity, in two simulators at
+// the same state: one to reuse its matrix, one that assembles every step.
+struct HangingBlock {
+  TetMesh mesh = makeBoxMesh({6, 2, 2}, {0.06, 0.02, 0.02});
+  DynamicsParams params = [] {
+    DynamicsParams p;
+    p.gravity_mps2 = {0.5, -1.0, -9.81};
+    return p;
+  }();
+  DynamicSimulator reusing = cantileverSim(mesh, params), assembling = cantileverSim(mesh, params);
+  bool settled = false;
+  HangingBlock() {
+    for (DynamicSimulator* sim : {&reusing, &assembling}) sim->fixNodes(mesh.nodeSet("x_min"));
+    SettleOptions o;
+    o.increment_tolerance_m = 1e-9;
+    settled = settle(assembling, o).settled;
+    reusing.restore(assembling.state());
+  }
+};
+}  // namespace
+
 // With co-rotated elements a reused matrix lags the rotations: close to the assembled step, not
 // equal. Whatever else enters the matrix makes the next step assemble: then both give the same bits
 // from the same state.
 TEST(DynamicSimulator, AReusedMatrixLagsOnlyTheRotationsAndAnyOtherChangeAssemblesAgain) {
-  const TetMesh m = makeBoxMesh({6, 2, 2}, {0.06, 0.02, 0.02});
-  DynamicsParams p;
-  p.gravity_mps2 = {0.5, -1.0, -9.81};
-  DynamicSimulator reusing = cantileverSim(m, p), assembling = cantileverSim(m, p);
-  for (DynamicSimulator* sim : {&reusing, &assembling}) sim->fixNodes(m.nodeSet("x_min"));
+  HangingBlock b;
+  ASSERT_TRUE(b.settled);
+  const TetMesh& m = b.mesh;
+  DynamicSimulator &reusing = b.reusing, &assembling = b.assembling;
   // Hanging at rest, then a tenth more weight: the motion of the next steps is a fraction of the
   // sag, as a tracking frame's is of the supine deformation.
-  SettleOptions o;
-  o.increment_tolerance_m = 1e-9;
-  ASSERT_TRUE(settle(assembling, o).settled);
   const Eigen::VectorXd hanging = assembling.state().displacement_m;
-  reusing.restore(assembling.state());
-  for (DynamicSimulator* sim : {&reusing, &assembling}) sim->setGravity(1.1 * p.gravity_mps2);
+  for (DynamicSimulator* sim : {&reusing, &assembling}) sim->setGravity(1.1 * b.params.gravity_mps2);
   reusing.setMatrixReuse(100);
   int reused = 0;
   for (int s = 0; s < 12; ++s) {
@@ -546,14 +557,10 @@ TEST(DynamicSimulator, AReusedMatrixLagsOnlyTheRotationsAndAnyOtherChangeAssembl
 // A reusing step whose largest node move more than doubles the last step's is solved again with an
 // assembled matrix (a lagged linearisation can let a mode grow): a sudden push on a hanging block.
 TEST(DynamicSimulator, AReusingStepWhoseMoveMoreThanDoublesIsSolvedAgainAssembled) {
-  const TetMesh m = makeBoxMesh({6, 2, 2}, {0.06, 0.02, 0.02});
-  DynamicsParams p;
-  p.gravity_mps2 = {0.5, -1.0, -9.81};
-  DynamicSimulator reusing = cantileverSim(m, p), assembling = cantileverSim(m, p);
-  for (DynamicSimulator* sim : {&reusing, &assembling}) sim->fixNodes(m.nodeSet("x_min"));
-  SettleOptions o;
-  o.increment_tolerance_m = 1e-9;
-  ASSERT_TRUE(settle(reusing, o).settled);
+  HangingBlock b;
+  ASSERT_TRUE(b.settled);
+  const TetMesh& m = b.mesh;
+  DynamicSimulator &reusing = b.reusing, &assembling = b.assembling;
   reusing.setMatrixReuse(100);
   EXPECT_FALSE(reusing.step().matrix_reused);
   EXPECT_TRUE(reusing.step().matrix_reused);  // at rest: it hardly moves
