@@ -453,6 +453,10 @@ TEST(DynamicSimulator, AReusedMatrixGivesTheAssembledStepsBitsWhenTheMatrixIsCon
     ASSERT_EQ(reusing.constraintForces(), assembling.constraintForces()) << "step " << s;
   }
   EXPECT_EQ(reused, (std::vector<bool>{false, true, true, false, true, true, false}));
+  // Another reuse setting starts with an assembly (it records what the reusing steps compare with).
+  reusing.setMatrixReuse(2);
+  EXPECT_FALSE(reusing.step().matrix_reused);
+  EXPECT_TRUE(reusing.step().matrix_reused);
   EXPECT_THROW(reusing.setMatrixReuse(0), std::invalid_argument);
 }
 

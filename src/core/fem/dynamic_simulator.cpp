@@ -1,5 +1,6 @@
 #include "breast_sim/core/fem/dynamic_simulator.h"
 
+#include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/solver/rank_one_sum.h"
 
 #include <algorithm>
@@ -148,14 +149,16 @@ StepStats DynamicSimulator::step() {
   const int* inner = A_.innerIndexPtr();
   const double stiffness_scale = dt * (dt + params_.stiffness_damping_s);
   // Matrix reuse: the matrix (and the solver's set-up) of an earlier step, if nothing that enters
-  // it changed since (the element linearisation lags by design, setMatrixReuse).
-  const bool reuse = !split_ && matrix_reuse_ > 1 && !matrix_stale_ && matrix_age_ < matrix_reuse_ &&
+  // it changed since (the element linearisation lags by design, setMatrixReuse). What a later
+  // reusing step compares with is recorded only while reuse is on.
+  const bool record = matrix_reuse_ > 1;
+  const bool reuse = !split_ && record && matrix_age_ > 0 && matrix_age_ < matrix_reuse_ &&
                      elim_for_ == constrained_ && dt == assembled_params_.time_step_s &&
                      params_.mass_damping_per_s == assembled_params_.mass_damping_per_s &&
                      params_.stiffness_damping_s == assembled_params_.stiffness_damping_s && springsAsAssembled();
   st.matrix_reused = reuse;
   if (!reuse) {
-    matrix_stale_ = true;  // until the solver's set-up below succeeded
+    matrix_age_ = 0;  // no matrix to reuse until the solver's set-up below succeeded
     if (split_) elements_->assignCompactStiffness(stiffness_scale, A_);
     else elements_->assignStiffness(stiffness_scale, A_);
   }
@@ -212,7 +215,7 @@ StepStats DynamicSimulator::step() {
   // dt f_s(x_t) on the right-hand side. The node's own 3×3 block is contiguous in each of its rows
   // (columns sorted, the diagonal at diag_pos_).
   spring_force_.setZero(n3);
-  if (!reuse) assembled_spring_scale_.resize(spring_nodes_.size());
+  if (!reuse && record) assembled_spring_scale_.resize(spring_nodes_.size());
   for (size_t i = 0; i < spring_nodes_.size(); ++i) {
     const int n = spring_nodes_[i];
     const Eigen::Vector3d x = rest_.row(n).transpose() + state_.displacement_m.segment<3>(3 * n);
@@ -223,9 +226,10 @@ StepStats DynamicSimulator::step() {
       const int r = 3 * n + c;
       double* block = values + diag[r] - c;  // columns 3n, 3n+1, 3n+2 of row r
       if (!reuse) {
-        // What holds the node without its spring: its smallest diagonal entry (mass and tissue).
-        double& held = assembled_spring_scale_[i];
-        held = c == 0 ? block[c] : std::min(held, block[c]);
+        if (record) {  // what holds the node without its spring: its smallest diagonal entry
+          double& held = assembled_spring_scale_[i];
+          held = c == 0 ? block[c] : std::min(held, block[c]);
+        }
         for (int d = 0; d < 3; ++d) block[d] += dt * dt * spring_k_[i](c, d);
       }
       rhs[r] += dt * f[c];
@@ -297,11 +301,12 @@ StepStats DynamicSimulator::step() {
   } else {
     if (split_) solver_->factorizeWithRankOne(A_, R);
     else solver_->factorize(A_);
-    matrix_stale_ = false;
     matrix_age_ = 1;
-    assembled_params_ = params_;
-    assembled_spring_nodes_ = spring_nodes_;
-    assembled_spring_k_ = spring_k_;
+    if (record) {
+      assembled_params_ = params_;
+      assembled_spring_nodes_ = spring_nodes_;
+      assembled_spring_k_ = spring_k_;
+    }
   }
   st.setup_seconds = since(t1);
   v_next_ = state_.velocity_mps;  // warm start
@@ -310,11 +315,9 @@ StepStats DynamicSimulator::step() {
   // A lagged linearisation can let a mode grow (an element turning fast, a spring turning): a
   // reusing step whose largest node move more than doubles the last step's is solved again with an
   // assembled matrix. Moves under a micrometre never count as growth.
-  double largest_move = 0.0;
-  for (int n = 0; n < num_nodes_; ++n) largest_move = std::max(largest_move, v_next_.segment<3>(3 * n).norm());
-  largest_move *= dt;
+  const double largest_move = record ? dt * maxNodalNorm(v_next_) : 0.0;
   if (reuse && largest_move > 2.0 * last_largest_move_ && largest_move > 1e-6) {
-    matrix_stale_ = true;
+    matrix_age_ = 0;
     ++totals_.steps;  // this solve is discarded
     ++totals_.resolved_assembled;
     totals_.iterations += st.solve.iterations;
@@ -405,7 +408,7 @@ void DynamicSimulator::restore(const SimulationState& s) {
     throw std::invalid_argument("restore: the state has " + std::to_string(s.displacement_m.size()) +
                                 " DOFs, the model " + std::to_string(3 * num_nodes_));
   state_ = s;
-  matrix_stale_ = true;
+  matrix_age_ = 0;
 }
 
 bool DynamicSimulator::springsAsAssembled() const {
@@ -427,6 +430,7 @@ void DynamicSimulator::setMatrixReuse(int steps) {
   if (steps < 1)
     throw std::invalid_argument("setMatrixReuse: " + std::to_string(steps) +
                                 " steps per assembly; give at least 1 (1 = assemble every step)");
+  if (steps != matrix_reuse_) matrix_age_ = 0;  // the next step assembles and records what reuse compares
   matrix_reuse_ = steps;
 }
 

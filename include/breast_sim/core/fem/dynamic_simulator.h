@@ -129,7 +129,8 @@ class DynamicSimulator {
   /// the matrix gather and the solver's set-up are about a fifth of the frame's step
   /// (docs/tracking.md, "Latency"). 1 (the default): every step assembles. A split stiffness
   /// (splitStiffness()) assembles every step: its rank-one part lives in the element formulation's
-  /// arrays, which every element update rewrites.
+  /// arrays, which every element update rewrites. The first step after a change of `steps`
+  /// assembles; with 1 nothing of this is recorded or checked.
   /// @throws std::invalid_argument for steps < 1 (names the value).
   void setMatrixReuse(int steps);
   int matrixReuse() const { return matrix_reuse_; }
@@ -206,12 +207,11 @@ class DynamicSimulator {
   std::vector<double> free_mask_;
   std::vector<double> rank_one_work_;
   Eigen::VectorXd rank_one_product_;
-  // Matrix reuse (setMatrixReuse): steps per assembly, steps since the last one, whether something
-  // that enters the matrix changed since, the dynamics it was assembled with, and the values of the
-  // eliminated constrained columns (elim_pos_ order) that the right-hand side needs.
+  // Matrix reuse (setMatrixReuse): steps per assembly; steps since the last one (0: none to reuse,
+  // e.g. after restore()); while reuse is on, the dynamics and springs it was assembled with; the
+  // values of the eliminated constrained columns (elim_pos_ order) that the right-hand side needs.
   int matrix_reuse_ = 1;
   int matrix_age_ = 0;
-  bool matrix_stale_ = true;
   DynamicsParams assembled_params_;
   std::vector<int> assembled_spring_nodes_;
   std::vector<Eigen::Matrix3d> assembled_spring_k_;
