@@ -6,8 +6,11 @@
 #include <stdexcept>
 #include <unordered_set>
 
+#include <CGAL/AABB_traits.h>
+#include <CGAL/AABB_tree.h>
+#include <CGAL/AABB_triangle_primitive.h>
+#include <CGAL/Simple_cartesian.h>
 #include <vtkCellArray.h>
-#include <vtkGenericCell.h>
 #include <vtkNew.h>
 #include <vtkOBJReader.h>
 #include <vtkPLYReader.h>
@@ -16,7 +19,6 @@
 #include <vtkPolyDataReader.h>
 #include <vtkSTLReader.h>
 #include <vtkSmartPointer.h>
-#include <vtkStaticCellLocator.h>
 #include <vtkStaticPointLocator.h>
 #include <vtkTriangleFilter.h>
 #include <vtkXMLPolyDataReader.h>
@@ -107,36 +109,59 @@ TargetSurface readTargetSurface(const std::string& path, double length_unit_m) {
   return t;
 }
 
+namespace {
+
+using Kernel = CGAL::Simple_cartesian<double>;
+using TriangleList = std::vector<Kernel::Triangle_3>;
+using TriangleTree =
+    CGAL::AABB_tree<CGAL::AABB_traits<Kernel, CGAL::AABB_triangle_primitive<Kernel, TriangleList::const_iterator>>>;
+
+}  // namespace
+
+// Triangles: CGAL's AABB tree (exact closest points, about 3x faster per query here than VTK's
+// static cell locator); a point cloud: VTK's static point locator.
 struct SurfaceDistance::Impl {
+  TriangleList triangles;
+  std::unique_ptr<TriangleTree> tree;
   vtkSmartPointer<vtkPolyData> poly;
-  vtkSmartPointer<vtkStaticCellLocator> cells;
   vtkSmartPointer<vtkStaticPointLocator> points;
+
+  Eigen::Vector3d closest(const Eigen::Vector3d& p) const {
+    if (points) {
+      double x[3] = {p.x(), p.y(), p.z()}, c[3];
+      poly->GetPoint(points->FindClosestPoint(x), c);
+      return {c[0], c[1], c[2]};
+    }
+    const Kernel::Point_3 q = tree->closest_point(Kernel::Point_3(p.x(), p.y(), p.z()));
+    return {q.x(), q.y(), q.z()};
+  }
 };
 
 SurfaceDistance::SurfaceDistance(const TargetSurface& surface) : impl_(std::make_unique<Impl>()) {
   surface.validate();
-  impl_->poly = vtkSmartPointer<vtkPolyData>::New();
-  vtkNew<vtkPoints> pts;
-  pts->SetDataTypeToDouble();
-  pts->SetNumberOfPoints(surface.vertices_m.rows());
-  for (Eigen::Index v = 0; v < surface.vertices_m.rows(); ++v)
-    pts->SetPoint(v, surface.vertices_m(v, 0), surface.vertices_m(v, 1), surface.vertices_m(v, 2));
-  impl_->poly->SetPoints(pts);
   if (surface.isPointCloud()) {
+    impl_->poly = vtkSmartPointer<vtkPolyData>::New();
+    vtkNew<vtkPoints> pts;
+    pts->SetDataTypeToDouble();
+    pts->SetNumberOfPoints(surface.vertices_m.rows());
+    for (Eigen::Index v = 0; v < surface.vertices_m.rows(); ++v)
+      pts->SetPoint(v, surface.vertices_m(v, 0), surface.vertices_m(v, 1), surface.vertices_m(v, 2));
+    impl_->poly->SetPoints(pts);
     impl_->points = vtkSmartPointer<vtkStaticPointLocator>::New();
     impl_->points->SetDataSet(impl_->poly);
     impl_->points->BuildLocator();
   } else {
-    vtkNew<vtkCellArray> polys;
-    for (Eigen::Index f = 0; f < surface.triangles.rows(); ++f) {
-      const vtkIdType ids[3] = {surface.triangles(f, 0), surface.triangles(f, 1), surface.triangles(f, 2)};
-      polys->InsertNextCell(3, ids);
-    }
-    impl_->poly->SetPolys(polys);
-    impl_->poly->BuildCells();
-    impl_->cells = vtkSmartPointer<vtkStaticCellLocator>::New();
-    impl_->cells->SetDataSet(impl_->poly);
-    impl_->cells->BuildLocator();
+    auto corner = [&](Eigen::Index f, int k) {
+      const auto v = surface.vertices_m.row(surface.triangles(f, k));
+      return Kernel::Point_3(v(0), v(1), v(2));
+    };
+    impl_->triangles.reserve(static_cast<size_t>(surface.triangles.rows()));
+    for (Eigen::Index f = 0; f < surface.triangles.rows(); ++f)
+      impl_->triangles.emplace_back(corner(f, 0), corner(f, 1), corner(f, 2));
+    impl_->tree = std::make_unique<TriangleTree>(impl_->triangles.cbegin(), impl_->triangles.cend());
+    // Built here, not lazily at the first query: later queries only read the tree (thread-safe).
+    impl_->tree->build();
+    impl_->tree->accelerate_distance_queries();
   }
 }
 
@@ -145,27 +170,22 @@ SurfaceDistance::SurfaceDistance(SurfaceDistance&&) noexcept = default;
 SurfaceDistance& SurfaceDistance::operator=(SurfaceDistance&&) noexcept = default;
 
 double SurfaceDistance::distance(const Eigen::Vector3d& p_m, Eigen::Vector3d* closest_m) const {
-  double x[3] = {p_m.x(), p_m.y(), p_m.z()}, c[3];
-  if (impl_->points) {
-    const vtkIdType id = impl_->points->FindClosestPoint(x);
-    impl_->poly->GetPoint(id, c);
-  } else {
-    vtkNew<vtkGenericCell> cell;
-    vtkIdType cell_id;
-    int sub_id;
-    double d2;
-    impl_->cells->FindClosestPoint(x, c, cell, cell_id, sub_id, d2);
-  }
-  const Eigen::Vector3d q(c[0], c[1], c[2]);
+  const Eigen::Vector3d q = impl_->closest(p_m);
   if (closest_m) *closest_m = q;
   return (q - p_m).norm();
 }
 
-DistanceStats SurfaceDistance::stats(const Points& points_m) const {
-  std::vector<double> d(static_cast<size_t>(points_m.rows()));
+Eigen::VectorXd SurfaceDistance::distances(const Points& points_m) const {
+  Eigen::VectorXd d(points_m.rows());
+  const int n = static_cast<int>(points_m.rows());
 #pragma omp parallel for schedule(static)
-  for (int i = 0; i < static_cast<int>(d.size()); ++i) d[i] = distance(points_m.row(i).transpose());
-  return distanceStats(std::move(d));
+  for (int i = 0; i < n; ++i) d[i] = distance(points_m.row(i).transpose());
+  return d;
+}
+
+DistanceStats SurfaceDistance::stats(const Points& points_m) const {
+  const Eigen::VectorXd d = distances(points_m);
+  return distanceStats(std::vector<double>(d.data(), d.data() + d.size()));
 }
 
 DistanceStats distanceStats(std::vector<double> d) {
@@ -225,28 +245,22 @@ SurfaceMatch surfaceMatch(const TetMesh& mesh, const Points& x_m, const std::vec
   const Points samples = surfaceSamples(target_surface);
   const int n = static_cast<int>(samples.rows());
   m.target_samples = n;
-  const SurfaceDistance to_skin(skin);
-  std::vector<double> d_skin(static_cast<size_t>(n));
-#pragma omp parallel for schedule(static)
-  for (int i = 0; i < n; ++i) d_skin[static_cast<size_t>(i)] = to_skin.distance(samples.row(i).transpose());
+  const Eigen::VectorXd d_skin = SurfaceDistance(skin).distances(samples);
   std::vector<char> on_wall(static_cast<size_t>(n), 0);
   if (mesh.hasNodeSet(node_sets::kChestWall) && chest_wall_tolerance_m > 0) {
     TargetSurface wall;
     wall.vertices_m = x_m;
     wall.triangles = skinTriangles(mesh, mesh.nodeSet(node_sets::kChestWall));  // boundary faces on the wall
     if (wall.triangles.rows() > 0) {
-      const SurfaceDistance to_wall(wall);
-#pragma omp parallel for schedule(static)
-      for (int i = 0; i < n; ++i) {
-        const double dw = to_wall.distance(samples.row(i).transpose());
-        on_wall[static_cast<size_t>(i)] = dw <= chest_wall_tolerance_m && dw < d_skin[static_cast<size_t>(i)];
-      }
+      const Eigen::VectorXd d_wall = SurfaceDistance(wall).distances(samples);
+      for (int i = 0; i < n; ++i)
+        on_wall[static_cast<size_t>(i)] = d_wall[i] <= chest_wall_tolerance_m && d_wall[i] < d_skin[i];
     }
   }
   std::vector<double> kept;
   kept.reserve(static_cast<size_t>(n));
   for (int i = 0; i < n; ++i)
-    if (!on_wall[static_cast<size_t>(i)]) kept.push_back(d_skin[static_cast<size_t>(i)]);
+    if (!on_wall[static_cast<size_t>(i)]) kept.push_back(d_skin[i]);
   m.target_on_chest_wall = n - static_cast<int>(kept.size());
   m.target_to_model = distanceStats(std::move(kept));
   return m;

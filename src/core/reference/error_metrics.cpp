@@ -9,7 +9,7 @@
 
 #include "breast_sim/core/material/stiffening.h"  // deformationMeasures
 #include "breast_sim/core/model/point_embedding.h"
-#include "../util/closest_point.h"
+#include "breast_sim/core/morphing/target_surface.h"
 
 namespace breast_sim::core {
 
@@ -23,87 +23,11 @@ Points transferDisplacement(const TetMesh& reference_mesh, const Points& referen
 }
 
 Eigen::VectorXd pointSurfaceDistance(const Points& points_m, const Points& vertices_m, const Triangles& triangles) {
-  Eigen::VectorXd out(points_m.rows());
-  const int F = static_cast<int>(triangles.rows());
-  if (F == 0) {
-    out.setConstant(std::numeric_limits<double>::infinity());
-    return out;
-  }
-  Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::max()), hi = -lo;
-  double edge = 0;
-  for (int f = 0; f < F; ++f)
-    for (int k = 0; k < 3; ++k) {
-      const Eigen::Vector3d v = vertices_m.row(triangles(f, k)).transpose();
-      lo = lo.cwiseMin(v);
-      hi = hi.cwiseMax(v);
-      edge += (vertices_m.row(triangles(f, (k + 1) % 3)) - vertices_m.row(triangles(f, k))).norm();
-    }
-  edge /= 3.0 * F;
-  const Eigen::Vector3d ext = (hi - lo).cwiseMax(1e-12);
-  // About one triangle per cell in 2-D terms: cells of two mean edges, capped at 128 per axis.
-  const double h = std::max({2.0 * edge, ext.maxCoeff() / 128.0, 1e-9});
-  Eigen::Vector3i dims;
-  for (int a = 0; a < 3; ++a) dims[a] = std::max(1, static_cast<int>(std::ceil(ext[a] / h)));
-  auto cellIndex = [&](const Eigen::Vector3d& p) {
-    Eigen::Vector3i c;
-    for (int a = 0; a < 3; ++a) c[a] = std::clamp(static_cast<int>(std::floor((p[a] - lo[a]) / h)), 0, dims[a] - 1);
-    return c;
-  };
-  auto flat = [&](const Eigen::Vector3i& c) { return (static_cast<long>(c.z()) * dims.y() + c.y()) * dims.x() + c.x(); };
-  const long cells = static_cast<long>(dims.x()) * dims.y() * dims.z();
-  std::vector<int> start(cells + 1, 0), items;
-  for (int pass = 0; pass < 2; ++pass) {
-    for (int f = 0; f < F; ++f) {
-      Eigen::Vector3d tlo = vertices_m.row(triangles(f, 0)).transpose(), thi = tlo;
-      for (int k = 1; k < 3; ++k) {
-        tlo = tlo.cwiseMin(vertices_m.row(triangles(f, k)).transpose());
-        thi = thi.cwiseMax(vertices_m.row(triangles(f, k)).transpose());
-      }
-      const Eigen::Vector3i a = cellIndex(tlo), b = cellIndex(thi);
-      for (int z = a.z(); z <= b.z(); ++z)
-        for (int y = a.y(); y <= b.y(); ++y)
-          for (int x = a.x(); x <= b.x(); ++x) {
-            const long c = flat({x, y, z});
-            if (pass == 0) ++start[c + 1];
-            else items[start[c]++] = f;
-          }
-    }
-    if (pass == 0) {
-      for (long c = 0; c < cells; ++c) start[c + 1] += start[c];
-      items.resize(start[cells]);
-    } else {
-      for (long c = cells; c > 0; --c) start[c] = start[c - 1];
-      start[0] = 0;
-    }
-  }
-#pragma omp parallel for schedule(dynamic, 64)
-  for (Eigen::Index i = 0; i < points_m.rows(); ++i) {
-    const Eigen::Vector3d p = points_m.row(i).transpose();
-    const Eigen::Vector3i c = cellIndex(p);
-    double best2 = std::numeric_limits<double>::infinity();
-    for (int r = 0;; ++r) {
-      for (int z = std::max(0, c.z() - r); z <= std::min(dims.z() - 1, c.z() + r); ++z)
-        for (int y = std::max(0, c.y() - r); y <= std::min(dims.y() - 1, c.y() + r); ++y)
-          for (int x = std::max(0, c.x() - r); x <= std::min(dims.x() - 1, c.x() + r); ++x) {
-            // only the shell at Chebyshev distance r (inner cells were searched before)
-            if (std::max({std::abs(x - c.x()), std::abs(y - c.y()), std::abs(z - c.z())}) != r) continue;
-            const long cc = flat({x, y, z});
-            for (int k = start[cc]; k < start[cc + 1]; ++k) {
-              const int f = items[k];
-              const Eigen::Vector3d q = closestPointOnTriangle(p, vertices_m.row(triangles(f, 0)).transpose(),
-                                                               vertices_m.row(triangles(f, 1)).transpose(),
-                                                               vertices_m.row(triangles(f, 2)).transpose());
-              best2 = std::min(best2, (q - p).squaredNorm());
-            }
-          }
-      // Cells beyond shell r are at least r·h away from p (p lies in, or beyond the grid past, cell c).
-      const bool all = c.x() - r <= 0 && c.y() - r <= 0 && c.z() - r <= 0 && c.x() + r >= dims.x() - 1 &&
-                       c.y() + r >= dims.y() - 1 && c.z() + r >= dims.z() - 1;
-      if (all || best2 <= (r * h) * (r * h)) break;
-    }
-    out[i] = std::sqrt(best2);
-  }
-  return out;
+  if (triangles.rows() == 0) return Eigen::VectorXd::Constant(points_m.rows(), std::numeric_limits<double>::infinity());
+  TargetSurface surface;
+  surface.vertices_m = vertices_m;
+  surface.triangles = triangles;
+  return SurfaceDistance(surface).distances(points_m);
 }
 
 DisplacementErrors compareDisplacements(const TetMesh& mesh, const Points& u_m, const TetMesh& reference_mesh,

@@ -41,8 +41,9 @@ struct DistanceStats {
 /// Mean, 95th percentile (the ⌈0.95 n⌉-th smallest) and max of a list of distances [m].
 DistanceStats distanceStats(std::vector<double> distances_m);
 
-/// Exact closest-point distances to a triangle surface (VTK's static cell locator; a point cloud
-/// target measures to its nearest point). Build once, query many times; thread-safe queries.
+/// Exact closest-point distances to a triangle surface (CGAL's AABB tree; a point cloud target
+/// measures to its nearest point, VTK's static point locator). Build once, query many times;
+/// thread-safe queries.
 class SurfaceDistance {
  public:
   /// @throws std::invalid_argument as TargetSurface::validate.
@@ -52,6 +53,8 @@ class SurfaceDistance {
   SurfaceDistance& operator=(SurfaceDistance&&) noexcept;
   /// Distance [m] and, if wanted, the closest point of the surface.
   double distance(const Eigen::Vector3d& p_m, Eigen::Vector3d* closest_m = nullptr) const;
+  /// The distance [m] of every `points_m` row, in parallel: the same values as distance() row by row.
+  Eigen::VectorXd distances(const Points& points_m) const;
   /// Statistics of the distances of all `points_m` rows.
   DistanceStats stats(const Points& points_m) const;
 

@@ -68,8 +68,8 @@ DisplacementErrors compareDisplacements(const TetMesh& mesh, const Points& u_m, 
                                         const std::string& fixed_node_set = "chest_wall",
                                         const std::string& skin_node_set = "skin");
 
-/// Unsigned distance from each point to a triangle surface [m] (exact closest points, accelerated
-/// by a uniform grid over the triangles).
+/// Unsigned distance from each point to a triangle surface [m] (exact closest points,
+/// SurfaceDistance); infinite for every point when there are no triangles.
 /// @param vertices_m #V×3 [m]; triangles index them
 Eigen::VectorXd pointSurfaceDistance(const Points& points_m, const Points& vertices_m, const Triangles& triangles);
 
