@@ -465,6 +465,10 @@ TEST(ErrorMetrics, PointSurfaceDistanceMatchesBruteForce) {
                                 .norm());
     EXPECT_NEAR(fast[i], best, 1e-14) << "point " << i;
   }
+  // No triangles: every point is infinitely far (not measured to the bare vertices).
+  const Eigen::VectorXd none = pointSurfaceDistance(p, m.nodes(), Triangles(0, 3));
+  ASSERT_EQ(none.size(), p.rows());
+  EXPECT_TRUE(none.array().isInf().all());
 }
 
 TEST(ModelChoice, CoarsestPointWhoseFinerPointsAllMeetTheTarget) {
