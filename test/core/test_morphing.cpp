@@ -93,19 +93,18 @@ TEST(SurfaceDistance, MatchesBruteForceOverAllTriangles) {
   }
 }
 
-// The batch query, one cell buffer per thread, gives each point's single query to the bit, for
-// triangles and for a point cloud.
+// The batch query, on all threads, gives each point's single query to the bit, for triangles and
+// for a point cloud.
 TEST(SurfaceDistance, BatchQueryGivesTheSingleQueriesBits) {
   const TargetSurface s = sphere(Eigen::Vector3d(0.01, -0.02, 0.03), 0.05, 12, 24);
-  TargetSurface cloud_surface;
-  cloud_surface.vertices_m = s.vertices_m;
-  const TargetSurface& cloud = cloud_surface;
+  TargetSurface cloud;
+  cloud.vertices_m = s.vertices_m;
   std::mt19937 rng(6);
   std::uniform_real_distribution<double> u(-0.1, 0.1);
   Points p(501, 3);
   for (Eigen::Index i = 0; i < p.rows(); ++i) p.row(i) << u(rng), u(rng), u(rng);
-  for (const TargetSurface* t : {&s, &cloud}) {
-    const SurfaceDistance d(*t);
+  for (const TargetSurface& t : {s, cloud}) {
+    const SurfaceDistance d(t);
     const Eigen::VectorXd batch = d.distances(p);
     ASSERT_EQ(batch.size(), p.rows());
     for (Eigen::Index i = 0; i < p.rows(); ++i) EXPECT_EQ(batch[i], d.distance(p.row(i).transpose())) << "point " << i;

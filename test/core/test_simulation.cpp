@@ -571,9 +571,12 @@ TEST(DynamicSimulator, AReusingStepWhoseMoveMoreThanDoublesIsSolvedAgainAssemble
   assembling.restore(reusing.state());
   const int tip = m.nodeSet("x_max")[0];
   for (DynamicSimulator* sim : {&reusing, &assembling}) sim->addNodalForces({tip}, Points::Constant(1, 3, 0.01));
-  const long calls = reusing.totals().steps;
+  const StepTotals before = reusing.totals();
+  const long calls = before.steps;
   EXPECT_FALSE(reusing.step().matrix_reused);
   EXPECT_EQ(reusing.totals().steps, calls + 2);  // the discarded solve counts as a step() call
+  EXPECT_EQ(reusing.totals().resolved_assembled, before.resolved_assembled + 1);
+  EXPECT_EQ(reusing.totals().reused_matrix, before.reused_matrix);  // neither call ended reusing
   assembling.step();
   EXPECT_EQ(reusing.state().displacement_m, assembling.state().displacement_m);
 }

@@ -15,6 +15,16 @@ namespace {
 double since(std::chrono::steady_clock::time_point t) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
 }
+
+void addToTotals(StepTotals& t, const StepStats& st) {
+  ++t.steps;
+  t.iterations += st.solve.iterations;
+  t.reused_matrix += st.matrix_reused;
+  t.assembly_seconds += st.assembly_seconds;
+  t.setup_seconds += st.setup_seconds;
+  t.solve_seconds += st.solve.seconds;
+  t.total_seconds += st.total_seconds;
+}
 }  // namespace
 
 void DynamicsParams::validate() const {
@@ -318,13 +328,12 @@ StepStats DynamicSimulator::step() {
   const double largest_move = record ? dt * maxNodalNorm(v_next_) : 0.0;
   if (reuse && largest_move > 2.0 * last_largest_move_ && largest_move > 1e-6) {
     matrix_age_ = 0;
-    ++totals_.steps;  // this solve is discarded
+    // The discarded attempt counts in the totals as a step() call of its own that did not reuse.
+    st.matrix_reused = false;
+    st.total_seconds = since(t0);
+    addToTotals(totals_, st);
     ++totals_.resolved_assembled;
-    totals_.iterations += st.solve.iterations;
-    totals_.solve_seconds += st.solve.seconds;
-    StepStats again = step();
-    again.matrix_reused = false;
-    return again;
+    return step();
   }
   last_largest_move_ = largest_move;
   // Reaction at each constrained DOF: the full row's residual, (A_r v − b_r) / dt [N].
@@ -346,13 +355,7 @@ StepStats DynamicSimulator::step() {
   state_.time_s += dt;
   ++state_.step;
   st.total_seconds = since(t0);
-  ++totals_.steps;
-  totals_.iterations += st.solve.iterations;
-  totals_.reused_matrix += reuse;
-  totals_.assembly_seconds += st.assembly_seconds;
-  totals_.setup_seconds += st.setup_seconds;
-  totals_.solve_seconds += st.solve.seconds;
-  totals_.total_seconds += st.total_seconds;
+  addToTotals(totals_, st);
   return st;
 }
 
