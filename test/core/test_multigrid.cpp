@@ -11,6 +11,8 @@
 #include <string>
 #include <vector>
 
+#include <omp.h>
+
 #include <Eigen/Dense>
 #include <Eigen/SparseCholesky>
 
@@ -100,6 +102,28 @@ TEST(GalerkinProduct, EqualsTheNaiveTripleProductWithFixedDofsMaskedOut) {
     g.compute(f.A, masked ? free.data() : nullptr);
     EXPECT_EQ((Eigen::MatrixXd(g.coarse()) - fast).cwiseAbs().maxCoeff(), 0.0);
   }
+}
+
+// The per-thread buffers are sized in analyze(); a caller may compute on more threads than it
+// analysed with (the simulator chooses each step's thread count): same bits either way.
+TEST(GalerkinProduct, AnalysedOnOneThreadComputesOnTwoWithTheSameBits) {
+  const Fixture& f = fixture();
+  const NodeProlongation& P = f.hierarchy.prolongation(0);
+  ASSERT_GT(P.rows(), 400);  // above the product's one-thread threshold
+  const std::vector<double> free = freeMask(f.A, f.fixed);
+  const int threads = omp_get_max_threads();
+  Eigen::MatrixXd coarse[2];
+  for (int analysed_on = 1; analysed_on <= 2; ++analysed_on) {
+    omp_set_num_threads(analysed_on);
+    GalerkinProduct g;
+    g.analyze(f.A, P);
+    omp_set_num_threads(2);
+    g.compute(f.A, free.data());
+    coarse[analysed_on - 1] = Eigen::MatrixXd(g.coarse());
+  }
+  omp_set_num_threads(threads);
+  ASSERT_GT(coarse[1].norm(), 0.0);
+  EXPECT_TRUE((coarse[0].array() == coarse[1].array()).all());
 }
 
 TEST(MultigridPcg, NeedsFarFewerIterationsThanJacobiPcg) {

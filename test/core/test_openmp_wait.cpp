@@ -1,5 +1,5 @@
 // The OpenMP wait policy a program linking the core starts with (src/openmp_wait): libgomp's
-// initializer reads passive when the user set neither OMP_WAIT_POLICY nor GOMP_SPINCOUNT and the
+// initializer reads a spin count of 10000 when the user set neither OMP_WAIT_POLICY nor GOMP_SPINCOUNT and the
 // user's setting otherwise, as libgomp itself reports it (OMP_DISPLAY_ENV) in a fresh run of this
 // program; the getenv that does it answers every other name as libc's getenv (the reference); a
 // team of threads under it still forms and shares the work.
@@ -64,10 +64,9 @@ std::string reported(const std::string& report, const std::string& key) {
 
 }  // namespace
 
-TEST(OpenmpWait, LibgompSleepsAtOnceWhenTheUserSetNothing) {
+TEST(OpenmpWait, LibgompSpinsBrieflyWhenTheUserSetNothing) {
   const std::string report = libgompReport({});
-  EXPECT_EQ(reported(report, "OMP_WAIT_POLICY"), "PASSIVE") << report;
-  EXPECT_EQ(reported(report, "GOMP_SPINCOUNT"), "0") << report;
+  EXPECT_EQ(reported(report, "GOMP_SPINCOUNT"), "10000") << report;
 }
 
 TEST(OpenmpWait, TheUsersOwnSettingIsKept) {
@@ -77,6 +76,8 @@ TEST(OpenmpWait, TheUsersOwnSettingIsKept) {
   EXPECT_EQ(reported(report, "GOMP_SPINCOUNT"), "1234") << report;
   report = libgompReport({"OMP_WAIT_POLICY=passive"});
   EXPECT_EQ(reported(report, "GOMP_SPINCOUNT"), "0") << report;
+  report = libgompReport({"GOMP_SPINCOUNT=300000"});
+  EXPECT_EQ(reported(report, "GOMP_SPINCOUNT"), "300000") << report;
 }
 
 TEST(OpenmpWait, GetenvAnswersAsLibcForEveryOtherName) {
@@ -94,17 +95,17 @@ TEST(OpenmpWait, GetenvAnswersAsLibcForEveryOtherName) {
   unsetenv("BREAST_SIM_WAIT_TEST_ABSENT");
   for (const char* name : {"BREAST_SIM_WAIT_TEST", "BREAST_SIM_WAIT_TEST_LONGER", "BREAST_SIM_WAIT_TEST_EMPTY",
                            "BREAST_SIM_WAIT_TEST_ABSENT", "BREAST_SIM_WAIT_TES", "BREAST_SIM_WAIT_TEST=1", "", "B", "PATH",
-                           "GOMP_SPINCOUNT"}) {
+                           "OMP_WAIT_POLICY"}) {
     SCOPED_TRACE(name);
     EXPECT_EQ(getenv(name), libc_getenv(name));  // the same entry of the environment, or both none
   }
   unsetenv("BREAST_SIM_WAIT_TEST");
   EXPECT_EQ(getenv("BREAST_SIM_WAIT_TEST"), nullptr);
 
-  // OMP_WAIT_POLICY: libc's answer when either variable is set, else "passive".
+  // GOMP_SPINCOUNT: libc's answer when either variable is set, else "10000".
   const bool user_set = libc_getenv("OMP_WAIT_POLICY") || libc_getenv("GOMP_SPINCOUNT");
-  if (user_set) EXPECT_EQ(getenv("OMP_WAIT_POLICY"), libc_getenv("OMP_WAIT_POLICY"));
-  else EXPECT_STREQ(getenv("OMP_WAIT_POLICY"), "passive");
+  if (user_set) EXPECT_EQ(getenv("GOMP_SPINCOUNT"), libc_getenv("GOMP_SPINCOUNT"));
+  else EXPECT_STREQ(getenv("GOMP_SPINCOUNT"), "10000");
 }
 
 TEST(OpenmpWait, ATeamFormsAndSharesTheWork) {

@@ -148,6 +148,39 @@ TEST(RankOneSum, ProductIsTheSameBitsOnOneAndTwoThreads) {
   EXPECT_TRUE((y[0].array() == y[1].array()).all());
 }
 
+// The image's per-thread slot maps are sized in analyze(); a caller may run add() on more threads
+// than it analysed with (the simulator chooses each step's thread count): same bits either way.
+TEST(RankOneGalerkin, AnalysedOnOneThreadAddsOnTwoWithTheSameBits) {
+  const UpdatedAnp a({16, 12, 12});  // more terms than the image's one-thread threshold
+  const TetMesh coarse = makeBoxMesh({6, 4, 4}, {0.04, 0.03, 0.03});
+  const NodeProlongation P = barycentricProlongation(a.mesh, coarse, 1e-6);
+  RankOneSum R = a.fem->rankOneStiffness();
+  const std::vector<double> free = freeMask(a.mesh);
+  R.free = free.data();
+  const int threads = omp_get_max_threads();
+  Eigen::MatrixXd image[2];
+  for (int analysed_on = 1; analysed_on <= 2; ++analysed_on) {
+    omp_set_num_threads(analysed_on);
+    RankOneGalerkin g;
+    g.analyze(R, P);
+    const int nc = coarse.numNodes();
+    std::vector<Eigen::Triplet<double>> t;
+    for (int I = 0; I < nc; ++I)
+      for (int k = g.patternStart()[I]; k < g.patternStart()[I + 1]; ++k)
+        for (int r = 0; r < 3; ++r)
+          for (int c = 0; c < 3; ++c) t.emplace_back(3 * I + r, 3 * g.patternNodes()[k] + c, 0.0);
+    SparseMatrix C(3 * nc, 3 * nc);
+    C.setFromTriplets(t.begin(), t.end());
+    C.makeCompressed();
+    omp_set_num_threads(2);
+    g.add(R, C);
+    image[analysed_on - 1] = dense(C);
+  }
+  omp_set_num_threads(threads);
+  ASSERT_GT(image[1].norm(), 0.0);
+  EXPECT_TRUE((image[0].array() == image[1].array()).all());
+}
+
 TEST(RankOneGalerkin, ImageIsTheTripleProductOfTheAssembledSum) {
   const UpdatedAnp a({6, 4, 4});
   const TetMesh coarse = makeBoxMesh({3, 2, 2}, {0.04, 0.03, 0.03});

@@ -2,6 +2,7 @@
 
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/solver/rank_one_sum.h"
+#include "../util/thread_budget.h"
 
 #include <algorithm>
 #include <chrono>
@@ -147,6 +148,7 @@ const Eigen::VectorXd& DynamicSimulator::elasticForces() {
 }
 
 StepStats DynamicSimulator::step() {
+  const util::StepThreadCount threads;  // from the machine's load (util/thread_budget.h)
   StepStats st;
   const auto t0 = std::chrono::steady_clock::now();
   const double dt = params_.time_step_s;

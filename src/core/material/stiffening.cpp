@@ -11,6 +11,7 @@
 
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "../util/ordered_sum.h"
+#include "../util/thread_budget.h"
 
 namespace breast_sim::core {
 
@@ -426,6 +427,7 @@ void StiffeningSimulation::resync() {
 }
 
 StiffeningStepResult StiffeningSimulation::step() {
+  const util::StepThreadCount threads;  // from the machine's load (util/thread_budget.h)
   const auto t0 = std::chrono::steady_clock::now();
   StiffeningStepResult r;
   const bool reversal = params_.update_moduli && params_.reversal;

@@ -387,8 +387,9 @@ CalculixResult solveWithCalculix(const TetMesh& mesh, const CalculixLoadCase& lo
   if (options.threads > 0)
     env = "OMP_NUM_THREADS=" + std::to_string(options.threads) + " CCX_NPROC_EQUATION_SOLVER=" +
           std::to_string(options.threads) + " CCX_NPROC_RESULTS=" + std::to_string(options.threads) + " ";
-  // CalculiX's OpenMP threads wait as ours do: passive unless the user chose (src/openmp_wait).
-  if (const char* policy = std::getenv("OMP_WAIT_POLICY")) env += "OMP_WAIT_POLICY=" + shellQuote(policy) + " ";
+  // CalculiX's OpenMP threads wait as ours do: a short spin unless the user chose (src/openmp_wait).
+  for (const char* name : {"OMP_WAIT_POLICY", "GOMP_SPINCOUNT"})
+    if (const char* value = std::getenv(name)) env += std::string(name) + "=" + shellQuote(value) + " ";
   const std::string cmd = "cd " + shellQuote(dir.string()) + " && " + env + shellQuote(options.executable) + " -i " + job +
                           " > " + job + ".log 2>&1";
   const auto t0 = std::chrono::steady_clock::now();

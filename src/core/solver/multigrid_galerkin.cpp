@@ -217,7 +217,10 @@ void GalerkinProduct::compute(const SparseMatrix& A, const double* free) {
   const double* pval = P_.valuePtr();
   const int* cout = coarse_.outerIndexPtr();
   double* cval = coarse_.valuePtr();
-  const int threads = static_cast<int>(buffers_.size());
+  // One buffer per thread of the caller's current count (it may have grown since analyze()).
+  const int threads = std::max(1, omp_get_max_threads());
+  if (buffers_.size() < static_cast<size_t>(threads))
+    buffers_.resize(static_cast<size_t>(threads), std::vector<double>(9 * static_cast<size_t>(std::max(max_fine_, 1))));
 #pragma omp parallel num_threads(threads) if (P_.rows() > kGalerkinParallelMinNodes)
   {
     double* C = buffers_[omp_get_thread_num()].data();

@@ -248,7 +248,10 @@ void RankOneGalerkin::add(const RankOneSum& R, SparseMatrix& coarse) {
   const int* cin = coarse.innerIndexPtr();
   double* cval = coarse.valuePtr();
   int missing = -1;
-  const int threads = static_cast<int>(slot_maps_.size());
+  // One slot map per thread of the caller's current count (it may have grown since analyze()).
+  const int threads = std::max(1, omp_get_max_threads());
+  if (slot_maps_.size() < static_cast<size_t>(threads))
+    slot_maps_.resize(static_cast<size_t>(threads), std::vector<int>(static_cast<size_t>(coarse_nodes_), -1));
 #pragma omp parallel num_threads(threads) if (terms_ > kParallelMinTerms)
   {
     std::vector<int>& slot = slot_maps_[omp_get_thread_num()];

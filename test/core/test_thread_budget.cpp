@@ -1,0 +1,90 @@
+// The thread count of a time step from the machine's load (src/core/util/thread_budget.h): the rule
+// on made-up samples, the sampler's bounds on this machine, and that the caller's count comes back.
+#include <gtest/gtest.h>
+
+#include <vector>
+
+#include <omp.h>
+
+#include "../../src/core/util/thread_budget.h"
+
+using namespace breast_sim::core::util;
+
+namespace {
+
+int rule(std::vector<int> others, int cores, int cap) {
+  return threadsForLoad(others.data(), static_cast<int>(others.size()), cores, cap);
+}
+
+std::vector<int> window(int value) { return std::vector<int>(kLoadWindow, value); }
+
+}  // namespace
+
+TEST(ThreadsForLoad, KeepsAllThreadsUntilTheWindowIsFull) {
+  EXPECT_EQ(rule({}, 2, 2), 2);
+  EXPECT_EQ(rule(std::vector<int>(kLoadWindow - 1, 1), 2, 2), 2);
+  EXPECT_EQ(rule(window(1), 2, 2), 1);
+}
+
+TEST(ThreadsForLoad, TwoCores) {
+  EXPECT_EQ(rule(window(0), 2, 2), 2);  // idle
+  EXPECT_EQ(rule(window(1), 2, 2), 1);  // one busy process: one thread keeps a core
+  EXPECT_EQ(rule(window(2), 2, 2), 1);  // every core taken: one thread, none spinning in the way
+  EXPECT_EQ(rule(window(7), 2, 2), 1);
+}
+
+TEST(ThreadsForLoad, OneSampleWithFewerOthersBringsBackTheThreads) {
+  std::vector<int> s = window(1);
+  s[3] = 0;
+  EXPECT_EQ(rule(s, 2, 2), 2);
+  // Only the last kLoadWindow samples count.
+  std::vector<int> older = window(1);
+  older.insert(older.begin(), 0);
+  EXPECT_EQ(rule(older, 2, 2), 1);
+  // The least sample decides: 1 and 3 on 4 cores leave 3 cores.
+  std::vector<int> mixed = window(3);
+  mixed.back() = 1;
+  EXPECT_EQ(rule(mixed, 4, 4), 3);
+}
+
+TEST(ThreadsForLoad, MoreCoresAndTheCallersCap) {
+  EXPECT_EQ(rule(window(1), 4, 4), 3);
+  EXPECT_EQ(rule(window(3), 4, 4), 1);
+  EXPECT_EQ(rule(window(4), 4, 4), 1);
+  EXPECT_EQ(rule(window(1), 4, 2), 2);  // never more than the caller's count
+  EXPECT_EQ(rule(window(0), 4, 3), 3);
+  EXPECT_EQ(rule(window(1), 2, 1), 1);
+  EXPECT_EQ(rule(window(0), 2, 0), 1);  // never fewer than one
+  EXPECT_EQ(rule(window(1), 1, 1), 1);  // one core: nothing to give up
+}
+
+TEST(LoadSampler, StaysWithinTheCallersCountOnThisMachine) {
+  LoadSampler& s = LoadSampler::instance();
+  EXPECT_GE(s.cores(), 1);
+  for (int i = 0; i < 3 * kLoadWindow; ++i) {
+    const int t = s.next(2);
+    EXPECT_GE(t, 1);
+    EXPECT_LE(t, 2);
+    EXPECT_EQ(s.next(1), 1);
+  }
+}
+
+TEST(StepThreadCount, GivesTheCallersCountBackAndNestedOnesKeepTheOuterChoice) {
+  const int threads = omp_get_max_threads();
+  for (int callers : {1, 2, 3}) {
+    omp_set_num_threads(callers);
+    {
+      const StepThreadCount outer;
+      const int chosen = omp_get_max_threads();
+      EXPECT_GE(chosen, 1);
+      EXPECT_LE(chosen, callers);
+      {
+        const StepThreadCount nested;
+        EXPECT_EQ(omp_get_max_threads(), chosen);
+      }
+      EXPECT_EQ(omp_get_max_threads(), chosen);
+    }
+    EXPECT_EQ(omp_get_max_threads(), callers);
+  }
+  omp_set_num_threads(threads);
+}
