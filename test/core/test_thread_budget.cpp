@@ -35,7 +35,7 @@ TEST(ThreadsForLoad, TwoCores) {
 
 TEST(ThreadsForLoad, OneSampleWithFewerOthersBringsBackTheThreads) {
   std::vector<int> s = window(1);
-  s[3] = 0;
+  s.front() = 0;
   EXPECT_EQ(rule(s, 2, 2), 2);
   // Only the last kLoadWindow samples count.
   std::vector<int> older = window(1);
@@ -69,22 +69,47 @@ TEST(LoadSampler, StaysWithinTheCallersCountOnThisMachine) {
   }
 }
 
-TEST(StepThreadCount, GivesTheCallersCountBackAndNestedOnesKeepTheOuterChoice) {
+TEST(ThreadCountScope, GivesTheCallersCountBackAndNestedOnesSetTheirOwn) {
   const int threads = omp_get_max_threads();
   for (int callers : {1, 2, 3}) {
     omp_set_num_threads(callers);
     {
-      const StepThreadCount outer;
-      const int chosen = omp_get_max_threads();
-      EXPECT_GE(chosen, 1);
-      EXPECT_LE(chosen, callers);
-      {
-        const StepThreadCount nested;
-        EXPECT_EQ(omp_get_max_threads(), chosen);
+      const ThreadCountScope stage(ThreadCountScope::Sample::reuse);
+      EXPECT_GE(omp_get_max_threads(), 1);
+      EXPECT_LE(omp_get_max_threads(), callers);
+      for (int step = 0; step < 2 * kLoadWindow; ++step) {
+        int chosen = 0;
+        {
+          const ThreadCountScope inner(ThreadCountScope::Sample::take);
+          chosen = omp_get_max_threads();
+          EXPECT_GE(chosen, 1);
+          EXPECT_LE(chosen, callers);  // capped by the outermost caller's count, not the stage's
+        }
+        EXPECT_EQ(omp_get_max_threads(), chosen);  // the stage's work goes on with the step's count
       }
-      EXPECT_EQ(omp_get_max_threads(), chosen);
     }
     EXPECT_EQ(omp_get_max_threads(), callers);
   }
   omp_set_num_threads(threads);
+}
+
+TEST(LoadSampler, FollowsTheLoadAndReusingTheChoiceTakesNoSample) {
+  int load = 0, taken = 0;
+  LoadSampler s([&] { ++taken; return load; }, 2);
+  for (int i = 0; i < kLoadWindow; ++i) EXPECT_EQ(s.next(2), 2);
+  load = 1;  // a busy process starts: one thread once the whole window has seen it
+  for (int i = 0; i < kLoadWindow - 1; ++i) EXPECT_EQ(s.next(2), 2);
+  EXPECT_EQ(s.next(2), 1);
+  EXPECT_EQ(taken, 2 * kLoadWindow);
+  for (int i = 0; i < 3; ++i) EXPECT_EQ(s.latest(2), 1);
+  EXPECT_EQ(taken, 2 * kLoadWindow);  // latest() took none
+  EXPECT_EQ(s.latest(1), 1);
+  load = 0;  // it ends: both threads at the next sample
+  EXPECT_EQ(s.next(2), 2);
+  EXPECT_EQ(s.latest(2), 2);
+  load = -1;  // no sample (/proc unreadable): the caller's count
+  EXPECT_EQ(s.next(2), 2);
+  // One core: nothing to choose.
+  LoadSampler single([] { return 1; }, 1);
+  for (int i = 0; i < 2 * kLoadWindow; ++i) EXPECT_EQ(single.next(2), 2);
 }

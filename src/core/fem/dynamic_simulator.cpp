@@ -148,7 +148,7 @@ const Eigen::VectorXd& DynamicSimulator::elasticForces() {
 }
 
 StepStats DynamicSimulator::step() {
-  const util::StepThreadCount threads;  // from the machine's load (util/thread_budget.h)
+  const util::ThreadCountScope threads(util::ThreadCountScope::Sample::take);  // from the machine's load
   StepStats st;
   const auto t0 = std::chrono::steady_clock::now();
   const double dt = params_.time_step_s;

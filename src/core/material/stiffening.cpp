@@ -427,7 +427,7 @@ void StiffeningSimulation::resync() {
 }
 
 StiffeningStepResult StiffeningSimulation::step() {
-  const util::StepThreadCount threads;  // from the machine's load (util/thread_budget.h)
+  const util::ThreadCountScope threads(util::ThreadCountScope::Sample::take);  // from the machine's load
   const auto t0 = std::chrono::steady_clock::now();
   StiffeningStepResult r;
   const bool reversal = params_.update_moduli && params_.reversal;

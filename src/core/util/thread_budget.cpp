@@ -84,34 +84,48 @@ LoadSampler::LoadSampler() {
   const long online = ::sysconf(_SC_NPROCESSORS_ONLN);
   const int allowed = ::sched_getaffinity(0, sizeof set, &set) == 0 ? CPU_COUNT(&set) : -1;
   cores_ = std::max(1, allowed);
-  applies_ = allowed > 1 && allowed == online && runnableThreads() >= 1 && ownRunnableThreads() >= 1;
+  others_ = [] {
+    const int running = runnableThreads(), own = ownRunnableThreads();
+    return running < 1 || own < 1 ? -1 : std::max(0, running - own);
+  };
+  applies_ = allowed > 1 && allowed == online && others_() >= 0;
 }
+
+LoadSampler::LoadSampler(std::function<int()> others, int cores)
+    : others_(std::move(others)), applies_(cores > 1), cores_(std::max(1, cores)) {}
 
 int LoadSampler::next(int cap) {
   if (!applies_) return std::max(1, cap);
-  const int running = runnableThreads(), own = ownRunnableThreads();
+  const int others = others_();
   std::lock_guard<std::mutex> lock(samplerMutex());
-  if (running < 1 || own < 1) return std::max(1, cap);
+  if (others < 0) return std::max(1, cap);
   if (count_ == kLoadWindow) std::rotate(samples_.begin(), samples_.begin() + 1, samples_.end());
   else ++count_;
-  samples_[static_cast<size_t>(count_ - 1)] = std::max(0, running - own);
+  samples_[static_cast<size_t>(count_ - 1)] = others;
+  return threadsForLoad(samples_.data(), count_, cores_, cap);
+}
+
+int LoadSampler::latest(int cap) {
+  if (!applies_) return std::max(1, cap);
+  std::lock_guard<std::mutex> lock(samplerMutex());
   return threadsForLoad(samples_.data(), count_, cores_, cap);
 }
 
 namespace {
-thread_local int step_depth = 0;
+thread_local int scope_depth = 0;
+thread_local int caller_threads = 1;  // the count before this thread's outermost scope
+}  // namespace
+
+ThreadCountScope::ThreadCountScope(Sample sample) : outer_(scope_depth++ == 0) {
+  if (outer_) caller_threads = omp_get_max_threads();
+  LoadSampler& s = LoadSampler::instance();
+  const int threads = sample == Sample::take ? s.next(caller_threads) : s.latest(caller_threads);
+  if (threads != omp_get_max_threads()) omp_set_num_threads(threads);
 }
 
-StepThreadCount::StepThreadCount() : outer_(step_depth++ == 0) {
-  if (!outer_) return;
-  saved_ = omp_get_max_threads();
-  const int threads = LoadSampler::instance().next(saved_);
-  if (threads != saved_) omp_set_num_threads(threads);
-}
-
-StepThreadCount::~StepThreadCount() {
-  --step_depth;
-  if (outer_ && omp_get_max_threads() != saved_) omp_set_num_threads(saved_);
+ThreadCountScope::~ThreadCountScope() {
+  --scope_depth;
+  if (outer_ && omp_get_max_threads() != caller_threads) omp_set_num_threads(caller_threads);
 }
 
 }  // namespace breast_sim::core::util

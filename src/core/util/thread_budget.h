@@ -8,12 +8,13 @@
 // count, so only time is at stake.
 
 #include <array>
+#include <functional>
 
 namespace breast_sim::core::util {
 
 /// Samples over which the rule takes its least value: one step that sees fewer other threads
 /// brings back the threads at once; giving one up takes kLoadWindow steps that all see the load.
-inline constexpr int kLoadWindow = 4;
+inline constexpr int kLoadWindow = 2;
 
 /// The rule. `others`: the last `count` samples of how many threads of other work were runnable,
 /// any order. With fewer than kLoadWindow samples it returns `cap`; otherwise, with k the least of
@@ -31,34 +32,42 @@ class LoadSampler {
  public:
   /// The process's sampler.
   static LoadSampler& instance();
+  /// A sampler whose samples come from `others` (how many threads of other work run now), on
+  /// `cores` cores: for tests.
+  LoadSampler(std::function<int()> others, int cores);
 
   /// Takes a sample and returns the thread count for the next piece of work, at most `cap` (the
   /// caller's omp_get_max_threads()).
   int next(int cap);
+  /// The thread count the samples taken so far give, at most `cap`; takes no sample.
+  int latest(int cap);
   bool applies() const { return applies_; }
   int cores() const { return cores_; }
 
  private:
   LoadSampler();
+  std::function<int()> others_;  // −1: no sample
   bool applies_ = false;
   int cores_ = 1;
   std::array<int, kLoadWindow> samples_{};
   int count_ = 0;
 };
 
-/// For its lifetime (a time step), the calling thread's OpenMP thread count is the sampler's
-/// choice; the caller's count comes back on destruction (a library must not leave it changed).
-/// A nested one on the same thread (the simulator's step inside a stiffening step) keeps the outer
-/// choice and takes no sample.
-class StepThreadCount {
+/// The thread count of the core's parallel work while it lives: the sampler's choice, capped by the
+/// count the caller had when the outermost scope of this thread began, which comes back when that
+/// scope ends (a library must not leave it changed). A time step takes a sample; the pipeline's
+/// entry points (a stage, a tracking iteration, a new target) reuse the latest choice, so the work
+/// between steps runs on as many threads as the steps. A nested scope sets its count and leaves it
+/// for the enclosing scope's remaining work.
+class ThreadCountScope {
  public:
-  StepThreadCount();
-  ~StepThreadCount();
-  StepThreadCount(const StepThreadCount&) = delete;
-  StepThreadCount& operator=(const StepThreadCount&) = delete;
+  enum class Sample { take, reuse };
+  explicit ThreadCountScope(Sample sample);
+  ~ThreadCountScope();
+  ThreadCountScope(const ThreadCountScope&) = delete;
+  ThreadCountScope& operator=(const ThreadCountScope&) = delete;
 
  private:
-  int saved_ = 0;
   bool outer_ = false;
 };
 
