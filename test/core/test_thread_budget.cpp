@@ -95,7 +95,7 @@ TEST(ThreadCountScope, GivesTheCallersCountBackAndNestedOnesSetTheirOwn) {
 
 TEST(LoadSampler, FollowsTheLoadAndReusingTheChoiceTakesNoSample) {
   int load = 0, taken = 0;
-  LoadSampler s([&] { ++taken; return load; }, 2);
+  LoadSampler s([&] { ++taken; return load; }, 2, std::chrono::nanoseconds(0));
   for (int i = 0; i < kLoadWindow; ++i) EXPECT_EQ(s.next(2), 2);
   load = 1;  // a busy process starts: one thread once the whole window has seen it
   for (int i = 0; i < kLoadWindow - 1; ++i) EXPECT_EQ(s.next(2), 2);
@@ -109,7 +109,13 @@ TEST(LoadSampler, FollowsTheLoadAndReusingTheChoiceTakesNoSample) {
   EXPECT_EQ(s.latest(2), 2);
   load = -1;  // no sample (/proc unreadable): the caller's count
   EXPECT_EQ(s.next(2), 2);
+  // Within the interval a step reuses the latest choice and takes no sample.
+  LoadSampler slow([&] { ++taken; return load; }, 2, std::chrono::hours(1));
+  load = 1;
+  taken = 0;
+  for (int i = 0; i < 5; ++i) EXPECT_EQ(slow.next(2), 2);
+  EXPECT_EQ(taken, 1);
   // One core: nothing to choose.
-  LoadSampler single([] { return 1; }, 1);
+  LoadSampler single([] { return 1; }, 1, std::chrono::nanoseconds(0));
   for (int i = 0; i < 2 * kLoadWindow; ++i) EXPECT_EQ(single.next(2), 2);
 }

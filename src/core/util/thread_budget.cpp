@@ -91,11 +91,17 @@ LoadSampler::LoadSampler() {
   applies_ = allowed > 1 && allowed == online && others_() >= 0;
 }
 
-LoadSampler::LoadSampler(std::function<int()> others, int cores)
-    : others_(std::move(others)), applies_(cores > 1), cores_(std::max(1, cores)) {}
+LoadSampler::LoadSampler(std::function<int()> others, int cores, std::chrono::nanoseconds interval)
+    : others_(std::move(others)), applies_(cores > 1), cores_(std::max(1, cores)), interval_(interval) {}
 
 int LoadSampler::next(int cap) {
   if (!applies_) return std::max(1, cap);
+  const auto now = std::chrono::steady_clock::now();
+  {
+    std::lock_guard<std::mutex> lock(samplerMutex());
+    if (count_ > 0 && now - last_sample_ < interval_) return threadsForLoad(samples_.data(), count_, cores_, cap);
+    last_sample_ = now;
+  }
   const int others = others_();
   std::lock_guard<std::mutex> lock(samplerMutex());
   if (others < 0) return std::max(1, cap);

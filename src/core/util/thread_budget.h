@@ -8,6 +8,7 @@
 // count, so only time is at stake.
 
 #include <array>
+#include <chrono>
 #include <functional>
 
 namespace breast_sim::core::util {
@@ -15,6 +16,9 @@ namespace breast_sim::core::util {
 /// Samples over which the rule takes its least value: one step that sees fewer other threads
 /// brings back the threads at once; giving one up takes kLoadWindow steps that all see the load.
 inline constexpr int kLoadWindow = 2;
+
+/// The least time between two samples of the process's sampler.
+inline constexpr std::chrono::milliseconds kMinSampleInterval{20};
 
 /// The rule. `others`: the last `count` samples of how many threads of other work were runnable,
 /// any order. With fewer than kLoadWindow samples it returns `cap`; otherwise, with k the least of
@@ -26,18 +30,19 @@ int threadsForLoad(const int* others, int count, int cores, int cap);
 /// OpenMP threads that spin, any other thread of ours that runs). It applies where that count says
 /// something about our cores: the process may run on every online CPU (the count is the machine's,
 /// not a cpuset's), there are at least 2, and /proc reads. Elsewhere it returns the caller's
-/// thread count unchanged. Thread-safe; a sample costs two /proc reads per thread of the process
-/// (tens of microseconds).
+/// thread count unchanged. A sample reads one /proc file per thread of the process (about 0.1 ms
+/// for 2 threads here), so it is taken at most every kMinSampleInterval; a step in between reuses
+/// the latest choice. Thread-safe.
 class LoadSampler {
  public:
   /// The process's sampler.
   static LoadSampler& instance();
-  /// A sampler whose samples come from `others` (how many threads of other work run now), on
-  /// `cores` cores: for tests.
-  LoadSampler(std::function<int()> others, int cores);
+  /// A sampler whose samples come from `others` (how many threads of other work run now, −1 for
+  /// none), on `cores` cores, at most every `interval`: for tests.
+  LoadSampler(std::function<int()> others, int cores, std::chrono::nanoseconds interval);
 
-  /// Takes a sample and returns the thread count for the next piece of work, at most `cap` (the
-  /// caller's omp_get_max_threads()).
+  /// Takes a sample (unless the last one is younger than the interval) and returns the thread
+  /// count for the next piece of work, at most `cap` (the caller's omp_get_max_threads()).
   int next(int cap);
   /// The thread count the samples taken so far give, at most `cap`; takes no sample.
   int latest(int cap);
@@ -49,6 +54,8 @@ class LoadSampler {
   std::function<int()> others_;  // −1: no sample
   bool applies_ = false;
   int cores_ = 1;
+  std::chrono::nanoseconds interval_{kMinSampleInterval};
+  std::chrono::steady_clock::time_point last_sample_{};
   std::array<int, kLoadWindow> samples_{};
   int count_ = 0;
 };
