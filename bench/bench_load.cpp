@@ -2,7 +2,8 @@
 // take cores.
 // The same work runs idle, beside one and beside two busy processes (busy loops this program forks
 // and kills, each also ended by the kernel when this program dies and by an alarm after
-// --busy-limit-s), with the program's OpenMP threads and with one thread, printed side by side:
+// --busy-limit-s), with the program's OpenMP threads (from which each time step chooses its count by
+// the load it sees, docs/load.md) and with one thread, printed side by side:
 //   step      the seed's Table-1 step (bench_simulation): the phantom under supine gravity, chest
 //             wall fixed, --steps implicit co-rotated steps of dt 0.033 s, multigrid-PCG to the
 //             case's tolerance (1e-2), a fresh simulator per run (mean and median step);
@@ -314,6 +315,7 @@ int main(int argc, char** argv) {
       rows.push_back(row);
     }
   }
+  std::printf("(%d threads: the program's count, from which each time step chooses by the load it sees)\n", threads);
   std::printf("(targets: one busy process beside the program's %d threads at most 2.5x the idle run with one thread less, "
               "and never slower than one thread beside the same processes: at most 1x)\n",
               threads);
