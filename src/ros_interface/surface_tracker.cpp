@@ -20,6 +20,7 @@
 #include <pcl/registration/icp.h>
 #include <pcl/search/kdtree.h>
 
+#include "breast_sim/core/thread_budget.h"
 #include "breast_sim/core/morphing/target_surface.h"
 #include "breast_sim/ros_interface/conversions.h"
 #include "breast_sim/ros_interface/point_grid.h"
@@ -529,6 +530,8 @@ SkinIndex referenceSkin(const core::TetMesh& mesh, const std::vector<int>& skin,
 }  // namespace
 
 TrackResult SurfaceTracker::track(core::ProneToSupinePipeline& pipeline, const core::Points& cloud_m) {
+  // The filters and ICP run on as many threads as the model's steps (core/thread_budget.h).
+  const core::ThreadCountScope threads(core::ThreadCountScope::Sample::reuse);
   TrackResult res;
   res.points_in = static_cast<size_t>(cloud_m.rows());
   auto t0 = std::chrono::steady_clock::now();

@@ -1,5 +1,5 @@
 // The OpenMP wait policy a program linking the core starts with (src/openmp_wait): libgomp's
-// initializer reads a spin count of 10000 when the user set neither OMP_WAIT_POLICY nor GOMP_SPINCOUNT and the
+// initializer reads a spin count of 30000 when the user set neither OMP_WAIT_POLICY nor GOMP_SPINCOUNT and the
 // user's setting otherwise, as libgomp itself reports it (OMP_DISPLAY_ENV) in a fresh run of this
 // program; the getenv that does it answers every other name as libc's getenv (the reference); a
 // team of threads under it still forms and shares the work.
@@ -66,7 +66,7 @@ std::string reported(const std::string& report, const std::string& key) {
 
 TEST(OpenmpWait, LibgompSpinsBrieflyWhenTheUserSetNothing) {
   const std::string report = libgompReport({});
-  EXPECT_EQ(reported(report, "GOMP_SPINCOUNT"), "10000") << report;
+  EXPECT_EQ(reported(report, "GOMP_SPINCOUNT"), "30000") << report;
 }
 
 TEST(OpenmpWait, TheUsersOwnSettingIsKept) {
@@ -102,10 +102,10 @@ TEST(OpenmpWait, GetenvAnswersAsLibcForEveryOtherName) {
   unsetenv("BREAST_SIM_WAIT_TEST");
   EXPECT_EQ(getenv("BREAST_SIM_WAIT_TEST"), nullptr);
 
-  // GOMP_SPINCOUNT: libc's answer when either variable is set, else "10000".
+  // GOMP_SPINCOUNT: libc's answer when either variable is set, else "30000".
   const bool user_set = libc_getenv("OMP_WAIT_POLICY") || libc_getenv("GOMP_SPINCOUNT");
   if (user_set) EXPECT_EQ(getenv("GOMP_SPINCOUNT"), libc_getenv("GOMP_SPINCOUNT"));
-  else EXPECT_STREQ(getenv("GOMP_SPINCOUNT"), "10000");
+  else EXPECT_STREQ(getenv("GOMP_SPINCOUNT"), "30000");
 }
 
 TEST(OpenmpWait, ATeamFormsAndSharesTheWork) {

@@ -1,4 +1,4 @@
-// The thread count of a time step from the machine's load (src/core/util/thread_budget.h): the rule
+// The thread count of a time step from the machine's load (include/breast_sim/core/thread_budget.h): the rule
 // on made-up samples, the sampler's bounds on this machine, and that the caller's count comes back.
 #include <gtest/gtest.h>
 
@@ -6,9 +6,9 @@
 
 #include <omp.h>
 
-#include "../../src/core/util/thread_budget.h"
+#include "breast_sim/core/thread_budget.h"
 
-using namespace breast_sim::core::util;
+using namespace breast_sim::core;
 
 namespace {
 

@@ -2,7 +2,7 @@
 
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/solver/rank_one_sum.h"
-#include "../util/thread_budget.h"
+#include "breast_sim/core/thread_budget.h"
 
 #include <algorithm>
 #include <chrono>
@@ -148,7 +148,7 @@ const Eigen::VectorXd& DynamicSimulator::elasticForces() {
 }
 
 StepStats DynamicSimulator::step() {
-  const util::ThreadCountScope threads(util::ThreadCountScope::Sample::take);  // from the machine's load
+  const ThreadCountScope threads(ThreadCountScope::Sample::take);  // from the machine's load
   StepStats st;
   const auto t0 = std::chrono::steady_clock::now();
   const double dt = params_.time_step_s;

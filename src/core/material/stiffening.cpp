@@ -11,7 +11,7 @@
 
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "../util/ordered_sum.h"
-#include "../util/thread_budget.h"
+#include "breast_sim/core/thread_budget.h"
 
 namespace breast_sim::core {
 
@@ -427,7 +427,7 @@ void StiffeningSimulation::resync() {
 }
 
 StiffeningStepResult StiffeningSimulation::step() {
-  const util::ThreadCountScope threads(util::ThreadCountScope::Sample::take);  // from the machine's load
+  const ThreadCountScope threads(ThreadCountScope::Sample::take);  // from the machine's load
   const auto t0 = std::chrono::steady_clock::now();
   StiffeningStepResult r;
   const bool reversal = params_.update_moduli && params_.reversal;

@@ -5,7 +5,7 @@
 
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "pipeline_internal.h"
-#include "../util/thread_budget.h"
+#include "breast_sim/core/thread_budget.h"
 
 namespace breast_sim::core {
 
@@ -25,7 +25,7 @@ StageReport gravityResult(StageReport settle, const StageReport& sliding) {
 }  // namespace
 
 StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
-  const util::ThreadCountScope threads(util::ThreadCountScope::Sample::reuse);  // as many threads as the steps
+  const ThreadCountScope threads(ThreadCountScope::Sample::reuse);  // as many threads as the steps
   const auto t0 = std::chrono::steady_clock::now();
   setTrackingMode(false);
   if (coarse_ && field_) {

@@ -10,7 +10,7 @@
 
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "pipeline_internal.h"
-#include "../util/thread_budget.h"
+#include "breast_sim/core/thread_budget.h"
 
 namespace breast_sim::core {
 
@@ -39,7 +39,7 @@ void ProneToSupinePipeline::setTrackingMode(bool on) {
 }
 
 IterationReport ProneToSupinePipeline::iterate() {
-  const util::ThreadCountScope threads(util::ThreadCountScope::Sample::reuse);  // as many threads as the steps
+  const ThreadCountScope threads(ThreadCountScope::Sample::reuse);  // as many threads as the steps
   if (!field_) throw std::logic_error("ProneToSupinePipeline::iterate: no target surface (setTarget first)");
   const auto t0 = std::chrono::steady_clock::now();
   ensureMorphing();
@@ -125,7 +125,7 @@ IterationReport ProneToSupinePipeline::iterate() {
 }
 
 StageReport ProneToSupinePipeline::runMorphing(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
-  const util::ThreadCountScope threads(util::ThreadCountScope::Sample::reuse);  // as many threads as the steps
+  const ThreadCountScope threads(ThreadCountScope::Sample::reuse);  // as many threads as the steps
   setTrackingMode(false);
   if (!field_) throw std::logic_error("ProneToSupinePipeline::runMorphing: no target surface (setTarget first)");
   const auto t0 = std::chrono::steady_clock::now();

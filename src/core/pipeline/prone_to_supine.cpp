@@ -15,7 +15,7 @@
 #include "breast_sim/core/model/phantom.h"
 #include "breast_sim/core/model/point_embedding.h"
 #include "breast_sim/core/solver/multigrid.h"
-#include "../util/thread_budget.h"
+#include "breast_sim/core/thread_budget.h"
 
 namespace breast_sim::core {
 namespace {
@@ -247,7 +247,7 @@ double ProneToSupinePipeline::volumeChangePercent() const {
 }
 
 void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
-  const util::ThreadCountScope threads(util::ThreadCountScope::Sample::reuse);  // as many threads as the steps
+  const ThreadCountScope threads(ThreadCountScope::Sample::reuse);  // as many threads as the steps
   target.validate();
   // The grid covers where the model can go: its rest box, grown by the largest distance a vertex may
   // be pulled from (and the field's own margin around the target).
@@ -269,7 +269,7 @@ void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
 }
 
 void ProneToSupinePipeline::run(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
-  const util::ThreadCountScope threads(util::ThreadCountScope::Sample::reuse);  // as many threads as the steps
+  const ThreadCountScope threads(ThreadCountScope::Sample::reuse);  // as many threads as the steps
   morphing_ = StageReport{};  // the reports are of this run: a cancelled gravity stage leaves morphing "not run"
   if (runGravity(progress, cancel).cancelled) return;
   if (settings_.morphing.enabled && field_ && runMorphing(progress, cancel).cancelled) return;

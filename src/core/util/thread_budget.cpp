@@ -1,4 +1,4 @@
-#include "thread_budget.h"
+#include "breast_sim/core/thread_budget.h"
 
 #include <dirent.h>
 #include <fcntl.h>
@@ -9,11 +9,10 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
-#include <mutex>
 
 #include <omp.h>
 
-namespace breast_sim::core::util {
+namespace breast_sim::core {
 
 int threadsForLoad(const int* others, int count, int cores, int cap) {
   cap = std::max(1, cap);
@@ -23,11 +22,6 @@ int threadsForLoad(const int* others, int count, int cores, int cap) {
 }
 
 namespace {
-
-std::mutex& samplerMutex() {
-  static std::mutex m;
-  return m;
-}
 
 /// The machine's runnable threads (fourth field of /proc/loadavg, "running/total"), or −1.
 int runnableThreads() {
@@ -98,12 +92,12 @@ int LoadSampler::next(int cap) {
   if (!applies_) return std::max(1, cap);
   const auto now = std::chrono::steady_clock::now();
   {
-    std::lock_guard<std::mutex> lock(samplerMutex());
+    std::lock_guard<std::mutex> lock(mutex_);
     if (count_ > 0 && now - last_sample_ < interval_) return threadsForLoad(samples_.data(), count_, cores_, cap);
     last_sample_ = now;
   }
   const int others = others_();
-  std::lock_guard<std::mutex> lock(samplerMutex());
+  std::lock_guard<std::mutex> lock(mutex_);
   if (others < 0) return std::max(1, cap);
   if (count_ == kLoadWindow) std::rotate(samples_.begin(), samples_.begin() + 1, samples_.end());
   else ++count_;
@@ -113,7 +107,7 @@ int LoadSampler::next(int cap) {
 
 int LoadSampler::latest(int cap) {
   if (!applies_) return std::max(1, cap);
-  std::lock_guard<std::mutex> lock(samplerMutex());
+  std::lock_guard<std::mutex> lock(mutex_);
   return threadsForLoad(samples_.data(), count_, cores_, cap);
 }
 
@@ -134,4 +128,4 @@ ThreadCountScope::~ThreadCountScope() {
   if (outer_ && omp_get_max_threads() != caller_threads) omp_set_num_threads(caller_threads);
 }
 
-}  // namespace breast_sim::core::util
+}  // namespace breast_sim::core

@@ -1,6 +1,5 @@
 #pragma once
-// How many OpenMP threads the next time step gets, from what else the machine runs (private to
-// src/core). OpenMP's threads spin briefly before they sleep (src/openmp_wait): on an idle machine
+// How many OpenMP threads the core's parallel work gets, from what else the machine runs. OpenMP's threads spin briefly before they sleep (src/openmp_wait): on an idle machine
 // that halved the main job's time against sleeping at once, but a thread that spins on a core
 // another process needs slows every barrier. Beside one busy process on 2 cores, two spinning
 // threads took the main job 2.5x as long as one thread (docs/load.md, "The thread count"), so a
@@ -10,8 +9,9 @@
 #include <array>
 #include <chrono>
 #include <functional>
+#include <mutex>
 
-namespace breast_sim::core::util {
+namespace breast_sim::core {
 
 /// Samples over which the rule takes its least value: one step that sees fewer other threads
 /// brings back the threads at once; giving one up takes kLoadWindow steps that all see the load.
@@ -51,6 +51,7 @@ class LoadSampler {
 
  private:
   LoadSampler();
+  std::mutex mutex_;
   std::function<int()> others_;  // −1: no sample
   bool applies_ = false;
   int cores_ = 1;
@@ -63,9 +64,9 @@ class LoadSampler {
 /// The thread count of the core's parallel work while it lives: the sampler's choice, capped by the
 /// count the caller had when the outermost scope of this thread began, which comes back when that
 /// scope ends (a library must not leave it changed). A time step takes a sample; the pipeline's
-/// entry points (a stage, a tracking iteration, a new target) reuse the latest choice, so the work
-/// between steps runs on as many threads as the steps. A nested scope sets its count and leaves it
-/// for the enclosing scope's remaining work.
+/// entry points (a stage, a tracking iteration, a new target) and the node's tracking frame reuse
+/// the latest choice, so the work between steps runs on as many threads as the steps. A nested
+/// scope sets its count and leaves it for the enclosing scope's remaining work.
 class ThreadCountScope {
  public:
   enum class Sample { take, reuse };
@@ -78,4 +79,4 @@ class ThreadCountScope {
   bool outer_ = false;
 };
 
-}  // namespace breast_sim::core::util
+}  // namespace breast_sim::core
