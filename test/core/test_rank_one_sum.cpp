@@ -148,6 +148,24 @@ TEST(RankOneSum, ProductIsTheSameBitsOnOneAndTwoThreads) {
   EXPECT_TRUE((y[0].array() == y[1].array()).all());
 }
 
+namespace {
+
+/// A zero coarse matrix with exactly the image's pattern, in block layout (every 3×3 block stored).
+SparseMatrix zeroImagePattern(const RankOneGalerkin& g, int coarse_nodes) {
+  std::vector<Eigen::Triplet<double>> t;
+  for (int I = 0; I < coarse_nodes; ++I)
+    for (int k = g.patternStart()[I]; k < g.patternStart()[I + 1]; ++k)
+      for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c) t.emplace_back(3 * I + r, 3 * g.patternNodes()[k] + c, 1.0);
+  SparseMatrix C(3 * coarse_nodes, 3 * coarse_nodes);
+  C.setFromTriplets(t.begin(), t.end());
+  C.makeCompressed();
+  std::fill(C.valuePtr(), C.valuePtr() + C.nonZeros(), 0.0);
+  return C;
+}
+
+}  // namespace
+
 // The image's per-thread slot maps are sized in analyze(); a caller may run add() on more threads
 // than it analysed with (the simulator chooses each step's thread count): same bits either way.
 TEST(RankOneGalerkin, AnalysedOnOneThreadAddsOnTwoWithTheSameBits) {
@@ -163,15 +181,7 @@ TEST(RankOneGalerkin, AnalysedOnOneThreadAddsOnTwoWithTheSameBits) {
     omp_set_num_threads(analysed_on);
     RankOneGalerkin g;
     g.analyze(R, P);
-    const int nc = coarse.numNodes();
-    std::vector<Eigen::Triplet<double>> t;
-    for (int I = 0; I < nc; ++I)
-      for (int k = g.patternStart()[I]; k < g.patternStart()[I + 1]; ++k)
-        for (int r = 0; r < 3; ++r)
-          for (int c = 0; c < 3; ++c) t.emplace_back(3 * I + r, 3 * g.patternNodes()[k] + c, 0.0);
-    SparseMatrix C(3 * nc, 3 * nc);
-    C.setFromTriplets(t.begin(), t.end());
-    C.makeCompressed();
+    SparseMatrix C = zeroImagePattern(g, coarse.numNodes());
     omp_set_num_threads(2);
     g.add(R, C);
     image[analysed_on - 1] = dense(C);
@@ -191,17 +201,8 @@ TEST(RankOneGalerkin, ImageIsTheTripleProductOfTheAssembledSum) {
   R.scale = 0.5;
   RankOneGalerkin g;
   g.analyze(R, P);
-  // A coarse matrix with exactly the image's pattern, in block layout.
   const int nc = coarse.numNodes();
-  std::vector<Eigen::Triplet<double>> t;
-  for (int I = 0; I < nc; ++I)
-    for (int k = g.patternStart()[I]; k < g.patternStart()[I + 1]; ++k)
-      for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c) t.emplace_back(3 * I + r, 3 * g.patternNodes()[k] + c, 1.0);
-  SparseMatrix C(3 * nc, 3 * nc);
-  C.setFromTriplets(t.begin(), t.end());
-  C.makeCompressed();
-  std::fill(C.valuePtr(), C.valuePtr() + C.nonZeros(), 0.0);
+  SparseMatrix C = zeroImagePattern(g, nc);
   g.add(R, C);
   const SparseMatrix Pd = expandToDofs(P);
   const Eigen::MatrixXd ref = dense(SparseMatrix(Pd.transpose() * rankOneMatrix(R) * Pd));

@@ -1,10 +1,11 @@
 #pragma once
-// How many OpenMP threads the core's parallel work gets, from what else the machine runs. OpenMP's threads spin briefly before they sleep (src/openmp_wait): on an idle machine
-// that halved the main job's time against sleeping at once, but a thread that spins on a core
-// another process needs slows every barrier. Beside one busy process on 2 cores, two spinning
-// threads took the main job 2.5x as long as one thread (docs/load.md, "The thread count"), so a
-// step runs one thread per core that other work leaves free. Results do not depend on the thread
-// count, so only time is at stake.
+// How many OpenMP threads the core's parallel work gets, from what else the machine runs.
+// OpenMP's threads spin briefly before they sleep (src/openmp_wait): on an idle machine that halved
+// the main job's time against sleeping at once, but a thread that spins on a core another process
+// needs slows every barrier. Beside one busy process on 2 cores, two spinning threads took the main
+// job 2.5x as long as one thread (docs/load.md, "Choosing the spin count"), so a step runs one
+// thread per core that other work leaves free. Results do not depend on the thread count, so only
+// time is at stake.
 
 #include <array>
 #include <chrono>
