@@ -1,6 +1,6 @@
 /* How the OpenMP threads of every program that links the core wait, without the user setting anything.
  *
- * libgomp's default spins a waiting thread for up to 300,000 iterations (milliseconds) before it
+ * libgomp's default spins a waiting thread for up to 300,000 iterations (about 3 ms) before it
  * sleeps: beside another busy process a spinning thread holds the core its team-mate needs, and a
  * time step became 30x slower. Sleeping at once (OMP_WAIT_POLICY=passive) costs on an idle virtual
  * machine instead: every parallel region then wakes a sleeping CPU, and the main job took twice as

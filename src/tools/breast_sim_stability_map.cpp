@@ -33,8 +33,8 @@ Runs the stability map (see include/breast_sim/core/material/stability_map.h):
   --target-elements N   mesh size (default 3000)
   --methods LIST        subset of linear,corotated,vonmises_no_reversal,full,explicit_euler,anp,anp_full
   --max-time S          simulated-time limit per run [s] (default 4, quick 2; at least 80 steps)
-  --threads N           OpenMP threads per run (default 1: the runs are small, and on a shared
-                        machine spinning threads cost more than they save)
+  --threads N           OpenMP threads per run at most (default 1: the runs are small); a step
+                        uses fewer while other work holds cores
   --gravity X,Y,Z       gravity [m/s^2] instead of the phantom's supine gravity
   --nu A,B,.. --E A,B,.. [Pa] --dt A,B,.. [s] --alpha-scale A,B,..
                         a custom grid: the product of the given lists (others at their defaults
@@ -101,7 +101,7 @@ int main(int argc, char** argv) try {
   StabilityLoadCase load = makePhantomLoadCase(case_file, target);
   if (gravity_given) load.gravity_mps2 = gravity;
   const StiffeningParams params;  // the robust general preset
-  std::printf("case %s: %d tetrahedra, %d nodes, %zu fixed (chest wall), gravity (%.2f, %.2f, %.2f) m/s^2, %d threads\n",
+  std::printf("case %s: %d tetrahedra, %d nodes, %zu fixed (chest wall), gravity (%.2f, %.2f, %.2f) m/s^2, up to %d threads\n",
               load.name.c_str(), load.mesh.numTets(), load.mesh.numNodes(), load.fixed_nodes.size(), load.gravity_mps2.x(),
               load.gravity_mps2.y(), load.gravity_mps2.z(), omp_get_max_threads());
   std::printf("default alpha %.3g 1/Pa (x0.8 per good step, x2 per reversal), settle: |v| < %.3g m/s and residual < %.3g for %d steps\n\n",

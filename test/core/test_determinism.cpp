@@ -1,7 +1,8 @@
 // The same answer on any machine: the whole prone-to-supine pipeline (gravity with the wall fixed,
 // sliding, morphing; stiffening with reversal, the multigrid) on the phantom at ~8k elements gives
 // the same bits on one thread, on two and on sixteen (more threads than this machine's cores), for
-// both element formulations. Every sum over a range
+// both element formulations. The thread count is not chosen from the load here (the sampler is
+// off), so each run uses exactly the count it names. Every sum over a range
 // runs in a fixed order (util/ordered_sum.h, the node forces' chunks, the rank-one sum's passes),
 // and no decision reads the clock.
 #include <gtest/gtest.h>
@@ -9,6 +10,7 @@
 #include <omp.h>
 
 #include "breast_sim/core/pipeline/prone_to_supine.h"
+#include "breast_sim/core/thread_budget.h"
 #include "pipeline_fixtures.h"
 
 using namespace breast_sim::core;
@@ -25,8 +27,10 @@ struct RunResult {
 RunResult runOn(int threads, const SmallPhantom& p, const PipelineSettings& s) {
   const int saved = omp_get_max_threads();
   omp_set_num_threads(threads);
+  LoadSampler::instance().setEnabled(false);
   ProneToSupinePipeline pipe(p.c, p.m, s);
   pipe.run();
+  LoadSampler::instance().setEnabled(true);
   omp_set_num_threads(saved);
   RunResult r;
   r.positions = pipe.positions();

@@ -169,10 +169,11 @@ SparseMatrix zeroImagePattern(const RankOneGalerkin& g, int coarse_nodes) {
 // The image's per-thread slot maps are sized in analyze(); a caller may run add() on more threads
 // than it analysed with (the simulator chooses each step's thread count): same bits either way.
 TEST(RankOneGalerkin, AnalysedOnOneThreadAddsOnTwoWithTheSameBits) {
-  const UpdatedAnp a({16, 12, 12});  // more terms than the image's one-thread threshold
+  const UpdatedAnp a({16, 12, 12});
   const TetMesh coarse = makeBoxMesh({6, 4, 4}, {0.04, 0.03, 0.03});
   const NodeProlongation P = barycentricProlongation(a.mesh, coarse, 1e-6);
   RankOneSum R = a.fem->rankOneStiffness();
+  ASSERT_GT(R.terms, 2000);  // more terms than the image's one-thread threshold (kParallelMinTerms)
   const std::vector<double> free = freeMask(a.mesh);
   R.free = free.data();
   const int threads = omp_get_max_threads();
