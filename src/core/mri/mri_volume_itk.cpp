@@ -127,8 +127,9 @@ void checkNiftiNumbersInOrder(const std::string& path, const unsigned char* h, b
 // quaternion parts). gzread reads plain and gzip-compressed files alike, the 348 bytes only. A
 // NIfTI-1 header is one with sizeof_hdr 348 or the magic "n+1" / "ni1" (ITK reads a header whose
 // sizeof_hdr is damaged by its magic); its byte order is that of dim[0] in 1…7, as the NIfTI library
-// decides it, else that of sizeof_hdr; with neither, both orders are checked. Other files (NIfTI-2,
-// no NIfTI) are left to ITK.
+// decides it, else that of sizeof_hdr; with neither, both orders are checked. A NIfTI-2 header
+// (sizeof_hdr 540) is left to ITK; any other file that ITK took for NIfTI is refused (one with a
+// damaged sizeof_hdr and the magic "n+2" reached vnl's abort through a layout of ITK's own choosing).
 void checkNiftiHeaderNumbers(const std::string& path) {
   unsigned char h[348];
   gzFile f = gzopen(path.c_str(), "rb");
@@ -139,7 +140,11 @@ void checkNiftiHeaderNumbers(const std::string& path) {
   std::uint32_t size = 0;
   std::memcpy(&size, h, 4);
   const bool magic = std::memcmp(h + 344, "n+1", 4) == 0 || std::memcmp(h + 344, "ni1", 4) == 0;
-  if (!magic && size != 348 && __builtin_bswap32(size) != 348) return;
+  if (size == 540 || __builtin_bswap32(size) == 540) return;  // NIfTI-2: ITK reads and checks it
+  if (!magic && size != 348 && __builtin_bswap32(size) != 348)
+    fail(path, "the NIfTI header's sizeof_hdr is " + std::to_string(size) +
+                   ", neither 348 (NIfTI-1) nor 540 (NIfTI-2), and it has no NIfTI-1 magic: the header is damaged, "
+                   "export the image again");
   std::uint16_t dim0 = 0;
   std::memcpy(&dim0, h + 40, 2);
   const std::uint16_t dim0_swapped = __builtin_bswap16(dim0);
