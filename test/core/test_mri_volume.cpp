@@ -314,6 +314,15 @@ TEST(MriVolume, ANiftiHeaderWithoutFiniteOrientationIsAnErrorNotAnAbort) {
   std::ofstream(dir.path("bad_size.nii"), std::ios::binary) << bad_size;
   m = messageOf([&] { readMriVolume(dir.path("bad_size.nii")); });
   EXPECT_NE(m.find("the NIfTI header's srow_z (entry 3) is nan"), std::string::npos) << m;
+  // Neither 348 nor 540 and no NIfTI-1 magic: ITK still took such a file for NIfTI and aborted on its
+  // sform (found by fuzz_mri_nifti: sizeof_hdr 655708, magic "n+2"); it is refused before ITK reads it.
+  std::string odd_size = bad_size;
+  const std::uint32_t odd = 0x000a015cu;
+  std::memcpy(&odd_size[0], &odd, 4);
+  std::memcpy(&odd_size[344], "n+2", 4);
+  std::ofstream(dir.path("odd_size.nii"), std::ios::binary) << odd_size;
+  m = messageOf([&] { readMriVolume(dir.path("odd_size.nii")); });
+  EXPECT_NE(m.find(dir.path("odd_size.nii") + ": the NIfTI header's sizeof_hdr is 655708, neither 348"), std::string::npos) << m;
   // The same numbers in an unused transform (its code 0) do not matter.
   std::string unused = header;
   const float nan = std::numeric_limits<float>::quiet_NaN();
