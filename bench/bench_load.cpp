@@ -153,7 +153,9 @@ int main(int argc, char** argv) {
               std::thread::hardware_concurrency(), wait.c_str(), loadAverage());
   std::fflush(stdout);
 
-  const ModelCase base = loadModelCase(std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml");
+  const std::string case_path = std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml";
+  const ModelCase base = loadModelCase(case_path);
+  const PipelineSettings job_settings = loadPipelineSettings(case_path);  // the main job's, as the case has them
   const Eigen::Vector3d g_supine = base.phantom->gravity_supine_mps2;
 
   // The step's model.
@@ -167,8 +169,7 @@ int main(int argc, char** argv) {
   ModelCase track_case = base;
   track_case.meshing.target_elements = tracking_elements;
   const SimulationModel track_model = buildSimulationModel(track_case);
-  PipelineSettings track_settings = loadPipelineSettings(
-      std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml");
+  PipelineSettings track_settings = job_settings;
   track_settings.morphing.field.voxel_size_m = kNodeFieldVoxelM;
   ProneToSupinePipeline pipeline(track_case, track_model, track_settings);
   pipeline.runGravity();
@@ -211,7 +212,6 @@ int main(int argc, char** argv) {
   };
 
   // The main job's model, meshed once (breast_sim_run meshes before it starts the clock, too).
-  const PipelineSettings job_settings = loadPipelineSettings(std::string(BREAST_SIM_SOURCE_DIR_FOR_TOOLS) + "/config/phantom_default.yaml");
   const SimulationModel job_model = buildSimulationModel(base);
   auto runJob = [&]() {
     ProneToSupinePipeline job(base, job_model, job_settings);

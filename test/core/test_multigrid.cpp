@@ -104,8 +104,8 @@ TEST(GalerkinProduct, EqualsTheNaiveTripleProductWithFixedDofsMaskedOut) {
   }
 }
 
-// The per-thread buffers are sized in analyze(); a caller may compute on more threads than it
-// analysed with (the simulator chooses each step's thread count): same bits either way.
+// The per-thread buffers follow the thread count compute() runs on, which may differ from the one
+// analyze() ran on (the simulator chooses each step's thread count): same bits either way.
 TEST(GalerkinProduct, AnalysedOnOneThreadComputesOnTwoWithTheSameBits) {
   const Fixture& f = fixture();
   const NodeProlongation& P = f.hierarchy.prolongation(0);

@@ -166,8 +166,8 @@ SparseMatrix zeroImagePattern(const RankOneGalerkin& g, int coarse_nodes) {
 
 }  // namespace
 
-// The image's per-thread slot maps are sized in analyze(); a caller may run add() on more threads
-// than it analysed with (the simulator chooses each step's thread count): same bits either way.
+// The image's per-thread slot maps follow the thread count add() runs on, which may differ from the
+// one analyze() ran on (the simulator chooses each step's thread count): same bits either way.
 TEST(RankOneGalerkin, AnalysedOnOneThreadAddsOnTwoWithTheSameBits) {
   const UpdatedAnp a({16, 12, 12});
   const TetMesh coarse = makeBoxMesh({6, 4, 4}, {0.04, 0.03, 0.03});

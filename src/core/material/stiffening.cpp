@@ -427,7 +427,8 @@ void StiffeningSimulation::resync() {
 }
 
 StiffeningStepResult StiffeningSimulation::step() {
-  const ThreadCountScope threads(ThreadCountScope::Sample::take);  // from the machine's load
+  // The latest choice; the simulator's step inside takes the sample and its count stays for the rest.
+  const ThreadCountScope threads(ThreadCountScope::Sample::reuse);
   const auto t0 = std::chrono::steady_clock::now();
   StiffeningStepResult r;
   const bool reversal = params_.update_moduli && params_.reversal;

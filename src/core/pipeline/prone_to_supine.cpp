@@ -269,7 +269,6 @@ void ProneToSupinePipeline::setTarget(const TargetSurface& target) {
 }
 
 void ProneToSupinePipeline::run(const PipelineProgressFn& progress, const std::atomic<bool>* cancel) {
-  const ThreadCountScope threads(ThreadCountScope::Sample::reuse);  // as many threads as the steps
   morphing_ = StageReport{};  // the reports are of this run: a cancelled gravity stage leaves morphing "not run"
   if (runGravity(progress, cancel).cancelled) return;
   if (settings_.morphing.enabled && field_ && runMorphing(progress, cancel).cancelled) return;

@@ -202,8 +202,7 @@ void GalerkinProduct::analyze(const SparseMatrix& A, const NodeProlongation& P, 
     mirror_start_.push_back(static_cast<int>(mirror_dst_.size()));
   }
 
-  buffers_.assign(static_cast<size_t>(std::max(1, omp_get_max_threads())),
-                  std::vector<double>(9 * static_cast<size_t>(std::max(max_fine_, 1))));
+  buffers_.clear();  // compute() sizes them for this pattern and the thread count it runs on
   fine_rows_ = A.rows();
   fine_nnz_ = A.nonZeros();
 }
@@ -217,7 +216,7 @@ void GalerkinProduct::compute(const SparseMatrix& A, const double* free) {
   const double* pval = P_.valuePtr();
   const int* cout = coarse_.outerIndexPtr();
   double* cval = coarse_.valuePtr();
-  // One buffer per thread of the caller's current count (it may have grown since analyze()).
+  // One buffer per thread of the caller's current count (the first call after analyze() makes them).
   const int threads = std::max(1, omp_get_max_threads());
   if (buffers_.size() < static_cast<size_t>(threads))
     buffers_.resize(static_cast<size_t>(threads), std::vector<double>(9 * static_cast<size_t>(std::max(max_fine_, 1))));

@@ -216,8 +216,7 @@ void RankOneGalerkin::analyze(const RankOneSum& R, const RankOneProlongation& P)
     pattern_start_.push_back(static_cast<int>(pattern_nodes_.size()));
   }
   c_.assign(3 * supp_node_.size(), 0.0);
-  slot_maps_.assign(static_cast<size_t>(std::max(1, omp_get_max_threads())),
-                    std::vector<int>(static_cast<size_t>(coarse_nodes_), -1));
+  slot_maps_.clear();  // add() makes them for this pattern and the thread count it runs on
 }
 
 void RankOneGalerkin::add(const RankOneSum& R, SparseMatrix& coarse) {
@@ -248,7 +247,7 @@ void RankOneGalerkin::add(const RankOneSum& R, SparseMatrix& coarse) {
   const int* cin = coarse.innerIndexPtr();
   double* cval = coarse.valuePtr();
   int missing = -1;
-  // One slot map per thread of the caller's current count (it may have grown since analyze()).
+  // One slot map per thread of the caller's current count (the first call after analyze() makes them).
   const int threads = std::max(1, omp_get_max_threads());
   if (slot_maps_.size() < static_cast<size_t>(threads))
     slot_maps_.resize(static_cast<size_t>(threads), std::vector<int>(static_cast<size_t>(coarse_nodes_), -1));
