@@ -19,13 +19,13 @@ namespace multigrid_detail {
 using Clock = std::chrono::steady_clock;
 inline double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
-// Levels with fewer 3×3 blocks than this run on one thread: the second thread sleeps between
-// parallel regions (src/openmp_wait), and waking it for a sweep of less work costs more than it
-// saves. A block is one sweep's unit of work (9 float multiply-adds): the fine level of a
-// 4.8k-element model has 15,700 of them and solves up to 30 % faster on one thread; the fine level
-// of an 8.9k one has 27,100, the first coarse level of a 20.8k one 34,600, of a 48.8k one 73,000
-// (ANP: 130,000). Measured with bench_anp_split (docs/benchmarks.md, "Threads").
-constexpr size_t kParallelMinBlocks = 25000;
+// Levels with fewer 3×3 blocks than this run on one thread. A block is one sweep's unit of work (9
+// float multiply-adds). The team's threads spin between parallel regions (src/openmp_wait), so
+// handing a region to the second thread costs microseconds: from 2,000 blocks (a level of about 150
+// nodes) up two threads are faster. The 4.8k-element model's fine level has 15,700 blocks; its
+// multigrid-PCG step takes 3.6–4.0 ms on two threads, 5.5–6.4 ms with the levels below 25,000
+// blocks on one (bench_anp_split, docs/benchmarks.md, "Threads").
+constexpr size_t kParallelMinBlocks = 2000;
 
 // Checks the 3×3-block layout of fem/block_pattern.h and returns the neighbour lists
 // (block columns) of every node: start (N + 1) and node indices.

@@ -14,13 +14,12 @@ namespace breast_sim::core {
 namespace {
 
 // Matrix rows: products and scans of fewer rows than this run on one thread.
-constexpr Eigen::Index kParallelMin = 4096;
+constexpr Eigen::Index kParallelMin = 1024;
 // Vector operations (x += αp, r −= αq with rᵀr; rᵀz; p = z + βp) of fewer entries than this run on
-// one thread: three streams of 8 bytes per entry take about as long as waking the second thread from
-// its sleep between parallel regions (src/openmp_wait) up to about 30,000 entries; on one thread the
-// 20.8k model's multigrid-PCG solve took 0.5–1.5 ms less per step, the 48.8k one's the same
-// (bench_anp_split, docs/benchmarks.md, "Threads").
-constexpr Eigen::Index kParallelMinVector = 32768;
+// one thread. The team's threads spin between parallel regions (src/openmp_wait): handing a region
+// to the second thread costs a few microseconds, as long as three streams of about 1,000 entries
+// (docs/benchmarks.md, "Threads").
+constexpr Eigen::Index kParallelMinVector = 2048;
 // Up to this many iterations the recursive residual is reported at the iteration limit.
 constexpr int kRecursiveResidualMaxIterations = 8;
 

@@ -12,8 +12,9 @@ namespace breast_sim::core {
 
 namespace {
 
-// Sums of fewer terms than this run on one thread: waking the second costs more than it saves.
-constexpr int kParallelMinTerms = 2000;
+// Sums of fewer terms than this run on one thread: handing a region to the second thread costs more
+// than it saves (the limit of kParallelMinBlocks in multigrid_detail.h for a term per node).
+constexpr int kParallelMinTerms = 200;
 
 inline double mask(const double* free, int dof) { return free ? free[dof] : 1.0; }
 
