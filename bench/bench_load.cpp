@@ -5,8 +5,9 @@
 // --busy-limit-s), with the program's OpenMP threads (from which each time step chooses its count by
 // the load it sees, docs/load.md) and with one thread, printed side by side:
 //   step      the seed's Table-1 step (bench_simulation): the phantom under supine gravity, chest
-//             wall fixed, --steps implicit co-rotated steps of dt 0.033 s, multigrid-PCG to the
-//             case's tolerance (1e-2), a fresh simulator per run (mean and median step);
+//             wall fixed, --steps implicit steps of the seed's co-rotated linear tetrahedra of dt
+//             0.033 s, multigrid-PCG to the case's tolerance (1e-2), a fresh simulator per run
+//             (mean and median step);
 //   frame     the tracking frame's core (what ros_interface::SurfaceTracker::track does after the
 //             cloud filters): a new point cloud as target (its distance field rebuilt) and one
 //             morphing iteration at the tracker's PCG tolerance 0.3, on a model settled under supine
@@ -163,6 +164,7 @@ int main(int argc, char** argv) {
   step_case.meshing.target_elements = elements;
   const SimulationModel step_model = buildSimulationModel(step_case);
   SimulationSettings step_settings;
+  step_settings.element = SimulationSettings::Element::kLinearTet;  // the seed's Table-1 element
   step_settings.dynamics.gravity_mps2 = g_supine;
 
   // The frame's model, settled once; every run starts from this snapshot.

@@ -10,7 +10,8 @@
 //                    [--coarse-interval 50] [--coarse-adaptive 0|1] [--no-baseline] [--no-settle]
 //                    [--element linear|anp] [--volume-term trace|determinant] [--json FILE]
 // --element / --volume-term choose the element formulation (simulation.element, .volume_term) of
-// every run; the defaults are the seed's co-rotated linear tetrahedra with the trace term.
+// every run; the defaults are the seed's element, co-rotated linear tetrahedra (with the library's
+// J − 1 volume term), not the library's default element (ANP).
 // --cap K stops PCG after at most K iterations per step in the Table-1 runs (the step is used).
 // --coarse-interval N recomputes the multigrid's Galerkin operators at least every N-th step, and
 // --coarse-adaptive 1 (the default) earlier once the PCG iterations their age lost are worth a
@@ -151,6 +152,7 @@ int main(int argc, char** argv) {
   bool baseline = true, settle_study = true;
   std::string json_path;
   SimulationSettings defaults;
+  defaults.element = SimulationSettings::Element::kLinearTet;  // the seed's Table 1 element
   for (int i = 1; i < argc; ++i) {
     const std::string k = argv[i];
     auto value = [&]() -> std::string {
