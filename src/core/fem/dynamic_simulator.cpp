@@ -164,7 +164,7 @@ StepStats DynamicSimulator::step() {
   // it changed since (the element linearisation lags by design, setMatrixReuse). What a later
   // reusing step compares with is recorded only while reuse is on.
   const bool record = matrix_reuse_ > 1;
-  const bool reuse = record && matrix_age_ > 0 && matrix_age_ < matrix_reuse_ &&
+  const bool reuse = !split_ && record && matrix_age_ > 0 && matrix_age_ < matrix_reuse_ &&
                      elim_for_ == constrained_ && dt == assembled_params_.time_step_s &&
                      params_.mass_damping_per_s == assembled_params_.mass_damping_per_s &&
                      params_.stiffness_damping_s == assembled_params_.stiffness_damping_s && springsAsAssembled();
@@ -290,14 +290,7 @@ StepStats DynamicSimulator::step() {
   // the known constrained velocities move its columns to the right-hand side, as above for A_.
   RankOneSum R;
   if (split_) {
-    // A reused matrix goes with the rank-one part of its assembly (the solver keeps its own copy);
-    // the element update has rewritten the formulation's arrays since.
-    if (reuse) {
-      R = assembled_rank_one_;
-    } else {
-      R = elements_->rankOneStiffness();
-      if (record) assembled_rank_one_ = withOwnValues(R, assembled_rank_one_values_);
-    }
+    R = elements_->rankOneStiffness();
     R.scale = stiffness_scale;
     bool moving = false;
     for (int q = 0; q < num_constrained && !moving; ++q) moving = cv[constrained_rows_[q]] != 0.0;

@@ -23,11 +23,9 @@ inline double mask(const double* free, int dof) { return free ? free[dof] : 1.0;
 RankOneSum withMaskApplied(const RankOneSum& R, std::vector<double>& storage) {
   RankOneSum M = R;
   const int entries = R.entries();
-  storage.resize(6 * static_cast<size_t>(entries) + static_cast<size_t>(R.terms));
+  storage.resize(6 * static_cast<size_t>(entries));
   double* by_term = storage.data();
   double* by_node = storage.data() + 3 * static_cast<size_t>(entries);
-  double* weight = storage.data() + 6 * static_cast<size_t>(entries);
-  std::copy(R.weight, R.weight + R.terms, weight);
   const double* free = R.free;
 #pragma omp parallel for schedule(static) if (R.terms > kParallelMinTerms)
   for (int k = 0; k < entries; ++k) {
@@ -40,25 +38,7 @@ RankOneSum withMaskApplied(const RankOneSum& R, std::vector<double>& storage) {
       for (int c = 0; c < 3; ++c) by_node[3 * static_cast<size_t>(j) + c] = by_term[3 * static_cast<size_t>(R.node_entry[j]) + c];
   M.entry_vector = by_term;
   M.node_vector = by_node;
-  M.weight = weight;
   M.free = nullptr;
-  return M;
-}
-
-RankOneSum withOwnValues(const RankOneSum& R, std::vector<double>& storage) {
-  RankOneSum M = R;
-  const size_t entries = static_cast<size_t>(R.entries());
-  const size_t transposed = R.node_vector ? static_cast<size_t>(R.node_start[R.nodes]) : 0;
-  storage.resize(3 * entries + 3 * transposed + static_cast<size_t>(R.terms));
-  double* vectors = storage.data();
-  double* node_vectors = vectors + 3 * entries;
-  double* weight = node_vectors + 3 * transposed;
-  std::copy(R.entry_vector, R.entry_vector + 3 * entries, vectors);
-  if (R.node_vector) std::copy(R.node_vector, R.node_vector + 3 * transposed, node_vectors);
-  std::copy(R.weight, R.weight + R.terms, weight);
-  M.entry_vector = vectors;
-  M.node_vector = R.node_vector ? node_vectors : nullptr;
-  M.weight = weight;
   return M;
 }
 

@@ -128,9 +128,9 @@ class DynamicSimulator {
   /// Why: a tracking frame moves the model by a fraction of a millimetre, and at 48.8k elements
   /// the matrix gather and the solver's set-up are about a fifth of the frame's step
   /// (docs/tracking.md, "Latency"). 1 (the default): every step assembles. A split stiffness
-  /// (splitStiffness()) lags as a whole: the reusing steps take the rank-one part of the assembly
-  /// (copied then, as the solver copies it), not the one the element update has rewritten since.
-  /// The first step after a change of `steps` assembles; with 1 nothing of this is recorded or checked.
+  /// (splitStiffness()) assembles every step: its rank-one part lives in the element formulation's
+  /// arrays, which every element update rewrites. The first step after a change of `steps`
+  /// assembles; with 1 nothing of this is recorded or checked.
   /// @throws std::invalid_argument for steps < 1 (names the value).
   void setMatrixReuse(int steps);
   int matrixReuse() const { return matrix_reuse_; }
@@ -217,8 +217,6 @@ class DynamicSimulator {
   std::vector<Eigen::Matrix3d> assembled_spring_k_;
   std::vector<double> assembled_spring_scale_;  // per spring: its node's smallest diagonal entry without it
   std::vector<double> elim_values_;
-  RankOneSum assembled_rank_one_;                 // split_: the rank-one part as assembled (withOwnValues)
-  std::vector<double> assembled_rank_one_values_;
   double last_largest_move_ = 0.0;  // the last step's largest node move [m]
   bool springsAsAssembled() const;  // the springs match the reused matrix's (setMatrixReuse)
 };

@@ -50,15 +50,9 @@ struct RankOneSum {
 
 /// The same operator with the mask folded into its vectors (D b_r, 3 values per entry) and no mask
 /// left (free = nullptr), with node_vector set: the products then read no mask and stream both
-/// passes. The vectors and the weights are written to `storage` (6 values per entry and one per
-/// term), so the view keeps the operator of this call when R's owner rewrites its values; it points
-/// into R's index arrays, which must stay.
+/// passes. The vectors are written to `storage` (6 values per entry); the view points into it and
+/// R's other arrays.
 RankOneSum withMaskApplied(const RankOneSum& R, std::vector<double>& storage);
-
-/// The same operator (mask included) with its values copied to `storage`: the vectors (3 per entry,
-/// and node_vector's 3 per transposed entry when R has it) and the weights (one per term). The view
-/// points into R's index arrays, which must stay.
-RankOneSum withOwnValues(const RankOneSum& R, std::vector<double>& storage);
 
 /// y += alpha · R x and returns alpha · xᵀ R x (x, y: 3·nodes; workspace: at least R.terms doubles).
 /// Two passes: t_r = s w_r b_rᵀ D x per term, then y_a += alpha · D_a Σ_r t_r b_r[a] per node.
