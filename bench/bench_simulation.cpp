@@ -11,7 +11,7 @@
 //                    [--element linear|anp] [--volume-term trace|determinant] [--json FILE]
 // --element / --volume-term choose the element formulation (simulation.element, .volume_term) of
 // every run; the defaults are the seed's element, co-rotated linear tetrahedra (with the library's
-// J − 1 volume term), not the library's default element (ANP).
+// J − 1 volume term), whatever the library's default element.
 // --cap K stops PCG after at most K iterations per step in the Table-1 runs (the step is used).
 // --coarse-interval N recomputes the multigrid's Galerkin operators at least every N-th step, and
 // --coarse-adaptive 1 (the default) earlier once the PCG iterations their age lost are worth a
