@@ -488,29 +488,32 @@ TEST(Pipeline, CancelDuringSlidingCancelsTheRunAndMorphingDoesNotStart) {
   }
 }
 
-// A run cancelled in its sliding stage resumes in that stage: the fixed-wall settle is not run again
-// with the wall on its sliding springs. On the phantom meshed to 1,095 elements that settle stalled
+// A run cancelled after its fixed-wall settle goes on in the sliding stage: that settle is not run
+// again with the wall on its sliding springs. On the phantom meshed to 1,095 elements it stalled
 // (cancelled at sliding step 3) or let the wall slide 182 mm instead of 41 (step 5), and the
-// morphing stage could not advance from there.
-TEST(Pipeline, ARunCancelledInItsSlidingStageResumesThere) {
+// morphing stage could not advance from there; after a cancel in the morphing stage it took 3–5
+// steps more.
+TEST(Pipeline, ARunCancelledAfterItsFixedWallSettleGoesOnInTheSlidingStage) {
   const SmallPhantom p(1000);
   const PipelineSettings s = loadPipelineSettings(kPhantomCase);
   ProneToSupinePipeline whole(p.c, p.m, s);
   whole.run();
   ASSERT_EQ(whole.stage(), PipelineStage::kDone);
   const double slide = whole.slidingReport().max_slide_m;
-  for (int at : {3, 5}) {
-    SCOPED_TRACE("cancelled at sliding step " + std::to_string(at));
+  for (const CancelAt at : {CancelAt{PipelineStage::kSliding, 3}, CancelAt{PipelineStage::kSliding, 5},
+                            CancelAt{PipelineStage::kMorphing, 5}}) {
+    SCOPED_TRACE(describe(at));
     ProneToSupinePipeline pipe(p.c, p.m, s);
     std::atomic<bool> cancel{false};
-    ASSERT_TRUE(pipe.runGravity(cancelAt(pipe, {PipelineStage::kSliding, at}, cancel), &cancel).cancelled);
+    pipe.run(cancelAt(pipe, at, cancel), &cancel);
+    ASSERT_TRUE(cancel.load());
     const int settle_steps = pipe.gravityReport().steps;
     cancel = false;
     pipe.run({}, &cancel);
-    std::printf("[ measure  ] %d elements, cancelled at sliding step %d: resumed %d sliding steps, wall slid %.2f mm "
-                "(uncancelled %.2f mm), %d morphing steps\n",
-                p.m.mesh.numTets(), at, pipe.slidingReport().steps, 1e3 * pipe.slidingReport().max_slide_m, 1e3 * slide,
-                pipe.morphingReport().steps);
+    std::printf("[ measure  ] %d elements, %s: resumed %d sliding steps, wall slid %.2f mm (uncancelled %.2f mm), "
+                "%d morphing steps\n",
+                p.m.mesh.numTets(), describe(at).c_str(), pipe.slidingReport().steps,
+                1e3 * pipe.slidingReport().max_slide_m, 1e3 * slide, pipe.morphingReport().steps);
     EXPECT_EQ(pipe.gravityReport().steps, settle_steps);  // the fixed-wall settle did not run again
     EXPECT_TRUE(pipe.slidingReport().converged);
     EXPECT_NEAR(pipe.slidingReport().max_slide_m, slide, 2e-3);

@@ -46,10 +46,11 @@ StageReport ProneToSupinePipeline::runGravity(const PipelineProgressFn& progress
     stage_ = PipelineStage::kIdle;
     return gravityResult(gravity_, sliding_report_);
   }
-  if (hasSliding() && sliding_attached_ && gravity_.converged && sliding_report_.cancelled) {
-    // A run cancelled in its sliding stage resumes there: the fixed-wall settle had converged, and
-    // settling again with the wall on its sliding springs is not that stage (it could stall, or
-    // the wall slide off by far more than the run's own slide).
+  if (hasSliding() && sliding_attached_ && gravity_.converged) {
+    // Once the wall slides, the fixed-wall settle does not come again: a run stopped in its sliding
+    // or morphing stage and started again goes on in the sliding stage. Settling with the wall on its
+    // sliding springs is not the fixed-wall stage (it could stall, or let the wall slide off by far
+    // more than the run's own slide).
     Eigen::VectorXd previous = simulator().state().displacement_m;
     runSlidingStage(previous, progress, cancel);
     stage_ = PipelineStage::kIdle;
