@@ -56,6 +56,20 @@ TEST(Pipeline, AZeroDistanceTargetLeavesTheModelUnchanged) {
   EXPECT_NEAR(m.volume_change_percent, 0.0, 1e-6);
 }
 
+TEST(Pipeline, TrackingModeStiffensOnlyTheElementsThatWouldInvert) {
+  // A tracking frame is a small move about a settled state: a reversal in it stiffens the elements
+  // that would invert, not the whole breast (StiffeningSimulation::setLocalReversals); the stages
+  // go back to the seed's global alpha.
+  const SmallPhantom& p = phantom();
+  ProneToSupinePipeline pipe(p.c, p.m, PipelineSettings{});
+  EXPECT_FALSE(pipe.stiffening().localReversals());
+  pipe.setTrackingMode(true);
+  EXPECT_TRUE(pipe.trackingMode());
+  EXPECT_TRUE(pipe.stiffening().localReversals());
+  pipe.setTrackingMode(false);
+  EXPECT_FALSE(pipe.stiffening().localReversals());
+}
+
 TEST(Pipeline, MorphingPullsTheSkinOntoAReachableTarget) {
   // The model's own skin stretched 8 % anteriorly away from the fixed wall (y = 0 stays, so the
   // base needs no sliding): the pulled vertices reach the tolerance, no element inverts.

@@ -549,6 +549,37 @@ TEST(Stiffening, ReleaseStiffensOnlyTheElementsThatWouldInvert) {
             << st.final_alpha_per_pa << " /Pa\n";
 }
 
+// Local reversals (tracking): a reverted step stiffens only the elements that would invert, and the
+// global α never grows; the same run with global reversals raises α for them.
+TEST(Stiffening, LocalReversalsStiffenOnlyTheElementsThatWouldInvertAndHoldTheGlobalAlpha) {
+  PhantomSim local = makePhantomSim(0.1, StiffeningParams{});
+  local.stiff->setLocalReversals(true);
+  PhantomSim global = makePhantomSim(0.1, StiffeningParams{});
+  long local_reversed_calls = 0, global_raised = 0;
+  for (int i = 0; i < 40; ++i) {
+    const double before = local.stiff->alpha();
+    const StiffeningStepResult r = local.stiff->step();
+    ASSERT_TRUE(r.advanced) << "step " << i;
+    EXPECT_EQ(r.inverted_elements, 0) << "step " << i;
+    EXPECT_LE(r.alpha_per_pa, before) << "step " << i << ": a reversal must not raise the global alpha";
+    if (r.reversals > 0) {
+      ++local_reversed_calls;
+      EXPECT_GT(local.stiff->stats().locally_stiffened_elements, 0) << "step " << i;
+    }
+    const double global_before = global.stiff->alpha();
+    if (global.stiff->step().alpha_per_pa > global_before) ++global_raised;
+  }
+  const RunStats s = local.stiff->stats();
+  EXPECT_GT(local_reversed_calls, 0) << "the load must invert elements for the test to mean anything";
+  EXPECT_GT(global_raised, 0) << "global reversals raise alpha on the same load";
+  EXPECT_EQ(s.inverted_elements, 0);
+  EXPECT_LT(s.locally_stiffened_volume_percent, 5.0);
+  std::cout << "phantom 1k, E 600 Pa, dt 0.1 s, local reversals: " << s.reversed_steps << " reversed in "
+            << local_reversed_calls << " steps, " << s.locally_stiffened_elements << " elements ("
+            << s.locally_stiffened_volume_percent << " % of the volume) stiffened locally, alpha "
+            << s.final_alpha_per_pa << " /Pa (global reversals raised alpha in " << global_raised << " steps)\n";
+}
+
 TEST(Stiffening, HistoryRestoresExactlyAndReplaysBitwise) {
   StiffeningParams p;
   p.history_size = 4;

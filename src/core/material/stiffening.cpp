@@ -488,11 +488,13 @@ StiffeningStepResult StiffeningSimulation::step() {
       sim_.restore(saved);
       ++reversed_;
       ++r.reversals;
-      if (releasing_ && solved) {
-        // Only the inverting elements stiffen; the global α stays.
-        // An element first gets the α the release started from (it was valid there), then doubles.
+      if ((releasing_ || local_reversals_) && solved) {
+        // Only the inverting elements stiffen; the global α stays. An element first gets the α the
+        // release started from (it was valid there; local reversals: the initial α, or twice the
+        // global one when that is higher), then doubles.
         const double a = alpha();
-        for (int e : inverted) element_alpha_[e] = element_alpha_[e] > a ? 2.0 * element_alpha_[e] : release_start_alpha_;
+        const double first = releasing_ ? release_start_alpha_ : std::max(2.0 * a, controller_.params().initial_alpha_per_pa);
+        for (int e : inverted) element_alpha_[e] = element_alpha_[e] > a ? 2.0 * element_alpha_[e] : first;
       } else {
         releasing_ = false;  // a failed solve: the controller's search again
         controller_.onReversed(attempt);

@@ -305,6 +305,15 @@ class StiffeningSimulation {
   /// holds α once the surface distance meets its tolerance (seed 2.6).
   void holdAlpha(bool hold) { hold_alpha_ = hold; }
   bool alphaHeld() const { return hold_alpha_; }
+  /// Local reversals: a reverted step stiffens only its invalid elements, by a local α (the
+  /// controller's initial α or twice the global α, whichever is higher, doubled on each further
+  /// reversal), and the global α stays (a solver failure still raises it). For small
+  /// moves about a settled state (tracking a surface scan): there a global α would stiffen the whole
+  /// breast for one collapsing skin element and move the lesions under an unchanged skin (measured
+  /// on the phantom tracking its own skin with ANP: up to 3.3 mm within a frame, docs/tracking.md).
+  /// The local α's stay until the α search restarts from the initial α.
+  void setLocalReversals(bool on) { local_reversals_ = on; }
+  bool localReversals() const { return local_reversals_; }
   void addNodalForces(const std::vector<int>& nodes, const Points& forces_n);
   void clearExternalForces();
 
@@ -363,6 +372,7 @@ class StiffeningSimulation {
   AlphaController controller_;
   std::deque<HistoryEntry> history_;  // front = newest
   bool hold_alpha_ = false;
+  bool local_reversals_ = false;
   std::vector<char> fixed_node_;  // per node: constrained in the simulator (refreshed per accepted step)
   Eigen::VectorXd base_stress_, trial_stress_, f_el_;
   Eigen::VectorXd modulus_buffer_;  // setModuli(): the new factors before they are handed on (kept buffer)
