@@ -81,6 +81,7 @@ NodeParams NodeParams::fromRos(const ros::NodeHandle& pnh) {
   m.max_rigid_drift_m = param(pnh, "tracking/monitor/max_rigid_drift_m", m.max_rigid_drift_m);
   m.max_lesion_offset_m = param(pnh, "tracking/monitor/max_lesion_offset_m", m.max_lesion_offset_m);
   m.max_lesion_jump_m = param(pnh, "tracking/monitor/max_lesion_jump_m", m.max_lesion_jump_m);
+  m.max_stiffening = param(pnh, "tracking/monitor/max_stiffening", m.max_stiffening);
   m.recover_frames = param(pnh, "tracking/monitor/recover_frames", m.recover_frames);
   m.recover_fraction = param(pnh, "tracking/monitor/recover_fraction", m.recover_fraction);
   p.stamps.max_future_s = param(pnh, "tracking/max_future_stamp_s", p.stamps.max_future_s);

@@ -1,6 +1,7 @@
 // The tracking-quality monitor and the tracker it guards (see tracking_monitor.h).
 #include "breast_sim/ros_interface/tracking_monitor.h"
 
+#include <algorithm>
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
@@ -37,6 +38,7 @@ void MonitorLimits::validate() const {
   positive(max_rigid_drift_m, "max_rigid_drift_m");
   positive(max_lesion_offset_m, "max_lesion_offset_m");
   positive(max_lesion_jump_m, "max_lesion_jump_m");
+  positive(max_stiffening, "max_stiffening");
   if (!(recover_fraction > 0 && recover_fraction <= 1))
     throw std::invalid_argument("parameter ~tracking/monitor/recover_fraction = " + std::to_string(recover_fraction) +
                                 ": must be in (0, 1]");
@@ -54,7 +56,7 @@ void MonitorLimits::validate() const {
 Verdict judgeFrame(const FrameQuality& q, const MonitorLimits& limits, double scale) {
   MonitorLimits l = limits;
   for (double* x : {&l.max_seen_mean_m, &l.max_seen_p95_m, &l.max_wall_drift_m, &l.max_rigid_drift_m,
-                    &l.max_lesion_offset_m, &l.max_lesion_jump_m})
+                    &l.max_lesion_offset_m, &l.max_lesion_jump_m, &l.max_stiffening})
     *x *= scale;
   Verdict v;
   auto fail = [&v](Recovery r, const std::string& why) {
@@ -79,6 +81,13 @@ Verdict judgeFrame(const FrameQuality& q, const MonitorLimits& limits, double sc
   if (q.lesion_jump_m > l.max_lesion_jump_m)
     return fail(Recovery::kLastGood, "a lesion moved " + mm(q.lesion_jump_m) + " in one frame (limit " +
                                          mm(l.max_lesion_jump_m) + ")");
+  if (q.stiffening > l.max_stiffening) {
+    std::ostringstream s;
+    s.precision(3);
+    s << "the global stiffening rose: the material is up to " << 100 * q.stiffening
+      << " % stiffer than the precomputed state's (limit " << 100 * l.max_stiffening << " %, tracking/monitor/max_stiffening)";
+    return fail(Recovery::kLastGood, s.str());
+  }
   // Against the reference: the model has drifted; the last good frame has too.
   if (q.wall_drift_m > l.max_wall_drift_m)
     return fail(Recovery::kReference, "the chest wall moved " + mm(q.wall_drift_m) + " from the precomputed state (limit " +
@@ -105,6 +114,7 @@ void GuardedTracker::start(const core::ProneToSupinePipeline& p) {
   reference_positions_ = p.positions();
   reference_mean_ = reference_positions_.colwise().mean();
   reference_lesions_ = p.lesionPositions();
+  reference_alpha_ = p.stiffening().alpha();
   last_good_lesions_ = reference_lesions_;
   const core::TetMesh& mesh = p.model().mesh;
   wall_nodes_ = mesh.hasNodeSet(core::node_sets::kChestWall) ? mesh.nodeSet(core::node_sets::kChestWall) : std::vector<int>();
@@ -148,6 +158,9 @@ GuardedFrame GuardedTracker::frame(core::ProneToSupinePipeline& p, const core::P
   q.lesion_offset_m = maxRowDistance(lesions, reference_lesions_);
   q.lesion_jump_m = maxRowDistance(lesions, last_good_lesions_);
   q.inverted_elements = static_cast<int>(core::invertedTets(p.model().mesh.tets(), x, 0.0).size());
+  const core::StiffeningSimulation& stiffening = p.stiffening();
+  if (stiffening.alpha() > reference_alpha_ && stiffening.baseStress().size() > 0)
+    q.stiffening = (stiffening.alpha() - reference_alpha_) * stiffening.baseStress().maxCoeff();
   f.verdict = judgeFrame(q, limits_);
   std::string recovering;
   if (f.verdict.good) {

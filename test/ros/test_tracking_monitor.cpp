@@ -48,6 +48,7 @@ TEST(TrackingMonitor, EachLimitTripsWithItsRecovery) {
       {"seen p95", [](FrameQuality& q) { q.seen_p95_m = 0.007; }, Recovery::kLastGood, "seen skin"},
       {"nothing seen", [](FrameQuality& q) { q.seen_mean_m = -1; }, Recovery::kLastGood, "seen skin"},
       {"lesion jump", [](FrameQuality& q) { q.lesion_jump_m = 0.004; }, Recovery::kLastGood, "in one frame"},
+      {"stiffened", [](FrameQuality& q) { q.stiffening = 0.5; }, Recovery::kLastGood, "stiffer"},
       {"wall drift", [](FrameQuality& q) { q.wall_drift_m = 0.006; }, Recovery::kReference, "chest wall"},
       {"model drift", [](FrameQuality& q) { q.rigid_drift_m = 0.006; }, Recovery::kReference, "drifted"},
       {"lesion offset", [](FrameQuality& q) { q.lesion_offset_m = 0.016; }, Recovery::kReference, "precompute again"},
@@ -157,6 +158,26 @@ TEST(GuardedTracker, AFrameTakenBackLeavesTheLastGoodStateBitForBit) {
     EXPECT_EQ(s.pipeline_ptr->state().simulation.displacement_m, before.simulation.displacement_m);
     EXPECT_EQ(s.pipeline_ptr->state().morphing_forces_n, before.morphing_forces_n);
   }
+}
+
+TEST(GuardedTracker, AFrameOnAStiffenedMaterialIsTakenBack) {
+  // A frame whose step ran with a raised global alpha moved the lesions of a breast stiffer than the
+  // tissue: taken back to the last good frame, whose alpha comes back with it.
+  Scene s;
+  ros_interface::GuardedTracker g;
+  g.start(*s.pipeline_ptr);
+  ASSERT_TRUE(g.frame(*s.pipeline_ptr, s.scan(0)).valid);
+  const double alpha = s.pipeline_ptr->stiffening().alpha();
+  s.pipeline_ptr->stiffening().controller().restart(1.0);  // [1/Pa]: E_r = 1 + s_VM / Pa
+  const auto f = g.frame(*s.pipeline_ptr, s.scan(1));
+  ASSERT_TRUE(f.track.tracked) << f.track.reason;
+  EXPECT_GT(f.quality.stiffening, g.limits().max_stiffening);
+  EXPECT_TRUE(f.restored);
+  EXPECT_EQ(f.verdict.recovery, Recovery::kLastGood);
+  EXPECT_NE(f.verdict.reason.find("stiffer"), std::string::npos) << f.verdict.reason;
+  EXPECT_FALSE(f.valid);
+  EXPECT_EQ(s.pipeline_ptr->stiffening().alpha(), alpha);
+  std::printf("[ measure  ] a frame with alpha 1 /Pa: %s\n", f.verdict.reason.c_str());
 }
 
 TEST(GuardedTracker, RefusedCloudsInARowMakeTheLesionsInvalidUntilAFrameIsTracked) {

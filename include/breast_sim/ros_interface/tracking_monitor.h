@@ -29,7 +29,15 @@ struct MonitorLimits {
   double max_rigid_drift_m = 0.005;   ///< length of the mean node move from the reference [m]
   double max_lesion_offset_m = 0.015; ///< largest lesion move from the reference [m]
   double max_lesion_jump_m = 0.003;   ///< largest lesion move from the last good frame [m]
-  int recover_frames = 3;             ///< good frames in a row before the lesions are valid again
+  /// Largest stiffening by a global α risen above the reference's, (α − α_ref) · s_VM, max over the
+  /// elements [-] (E_r − 1 gained): a frame whose step raised the global α ran on a breast stiffer
+  /// than the tissue, and its lesions are that material's, not the patient's.
+  double max_stiffening = 0.1;
+  /// Good frames in a row before the lesions are valid again. 5: a model taken back to the
+  /// reference under a scan slid 20 mm along the wall (ICP off) drifts back towards the slid scan,
+  /// and with ANP it passed 3 frames within half the limits on its way (its lesions then valid
+  /// 7–11 mm off for 31 frames), never 4 or 5 (docs/tracking.md).
+  int recover_frames = 5;
   /// ... where a frame counts as good for that only with every measure within this share of its
   /// limit [-] (the seen share excepted): a model held just inside a limit by what pushed it past
   /// (a scan slid along the wall) does not come back.
@@ -44,6 +52,7 @@ struct FrameQuality {
   double seen_mean_m = -1, seen_p95_m = -1;  ///< TrackResult::seen_mean_m / seen_p95_m [m]
   double seen_fraction = 0;                  ///< seen / (seen + held) skin vertices
   double wall_drift_m = 0, rigid_drift_m = 0, lesion_offset_m = 0, lesion_jump_m = 0;  ///< [m]
+  double stiffening = 0;  ///< (α − α_ref)₊ times the largest base-material von Mises stress [-]
   int inverted_elements = 0;
 };
 
@@ -100,6 +109,7 @@ class GuardedTracker {
   core::PipelineState reference_, last_good_;
   core::Points reference_positions_, reference_lesions_, last_good_lesions_;
   Eigen::RowVector3d reference_mean_ = Eigen::RowVector3d::Zero();
+  double reference_alpha_ = 0.0;  // the reference's global α [1/Pa]
   std::vector<int> wall_nodes_;
 };
 

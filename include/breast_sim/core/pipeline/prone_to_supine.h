@@ -432,6 +432,7 @@ class ProneToSupinePipeline {
   DynamicSimulator& simulator() { return *build_.simulator; }
   const DynamicSimulator& simulator() const { return *build_.simulator; }
   StiffeningSimulation& stiffening() { return *stiff_; }
+  const StiffeningSimulation& stiffening() const { return *stiff_; }
   /// The chest-wall sliding geometry and limiting weights when sliding is on (for the implicit
   /// method: its geometry, whose targets are unused), else null.
   const ChestWallSliding* sliding() const { return slip_ ? &slip_->geometry() : sliding_.get(); }
