@@ -122,7 +122,8 @@ simulation:
   EXPECT_DOUBLE_EQ(SimulationSettings{}.anp_inversion_barrier_stiffness, 100);
   EXPECT_EQ(s.solver.multigrid.smoother, MultigridOptions::Smoother::kChebyshev);
   EXPECT_DOUBLE_EQ(s.solver.multigrid.chebyshev_ratio, 20);
-  EXPECT_EQ(SimulationSettings{}.element, SimulationSettings::Element::kLinearTet);
+  EXPECT_EQ(SimulationSettings{}.element, SimulationSettings::Element::kAnpTet);  // the accurate element by default
+  EXPECT_DOUBLE_EQ(SimulationSettings{}.anp_inversion_barrier, 0.3);
   EXPECT_NE(errorOf("simulation: {element: c3d10}").find("expected one of anp, linear, got 'c3d10'"), std::string::npos)
       << errorOf("simulation: {element: c3d10}");
   EXPECT_NE(errorOf("simulation: {anp_inversion_barrier: 1}").find("anp_inversion_barrier"), std::string::npos);

@@ -89,18 +89,21 @@ struct SimulationSettings {
   /// "fixed co-rotated" J − 1 term (Stomakhin et al. 2012), or kTrace, the seed's linear tr(S) − 3,
   /// which lets elements at the clamped rim flatten and invert under the supine load (docs/speed_accuracy.md).
   CorotatedTetFem::VolumeTerm volume_term = CorotatedTetFem::kDefaultVolumeTerm;
-  /// The element formulation. kLinearTet: co-rotated linear tetrahedra with `volume_term`
-  /// (CorotatedTetFem). kAnpTet: average-nodal-pressure tetrahedra (AnpTetFem, fem/anp_tet_fem.h),
-  /// which do not lock as ν → 0.5 (volume_term is then not used: ANP has its own nodal J − 1
-  /// term); its matrix couples nodes two element layers apart (about 4× the entries).
+  /// The element formulation. kAnpTet (the default): average-nodal-pressure tetrahedra (AnpTetFem,
+  /// fem/anp_tet_fem.h), which do not lock as ν → 0.5: about twice as close to a quadratic-element
+  /// reference as kLinearTet on the phantom and VICTRE (docs/speed_accuracy.md); volume_term is not
+  /// used (ANP has its own nodal J − 1 term), and its stiffness couples nodes two element layers apart
+  /// (the solvers take it as a one-ring matrix and a rank-one sum). kLinearTet: co-rotated linear
+  /// tetrahedra with `volume_term` (CorotatedTetFem), 1.3–1.5× faster per step.
   enum class Element { kLinearTet, kAnpTet };
-  Element element = Element::kLinearTet;
+  Element element = Element::kAnpTet;
   /// With element kAnpTet: the share β ∈ [0, 1] of the bulk modulus kept on each element's own
   /// volume ratio (AnpTetFem::setElementVolumeFraction; 0 = pure average nodal pressure).
   double anp_element_volume_fraction = 0.0;
   /// With element kAnpTet: the volume ratio J_b ∈ [0, 1) below which an element resists further
-  /// compression with the bulk modulus (AnpTetFem::setInversionBarrier; 0 = off).
-  double anp_inversion_barrier = 0.0;
+  /// compression with the bulk modulus (AnpTetFem::setInversionBarrier; 0 = off). The averaged
+  /// pressure alone lets a single element of the clamped rim fold; 0.3 keeps every element valid.
+  double anp_inversion_barrier = 0.3;
   /// Its stiffness as a multiple of the bulk modulus (c of AnpTetFem::setInversionBarrier).
   double anp_inversion_barrier_stiffness = 100.0;
   /// Sliding of the chest-wall nodes on the wall (prone_to_supine.h, `sliding:` of a case file)
