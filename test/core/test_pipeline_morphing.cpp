@@ -58,16 +58,16 @@ TEST(Pipeline, AZeroDistanceTargetLeavesTheModelUnchanged) {
 
 TEST(Pipeline, TrackingModeStiffensOnlyTheElementsThatWouldInvert) {
   // A tracking frame is a small move about a settled state: a reversal in it stiffens the elements
-  // that would invert, not the whole breast (StiffeningSimulation::setLocalReversals); the stages
-  // go back to the seed's global alpha.
+  // that would invert, not the whole breast (StiffeningSimulation::setTracking); the stages go back
+  // to the seed's global alpha.
   const SmallPhantom& p = phantom();
   ProneToSupinePipeline pipe(p.c, p.m, PipelineSettings{});
-  EXPECT_FALSE(pipe.stiffening().localReversals());
+  EXPECT_FALSE(pipe.stiffening().tracking());
   pipe.setTrackingMode(true);
   EXPECT_TRUE(pipe.trackingMode());
-  EXPECT_TRUE(pipe.stiffening().localReversals());
+  EXPECT_TRUE(pipe.stiffening().tracking());
   pipe.setTrackingMode(false);
-  EXPECT_FALSE(pipe.stiffening().localReversals());
+  EXPECT_FALSE(pipe.stiffening().tracking());
 }
 
 TEST(Pipeline, MorphingPullsTheSkinOntoAReachableTarget) {

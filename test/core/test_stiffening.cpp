@@ -549,11 +549,11 @@ TEST(Stiffening, ReleaseStiffensOnlyTheElementsThatWouldInvert) {
             << st.final_alpha_per_pa << " /Pa\n";
 }
 
-// Local reversals (tracking): a reverted step stiffens only the elements that would invert, and the
-// global α never grows; the same run with global reversals raises α for them.
-TEST(Stiffening, LocalReversalsStiffenOnlyTheElementsThatWouldInvertAndHoldTheGlobalAlpha) {
+// Tracking frames: a reverted step stiffens only the elements that would invert, and the global α
+// never grows; the same run with global reversals raises α for them.
+TEST(Stiffening, TrackingFramesStiffenOnlyTheElementsThatWouldInvertAndHoldTheGlobalAlpha) {
   PhantomSim local = makePhantomSim(0.1, StiffeningParams{});
-  local.stiff->setLocalReversals(true);
+  local.stiff->setTracking(true);
   PhantomSim global = makePhantomSim(0.1, StiffeningParams{});
   long local_reversed_calls = 0, global_raised = 0;
   for (int i = 0; i < 40; ++i) {
@@ -574,10 +574,35 @@ TEST(Stiffening, LocalReversalsStiffenOnlyTheElementsThatWouldInvertAndHoldTheGl
   EXPECT_GT(global_raised, 0) << "global reversals raise alpha on the same load";
   EXPECT_EQ(s.inverted_elements, 0);
   EXPECT_LT(s.locally_stiffened_volume_percent, 5.0);
-  std::cout << "phantom 1k, E 600 Pa, dt 0.1 s, local reversals: " << s.reversed_steps << " reversed in "
+  std::cout << "phantom 1k, E 600 Pa, dt 0.1 s, tracking frames: " << s.reversed_steps << " reversed in "
             << local_reversed_calls << " steps, " << s.locally_stiffened_elements << " elements ("
             << s.locally_stiffened_volume_percent << " % of the volume) stiffened locally, alpha "
             << s.final_alpha_per_pa << " /Pa (global reversals raised alpha in " << global_raised << " steps)\n";
+}
+
+// Tracking frames take the next step's moduli from the stress at the start of the step (no second
+// element update at its end); switching tracking off brings the stress up to the current state.
+TEST(Stiffening, TrackingFramesTakeTheStressAtTheStepsStartAndCatchUpWhenSwitchedOff) {
+  PhantomSim s = makePhantomSim(0.1, StiffeningParams{}, 2000.0);
+  for (int i = 0; i < 5; ++i) ASSERT_TRUE(s.stiff->step().advanced);
+  s.stiff->setTracking(true);
+  const auto stressNow = [&s]() -> Eigen::VectorXd {
+    s.sim->elasticForces();
+    return s.sim->elements().vonMisesStress().cwiseQuotient(s.sim->elements().modulusFactors());
+  };
+  for (int i = 0; i < 3; ++i) {
+    const Eigen::VectorXd at_start = stressNow();
+    const StiffeningStepResult r = s.stiff->step();
+    ASSERT_TRUE(r.advanced);
+    ASSERT_EQ(r.reversals, 0);
+    EXPECT_LT((s.stiff->baseStress() - at_start).cwiseAbs().maxCoeff(), 1e-9 * at_start.cwiseAbs().maxCoeff()) << "step " << i;
+    EXPECT_FALSE(r.settle.below);  // not evaluated in tracking frames
+  }
+  const Eigen::VectorXd lagging = s.stiff->baseStress();
+  const Eigen::VectorXd now = stressNow();
+  EXPECT_GT((lagging - now).cwiseAbs().maxCoeff(), 1e-6 * now.cwiseAbs().maxCoeff()) << "the model must still move";
+  s.stiff->setTracking(false);
+  EXPECT_LT((s.stiff->baseStress() - now).cwiseAbs().maxCoeff(), 1e-9 * now.cwiseAbs().maxCoeff());
 }
 
 TEST(Stiffening, HistoryRestoresExactlyAndReplaysBitwise) {

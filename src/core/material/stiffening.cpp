@@ -418,6 +418,11 @@ void StiffeningSimulation::revertTo(int k) {
   loadChanged();
 }
 
+void StiffeningSimulation::setTracking(bool on) {
+  if (tracking_ && !on) refreshStress();
+  tracking_ = on;
+}
+
 void StiffeningSimulation::resync() {
   refreshStress();
   last_inverted_ = countInverted();
@@ -488,7 +493,7 @@ StiffeningStepResult StiffeningSimulation::step() {
       sim_.restore(saved);
       ++reversed_;
       ++r.reversals;
-      if ((releasing_ || local_reversals_) && solved) {
+      if ((releasing_ || tracking_) && solved) {
         // Only the inverting elements stiffen; the global α stays. An element first gets the α the
         // release started from (it was valid there; local reversals: the initial α, or twice the
         // global one when that is higher), then doubles.
@@ -514,7 +519,15 @@ StiffeningStepResult StiffeningSimulation::step() {
       }
     }
   }
-  refreshStress();
+  if (tracking_ && r.advanced) {
+    // The next step's moduli from the stress at this step's start: the elements still hold the
+    // update the step began with (a shortened step restores no update, a reverted trial is updated
+    // again by the repeat).
+    const ElementFormulation& el = sim_.elements();
+    base_stress_ = el.vonMisesStress().cwiseQuotient(el.modulusFactors());
+  } else {
+    refreshStress();
+  }
   // An accepted step with reversal was just checked: no element is inverted at this state, unless
   // one is still recovering.
   last_inverted_ = reversal && r.advanced && r.recovering_elements == 0 ? 0 : countInverted();
@@ -525,12 +538,15 @@ StiffeningStepResult StiffeningSimulation::step() {
     const std::vector<char>& dofs = sim_.constrainedDofs();
     for (int n = 0; n < mesh_.numNodes(); ++n) fixed_node_[n] = dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2];
     // Node springs (implicit sliding, wall_slip.h) are loads on their nodes like external forces.
-    // (No copy of the external forces on the path without springs.)
-    Eigen::VectorXd with_springs;
-    if (!sim_.springNodes().empty()) with_springs = sim_.externalForces() + sim_.currentSpringForces();
-    const Eigen::VectorXd& loads = sim_.springNodes().empty() ? sim_.externalForces() : with_springs;
-    r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, loads, sim_.lumpedMass(),
-                              sim_.params().gravity_mps2, fixed_node_);
+    // (No copy of the external forces on the path without springs.) Tracking frames have no
+    // elastic forces at the end of the step and do not settle.
+    if (!tracking_) {
+      Eigen::VectorXd with_springs;
+      if (!sim_.springNodes().empty()) with_springs = sim_.externalForces() + sim_.currentSpringForces();
+      const Eigen::VectorXd& loads = sim_.springNodes().empty() ? sim_.externalForces() : with_springs;
+      r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, loads, sim_.lumpedMass(),
+                                sim_.params().gravity_mps2, fixed_node_);
+    }
     if (r.step_fraction < 1.0) ++shortened_steps_;
     // A shortened step, or one with a recovering element, is no settled one.
     settle_run_ = r.settle.below && r.step_fraction == 1.0 && r.recovering_elements == 0 ? settle_run_ + 1 : 0;

@@ -34,7 +34,7 @@ SurfaceMorphing& ProneToSupinePipeline::ensureMorphing() {
 void ProneToSupinePipeline::setTrackingMode(bool on) {
   tracking_ = on;
   simulator().setMatrixReuse(on ? pipeline_detail::kTrackingMatrixReuse : 1);
-  stiff_->setLocalReversals(on);
+  stiff_->setTracking(on);
   if (slip_ && sliding_attached_) slip_->setHeld(on, simulator());
   if (morphing_forces_) morphing_forces_->setAlongNormal(on);
 }
