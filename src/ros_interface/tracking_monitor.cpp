@@ -120,7 +120,7 @@ void GuardedTracker::start(const core::ProneToSupinePipeline& p) {
   wall_nodes_ = mesh.hasNodeSet(core::node_sets::kChestWall) ? mesh.nodeSet(core::node_sets::kChestWall) : std::vector<int>();
   started_ = true;
   trusted_ = true;
-  good_in_row_ = refused_in_row_ = 0;
+  good_in_row_ = refused_in_row_ = taken_back_in_row_ = 0;
   reason_.clear();
 }
 
@@ -178,16 +178,21 @@ GuardedFrame GuardedTracker::frame(core::ProneToSupinePipeline& p, const core::P
     }
     p.copyState(last_good_);
     last_good_lesions_ = lesions;
+    taken_back_in_row_ = 0;
   } else {
     trusted_ = false;
     good_in_row_ = 0;
     reason_ = f.verdict.reason;
-    if (f.verdict.recovery == Recovery::kReference) {
+    const bool give_up_last_good = f.verdict.recovery == Recovery::kLastGood && ++taken_back_in_row_ >= limits_.recover_frames;
+    if (f.verdict.recovery == Recovery::kReference || give_up_last_good) {
       p.restore(reference_);
       last_good_ = reference_;
       last_good_lesions_ = reference_lesions_;
       tracker_.reset();
+      if (give_up_last_good)
+        reason_ += "; " + std::to_string(taken_back_in_row_) + " frames in a row did not fit the last good frame";
       reason_ += "; back to the precomputed state";
+      taken_back_in_row_ = 0;
     } else {
       p.restore(last_good_);
       reason_ += "; the frame was taken back";

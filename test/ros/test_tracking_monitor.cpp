@@ -180,6 +180,31 @@ TEST(GuardedTracker, AFrameOnAStiffenedMaterialIsTakenBack) {
   std::printf("[ measure  ] a frame with alpha 1 /Pa: %s\n", f.verdict.reason.c_str());
 }
 
+TEST(GuardedTracker, FramesThatKeepFailingTheLastGoodFrameGoBackToTheReference) {
+  // A last good frame that no cloud fits (here: scans slid 40 mm, which cover too little of the
+  // skin) is given up after recover_frames take-backs in a row: the model goes back to the
+  // precomputed state instead of being taken back to that frame for ever.
+  Scene s;
+  ros_interface::TrackerOptions to;
+  to.icp.enabled = false;  // ICP would refuse the slid scans before the monitor sees them
+  ros_interface::GuardedTracker g(to);
+  g.start(*s.pipeline_ptr);
+  const core::PipelineState reference = s.pipeline_ptr->state();
+  for (int k = 0; k < 10; ++k) ASSERT_TRUE(g.frame(*s.pipeline_ptr, s.scan(k)).valid);
+  const Eigen::VectorXd last_good = s.pipeline_ptr->state().simulation.displacement_m;
+  ASSERT_NE(last_good, reference.simulation.displacement_m);
+  for (int k = 0; k < g.limits().recover_frames; ++k) {
+    const auto f = g.frame(*s.pipeline_ptr, s.scan(10 + k, 0.04));
+    ASSERT_TRUE(f.track.tracked) << f.track.reason;
+    EXPECT_EQ(f.verdict.recovery, Recovery::kLastGood) << f.verdict.reason;
+    EXPECT_TRUE(f.restored);
+    const bool last = k + 1 == g.limits().recover_frames;
+    EXPECT_EQ(s.pipeline_ptr->state().simulation.displacement_m, last ? reference.simulation.displacement_m : last_good)
+        << "take-back " << k + 1;
+    if (last) EXPECT_NE(g.reason().find("did not fit the last good frame"), std::string::npos) << g.reason();
+  }
+}
+
 TEST(GuardedTracker, RefusedCloudsInARowMakeTheLesionsInvalidUntilAFrameIsTracked) {
   Scene s;
   ros_interface::GuardedTracker g;

@@ -33,7 +33,10 @@ struct MonitorLimits {
   /// elements [-] (E_r − 1 gained): a frame whose step raised the global α ran on a breast stiffer
   /// than the tissue, and its lesions are that material's, not the patient's.
   double max_stiffening = 0.1;
-  /// Good frames in a row before the lesions are valid again. 5: a model taken back to the
+  /// Good frames in a row before the lesions are valid again; also the frames in a row taken back
+  /// to the last good frame after which that frame is given up for the reference (a last good
+  /// frame that already followed a slid scan part of the way fits neither the slid scan nor the
+  /// true skin, and every frame would be taken back to it for ever). 5: a model taken back to the
   /// reference under a scan slid 20 mm along the wall (ICP off) drifts back towards the slid scan,
   /// and with ANP it passed 3 frames within half the limits on its way (its lesions then valid
   /// 7–11 mm off for 31 frames), never 4 or 5 (docs/tracking.md).
@@ -105,6 +108,7 @@ class GuardedTracker {
   bool started_ = false;
   bool trusted_ = true;
   int good_in_row_ = 0, refused_in_row_ = 0;
+  int taken_back_in_row_ = 0;  // frames in a row taken back to the last good frame
   std::string reason_;
   core::PipelineState reference_, last_good_;
   core::Points reference_positions_, reference_lesions_, last_good_lesions_;
