@@ -114,7 +114,9 @@ void GuardedTracker::start(const core::ProneToSupinePipeline& p) {
   reference_positions_ = p.positions();
   reference_mean_ = reference_positions_.colwise().mean();
   reference_lesions_ = p.lesionPositions();
-  reference_alpha_ = p.stiffening().alpha();
+  // The larger of the α in use and the controller's: a release in progress at the start uses a
+  // smaller one, and the first restore (resync) ends it.
+  reference_alpha_ = std::max(p.stiffening().alpha(), p.stiffening().controller().alpha());
   last_good_lesions_ = reference_lesions_;
   const core::TetMesh& mesh = p.model().mesh;
   wall_nodes_ = mesh.hasNodeSet(core::node_sets::kChestWall) ? mesh.nodeSet(core::node_sets::kChestWall) : std::vector<int>();
@@ -189,8 +191,10 @@ GuardedFrame GuardedTracker::frame(core::ProneToSupinePipeline& p, const core::P
       last_good_ = reference_;
       last_good_lesions_ = reference_lesions_;
       tracker_.reset();
-      if (give_up_last_good)
+      if (give_up_last_good) {
+        f.verdict.recovery = Recovery::kReference;  // what was restored
         reason_ += "; " + std::to_string(taken_back_in_row_) + " frames in a row did not fit the last good frame";
+      }
       reason_ += "; back to the precomputed state";
       taken_back_in_row_ = 0;
     } else {

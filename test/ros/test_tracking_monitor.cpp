@@ -196,9 +196,9 @@ TEST(GuardedTracker, FramesThatKeepFailingTheLastGoodFrameGoBackToTheReference) 
   for (int k = 0; k < g.limits().recover_frames; ++k) {
     const auto f = g.frame(*s.pipeline_ptr, s.scan(10 + k, 0.04));
     ASSERT_TRUE(f.track.tracked) << f.track.reason;
-    EXPECT_EQ(f.verdict.recovery, Recovery::kLastGood) << f.verdict.reason;
-    EXPECT_TRUE(f.restored);
     const bool last = k + 1 == g.limits().recover_frames;
+    EXPECT_EQ(f.verdict.recovery, last ? Recovery::kReference : Recovery::kLastGood) << f.verdict.reason;
+    EXPECT_TRUE(f.restored);
     EXPECT_EQ(s.pipeline_ptr->state().simulation.displacement_m, last ? reference.simulation.displacement_m : last_good)
         << "take-back " << k + 1;
     if (last) EXPECT_NE(g.reason().find("did not fit the last good frame"), std::string::npos) << g.reason();
