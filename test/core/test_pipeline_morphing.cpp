@@ -56,10 +56,10 @@ TEST(Pipeline, AZeroDistanceTargetLeavesTheModelUnchanged) {
   EXPECT_NEAR(m.volume_change_percent, 0.0, 1e-6);
 }
 
-TEST(Pipeline, TrackingModeStiffensOnlyTheElementsThatWouldInvert) {
-  // A tracking frame is a small move about a settled state: a reversal in it stiffens the elements
-  // that would invert, not the whole breast (StiffeningSimulation::setTracking); the stages go back
-  // to the seed's global alpha.
+TEST(Pipeline, TrackingModeSwitchesTheStiffeningToTrackingFrames) {
+  // A tracking frame is a small move about a settled state: the stiffening driver's tracking frames
+  // (local reversals, one element update per step; their behaviour is tested in test_stiffening)
+  // are on while tracking, and the stages go back to the seed's rules.
   const SmallPhantom& p = phantom();
   ProneToSupinePipeline pipe(p.c, p.m, PipelineSettings{});
   EXPECT_FALSE(pipe.stiffening().tracking());
