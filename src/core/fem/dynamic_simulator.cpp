@@ -399,13 +399,20 @@ void DynamicSimulator::clearNodeSprings() {
 
 Eigen::VectorXd DynamicSimulator::currentSpringForces() const {
   Eigen::VectorXd f = Eigen::VectorXd::Zero(3 * num_nodes_);
+  addCurrentSpringForces(f);
+  return f;
+}
+
+void DynamicSimulator::addCurrentSpringForces(Eigen::VectorXd& f) const {
+  if (f.size() != 3 * num_nodes_)
+    throw std::invalid_argument("addCurrentSpringForces: the vector has " + std::to_string(f.size()) +
+                                " entries, the model 3 x " + std::to_string(num_nodes_));
   for (size_t i = 0; i < spring_nodes_.size(); ++i) {
     const int n = spring_nodes_[i];
     const Eigen::Vector3d x = rest_.row(n).transpose() + state_.displacement_m.segment<3>(3 * n);
-    f.segment<3>(3 * n) = -spring_k_[i] * (x - spring_anchor_.row(static_cast<Eigen::Index>(i)).transpose()) +
-                          spring_constant_.row(static_cast<Eigen::Index>(i)).transpose();
+    f.segment<3>(3 * n) += -spring_k_[i] * (x - spring_anchor_.row(static_cast<Eigen::Index>(i)).transpose()) +
+                           spring_constant_.row(static_cast<Eigen::Index>(i)).transpose();
   }
-  return f;
 }
 
 void DynamicSimulator::restore(const SimulationState& s) {

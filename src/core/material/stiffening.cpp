@@ -316,9 +316,12 @@ void StiffeningSimulation::clearExternalForces() {
 
 void StiffeningSimulation::refreshStress() {
   f_el_ = sim_.elasticForces();
-  const Eigen::VectorXd& vm = sim_.elements().vonMisesStress();
-  const Eigen::VectorXd& er = sim_.elements().modulusFactors();
-  base_stress_ = vm.cwiseQuotient(er);
+  stressFromElements();
+}
+
+void StiffeningSimulation::stressFromElements() {
+  const ElementFormulation& el = sim_.elements();
+  base_stress_ = el.vonMisesStress().cwiseQuotient(el.modulusFactors());
 }
 
 void StiffeningSimulation::setModuli(const Eigen::VectorXd& stress) {
@@ -519,15 +522,11 @@ StiffeningStepResult StiffeningSimulation::step() {
       }
     }
   }
-  if (tracking_ && r.advanced) {
-    // The next step's moduli from the stress at this step's start: the elements still hold the
-    // update the step began with (a shortened step restores no update, a reverted trial is updated
-    // again by the repeat).
-    const ElementFormulation& el = sim_.elements();
-    base_stress_ = el.vonMisesStress().cwiseQuotient(el.modulusFactors());
-  } else {
-    refreshStress();
-  }
+  // Tracking: the next step's moduli from the stress at this step's start: the elements still hold
+  // the update the step began with (a shortened step restores no update, a reverted trial is
+  // updated again by the repeat).
+  if (tracking_ && r.advanced) stressFromElements();
+  else refreshStress();
   // An accepted step with reversal was just checked: no element is inverted at this state, unless
   // one is still recovering.
   last_inverted_ = reversal && r.advanced && r.recovering_elements == 0 ? 0 : countInverted();
@@ -538,12 +537,14 @@ StiffeningStepResult StiffeningSimulation::step() {
     const std::vector<char>& dofs = sim_.constrainedDofs();
     for (int n = 0; n < mesh_.numNodes(); ++n) fixed_node_[n] = dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2];
     // Node springs (implicit sliding, wall_slip.h) are loads on their nodes like external forces.
-    // (No copy of the external forces on the path without springs.) Tracking frames have no
+    // (Without springs the external forces themselves, with them a kept buffer.) Tracking frames have no
     // elastic forces at the end of the step and do not settle.
     if (!tracking_) {
-      Eigen::VectorXd with_springs;
-      if (!sim_.springNodes().empty()) with_springs = sim_.externalForces() + sim_.currentSpringForces();
-      const Eigen::VectorXd& loads = sim_.springNodes().empty() ? sim_.externalForces() : with_springs;
+      if (!sim_.springNodes().empty()) {
+        loads_ = sim_.externalForces();
+        sim_.addCurrentSpringForces(loads_);
+      }
+      const Eigen::VectorXd& loads = sim_.springNodes().empty() ? sim_.externalForces() : loads_;
       r.settle = evaluateSettle(params_.settle, sim_.state().velocity_mps, f_el_, loads, sim_.lumpedMass(),
                                 sim_.params().gravity_mps2, fixed_node_);
     }

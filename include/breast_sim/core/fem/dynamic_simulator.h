@@ -105,6 +105,9 @@ class DynamicSimulator {
   const Eigen::VectorXd& springForces() const { return spring_force_; }
   /// Spring forces at the current state [N], 3N (computed now).
   Eigen::VectorXd currentSpringForces() const;
+  /// The same added to `f` (3N [N]), without a vector of its own (for loops that ask every step).
+  /// @throws std::invalid_argument when f does not have 3N entries.
+  void addCurrentSpringForces(Eigen::VectorXd& f) const;
 
   /// Adds to the per-node external forces [N]; they accumulate until clearExternalForces() (used by
   /// surface morphing). Gravity is separate (params().gravity_mps2).

@@ -362,6 +362,7 @@ class StiffeningSimulation {
 
  private:
   void refreshStress();  // elastic update at the current state: base stress, f_el
+  void stressFromElements();  // base stress from the elements' last update (no update)
   void setModuli(const Eigen::VectorXd& stress);
   void pushHistory();
   void loadChanged();  // restarts the settle count and ends a release
@@ -382,6 +383,7 @@ class StiffeningSimulation {
   bool tracking_ = false;
   std::vector<char> fixed_node_;  // per node: constrained in the simulator (refreshed per accepted step)
   Eigen::VectorXd base_stress_, trial_stress_, f_el_;
+  Eigen::VectorXd loads_;  // step(): external and spring forces for the settle check (kept buffer)
   Eigen::VectorXd modulus_buffer_;  // setModuli(): the new factors before they are handed on (kept buffer)
   std::vector<char> invalid_flags_;  // invalidElements(): per element, invalid at the end of the trial (kept buffer)
   Points x_;
