@@ -275,8 +275,14 @@ TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
   for (Eigen::Index i = 0; i < l0.rows(); ++i) EXPECT_GT(l1(i, 1) - l0(i, 1), 1e-3) << "lesion " << i;
 
   const fs::path file = fs::temp_directory_path() / "breast_sim_pipeline_state.bin";
+  // A local alpha (a release's or a tracking frame's) is part of the state: the moduli of the steps
+  // after a restore depend on it.
+  Eigen::VectorXd local_alpha = Eigen::VectorXd::Zero(p.m.mesh.numTets());
+  local_alpha[3] = 1e-3;
+  pipe.stiffening().setElementAlpha(local_alpha);
   pipe.saveState(file.string());
   const PipelineState saved = pipe.state();
+  EXPECT_EQ(saved.element_alpha_per_pa, local_alpha);
   pipe.setGravityLoad(Eigen::Vector3d(5, 0, 0));
   pipe.stiffening().step();
   ASSERT_GT((pipe.simulator().state().displacement_m - saved.simulation.displacement_m).norm(), 0.0);
@@ -285,6 +291,7 @@ TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
   EXPECT_EQ(pipe.simulator().state().velocity_mps, saved.simulation.velocity_mps);
   EXPECT_EQ(pipe.modulusFactors(), saved.modulus_factors);
   EXPECT_EQ(pipe.stiffening().controller().alpha(), saved.alpha.alpha_per_pa);
+  EXPECT_EQ(pipe.stiffening().elementAlpha(), local_alpha) << "the gravity change dropped them; the file has them";
   // The gravity load comes back with the state (it was the supine load), from the file and from
   // memory; without it a state loaded after a table tilt would go on under the tilted load.
   EXPECT_EQ(saved.gravity_load_mps2, pipe.supineGravityLoad());
@@ -292,13 +299,15 @@ TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
   pipe.setGravityLoad(Eigen::Vector3d(5, 0, 0));
   pipe.restore(saved);
   EXPECT_EQ(pipe.gravityLoad(), saved.gravity_load_mps2);
+  EXPECT_EQ(pipe.stiffening().elementAlpha(), local_alpha);
   // A file of the format before (no gravity load at its end) loads under the supine load.
   {
     PipelineState tilted = saved;
     tilted.gravity_load_mps2 = Eigen::Vector3d(1, 2, 3);
     pipe.restore(tilted);
     pipe.saveState(file.string());
-    fs::resize_file(file, fs::file_size(file) - 2 * sizeof(std::int64_t) - (3 + 3 * p.m.mesh.numNodes()) * sizeof(double));
+    fs::resize_file(file, fs::file_size(file) - 3 * sizeof(std::int64_t) -
+                              (3 + 3 * p.m.mesh.numNodes() + p.m.mesh.numTets()) * sizeof(double));
     pipe.loadState(file.string());
     EXPECT_EQ(pipe.gravityLoad(), pipe.supineGravityLoad());
     EXPECT_EQ(pipe.simulator().state().displacement_m, saved.simulation.displacement_m);
@@ -313,6 +322,19 @@ TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
     }
     EXPECT_EQ(pipe.simulator().state().displacement_m, saved.simulation.displacement_m);
     EXPECT_EQ(pipe.gravityLoad(), pipe.supineGravityLoad());
+    // So are local alphas of another model or a negative one.
+    tilted = saved;
+    tilted.simulation.displacement_m.setZero();
+    for (const Eigen::VectorXd& bad : {Eigen::VectorXd(Eigen::VectorXd::Zero(2)), Eigen::VectorXd(-local_alpha)}) {
+      tilted.element_alpha_per_pa = bad;
+      try {
+        pipe.restore(tilted);
+        FAIL();
+      } catch (const std::invalid_argument& e) {
+        EXPECT_NE(std::string(e.what()).find("local alpha"), std::string::npos) << e.what();
+      }
+      EXPECT_EQ(pipe.simulator().state().displacement_m, saved.simulation.displacement_m);
+    }
     pipe.saveState(file.string());  // the state file again, for the checks below
   }
 

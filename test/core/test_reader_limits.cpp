@@ -80,6 +80,7 @@ StateFile smallState() {
   s.gravity_load_mps2 = Eigen::Vector3d(0.0, 9.81, 9.81);
   f.has_gravity_load = f.has_rest_shape = true;
   f.rest_m = Points::Constant(4, 3, 0.02);
+  s.element_alpha_per_pa = Eigen::VectorXd::Constant(1, 3e-5);
   return f;
 }
 
@@ -123,6 +124,7 @@ TEST(StateFile, RoundTripsEverySection) {
   EXPECT_EQ(g.state.gravity_load_mps2, f.state.gravity_load_mps2);
   EXPECT_TRUE(g.has_rest_shape);
   EXPECT_EQ(g.rest_m, f.rest_m);
+  EXPECT_EQ(g.state.element_alpha_per_pa, f.state.element_alpha_per_pa);
   // No temporary is left beside the file.
   int files = 0;
   for (const auto& entry : std::filesystem::directory_iterator(dir.path(""))) files += entry.is_regular_file();
@@ -133,15 +135,18 @@ TEST(StateFile, ReadsFilesOfEarlierVersions) {
   TempDir dir("state_file");
   writeStateFile(dir.path("s.bin"), smallState());
   const std::string full = readBytes(dir.path("s.bin"));
-  // Without the rest shape, then also without the gravity load, then also without slip directions.
-  const std::size_t ends[] = {sectionOffset(full, 9), sectionOffset(full, 8), sectionOffset(full, 7)};
-  for (int k = 0; k < 3; ++k) {
+  // Without the local alphas, then also without the rest shape, then also without the gravity load,
+  // then also without slip directions.
+  const std::size_t ends[] = {sectionOffset(full, 10), sectionOffset(full, 9), sectionOffset(full, 8),
+                              sectionOffset(full, 7)};
+  for (int k = 0; k < 4; ++k) {
     SCOPED_TRACE(k);
     writeBytes(dir.path("old.bin"), full.substr(0, ends[k]));
     const StateFile g = readStateFile(dir.path("old.bin"));
-    EXPECT_FALSE(g.has_rest_shape);
-    EXPECT_EQ(g.has_gravity_load, k == 0);
-    EXPECT_EQ(g.state.sliding_slip_directions.rows(), k == 2 ? 0 : 2);
+    EXPECT_EQ(g.state.element_alpha_per_pa.size(), 0);
+    EXPECT_EQ(g.has_rest_shape, k == 0);
+    EXPECT_EQ(g.has_gravity_load, k <= 1);
+    EXPECT_EQ(g.state.sliding_slip_directions.rows(), k == 3 ? 0 : 2);
   }
 }
 
@@ -209,6 +214,8 @@ TEST(StateFile, RefusesNonFiniteValues) {
       {4, 0, 0.0, "the modulus factor of element 0 is 0"},
       {8, 1, inf, "value 1 of the gravity load section is inf"},
       {9, 11, std::nan(""), "value 11 of the rest shape section is nan"},
+      {10, 0, inf, "value 0 of the local alpha section is inf"},
+      {10, 0, -1e-6, "the local alpha of element 0 is -9.9999999999999995e-07 1/Pa"},
       {0, 2, inf, "value 2 of the header section is inf"},
   };
   for (const Case& c : cases) {
@@ -230,6 +237,13 @@ TEST(StateFile, RefusesSectionsThatDoNotMatchTheHeader) {
   expectError([&] { readStateFile(dir.path("nodes.bin")); },
               {"the displacement section has 12 values, expected 15 (5 nodes in the header)"});
   bytes = readBytes(dir.path("s.bin"));
+  std::string alphas = bytes.substr(0, sectionOffset(bytes, 10));  // two local alphas for one element
+  const std::int64_t two = 2;
+  const double a[2] = {1e-5, 1e-5};
+  alphas.append(reinterpret_cast<const char*>(&two), 8).append(reinterpret_cast<const char*>(a), 16);
+  writeBytes(dir.path("alphas.bin"), alphas);
+  expectError([&] { readStateFile(dir.path("alphas.bin")); },
+              {"the local alpha section has 2 values, expected 1 (1 elements in the header, or none)"});
   writeBytes(dir.path("trailing.bin"), bytes + "xyz");
   expectError([&] { readStateFile(dir.path("trailing.bin")); }, {"3 bytes follow the last section"});
   writeBytes(dir.path("truncated.bin"), bytes.substr(0, sectionOffset(bytes, 3) + 4));

@@ -580,6 +580,32 @@ TEST(Stiffening, TrackingFramesStiffenOnlyTheElementsThatWouldInvertAndHoldTheGl
             << s.final_alpha_per_pa << " /Pa (global reversals raised alpha in " << global_raised << " steps)\n";
 }
 
+// Tracking frames: a step that its local α's cannot keep valid (here every element is held at
+// max_modulus_factor 1.2, too soft for the load) is given up after kTrackingReversals solves
+// (not max_reversals_per_step), with the state left where the step began.
+TEST(Stiffening, ATrackingStepTheLocalAlphasCannotFixIsGivenUpAfterAFewSolves) {
+  StiffeningParams p;
+  p.max_modulus_factor = 1.2;
+  PhantomSim tracked = makePhantomSim(0.1, p);
+  tracked.stiff->setTracking(true);
+  ASSERT_GT(p.max_reversals_per_step, StiffeningSimulation::kTrackingReversals);
+  int given_up = 0;
+  for (int i = 0; i < 40 && given_up == 0; ++i) {
+    const Eigen::VectorXd start = tracked.sim->state().displacement_m;
+    const StiffeningStepResult r = tracked.stiff->step();
+    EXPECT_LE(r.reversals, StiffeningSimulation::kTrackingReversals) << "step " << i;
+    if (!r.advanced) {
+      ++given_up;
+      EXPECT_TRUE(r.reversal_limit_hit);
+      EXPECT_EQ(r.reversals, StiffeningSimulation::kTrackingReversals);
+      EXPECT_EQ((tracked.sim->state().displacement_m - start).cwiseAbs().maxCoeff(), 0.0) << "left where it began";
+      EXPECT_EQ(r.inverted_elements, 0);
+      EXPECT_GT(tracked.stiff->stats().locally_stiffened_elements, 0);
+    }
+  }
+  EXPECT_GT(given_up, 0) << "the load must defeat the capped moduli for the test to mean anything";
+}
+
 // Tracking frames take the next step's moduli from the stress at the start of the step (no second
 // element update at its end); switching tracking off brings the stress up to the current state.
 TEST(Stiffening, TrackingFramesTakeTheStressAtTheStepsStartAndCatchUpWhenSwitchedOff) {

@@ -421,6 +421,21 @@ void StiffeningSimulation::revertTo(int k) {
   loadChanged();
 }
 
+void StiffeningSimulation::setElementAlpha(const Eigen::VectorXd& alpha_per_pa) {
+  if (alpha_per_pa.size() == 0) {
+    element_alpha_.setZero();
+    return;
+  }
+  if (alpha_per_pa.size() != mesh_.numTets())
+    throw std::invalid_argument("local alphas: " + std::to_string(alpha_per_pa.size()) + " values for " +
+                                std::to_string(mesh_.numTets()) + " elements (one per element, or none)");
+  for (Eigen::Index e = 0; e < alpha_per_pa.size(); ++e)
+    if (!(alpha_per_pa[e] >= 0.0) || !std::isfinite(alpha_per_pa[e]))
+      throw std::invalid_argument("local alphas: element " + std::to_string(e) + " has " +
+                                  std::to_string(alpha_per_pa[e]) + " /Pa; a local alpha is finite and >= 0");
+  element_alpha_ = alpha_per_pa;
+}
+
 void StiffeningSimulation::setTracking(bool on) {
   if (tracking_ && !on) refreshStress();
   tracking_ = on;
@@ -449,6 +464,8 @@ StiffeningStepResult StiffeningSimulation::step() {
     saved = sim_.state();
     Eigen::VectorXd& stress = trial_stress_;  // the stress the trials' moduli follow (a kept buffer)
     stress = base_stress_;
+    const int max_reversals = tracking_ ? std::min(params_.max_reversals_per_step, kTrackingReversals)
+                                        : params_.max_reversals_per_step;
     for (int attempt = 1;; ++attempt) {
       setModuli(stress);
       bool solved = true;
@@ -507,7 +524,7 @@ StiffeningStepResult StiffeningSimulation::step() {
         releasing_ = false;  // a failed solve: the controller's search again
         controller_.onReversed(attempt);
       }
-      if (attempt >= params_.max_reversals_per_step) {
+      if (attempt >= max_reversals) {
         r.reversal_limit_hit = true;
         ++limit_hits_;
         if (releasing_) {

@@ -22,6 +22,7 @@ void ProneToSupinePipeline::fillState(PipelineState& s) const {
   s.simulation = simulator().state();
   s.modulus_factors = simulator().elements().modulusFactors();
   s.alpha = stiff_->controller().state();
+  s.element_alpha_per_pa = stiff_->elementAlpha();
   if (sliding_) s.sliding_targets_m = sliding_->targets();
   if (slip_ && sliding_attached_) {
     s.sliding_targets_m = slip_->stickPoints();  // positions, not displacements
@@ -50,6 +51,12 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
                                 " nodes, but sliding is " + (hasSliding() ? "on for " + std::to_string(sliding_nodes) + " nodes" : "off"));
   if (s.morphing_forces_n.rows() > 0 && !field_)
     throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
+  if (s.element_alpha_per_pa.size() != 0 && s.element_alpha_per_pa.size() != model_.mesh.numTets())
+    throw std::invalid_argument("pipeline state has local alphas for " + std::to_string(s.element_alpha_per_pa.size()) +
+                                " elements, this model has " + std::to_string(model_.mesh.numTets()));
+  if (s.element_alpha_per_pa.size() != 0 && !(s.element_alpha_per_pa.allFinite() && s.element_alpha_per_pa.minCoeff() >= 0.0))
+    throw std::invalid_argument("pipeline state has a local alpha that is negative or not finite (smallest " +
+                                std::to_string(s.element_alpha_per_pa.minCoeff()) + " /Pa)");
   if (!s.gravity_load_mps2.allFinite())
     throw std::invalid_argument("pipeline state has a gravity load that is not finite (norm " +
                                 std::to_string(s.gravity_load_mps2.norm()) + " m/s²)");
@@ -59,6 +66,7 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
   simulator().setGravity(s.gravity_load_mps2 + gravity_offset_mps2_);
   simulator().elements().setModulusFactors(s.modulus_factors);
   stiff_->controller().setState(s.alpha);
+  stiff_->setElementAlpha(s.element_alpha_per_pa);
   stiff_->resync();  // the stress the next moduli come from is this state's
   if (slip_ && s.sliding_targets_m.rows() > 0) {
     slip_->setStickPoints(s.sliding_targets_m, s.sliding_slip_directions);

@@ -192,6 +192,17 @@ StateFile readStateFile(const std::string& path) {
     f.rest_m = rows3(r, rest, "rest shape");
     f.has_rest_shape = true;
   }
+  s.element_alpha_per_pa.resize(0);
+  if (!r.atEnd()) {
+    s.element_alpha_per_pa = r.section("local alpha");
+    if (s.element_alpha_per_pa.size() != 0)
+      requireSize(r, s.element_alpha_per_pa, f.tets, "local alpha", std::to_string(f.tets) + " elements in the header, or none");
+    for (Eigen::Index t = 0; t < s.element_alpha_per_pa.size(); ++t) {
+      if (!(s.element_alpha_per_pa[t] >= 0.0))
+        r.fail("corrupt state file: the local alpha of element " + std::to_string(t) + " is " +
+               numberText(s.element_alpha_per_pa[t]) + " 1/Pa, expected >= 0");
+    }
+  }
   if (!r.atEnd())
     r.fail("corrupt state file: " + std::to_string(r.bytesLeft()) + " bytes follow the last section (at byte " +
            std::to_string(r.pos()) + ")");
@@ -203,7 +214,8 @@ void writeStateFile(const std::string& path, const StateFile& f) {
   const Eigen::Index n3 = 3 * static_cast<Eigen::Index>(f.nodes);
   if (f.nodes < 0 || f.tets < 0 || s.simulation.displacement_m.size() != n3 || s.simulation.velocity_mps.size() != n3 ||
       s.modulus_factors.size() != f.tets || !f.has_gravity_load || !f.has_rest_shape || f.rest_m.rows() != f.nodes ||
-      (s.sliding_slip_directions.rows() != 0 && s.sliding_slip_directions.rows() != s.sliding_targets_m.rows()))
+      (s.sliding_slip_directions.rows() != 0 && s.sliding_slip_directions.rows() != s.sliding_targets_m.rows()) ||
+      (s.element_alpha_per_pa.size() != 0 && s.element_alpha_per_pa.size() != f.tets))
     throw std::invalid_argument("writeStateFile: " + path + ": the state's sizes do not match its " +
                                 std::to_string(f.nodes) + " nodes and " + std::to_string(f.tets) +
                                 " elements, or its gravity load or rest shape is missing");
@@ -230,6 +242,7 @@ void writeStateFile(const std::string& path, const StateFile& f) {
   appendSection(out, flatten(s.sliding_slip_directions));
   appendSection(out, s.gravity_load_mps2.data(), 3);
   appendSection(out, flatten(f.rest_m));
+  appendSection(out, s.element_alpha_per_pa);
 
   // A temporary beside the target, renamed over it once complete: a crash mid-write leaves the old
   // file (or none), never half a state. open() with 0666 lets the umask set the mode as for any file.

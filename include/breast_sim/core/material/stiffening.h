@@ -165,7 +165,7 @@ struct StiffeningParams {
 struct StiffeningStepResult {
   bool advanced = false;       ///< a step without inversion was taken (or reversal is off)
   int reversals = 0;           ///< trial steps reverted in this call
-  bool reversal_limit_hit = false;  ///< max_reversals_per_step reached: state left at the start of the call
+  bool reversal_limit_hit = false;  ///< the reversal limit reached: state left at the start of the call
   int inverted_elements = 0;   ///< at the end of the call (0 with reversal on, unless the start had some)
   double alpha_per_pa = 0.0;   ///< after the call [1/Pa]
   /// The share of the solved step that was taken, in (0, 1]: below 1 when the step was shortened to
@@ -277,6 +277,11 @@ class StiffeningSimulation {
   static constexpr double kStepKeep = 0.25;
   /// Shortened steps: a smaller fraction is not taken; the step is reverted and repeated stiffer.
   static constexpr double kMinStepFraction = 0.05;
+  /// Tracking frames: a step still invalid after this many local reversals (the local α, then twice
+  /// and four times it) is given up for the frame instead of running max_reversals_per_step solves:
+  /// an element its stiffer neighbours still invert, or one at max_modulus_factor, is not fixed by
+  /// more doublings within the frame, and the tracker has the next frame (the doublings go on there).
+  static constexpr int kTrackingReversals = 3;
 
   /// One undo-history entry: restores the simulation exactly.
   struct HistoryEntry {
@@ -312,7 +317,7 @@ class StiffeningSimulation {
   ///    stiffen the whole breast for one collapsing skin element and move the lesions under an
   ///    unchanged skin (measured on the phantom tracking its own skin with ANP: up to 3.3 mm within
   ///    a frame, docs/speed_accuracy.md, "Tracking with ANP"). The local α's stay until the α
-  ///    search restarts from the initial α.
+  ///    search restarts from the initial α. At most kTrackingReversals reversals per step.
   ///  - A step's moduli come from the stress at the start of the step before (the element update
   ///    that step made anyway) instead of a second element update at its end, and the settle
   ///    criterion is not evaluated: one element update per step instead of two (2.8 ms of a 27 ms
@@ -332,7 +337,7 @@ class StiffeningSimulation {
   void resync();
 
   /// One step with reversal (see the class comment). Never loops more than max_reversals_per_step
-  /// times. A solver failure (non-finite solution, matrix not positive definite) counts as an
+  /// times (in tracking frames, kTrackingReversals). A solver failure (non-finite solution, matrix not positive definite) counts as an
   /// inversion.
   StiffeningStepResult step();
 
@@ -350,6 +355,12 @@ class StiffeningSimulation {
   AlphaController& controller() { return controller_; }
   DynamicSimulator& simulator() { return sim_; }
   const StiffeningParams& params() const { return params_; }
+  /// Local α per element [1/Pa], #T, 0 where none: the release's and the tracking frames' (class
+  /// comment). Part of a snapshot (PipelineState): the moduli of later steps depend on them.
+  const Eigen::VectorXd& elementAlpha() const { return element_alpha_; }
+  /// Sets the local α's of a restored snapshot; an empty vector clears them.
+  /// @throws std::invalid_argument for a size other than 0 or #T, or a value negative or not finite.
+  void setElementAlpha(const Eigen::VectorXd& alpha_per_pa);
   /// Base-material von Mises stress at the current state [Pa], #T.
   const Eigen::VectorXd& baseStress() const { return base_stress_; }
   /// The settle criterion holds (RunStats::settled), without computing the statistics: for the
@@ -396,7 +407,7 @@ class StiffeningSimulation {
   bool releasing_ = false;
   bool release_failed_ = false;  // the release hit the reversal limit under this load
   double release_alpha_ = 0.0, release_start_alpha_ = 0.0;  // [1/Pa]
-  Eigen::VectorXd element_alpha_;  // local α per element [1/Pa], 0 = none (release)
+  Eigen::VectorXd element_alpha_;  // local α per element [1/Pa], 0 = none (release, tracking)
   double excess_ = 0.0;
   double wall_ = 0.0;
   int last_inverted_ = 0;

@@ -297,6 +297,8 @@ struct PipelineState {
   SimulationState simulation;
   Eigen::VectorXd modulus_factors;
   AlphaController::State alpha;
+  /// Local α per element [1/Pa] (StiffeningSimulation::elementAlpha), #T; empty for none.
+  Eigen::VectorXd element_alpha_per_pa;
   /// #sliding nodes × 3 (empty when sliding is not attached): the explicit method's constraint
   /// targets (displacements [m]), the implicit method's stick points (positions [m]).
   Points sliding_targets_m;

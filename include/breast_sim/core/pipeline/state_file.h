@@ -14,6 +14,7 @@
 ///   6. sliding targets (3·k) [m]      7. morphing forces (3·m) [N]
 /// and, each optional in this order (files of earlier versions end before them):
 ///   8. slip directions (0 or 3·k)     9. gravity load (3) [m/s²]      10. rest shape (3·nodes) [m]
+///  11. local α's (0 or tets) [1/Pa]
 
 #include <string>
 
@@ -35,12 +36,13 @@ struct StateFile {
 /// Reads and checks a state file. Checked before anything is allocated: each section's count
 /// against the bytes left in the file. Checked after: the header's counts are whole numbers in
 /// [0, 2^31), the section sizes match them (3·nodes, tets, multiples of 3, slip directions as many
-/// as sliding targets or none), every value is finite, modulus factors are > 0, the phase, stage
-/// and runs are valid codes, and nothing follows the last section.
+/// as sliding targets or none, local α's as many as tets or none), every value is finite, modulus
+/// factors are > 0, local α's ≥ 0, the phase, stage and runs are valid codes, and nothing follows
+/// the last section.
 /// @throws std::runtime_error whose message starts with the path and names the section and value.
 StateFile readStateFile(const std::string& path);
 
-/// Writes a state file (all ten sections; has_gravity_load and has_rest_shape must be set) through
+/// Writes a state file (all eleven sections; has_gravity_load and has_rest_shape must be set) through
 /// a temporary file in the same folder, flushed (fsync), renamed over `path` once complete and the
 /// folder flushed, so that a failed write or a crash never leaves half a state.
 /// @throws std::invalid_argument when sizes do not match nodes and tets;
