@@ -4,10 +4,11 @@
 // loaded with g_supine − g_prone (the chest wall fixed, no sliding), nodes and lesions. Prints tables;
 // --json FILE writes the same figures.
 //   bench_unloaded_state [--case config/phantom_default.yaml] [--elements 12000]
-//                        [--solver cholmod|aggregation] [--stiffening 0|1] [--tolerance-mm 0.01]
+//                        [--solver multigrid|aggregation|cholmod] [--stiffening 0|1] [--tolerance-mm 0.01]
 //                        [--max-iterations 30] [--no-supine] [--json FILE]
 // The case's `simulation:` map gives the material, elements and settle options (defaults: E 2 kPa,
-// ν 0.48, the co-rotated J − 1 element, stiffening on); --solver replaces its solver.
+// ν 0.48, the default element, stiffening on); --solver replaces its solver ('multigrid': the coarse
+// levels are meshed of the prone domain and moved to each X0, as the pipeline does).
 #include <cstdio>
 #include <fstream>
 #include <string>
@@ -19,6 +20,8 @@
 #include "breast_sim/core/fem/unloaded_state.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/model/point_embedding.h"
+#include "breast_sim/core/solver/multigrid.h"
 
 using namespace breast_sim::core;
 namespace bench = breast_sim::bench;
@@ -54,7 +57,7 @@ int main(int argc, char** argv) {
     else if (a == "--json") json_path = bench::argValue(argc, argv, i);
     else {
       std::fprintf(stderr,
-                   "usage: bench_unloaded_state [--case FILE] [--elements N] [--solver cholmod|aggregation] "
+                   "usage: bench_unloaded_state [--case FILE] [--elements N] [--solver multigrid|aggregation|cholmod] "
                    "[--stiffening 0|1] [--tolerance-mm MM] [--max-iterations N] [--no-supine] [--json FILE]\n");
       return 2;
     }
@@ -79,6 +82,23 @@ int main(int argc, char** argv) {
   UnloadedStateOptions o;
   o.tolerance_m = tolerance_mm * 1e-3;
   o.max_iterations = max_iterations;
+  double coarse_s = 0.0;
+  if (s.solver.kind == SolverSettings::Kind::kMultigrid) {
+    t0 = bench::Clock::now();
+    o.coarse_meshes = buildCoarseMeshes(c, model, s.solver.coarsening);
+    coarse_s = bench::since(t0);
+    std::printf("%zu coarse levels meshed in %.1f s (not in the recovery's time)\n", o.coarse_meshes.size(), coarse_s);
+  }
+  // The coarse levels moved to a rest shape `rest` (its nodes: the prone model's moved).
+  auto coarseOf = [&](const Points& rest) {
+    std::vector<TetMesh> moved;
+    const double anywhere_m = (model.mesh.nodes().colwise().maxCoeff() - model.mesh.nodes().colwise().minCoeff()).norm();
+    for (const TetMesh& level : o.coarse_meshes) {
+      const PointEmbedding at(model.mesh, level.nodes(), {}, anywhere_m);
+      moved.push_back(withNodes(level, level.nodes() + at.interpolate(rest - model.mesh.nodes())));
+    }
+    return moved;
+  };
   const UnloadedStateResult r = recoverUnloadedShape(model.mesh, s, g_prone, o);
   std::printf("\n%-5s %-12s %-13s %-12s %-8s %s\n", "iter", "max res mm", "mean res mm", "settle steps", "s", "step");
   nlohmann::json hist = nlohmann::json::array();
@@ -110,6 +130,8 @@ int main(int argc, char** argv) {
                         {"youngs_modulus_pa", s.material.youngs_modulus_pa},
                         {"poisson_ratio", s.material.poisson_ratio},
                         {"tolerance_mm", tolerance_mm},
+                        {"coarse_levels", o.coarse_meshes.size()},
+                        {"coarse_meshing_seconds", coarse_s},
                         {"converged", r.converged},
                         {"failure", r.failure},
                         {"iterations", r.iterations},
@@ -122,10 +144,10 @@ int main(int argc, char** argv) {
 
   if (supine && r.converged) {
     // Today's reference: the prone shape is stress-free and takes g_supine − g_prone.
-    const GravityLoading today = loadWithGravity(model.mesh, s, g_supine - g_prone, o.stiffening);
+    const GravityLoading today = loadWithGravity(model.mesh, s, g_supine - g_prone, o.stiffening, Points(), o.coarse_meshes);
     // The unloaded reference: X0 takes g_supine.
     const TetMesh rest = withNodes(model.mesh, r.unloaded_nodes_m);
-    const GravityLoading unloaded = loadWithGravity(rest, s, g_supine, o.stiffening);
+    const GravityLoading unloaded = loadWithGravity(rest, s, g_supine, o.stiffening, Points(), coarseOf(rest.nodes()));
     std::printf("\nsupine, prone + (g_supine - g_prone): %s, %d steps, %.1f s\n",
                 today.settled ? "settled" : today.failure.c_str(), today.steps, today.seconds);
     std::printf("supine, X0 + g_supine:               %s, %d steps, %.1f s\n",

@@ -620,7 +620,7 @@ PipelineSettings unloadedFixedWall(bool stiffening) {
 // prone shape. The run starts at the prone shape and stays there under prone gravity; under supine
 // gravity it settles where X0 loaded with supine gravity settles (loadWithGravity, the slow
 // reference beside the pipeline: another simulator, solver and stop rule). Multigrid: its coarse
-// levels are moved to X0.
+// levels are moved to each X0 of the recovery and to the final one.
 TEST(Pipeline, AnUnloadedReferenceStartsProneStaysProneUnderProneGravityAndLoadsX0Supine) {
   const SmallPhantom& p = phantom();
   const PipelineSettings s = unloadedFixedWall(false);
@@ -635,6 +635,17 @@ TEST(Pipeline, AnUnloadedReferenceStartsProneStaysProneUnderProneGravityAndLoads
               p.m.mesh.numTets(), u.iterations, 1e3 * u.max_residual_m, 1e3 * x0_gap, pipe.build().multigrid_levels - 1);
   EXPECT_GT(x0_gap, 1e-3);  // the phantom hangs by millimetres prone
   EXPECT_GT(pipe.build().multigrid_levels, 1);
+  // The recovery ran on the multigrid, its coarse levels moved to each X0; the slow reference, the
+  // recovery with CHOLMOD, finds the same X0.
+  const Eigen::Vector3d g_prone = s.simulation.gravity_mps2 * p.c.prone_gravity_direction.normalized();
+  SimulationSettings direct = s.simulation;
+  direct.solver.kind = SolverSettings::Kind::kCholmod;
+  const UnloadedStateResult by_cholmod = recoverUnloadedShape(p.m.mesh, direct, g_prone);
+  ASSERT_TRUE(by_cholmod.converged) << by_cholmod.failure;
+  const double solver_gap = (by_cholmod.unloaded_nodes_m - pipe.model().mesh.nodes()).rowwise().norm().maxCoeff();
+  std::printf("[ measure  ] X0 by multigrid - X0 by CHOLMOD: %.3g mm (%d and %d loadings)\n", 1e3 * solver_gap,
+              u.iterations, by_cholmod.iterations);
+  EXPECT_LE(solver_gap, 5 * UnloadedStateOptions{}.tolerance_m);
   EXPECT_EQ(&pipe.proneModel(), &p.m);
   EXPECT_LE(pipe.displacement().norm(), 1e-12);
   EXPECT_LE((pipe.lesionPositions() - p.m.lesion_embedding.positions(prone)).norm(), 1e-12);
@@ -652,7 +663,6 @@ TEST(Pipeline, AnUnloadedReferenceStartsProneStaysProneUnderProneGravityAndLoads
   SimulationSettings ref = s.simulation;
   ref.solver.kind = SolverSettings::Kind::kCholmod;
   ref.settle.increment_tolerance_m = 1e-7;
-  const Eigen::Vector3d g_prone = s.simulation.gravity_mps2 * p.c.prone_gravity_direction.normalized();
   const TetMesh x0 = withNodes(p.m.mesh, pipe.model().mesh.nodes());
   const GravityLoading r = loadWithGravity(x0, ref, pipe.supineGravityLoad() + g_prone, {}, prone - x0.nodes());
   ASSERT_TRUE(r.settled) << r.failure;

@@ -215,6 +215,10 @@ TEST(UnloadedState, BadInputThrowsNamingTheValue) {
   const std::string e = invalidArgumentOf([&] { recoverUnloadedShape(loadedCube(), mg, kGravity); });
   EXPECT_NE(e.find("'multigrid'"), std::string::npos) << e;
   EXPECT_NE(e.find("'aggregation' or 'cholmod'"), std::string::npos) << e;
+  UnloadedStateOptions with_levels;
+  with_levels.coarse_meshes.push_back(cube());
+  const std::string levels = invalidArgumentOf([&] { recoverUnloadedShape(loadedCube(), s, kGravity, with_levels); });
+  EXPECT_NE(levels.find("1 coarse meshes given for a solver other than 'multigrid'"), std::string::npos) << levels;
   SimulationSettings bad_set = s;
   bad_set.fixed_node_set = "chest_wal";
   const std::string f = invalidArgumentOf([&] { recoverUnloadedShape(loadedCube(), bad_set, kGravity); });

@@ -16,6 +16,7 @@
 
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/mesh/tet_quality.h"
+#include "breast_sim/core/model/point_embedding.h"
 
 namespace breast_sim::core {
 
@@ -29,6 +30,9 @@ constexpr int kMaxStuckCalls = 5;
 // The forward settles stop at an increment of at most this share of the iteration's tolerance
 // (docs/unloaded_state.md, "Forward settles").
 constexpr double kSettleToleranceShare = 0.25;
+// A forward loading from rest starts at the linearised static answer: one implicit step this long [s]
+// (the mass term M/dt² is then 10⁻⁷ of the stiffness at 2 kPa).
+constexpr double kLinearStartStep_s = 1e3;
 // A plain step that folds elements is halved down to this share of the residual before giving up.
 constexpr double kMinStepFraction = 1.0 / 64.0;
 
@@ -136,7 +140,7 @@ TetMesh withNodes(const TetMesh& mesh, const Points& nodes_m) {
 
 GravityLoading loadWithGravity(const TetMesh& rest, const SimulationSettings& settings,
                                const Eigen::Vector3d& gravity_mps2, const StiffeningParams& stiffening,
-                               const Points& initial_displacement_m) {
+                               const Points& initial_displacement_m, std::vector<TetMesh> coarse_meshes) {
   const auto t0 = Clock::now();
   if (initial_displacement_m.size() > 0 && initial_displacement_m.rows() != rest.numNodes())
     throw std::invalid_argument("loadWithGravity: initial_displacement_m has " +
@@ -146,14 +150,37 @@ GravityLoading loadWithGravity(const TetMesh& rest, const SimulationSettings& se
   SimulationSettings s = settings;
   s.dynamics.gravity_mps2 = gravity_mps2;
   const SettleOptions& so = s.settle;
-  SimulatorBuild b = buildSimulator(rest, s);
+  SimulatorBuild b = buildSimulator(rest, s, std::move(coarse_meshes));
   DynamicSimulator& sim = *b.simulator;
-  const bool displaced = initial_displacement_m.size() > 0 && initial_displacement_m.cwiseAbs().maxCoeff() > 0.0;
+  bool displaced = initial_displacement_m.size() > 0 && initial_displacement_m.cwiseAbs().maxCoeff() > 0.0;
   if (displaced) {
     SimulationState st = sim.state();
     st.displacement_m = flat(initial_displacement_m);
     st.velocity_mps.setZero();
     sim.restore(st);
+  } else if (gravity_mps2.norm() > 0.0) {
+    // From rest: first the linearised static answer, one implicit step so long that the mass term
+    // vanishes (K u = f); the settle then only corrects it. Kept only when it inverts nothing.
+    const SimulationState at_rest = sim.state();
+    DynamicsParams p = sim.params();
+    const double dt = p.time_step_s;
+    p.time_step_s = kLinearStartStep_s;
+    try {
+      sim.setParams(p);
+      sim.step();
+      SimulationState st = sim.state();
+      const bool valid = st.displacement_m.allFinite() &&
+                         invertedTets(rest.tets(), rest.nodes() + unflat(st.displacement_m)).empty();
+      st.velocity_mps.setZero();
+      st.time_s = at_rest.time_s;
+      st.step = at_rest.step;
+      sim.restore(valid ? st : at_rest);
+      displaced = valid;
+    } catch (const std::runtime_error&) {
+      sim.restore(at_rest);
+    }
+    p.time_step_s = dt;
+    sim.setParams(p);
   }
   auto finish = [&](std::string why) {
     out.failure = std::move(why);
@@ -245,10 +272,14 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
   SimulationSettings s = settings;
   s.dynamics.gravity_mps2 = gravity_mps2;
   s.validate();
-  if (s.solver.kind == SolverSettings::Kind::kMultigrid)
+  const bool multigrid = s.solver.kind == SolverSettings::Kind::kMultigrid;
+  if (multigrid && options.coarse_meshes.empty())
     throw std::invalid_argument(
-        "recoverUnloadedShape: solver 'multigrid' needs coarse meshes of each unloaded shape, which the iteration "
-        "does not have: choose 'aggregation' or 'cholmod'");
+        "recoverUnloadedShape: solver 'multigrid' needs the coarse levels of the loaded shape "
+        "(UnloadedStateOptions::coarse_meshes): give them, or choose 'aggregation' or 'cholmod'");
+  if (!multigrid && !options.coarse_meshes.empty())
+    throw std::invalid_argument("recoverUnloadedShape: " + std::to_string(options.coarse_meshes.size()) +
+                                " coarse meshes given for a solver other than 'multigrid'");
   if (!s.fixed_node_set.empty() && !loaded.hasNodeSet(s.fixed_node_set)) {
     throw std::invalid_argument("recoverUnloadedShape: fixed_node_set '" + s.fixed_node_set +
                                 "' is not a node set of the mesh" + loaded.nodeSetHint(s.fixed_node_set));
@@ -280,6 +311,27 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
   forward.settle.increment_tolerance_m =
       std::min(s.settle.increment_tolerance_m, kSettleToleranceShare * options.tolerance_m);
 
+  // The coarse levels' nodes in the loaded mesh, once: each loading moves them by X0 − loaded there.
+  std::vector<PointEmbedding> coarse_in_loaded;
+  if (multigrid) {
+    const double anywhere_m = (loaded.nodes().colwise().maxCoeff() - loaded.nodes().colwise().minCoeff()).norm();
+    for (const TetMesh& level : options.coarse_meshes) coarse_in_loaded.emplace_back(loaded, level.nodes(), std::vector<std::string>{}, anywhere_m);
+  }
+  auto coarseAt = [&](const Eigen::VectorXd& x) {
+    std::vector<TetMesh> moved;
+    const Points move = unflat(x - target);
+    for (size_t level = 0; level < options.coarse_meshes.size(); ++level) {
+      const TetMesh& c = options.coarse_meshes[level];
+      try {
+        moved.push_back(withNodes(c, c.nodes() + coarse_in_loaded[level].interpolate(move)));
+      } catch (const std::invalid_argument& e) {
+        throw std::runtime_error("coarse multigrid level " + std::to_string(level + 1) + " moved to X0: " + e.what() +
+                                 " (choose solver 'aggregation')");
+      }
+    }
+    return moved;
+  };
+
   UnloadedStateResult res;
   res.unloaded_nodes_m = unflat(x0);
   double best = std::numeric_limits<double>::infinity();
@@ -297,7 +349,14 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
   for (int k = 1; k <= options.max_iterations; ++k) {
     res.iterations = k;
     const TetMesh rest = withNodes(loaded, unflat(x0));  // x0 was checked for inverted elements
-    const GravityLoading l = loadWithGravity(rest, forward, gravity_mps2, options.stiffening, unflat(target - x0));
+    std::vector<TetMesh> coarse;
+    try {
+      coarse = coarseAt(x0);
+    } catch (const std::runtime_error& e) {
+      return fail(k, e.what());
+    }
+    const GravityLoading l =
+        loadWithGravity(rest, forward, gravity_mps2, options.stiffening, unflat(target - x0), std::move(coarse));
     if (!l.settled) {
       res.inverted_elements = l.inverted_elements;
       return fail(k, "the forward " + l.failure.substr(4));  // "the loading …" → "the forward loading …"

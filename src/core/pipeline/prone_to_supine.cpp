@@ -20,16 +20,34 @@
 namespace breast_sim::core {
 namespace {
 
-/// X0 for reference_state unloaded (null for prone), recovered with the run's element, stiffening
-/// and fixed wall. 'multigrid' recovers with 'aggregation': its coarse meshes would be of the prone
-/// domain, and the recovery builds a simulator per iteration.
+/// The multigrid's coarse levels of the prone domain: `given`, or meshed here (`seconds` set); none
+/// for the other solvers, which refuse given ones.
+std::vector<TetMesh> coarseLevels(const ModelCase& model_case, const SimulationModel& prone, const PipelineSettings& settings,
+                                  std::optional<std::vector<TetMesh>> given, double& seconds) {
+  if (settings.simulation.solver.kind != SolverSettings::Kind::kMultigrid) {
+    if (given && !given->empty())
+      throw std::invalid_argument("ProneToSupinePipeline: " + std::to_string(given->size()) +
+                                  " coarse meshes given, but they are used only by the solver 'multigrid' (the solver is '" +
+                                  SolverSettings::kindName(settings.simulation.solver.kind) + "')");
+    return {};
+  }
+  if (given) return std::move(*given);
+  const auto t = std::chrono::steady_clock::now();
+  std::vector<TetMesh> levels = buildCoarseMeshes(model_case, prone, settings.simulation.solver.coarsening);
+  seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+  return levels;
+}
+
+/// X0 for reference_state unloaded (null for prone), recovered with the run's element, stiffening,
+/// fixed wall and solver (the multigrid on `coarse`, the levels of the prone domain).
 std::unique_ptr<SimulationModel> unloadedModel(const ModelCase& model_case, const SimulationModel& prone,
-                                               const PipelineSettings& settings, UnloadedStateResult& result) {
+                                               const PipelineSettings& settings, const std::vector<TetMesh>& coarse,
+                                               UnloadedStateResult& result) {
   if (settings.simulation.reference_state != SimulationSettings::ReferenceState::kUnloaded) return nullptr;
-  SimulationSettings s = settings.simulation;
-  if (s.solver.kind == SolverSettings::Kind::kMultigrid) s.solver.kind = SolverSettings::Kind::kAggregation;
+  const SimulationSettings& s = settings.simulation;
   UnloadedStateOptions options;
   options.stiffening = settings.stiffening;
+  options.coarse_meshes = coarse;
   result = recoverUnloadedShape(prone.mesh, s, proneGravity(model_case, settings.simulation), options);
   if (!result.converged) {
     char best[160] = "";
@@ -108,25 +126,16 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
     : case_(model_case),
       settings_(validated(settings)),
       prone_model_(model),
-      unloaded_model_(unloadedModel(model_case, model, settings_, unloaded_)),
+      coarse_meshes_(coarseLevels(model_case, model, settings_, std::move(coarse_meshes), coarse_meshing_s_)),
+      unloaded_model_(unloadedModel(model_case, model, settings_, coarse_meshes_, unloaded_)),
       model_(unloaded_model_ ? *unloaded_model_ : model) {
   if (unloaded_model_) gravity_offset_mps2_ = proneGravity(case_, settings_.simulation);
   settings_.simulation.dynamics.gravity_mps2 = supineGravityLoad() + gravity_offset_mps2_;
   std::optional<std::vector<TetMesh>> coarse;
-  double meshing_s = 0.0;
-  if (settings_.simulation.solver.kind == SolverSettings::Kind::kMultigrid) {
-    const auto t = std::chrono::steady_clock::now();
-    coarse_meshes_ = coarse_meshes ? std::move(*coarse_meshes)
-                                   : buildCoarseMeshes(case_, prone_model_, settings_.simulation.solver.coarsening);
+  if (settings_.simulation.solver.kind == SolverSettings::Kind::kMultigrid)
     coarse = unloaded_model_ ? coarseMeshesOfRest(case_, prone_model_, model_.mesh, coarse_meshes_) : coarse_meshes_;
-    meshing_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
-  } else if (coarse_meshes && !coarse_meshes->empty()) {
-    throw std::invalid_argument("ProneToSupinePipeline: " + std::to_string(coarse_meshes->size()) +
-                                " coarse meshes given, but they are used only by the solver 'multigrid' (the solver is '" +
-                                SolverSettings::kindName(settings_.simulation.solver.kind) + "')");
-  }
   build_ = buildSimulator(case_, model_, settings_.simulation, std::move(coarse));  // fixes the fixed node set
-  build_.hierarchy_seconds += meshing_s;
+  build_.hierarchy_seconds += coarse_meshing_s_;
   if (unloaded_model_) {
     // The run starts at the prone shape, X0's equilibrium under prone gravity.
     SimulationState start = simulator().state();

@@ -29,6 +29,10 @@ struct UnloadedStateOptions {
   /// Where the iteration starts, #N×3 [m]; empty = the loaded shape itself. Fixed nodes are taken
   /// from the loaded shape whatever is given here.
   Points initial_unloaded_nodes_m;
+  /// Solver 'multigrid': its coarse levels, meshes of the loaded shape's domain as buildSimulator
+  /// takes them (coarsest last). Each loading moves them to its X0 by the displacement X0 − loaded
+  /// interpolated at their nodes (a preconditioner: the answer does not depend on them).
+  std::vector<TetMesh> coarse_meshes;
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
 };
@@ -82,13 +86,14 @@ struct UnloadedStateResult {
 /// limit end the run with converged = false and `failure` naming the iteration and the reason;
 /// none of them throws.
 /// @param loaded  the loaded shape with the node set settings.fixed_node_set (unless that is "")
-/// @param settings  material, elements, solver ('aggregation', 'cholmod' or 'jacobi-pcg'), settle
-///        options, fixed node set; settings.dynamics.gravity_mps2 is replaced by gravity_mps2
+/// @param settings  material, elements, solver ('multigrid' with options.coarse_meshes,
+///        'aggregation', 'cholmod' or 'jacobi-pcg'), settle options, fixed node set;
+///        settings.dynamics.gravity_mps2 is replaced by gravity_mps2
 /// @param gravity_mps2  the gravity of the loaded shape [m/s²] (prone: the image's prone gravity)
 /// @throws std::invalid_argument for non-finite gravity (naming it), invalid options or settings
-///         (naming the field), solver 'multigrid' (its coarse meshes are of the loaded domain, not
-///         of X0: choose 'aggregation' or 'cholmod'), a fixed node set the mesh lacks, an initial
-///         shape of the wrong size or with inverted elements.
+///         (naming the field), solver 'multigrid' without coarse meshes (naming 'aggregation' and
+///         'cholmod') or coarse meshes with another solver, a fixed node set the mesh lacks, an
+///         initial shape of the wrong size or with inverted elements.
 UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const SimulationSettings& settings,
                                          const Eigen::Vector3d& gravity_mps2, const UnloadedStateOptions& options = {});
 
@@ -103,17 +108,20 @@ struct GravityLoading {
 };
 
 /// Settles `rest` under `gravity_mps2` with settings.fixed_node_set held, from
-/// `initial_displacement_m` (#N×3 [m], empty = at rest): with settings.stiffening by the stiffening
+/// `initial_displacement_m` (#N×3 [m], empty = at rest: the linearised static answer first, one
+/// implicit step of 1000 s, kept when it inverts nothing): with settings.stiffening by the stiffening
 /// driver (`stiffening`) until it is settled at the base material's equilibrium and the largest step
 /// increment stayed within settings.settle.increment_tolerance_m for settings.settle.consecutive_steps
 /// steps (the α search starts at its floor when the start is displaced), else by settle(). Never
 /// throws for a loading that fails (a solver failure, no settling, inverted elements): `failure`
 /// says what happened.
+/// @param coarse_meshes  solver 'multigrid': its coarse levels, of rest's domain (buildSimulator)
 /// @throws std::invalid_argument as buildSimulator (settings, solver 'multigrid' without coarse
 ///         meshes, a missing node set) and for an initial displacement of the wrong size.
 GravityLoading loadWithGravity(const TetMesh& rest, const SimulationSettings& settings,
                                const Eigen::Vector3d& gravity_mps2, const StiffeningParams& stiffening = {},
-                               const Points& initial_displacement_m = Points());
+                               const Points& initial_displacement_m = Points(),
+                               std::vector<TetMesh> coarse_meshes = {});
 
 /// `mesh` with its nodes replaced by `nodes_m` (#N×3 [m]): the same elements, region labels and node
 /// sets. @throws std::invalid_argument for a row count that differs, or for elements that are inverted

@@ -319,8 +319,8 @@ Eigen::Vector3d proneGravity(const ModelCase& model_case, const SimulationSettin
 class ProneToSupinePipeline {
  public:
   /// With reference_state unloaded, first recovers X0 (recoverUnloadedShape with the run's element,
-  /// stiffening and fixed wall; solver 'multigrid' recovers with 'aggregation', then meshes its coarse
-  /// levels of the prone domain and moves them by the interpolated X0 − prone). Then builds the
+  /// stiffening, fixed wall and solver; the multigrid's coarse levels are meshed of the prone domain
+  /// and moved by the interpolated X0 − prone). Then builds the
   /// simulator (solver, multigrid levels) on the rest shape, the stiffening driver and, with sliding
   /// on, the chest-wall surface. `model_case` and `model` (the prone model) are kept by reference and
   /// must outlive this. The target of settings.morphing.target is read here ("phantom" needs a
@@ -489,13 +489,14 @@ class ProneToSupinePipeline {
   const ModelCase& case_;
   PipelineSettings settings_;  // validated first: the recovery of X0 below uses it
   const SimulationModel& prone_model_;
+  double coarse_meshing_s_ = 0.0;       // meshing the coarse levels [s] (0 when they were given)
+  std::vector<TetMesh> coarse_meshes_;  // the multigrid's coarse levels of the prone domain (before X0: it uses them)
   UnloadedStateResult unloaded_;
   std::unique_ptr<SimulationModel> unloaded_model_;  // prone_model_ with the nodes of X0 (reference_state unloaded)
   const SimulationModel& model_;                    // the rest model: *unloaded_model_ or prone_model_
   /// Gravity the rest shape feels besides the load (g_prone with reference_state unloaded, else 0)
   /// [m/s²]: the simulator's gravity is load + this.
   Eigen::Vector3d gravity_offset_mps2_ = Eigen::Vector3d::Zero();
-  std::vector<TetMesh> coarse_meshes_;  // the multigrid's coarse levels of the prone domain
   SimulatorBuild build_;
   std::unique_ptr<StiffeningSimulation> stiff_;
   std::unique_ptr<ChestWallSliding> sliding_;
