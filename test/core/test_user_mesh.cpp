@@ -177,7 +177,7 @@ TEST(UserMesh, APhantomModelWrittenOutIsTheSameCaseInEveryFormat) {
   reference.runGravity();
   ASSERT_TRUE(reference.gravityReport().converged);
 
-  for (const std::string& file : {"model.inp", "model.vtu", "model.vtk", "model.msh", "model.node"}) {
+  for (const std::string file : {"model.inp", "model.vtu", "model.vtk", "model.msh", "model.node"}) {
     SCOPED_TRACE(file);
     const bool in_mm = file == "model.inp" || file == "model.msh";
     TetMesh written = p.m.mesh;
