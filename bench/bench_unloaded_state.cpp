@@ -20,7 +20,6 @@
 #include "breast_sim/core/fem/unloaded_state.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
-#include "breast_sim/core/model/point_embedding.h"
 #include "breast_sim/core/solver/multigrid.h"
 
 using namespace breast_sim::core;
@@ -89,16 +88,6 @@ int main(int argc, char** argv) {
     coarse_s = bench::since(t0);
     std::printf("%zu coarse levels meshed in %.1f s (not in the recovery's time)\n", o.coarse_meshes.size(), coarse_s);
   }
-  // The coarse levels moved to a rest shape `rest` (its nodes: the prone model's moved).
-  auto coarseOf = [&](const Points& rest) {
-    std::vector<TetMesh> moved;
-    const double anywhere_m = (model.mesh.nodes().colwise().maxCoeff() - model.mesh.nodes().colwise().minCoeff()).norm();
-    for (const TetMesh& level : o.coarse_meshes) {
-      const PointEmbedding at(model.mesh, level.nodes(), {}, anywhere_m);
-      moved.push_back(withNodes(level, level.nodes() + at.interpolate(rest - model.mesh.nodes())));
-    }
-    return moved;
-  };
   const UnloadedStateResult r = recoverUnloadedShape(model.mesh, s, g_prone, o);
   std::printf("\n%-5s %-12s %-13s %-12s %-8s %s\n", "iter", "max res mm", "mean res mm", "settle steps", "s", "step");
   nlohmann::json hist = nlohmann::json::array();
@@ -147,7 +136,8 @@ int main(int argc, char** argv) {
     const GravityLoading today = loadWithGravity(model.mesh, s, g_supine - g_prone, o.stiffening, Points(), o.coarse_meshes);
     // The unloaded reference: X0 takes g_supine.
     const TetMesh rest = withNodes(model.mesh, r.unloaded_nodes_m);
-    const GravityLoading unloaded = loadWithGravity(rest, s, g_supine, o.stiffening, Points(), coarseOf(rest.nodes()));
+    const GravityLoading unloaded = loadWithGravity(rest, s, g_supine, o.stiffening, Points(),
+                                                    CoarseLevelMover(model.mesh, o.coarse_meshes).moved(rest.nodes() - model.mesh.nodes()));
     std::printf("\nsupine, prone + (g_supine - g_prone): %s, %d steps, %.1f s\n",
                 today.settled ? "settled" : today.failure.c_str(), today.steps, today.seconds);
     std::printf("supine, X0 + g_supine:               %s, %d steps, %.1f s\n",

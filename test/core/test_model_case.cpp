@@ -116,7 +116,9 @@ TEST(ModelCase, VictrePhantomMeshesWithChestWallAndNipple) {
   }
   EXPECT_EQ(odd, 0) << "boundary edges with an odd number of faces (holes)";
   EXPECT_LE(non_manifold, 10) << "edges shared by more than two boundary faces";
-  if (non_manifold == 0) EXPECT_TRUE(isClosedManifold(b));
+  if (non_manifold == 0) {
+    EXPECT_TRUE(isClosedManifold(b));
+  }
   EXPECT_EQ(m.quality.num_inverted, 0);
   EXPECT_NEAR(m.mesh.numTets() / 8000.0, 1.0, 0.25);
   EXPECT_NEAR(m.mesh.volume() / m.meshing.voxel_volume_m3, 1.0, 0.03);

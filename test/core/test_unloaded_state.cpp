@@ -252,3 +252,25 @@ TEST(UnloadedState, WithNodesKeepsTheElementsAndNodeSetsAndRefusesInvertedElemen
   mirrored.col(2) *= -1.0;
   EXPECT_NE(invalidArgumentOf([&] { withNodes(cube(), mirrored); }).find("inverted"), std::string::npos);
 }
+
+// The multigrid's coarse levels follow the fine mesh: a rigid move of the fine nodes moves them by
+// the same, a fold of the fine mesh that inverts a level is refused naming the level.
+TEST(UnloadedState, CoarseLevelsMoveWithTheFineMesh) {
+  const TetMesh coarse = makeBoxMesh({2, 2, 2}, {0.04, 0.04, 0.04});
+  const CoarseLevelMover mover(cube(), {coarse});
+  const Eigen::RowVector3d shift(0.003, -0.002, 0.001);
+  const Points move = shift.replicate(cube().numNodes(), 1);
+  const std::vector<TetMesh> moved = mover.moved(move);
+  ASSERT_EQ(moved.size(), 1u);
+  EXPECT_LT((moved[0].nodes() - coarse.nodes() - shift.replicate(coarse.numNodes(), 1)).cwiseAbs().maxCoeff(), 1e-15);
+  EXPECT_EQ(moved[0].tets(), coarse.tets());
+  Points mirror = -2.0 * cube().nodes();
+  mirror.col(1).setZero();
+  mirror.col(2).setZero();  // x -> -x: every element turned over
+  try {
+    mover.moved(mirror);
+    ADD_FAILURE() << "an inverted level was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("coarse multigrid level 1"), std::string::npos) << e.what();
+  }
+}

@@ -16,7 +16,6 @@
 
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/mesh/tet_quality.h"
-#include "breast_sim/core/model/point_embedding.h"
 
 namespace breast_sim::core {
 
@@ -122,6 +121,27 @@ void UnloadedStateOptions::validate() const {
   } catch (const std::invalid_argument& e) {
     throw std::invalid_argument(std::string("recoverUnloadedShape: stiffening: ") + e.what());
   }
+}
+
+CoarseLevelMover::CoarseLevelMover(const TetMesh& fine, std::vector<TetMesh> levels) : levels_(std::move(levels)) {
+  if (levels_.empty()) return;
+  // Anywhere: a coarse node outside the fine mesh (coarse boundaries cut corners) snaps to it.
+  const double anywhere_m = (fine.nodes().colwise().maxCoeff() - fine.nodes().colwise().minCoeff()).norm();
+  for (const TetMesh& level : levels_) at_.emplace_back(fine, level.nodes(), std::vector<std::string>{}, anywhere_m);
+}
+
+std::vector<TetMesh> CoarseLevelMover::moved(const Points& fine_move_m) const {
+  std::vector<TetMesh> out;
+  out.reserve(levels_.size());
+  for (size_t level = 0; level < levels_.size(); ++level) {
+    const TetMesh& c = levels_[level];
+    try {
+      out.push_back(withNodes(c, c.nodes() + at_[level].interpolate(fine_move_m)));
+    } catch (const std::invalid_argument& e) {
+      throw std::invalid_argument("coarse multigrid level " + std::to_string(level + 1) + ": " + e.what());
+    }
+  }
+  return out;
 }
 
 TetMesh withNodes(const TetMesh& mesh, const Points& nodes_m) {
@@ -312,25 +332,7 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
       std::min(s.settle.increment_tolerance_m, kSettleToleranceShare * options.tolerance_m);
 
   // The coarse levels' nodes in the loaded mesh, once: each loading moves them by X0 − loaded there.
-  std::vector<PointEmbedding> coarse_in_loaded;
-  if (multigrid) {
-    const double anywhere_m = (loaded.nodes().colwise().maxCoeff() - loaded.nodes().colwise().minCoeff()).norm();
-    for (const TetMesh& level : options.coarse_meshes) coarse_in_loaded.emplace_back(loaded, level.nodes(), std::vector<std::string>{}, anywhere_m);
-  }
-  auto coarseAt = [&](const Eigen::VectorXd& x) {
-    std::vector<TetMesh> moved;
-    const Points move = unflat(x - target);
-    for (size_t level = 0; level < options.coarse_meshes.size(); ++level) {
-      const TetMesh& c = options.coarse_meshes[level];
-      try {
-        moved.push_back(withNodes(c, c.nodes() + coarse_in_loaded[level].interpolate(move)));
-      } catch (const std::invalid_argument& e) {
-        throw std::runtime_error("coarse multigrid level " + std::to_string(level + 1) + " moved to X0: " + e.what() +
-                                 " (choose solver 'aggregation')");
-      }
-    }
-    return moved;
-  };
+  const CoarseLevelMover coarse_levels(loaded, multigrid ? options.coarse_meshes : std::vector<TetMesh>{});
 
   UnloadedStateResult res;
   res.unloaded_nodes_m = unflat(x0);
@@ -351,9 +353,10 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
     const TetMesh rest = withNodes(loaded, unflat(x0));  // x0 was checked for inverted elements
     std::vector<TetMesh> coarse;
     try {
-      coarse = coarseAt(x0);
-    } catch (const std::runtime_error& e) {
-      return fail(k, e.what());
+      coarse = coarse_levels.moved(unflat(x0 - target));
+    } catch (const std::invalid_argument& e) {
+      return fail(k, std::string("the multigrid's coarse levels moved to this X0: ") + e.what() +
+                         " (choose solver 'aggregation')");
     }
     const GravityLoading l =
         loadWithGravity(rest, forward, gravity_mps2, options.stiffening, unflat(target - x0), std::move(coarse));

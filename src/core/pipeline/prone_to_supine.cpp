@@ -13,7 +13,6 @@
 #include "breast_sim/core/fem/equilibrium.h"
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/phantom.h"
-#include "breast_sim/core/model/point_embedding.h"
 #include "breast_sim/core/solver/multigrid.h"
 #include "breast_sim/core/thread_budget.h"
 
@@ -65,24 +64,15 @@ std::unique_ptr<SimulationModel> unloadedModel(const ModelCase& model_case, cons
 }
 
 /// The multigrid's coarse levels `coarse` of the prone model's domain moved to the rest shape `rest`
-/// by the displacement rest − prone interpolated at their nodes (a coarse node outside the fine mesh
-/// takes the value at its closest point).
+/// by the displacement rest − prone interpolated at their nodes.
 std::vector<TetMesh> coarseMeshesOfRest(const ModelCase& model_case, const SimulationModel& prone, const TetMesh& rest,
-                                        std::vector<TetMesh> coarse) {
-  const Points move = rest.nodes() - prone.mesh.nodes();
-  const Eigen::Vector3d lo = prone.mesh.nodes().colwise().minCoeff().transpose();
-  const Eigen::Vector3d hi = prone.mesh.nodes().colwise().maxCoeff().transpose();
-  const double anywhere_m = (hi - lo).norm();
-  for (size_t level = 0; level < coarse.size(); ++level) {
-    const PointEmbedding at(prone.mesh, coarse[level].nodes(), {}, anywhere_m);
-    try {
-      coarse[level] = withNodes(coarse[level], coarse[level].nodes() + at.interpolate(move));
-    } catch (const std::invalid_argument& e) {
-      throw std::runtime_error("case '" + model_case.name + "': coarse multigrid level " + std::to_string(level + 1) +
-                               " moved to the unloaded shape: " + e.what() + " (choose simulation.solver: aggregation)");
-    }
+                                        const std::vector<TetMesh>& coarse) {
+  try {
+    return CoarseLevelMover(prone.mesh, coarse).moved(rest.nodes() - prone.mesh.nodes());
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error("case '" + model_case.name + "': the multigrid's coarse levels moved to the unloaded shape: " +
+                             e.what() + " (choose simulation.solver: aggregation)");
   }
-  return coarse;
 }
 
 PipelineSettings validated(const PipelineSettings& settings) {

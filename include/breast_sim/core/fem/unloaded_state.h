@@ -13,6 +13,7 @@
 #include "breast_sim/core/fem/simulation_settings.h"
 #include "breast_sim/core/material/stiffening.h"
 #include "breast_sim/core/mesh/tet_mesh.h"
+#include "breast_sim/core/model/point_embedding.h"
 
 namespace breast_sim::core {
 
@@ -122,6 +123,26 @@ GravityLoading loadWithGravity(const TetMesh& rest, const SimulationSettings& se
                                const Eigen::Vector3d& gravity_mps2, const StiffeningParams& stiffening = {},
                                const Points& initial_displacement_m = Points(),
                                std::vector<TetMesh> coarse_meshes = {});
+
+/// The coarse levels of a multigrid built on `fine`'s domain, moved with the fine mesh: each level's
+/// nodes are displaced by a per-node displacement of `fine` interpolated at them (a node outside
+/// the fine mesh takes the value at its closest point). Locates the levels' nodes once, on
+/// construction (O(#T + #P) per level), so that each move costs an interpolation.
+class CoarseLevelMover {
+ public:
+  /// @param fine    the mesh the levels were built for (not kept)
+  /// @param levels  coarse meshes of fine's domain, coarsest last (copied)
+  CoarseLevelMover(const TetMesh& fine, std::vector<TetMesh> levels);
+  /// The levels with their nodes moved by `fine_move_m` (#N×3 [m], per node of the fine mesh).
+  /// @throws std::invalid_argument naming the level (1 = the finest coarse level) when a moved level
+  ///         has inverted elements, or for a displacement of the wrong size.
+  std::vector<TetMesh> moved(const Points& fine_move_m) const;
+  const std::vector<TetMesh>& levels() const { return levels_; }
+
+ private:
+  std::vector<TetMesh> levels_;
+  std::vector<PointEmbedding> at_;  // per level: its nodes in the fine mesh
+};
 
 /// `mesh` with its nodes replaced by `nodes_m` (#N×3 [m]): the same elements, region labels and node
 /// sets. @throws std::invalid_argument for a row count that differs, or for elements that are inverted
