@@ -19,6 +19,7 @@
 #include <sstream>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "breast_sim/core/image/image_io_detail.h"
@@ -371,14 +372,24 @@ void stateSeeds(Corpus& c) {
   s.gravity_load_mps2 = Eigen::Vector3d(0, 9.81, 9.81);
   f.has_gravity_load = f.has_rest_shape = true;
   f.rest_m = Points::Random(5, 3);
+  s.element_alpha_per_pa = Eigen::Vector2d(0.0, 2e-3);
   writeStateFile(c.scratch("state.bin"), f);
+  readStateFile(c.scratch("state.bin"));
   const std::string full = readFile(c.scratch("state.bin"));
   c.add("fuzz_state", "full.bin", full);
-  // Files of earlier versions end after the morphing forces, the slip directions, the gravity load.
-  const std::size_t rest = 8 + 15 * 8, gravity = 8 + 3 * 8, slip = 8 + 6 * 8;
-  c.add("fuzz_state", "without_rest.bin", full.substr(0, full.size() - rest));
-  c.add("fuzz_state", "without_gravity.bin", full.substr(0, full.size() - rest - gravity));
-  c.add("fuzz_state", "without_slip.bin", full.substr(0, full.size() - rest - gravity - slip));
+  // Files of earlier versions end after the rest shape, the gravity load, the slip directions, the
+  // morphing forces. Each must read: a seed the reader refuses would test only its first check.
+  const std::size_t alpha = 8 + 2 * 8, rest = 8 + 15 * 8, gravity = 8 + 3 * 8, slip = 8 + 6 * 8;
+  const std::pair<const char*, std::size_t> earlier[] = {{"without_alpha.bin", alpha},
+                                                         {"without_rest.bin", alpha + rest},
+                                                         {"without_gravity.bin", alpha + rest + gravity},
+                                                         {"without_slip.bin", alpha + rest + gravity + slip}};
+  for (const auto& [name, cut] : earlier) {
+    const std::string bytes = full.substr(0, full.size() - cut);
+    std::ofstream(c.scratch(name), std::ios::binary) << bytes;
+    readStateFile(c.scratch(name));  // throws, and the seed run fails
+    c.add("fuzz_state", name, bytes);
+  }
 }
 
 // ---- case files -----------------------------------------------------------------------------------

@@ -12,6 +12,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <limits>
 #include <string>
 #include <vector>
@@ -322,18 +323,30 @@ TEST(Pipeline, GravityStageSettlesAndTheSnapshotRestoresExactly) {
     }
     EXPECT_EQ(pipe.simulator().state().displacement_m, saved.simulation.displacement_m);
     EXPECT_EQ(pipe.gravityLoad(), pipe.supineGravityLoad());
-    // So are local alphas of another model or a negative one.
-    tilted = saved;
-    tilted.simulation.displacement_m.setZero();
-    for (const Eigen::VectorXd& bad : {Eigen::VectorXd(Eigen::VectorXd::Zero(2)), Eigen::VectorXd(-local_alpha)}) {
-      tilted.element_alpha_per_pa = bad;
+    // So is any value the model would take over that does not fit it: nothing of the state is applied.
+    ASSERT_GT(saved.sliding_targets_m.rows(), 1) << "the state must have the wall's stick points";
+    const std::pair<const char*, std::function<void(PipelineState&)>> spoiled[] = {
+        {"local alphas for 2 elements", [](PipelineState& t) { t.element_alpha_per_pa = Eigen::VectorXd::Zero(2); }},
+        {"the local alpha -0.001 /Pa at element 3", [&](PipelineState& t) { t.element_alpha_per_pa = -local_alpha; }},
+        {"the modulus factor 0 at element 1", [](PipelineState& t) { t.modulus_factors[1] = 0.0; }},
+        {"1 slip directions for", [](PipelineState& t) { t.sliding_slip_directions = Points::Zero(1, 3); }},
+        {"morphing forces, but no target", [](PipelineState& t) { t.morphing_forces_n = Points::Zero(4, 3); }},
+    };
+    const Eigen::VectorXd factors_before = pipe.modulusFactors(), alpha_before = pipe.stiffening().elementAlpha();
+    for (const auto& [says, spoil] : spoiled) {
+      SCOPED_TRACE(says);
+      tilted = saved;
+      tilted.simulation.displacement_m.setZero();
+      spoil(tilted);
       try {
         pipe.restore(tilted);
-        FAIL();
+        ADD_FAILURE() << "restored";
       } catch (const std::invalid_argument& e) {
-        EXPECT_NE(std::string(e.what()).find("local alpha"), std::string::npos) << e.what();
+        EXPECT_NE(std::string(e.what()).find(says), std::string::npos) << e.what();
       }
       EXPECT_EQ(pipe.simulator().state().displacement_m, saved.simulation.displacement_m);
+      EXPECT_EQ(pipe.modulusFactors(), factors_before);
+      EXPECT_EQ(pipe.stiffening().elementAlpha(), alpha_before);
     }
     pipe.saveState(file.string());  // the state file again, for the checks below
   }

@@ -205,6 +205,25 @@ TEST(GuardedTracker, FramesThatKeepFailingTheLastGoodFrameGoBackToTheReference) 
   }
 }
 
+// A frame taken back is taken back whole: local α's a rejected step added (here set by hand after
+// the last good frame) go with it.
+TEST(GuardedTracker, AFrameTakenBackTakesItsLocalAlphasBack) {
+  Scene s;
+  ros_interface::TrackerOptions to;
+  to.icp.enabled = false;
+  ros_interface::GuardedTracker g(to);
+  g.start(*s.pipeline_ptr);
+  for (int k = 0; k < 3; ++k) ASSERT_TRUE(g.frame(*s.pipeline_ptr, s.scan(k)).valid);
+  const Eigen::VectorXd good = s.pipeline_ptr->stiffening().elementAlpha();
+  Eigen::VectorXd added = good;
+  added[0] += 1e-3;
+  s.pipeline_ptr->stiffening().setElementAlpha(added);
+  const auto f = g.frame(*s.pipeline_ptr, s.scan(3, 0.04));  // slid 40 mm: too little skin seen
+  ASSERT_TRUE(f.restored) << f.verdict.reason;
+  ASSERT_EQ(f.verdict.recovery, Recovery::kLastGood);
+  EXPECT_EQ(s.pipeline_ptr->stiffening().elementAlpha(), good);
+}
+
 TEST(GuardedTracker, RefusedCloudsInARowMakeTheLesionsInvalidUntilAFrameIsTracked) {
   Scene s;
   ros_interface::GuardedTracker g;

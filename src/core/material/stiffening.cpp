@@ -3,8 +3,8 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <sstream>
 #include <limits>
+#include <sstream>
 #include <stdexcept>
 
 #include <Eigen/Geometry>
@@ -400,6 +400,7 @@ void StiffeningSimulation::pushHistory() {
   entry.state = sim_.state();
   entry.modulus_factors = sim_.elements().modulusFactors();
   entry.controller = controller_.state();
+  entry.element_alpha = element_alpha_;
   history_.push_front(std::move(entry));
   while (static_cast<int>(history_.size()) > params_.history_size) history_.pop_back();
 }
@@ -415,6 +416,7 @@ void StiffeningSimulation::revertTo(int k) {
   sim_.restore(e.state);
   sim_.elements().setModulusFactors(e.modulus_factors);
   controller_.setState(e.controller);
+  element_alpha_ = e.element_alpha;
   history_.erase(history_.begin(), history_.begin() + k);
   refreshStress();
   last_inverted_ = countInverted();
@@ -429,10 +431,14 @@ void StiffeningSimulation::setElementAlpha(const Eigen::VectorXd& alpha_per_pa) 
   if (alpha_per_pa.size() != mesh_.numTets())
     throw std::invalid_argument("local alphas: " + std::to_string(alpha_per_pa.size()) + " values for " +
                                 std::to_string(mesh_.numTets()) + " elements (one per element, or none)");
-  for (Eigen::Index e = 0; e < alpha_per_pa.size(); ++e)
-    if (!(alpha_per_pa[e] >= 0.0) || !std::isfinite(alpha_per_pa[e]))
-      throw std::invalid_argument("local alphas: element " + std::to_string(e) + " has " +
-                                  std::to_string(alpha_per_pa[e]) + " /Pa; a local alpha is finite and >= 0");
+  for (Eigen::Index e = 0; e < alpha_per_pa.size(); ++e) {
+    if (!(alpha_per_pa[e] >= 0.0) || !std::isfinite(alpha_per_pa[e])) {
+      std::ostringstream m;
+      m.precision(17);
+      m << "local alphas: element " << e << " has " << alpha_per_pa[e] << " /Pa; a local alpha is finite and >= 0";
+      throw std::invalid_argument(m.str());
+    }
+  }
   element_alpha_ = alpha_per_pa;
 }
 
@@ -464,8 +470,10 @@ StiffeningStepResult StiffeningSimulation::step() {
     saved = sim_.state();
     Eigen::VectorXd& stress = trial_stress_;  // the stress the trials' moduli follow (a kept buffer)
     stress = base_stress_;
-    const int max_reversals = tracking_ ? std::min(params_.max_reversals_per_step, kTrackingReversals)
-                                        : params_.max_reversals_per_step;
+    // A release in progress (one that tracking began in) keeps its own limit: its end drops the
+    // local α's.
+    const int max_reversals = tracking_ && !releasing_ ? std::min(params_.max_reversals_per_step, kTrackingReversals)
+                                                       : params_.max_reversals_per_step;
     for (int attempt = 1;; ++attempt) {
       setModuli(stress);
       bool solved = true;
@@ -519,7 +527,10 @@ StiffeningStepResult StiffeningSimulation::step() {
         // global one when that is higher), then doubles.
         const double a = alpha();
         const double first = releasing_ ? release_start_alpha_ : std::max(2.0 * a, controller_.params().initial_alpha_per_pa);
-        for (int e : inverted) element_alpha_[e] = element_alpha_[e] > a ? 2.0 * element_alpha_[e] : first;
+        // Capped at the controller's ceiling: an element no α fixes (held inverted by its neighbours,
+        // or at max_modulus_factor) would otherwise double without end, step after step.
+        const double cap = controller_.params().max_alpha_per_pa;
+        for (int e : inverted) element_alpha_[e] = std::min(element_alpha_[e] > a ? 2.0 * element_alpha_[e] : first, cap);
       } else {
         releasing_ = false;  // a failed solve: the controller's search again
         controller_.onReversed(attempt);

@@ -63,7 +63,14 @@ void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, doubl
   s.simulation.step = cs.step;
   const Eigen::VectorXd coarse_factors = coarse.modulusFactors();
   s.modulus_factors.resize(model_.mesh.numTets());
-  for (int t = 0; t < model_.mesh.numTets(); ++t) s.modulus_factors[t] = coarse_factors[at_centroids.points()[t].tet];
+  // Local α's as the moduli: a fine element takes those of the coarse element its centroid lies in.
+  const Eigen::VectorXd& coarse_local = coarse.stiff_->elementAlpha();
+  s.element_alpha_per_pa.resize(model_.mesh.numTets());
+  for (int t = 0; t < model_.mesh.numTets(); ++t) {
+    const int ct = at_centroids.points()[t].tet;
+    s.modulus_factors[t] = coarse_factors[ct];
+    s.element_alpha_per_pa[t] = coarse_local[ct];
+  }
   s.alpha = coarse.stiff_->controller().state();
   s.stage = coarse.stage_;
   if (coarse.sliding_attached_) {

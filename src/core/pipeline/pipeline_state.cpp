@@ -1,5 +1,7 @@
 // Snapshots of the pipeline: state(), restore() and the binary state file (saveState, loadState).
 #include <algorithm>
+#include <cmath>
+#include <sstream>
 #include <stdexcept>
 #include <string>
 
@@ -49,17 +51,41 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
   if (s.sliding_targets_m.rows() > 0 && (!hasSliding() || s.sliding_targets_m.rows() != static_cast<Eigen::Index>(sliding_nodes)))
     throw std::invalid_argument("pipeline state has sliding targets for " + std::to_string(s.sliding_targets_m.rows()) +
                                 " nodes, but sliding is " + (hasSliding() ? "on for " + std::to_string(sliding_nodes) + " nodes" : "off"));
-  if (s.morphing_forces_n.rows() > 0 && !field_)
-    throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
+  if (slip_ && s.sliding_targets_m.rows() > 0 && s.sliding_slip_directions.rows() != 0 &&
+      s.sliding_slip_directions.rows() != s.sliding_targets_m.rows())
+    throw std::invalid_argument("pipeline state has " + std::to_string(s.sliding_slip_directions.rows()) +
+                                " slip directions for " + std::to_string(s.sliding_targets_m.rows()) + " sliding targets");
+  if (s.morphing_forces_n.rows() > 0) {
+    if (!field_) throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
+    const size_t pulled = ensureMorphing().vertices().size();
+    if (s.morphing_forces_n.rows() != static_cast<Eigen::Index>(pulled))
+      throw std::invalid_argument("pipeline state has morphing forces for " + std::to_string(s.morphing_forces_n.rows()) +
+                                  " skin vertices, this model pulls " + std::to_string(pulled));
+  }
+  // Every value the model takes over: checked before anything changes (a failed restore keeps the state).
+  auto firstBad = [](const Eigen::VectorXd& v, bool zero_allowed) {
+    for (Eigen::Index i = 0; i < v.size(); ++i)
+      if (!std::isfinite(v[i]) || !(zero_allowed ? v[i] >= 0.0 : v[i] > 0.0)) return i;
+    return Eigen::Index{-1};
+  };
+  auto value = [](double v) {
+    std::ostringstream m;
+    m.precision(17);
+    m << v;
+    return m.str();
+  };
+  if (const Eigen::Index e = firstBad(s.modulus_factors, false); e >= 0)
+    throw std::invalid_argument("pipeline state has the modulus factor " + value(s.modulus_factors[e]) + " at element " +
+                                std::to_string(e) + "; modulus factors are finite and > 0");
   if (s.element_alpha_per_pa.size() != 0 && s.element_alpha_per_pa.size() != model_.mesh.numTets())
     throw std::invalid_argument("pipeline state has local alphas for " + std::to_string(s.element_alpha_per_pa.size()) +
                                 " elements, this model has " + std::to_string(model_.mesh.numTets()));
-  if (s.element_alpha_per_pa.size() != 0 && !(s.element_alpha_per_pa.allFinite() && s.element_alpha_per_pa.minCoeff() >= 0.0))
-    throw std::invalid_argument("pipeline state has a local alpha that is negative or not finite (smallest " +
-                                std::to_string(s.element_alpha_per_pa.minCoeff()) + " /Pa)");
+  if (const Eigen::Index e = firstBad(s.element_alpha_per_pa, true); e >= 0)
+    throw std::invalid_argument("pipeline state has the local alpha " + value(s.element_alpha_per_pa[e]) +
+                                " /Pa at element " + std::to_string(e) + "; local alphas are finite and >= 0");
   if (!s.gravity_load_mps2.allFinite())
     throw std::invalid_argument("pipeline state has a gravity load that is not finite (norm " +
-                                std::to_string(s.gravity_load_mps2.norm()) + " m/s²)");
+                                value(s.gravity_load_mps2.norm()) + " m/s²)");
   simulator().restore(s.simulation);
   // Directly, not through setGravityLoad: the α controller's state below is the snapshot's, not a
   // restarted search.

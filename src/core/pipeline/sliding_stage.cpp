@@ -33,9 +33,11 @@ StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* m
     if (!now) {
       step_start_ = simulator().state();
       step_start_factors_ = simulator().elements().modulusFactors();
+      step_start_local_alpha_ = stiff_->elementAlpha();
     }
     const SimulationState& start = now ? now->simulation : step_start_;
     const Eigen::VectorXd& start_factors = now ? now->modulus_factors : step_start_factors_;
+    const Eigen::VectorXd& start_local_alpha = now ? now->element_alpha_per_pa : step_start_local_alpha_;
     const AlphaController::State start_alpha = now ? now->alpha : stiff_->controller().state();
     StiffeningStepResult r;
     for (int pass = 0;; ++pass) {
@@ -43,11 +45,13 @@ StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* m
       r = stiff_->step();
       if (!r.advanced || pass >= kMaxFrictionPasses || slip_->stickReversed(simulator(), start.displacement_m) == 0) break;
       ++friction_repeats_;
-      // Back to the step's start; resync() gives the stiffening driver its stress at that state (the
-      // next moduli come from it) and drops the taken-back step from its history.
+      // Back to the step's start, its local α's included; resync() gives the stiffening driver its
+      // stress at that state (the next moduli come from it) and drops the taken-back step from its
+      // history.
       simulator().restore(start);
       simulator().elements().setModulusFactors(start_factors);
       stiff_->controller().setState(start_alpha);
+      stiff_->setElementAlpha(start_local_alpha);
       stiff_->resync();
     }
     if (r.advanced) {

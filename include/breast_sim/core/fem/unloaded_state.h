@@ -80,8 +80,9 @@ struct UnloadedStateResult {
 /// increment tolerance is capped at options.tolerance_m / 4 (a looser forward settle would stall
 /// the iteration).
 ///
-/// A candidate X0 with inverted elements is replaced by the plain step, halved until no element is
-/// inverted (down to 1/64 of it), and the mixing starts again. A forward loading that does not
+/// A candidate X0 with inverted elements (of the mesh, or with the multigrid of its coarse levels
+/// moved to it) is replaced by the plain step, halved until no element is inverted (down to 1/64
+/// of it), and the mixing starts again. A forward loading that does not
 /// settle or whose solver fails, a candidate X0 still inverted then, a loading that inverts
 /// elements, a residual that grew options.max_growing_iterations times in a row or the iteration
 /// limit end the run with converged = false and `failure` naming the iteration and the reason;
@@ -109,11 +110,10 @@ struct GravityLoading {
 };
 
 /// Settles `rest` under `gravity_mps2` with settings.fixed_node_set held, from
-/// `initial_displacement_m` (#N×3 [m], empty = at rest: the linearised static answer first, one
-/// implicit step of 1000 s, kept when it inverts nothing): with settings.stiffening by the stiffening
+/// `initial_displacement_m` (#N×3 [m], empty = at rest): with settings.stiffening by the stiffening
 /// driver (`stiffening`) until it is settled at the base material's equilibrium and the largest step
 /// increment stayed within settings.settle.increment_tolerance_m for settings.settle.consecutive_steps
-/// steps (the α search starts at its floor when the start is displaced), else by settle(). Never
+/// steps (the α search starts at its floor), else by settle(). Never
 /// throws for a loading that fails (a solver failure, no settling, inverted elements): `failure`
 /// says what happened.
 /// @param coarse_meshes  solver 'multigrid': its coarse levels, of rest's domain (buildSimulator)
@@ -137,6 +137,8 @@ class CoarseLevelMover {
   /// @throws std::invalid_argument naming the level (1 = the finest coarse level) when a moved level
   ///         has inverted elements, or for a displacement of the wrong size.
   std::vector<TetMesh> moved(const Points& fine_move_m) const;
+  /// Inverted or degenerate elements of the levels moved by `fine_move_m`, over all levels.
+  int invertedElements(const Points& fine_move_m) const;
   const std::vector<TetMesh>& levels() const { return levels_; }
 
  private:

@@ -277,8 +277,9 @@ class StiffeningSimulation {
   static constexpr double kStepKeep = 0.25;
   /// Shortened steps: a smaller fraction is not taken; the step is reverted and repeated stiffer.
   static constexpr double kMinStepFraction = 0.05;
-  /// Tracking frames: a step still invalid after this many local reversals (the local α, then twice
-  /// and four times it) is given up for the frame instead of running max_reversals_per_step solves:
+  /// Tracking frames: a step still invalid after this many reversals (for an element inverting for
+  /// the first time: the step as it was, then with the local α, then with twice it) is given up for
+  /// the frame rather than running up to max_reversals_per_step solves:
   /// an element its stiffer neighbours still invert, or one at max_modulus_factor, is not fixed by
   /// more doublings within the frame, and the tracker has the next frame (the doublings go on there).
   static constexpr int kTrackingReversals = 3;
@@ -288,6 +289,7 @@ class StiffeningSimulation {
     SimulationState state;
     Eigen::VectorXd modulus_factors;
     AlphaController::State controller;
+    Eigen::VectorXd element_alpha;  ///< the local α's [1/Pa] (elementAlpha())
   };
 
   /// @param sim   the simulator (not owned; must outlive this), built on `mesh`
@@ -317,7 +319,9 @@ class StiffeningSimulation {
   ///    stiffen the whole breast for one collapsing skin element and move the lesions under an
   ///    unchanged skin (measured on the phantom tracking its own skin with ANP: up to 3.3 mm within
   ///    a frame, docs/speed_accuracy.md, "Tracking with ANP"). The local α's stay until the α
-  ///    search restarts from the initial α. At most kTrackingReversals reversals per step.
+  ///    search restarts from the initial α. At most kTrackingReversals reversals per step (a release
+  ///    in progress when tracking began keeps max_reversals_per_step). Local α's never exceed the
+  ///    controller's max_alpha_per_pa.
   ///  - A step's moduli come from the stress at the start of the step before (the element update
   ///    that step made anyway) instead of a second element update at its end, and the settle
   ///    criterion is not evaluated: one element update per step instead of two (2.8 ms of a 27 ms
@@ -344,7 +348,7 @@ class StiffeningSimulation {
   /// Undo history: number of stored states (≤ history_size); k = 0 is the newest.
   int historySize() const { return static_cast<int>(history_.size()); }
   const HistoryEntry& history(int k) const;
-  /// Restores history entry k exactly (state, modulus factors, α controller); the entries newer
+  /// Restores history entry k exactly (state, modulus factors, α controller, local α's); the entries newer
   /// than k are dropped. @throws std::out_of_range for k outside [0, historySize()).
   void revertTo(int k);
 

@@ -538,6 +538,7 @@ class ProneToSupinePipeline {
   // (when the caller has no snapshot), the divergence guard's state before the step.
   SimulationState step_start_;
   Eigen::VectorXd step_start_factors_;
+  Eigen::VectorXd step_start_local_alpha_;
   PipelineState guard_before_;
 };
 

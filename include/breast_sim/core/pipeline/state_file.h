@@ -45,7 +45,8 @@ StateFile readStateFile(const std::string& path);
 /// Writes a state file (all eleven sections; has_gravity_load and has_rest_shape must be set) through
 /// a temporary file in the same folder, flushed (fsync), renamed over `path` once complete and the
 /// folder flushed, so that a failed write or a crash never leaves half a state.
-/// @throws std::invalid_argument when sizes do not match nodes and tets;
+/// @throws std::invalid_argument when sizes do not match nodes and tets, or for a local α that is
+///         negative or not finite (the reader would refuse the file);
 ///         std::runtime_error naming the file when it cannot be written.
 void writeStateFile(const std::string& path, const StateFile& file);
 
