@@ -23,6 +23,7 @@
 #include "breast_sim/core/mesh/tet_quality.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/phantom.h"
+#include "breast_sim/core/morphing/surface_morphing.h"
 #include "breast_sim/core/mri/mri_case.h"
 #include "breast_sim/core/mri/mri_cross_sections.h"
 #include "breast_sim/core/pipeline/case_file.h"
@@ -507,6 +508,23 @@ int main(int argc, char** argv) {
                               {"morphing", mo.seconds}, {"compute", un.seconds + g.seconds + sl.seconds + mo.seconds},
                               {"total_with_output", t_sim}}},
                  {"vtu_frames", frames.size()}};
+      // Where the morphing did not reach: the pulled skin vertices farther from the target than the
+      // stage's mean tolerance at the end, and how many of them lie in the wall band (sliding nodes
+      // and their elements), where the wall's hold and the pull meet.
+      if (morph && pipe->morphing()) {
+        const SurfaceMorphing& sm = *pipe->morphing();
+        std::vector<char> band(static_cast<size_t>(pipe->model().mesh.numNodes()), 0);
+        for (int n : pipe->wallBandNodes()) band[static_cast<size_t>(n)] = 1;
+        int off = 0, off_band = 0;
+        for (size_t k = 0; k < sm.vertices().size(); ++k) {
+          if (!(std::abs(sm.lastDistances()[static_cast<Eigen::Index>(k)]) > settings.morphing.tolerance_mean_m)) continue;
+          ++off;
+          off_band += band[static_cast<size_t>(sm.vertices()[k])];
+        }
+        metrics["stages"]["morphing"]["pulled_vertices_off_target"] = {
+            {"beyond_mm", settings.morphing.tolerance_mean_m * 1e3}, {"pulled", sm.vertices().size()},
+            {"count", off}, {"in_wall_band", off_band}};
+      }
       if (!supine_mri.is_null()) metrics["supine_mri"] = supine_mri;
       ok = g.converged && (!sl.ran || sl.converged) && (!morph || mo.converged) && fm.inverted_elements == 0;
       metrics["completed"] = ok;
