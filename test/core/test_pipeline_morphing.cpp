@@ -70,6 +70,28 @@ TEST(Pipeline, TrackingModeSwitchesTheStiffeningToTrackingFrames) {
   EXPECT_FALSE(pipe.stiffening().tracking());
 }
 
+// A state saved after the whole run (wall sliding, morphing forces) loads into a fresh pipeline of
+// the same case, as a respawned node resumes its checkpoint: the morphing forces belong to the
+// vertices pulled once the state's wall is attached (its nodes free), not to those of the fresh
+// model with its wall still fixed.
+TEST(Pipeline, AWholeRunsStateLoadsIntoAFreshPipeline) {
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.morphing.max_steps = 30;  // the state need not be converged
+  ProneToSupinePipeline run(p.c, p.m, s);
+  run.run();
+  ASSERT_GT(run.state().morphing_forces_n.rows(), 0);
+  const std::string file = (std::filesystem::temp_directory_path() / "breast_sim_whole_run.state").string();
+  run.saveState(file);
+
+  ProneToSupinePipeline fresh(p.c, p.m, s);
+  fresh.loadState(file);
+  EXPECT_EQ(fresh.simulator().state().displacement_m, run.simulator().state().displacement_m);
+  EXPECT_EQ(fresh.state().morphing_forces_n, run.state().morphing_forces_n);
+  EXPECT_EQ(fresh.lesionPositions(), run.lesionPositions());
+  std::filesystem::remove(file);
+}
+
 TEST(Pipeline, MorphingPullsTheSkinOntoAReachableTarget) {
   // The model's own skin stretched 8 % anteriorly away from the fixed wall (y = 0 stays, so the
   // base needs no sliding): the pulled vertices reach the tolerance, no element inverts.

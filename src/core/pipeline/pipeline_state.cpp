@@ -55,13 +55,14 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
       s.sliding_slip_directions.rows() != s.sliding_targets_m.rows())
     throw std::invalid_argument("pipeline state has " + std::to_string(s.sliding_slip_directions.rows()) +
                                 " slip directions for " + std::to_string(s.sliding_targets_m.rows()) + " sliding targets");
-  if (s.morphing_forces_n.rows() > 0) {
-    if (!field_) throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
-    const size_t pulled = ensureMorphing().vertices().size();
-    if (s.morphing_forces_n.rows() != static_cast<Eigen::Index>(pulled))
-      throw std::invalid_argument("pipeline state has morphing forces for " + std::to_string(s.morphing_forces_n.rows()) +
-                                  " skin vertices, this model pulls " + std::to_string(pulled));
-  }
+  // The pulled vertices are known once the morphing forces exist; they are made below, after the
+  // state's wall is attached (its nodes are free then), and restoreForces checks them there.
+  if (s.morphing_forces_n.rows() > 0 && !field_)
+    throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
+  if (s.morphing_forces_n.rows() > 0 && morphing_forces_ &&
+      s.morphing_forces_n.rows() != static_cast<Eigen::Index>(morphing_forces_->vertices().size()))
+    throw std::invalid_argument("pipeline state has morphing forces for " + std::to_string(s.morphing_forces_n.rows()) +
+                                " skin vertices, this model pulls " + std::to_string(morphing_forces_->vertices().size()));
   // Every value the model takes over: checked before anything changes (a failed restore keeps the state).
   auto firstBad = [](const Eigen::VectorXd& v, bool zero_allowed) {
     for (Eigen::Index i = 0; i < v.size(); ++i)

@@ -396,7 +396,10 @@ class ProneToSupinePipeline {
   PipelineState state() const;
   /// state() into `s`, reusing its storage (no allocation once `s` has the sizes).
   void copyState(PipelineState& s) const { fillState(s); }
-  /// @throws std::invalid_argument when the snapshot does not fit this model (sizes).
+  /// The snapshot's sizes and values are checked before any is applied, except the count of its
+  /// morphing forces before this pipeline has made its own (that count depends on the snapshot's
+  /// wall, so it is checked once the wall is attached).
+  /// @throws std::invalid_argument when the snapshot does not fit this model (sizes, values).
   void restore(const PipelineState& s);
   /// Nested iteration: takes the state of a pipeline on a coarser model of the same case (another
   /// mesh of the same tissue, not nested in this one) onto this model, so that only the last steps
