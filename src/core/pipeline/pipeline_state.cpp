@@ -63,7 +63,8 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
       s.morphing_forces_n.rows() != static_cast<Eigen::Index>(morphing_forces_->vertices().size()))
     throw std::invalid_argument("pipeline state has morphing forces for " + std::to_string(s.morphing_forces_n.rows()) +
                                 " skin vertices, this model pulls " + std::to_string(morphing_forces_->vertices().size()));
-  // Every value the model takes over: checked before anything changes (a failed restore keeps the state).
+  // The values the model takes over: checked before anything changes (a refused restore keeps the
+  // state; the morphing forces' count above is the exception when no morphing object exists yet).
   auto firstBad = [](const Eigen::VectorXd& v, bool zero_allowed) {
     for (Eigen::Index i = 0; i < v.size(); ++i)
       if (!std::isfinite(v[i]) || !(zero_allowed ? v[i] >= 0.0 : v[i] > 0.0)) return i;
