@@ -316,7 +316,7 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
       std::min(s.settle.increment_tolerance_m, kSettleToleranceShare * options.tolerance_m);
 
   // The coarse levels' nodes in the loaded mesh, once: each loading moves them by X0 − loaded there.
-  const CoarseLevelMover coarse_levels(loaded, multigrid ? options.coarse_meshes : std::vector<TetMesh>{});
+  const CoarseLevelMover coarse_levels(loaded, options.coarse_meshes);  // none unless multigrid (checked above)
 
   UnloadedStateResult res;
   res.unloaded_nodes_m = unflat(x0);

@@ -10,6 +10,7 @@
 #include <Eigen/Geometry>
 
 #include "breast_sim/core/mesh/tet_quality.h"
+#include "../util/number_text.h"
 #include "../util/ordered_sum.h"
 #include "breast_sim/core/thread_budget.h"
 
@@ -397,10 +398,7 @@ void StiffeningSimulation::pushHistory() {
     entry = std::move(history_.back());
     history_.pop_back();
   }
-  entry.state = sim_.state();
-  entry.modulus_factors = sim_.elements().modulusFactors();
-  entry.controller = controller_.state();
-  entry.element_alpha = element_alpha_;
+  snapshot(entry);
   history_.push_front(std::move(entry));
   while (static_cast<int>(history_.size()) > params_.history_size) history_.pop_back();
 }
@@ -411,35 +409,56 @@ const StiffeningSimulation::HistoryEntry& StiffeningSimulation::history(int k) c
   return history_[static_cast<size_t>(k)];
 }
 
+void StiffeningSimulation::snapshot(HistoryEntry& e) const {
+  e.state = sim_.state();
+  e.modulus_factors = sim_.elements().modulusFactors();
+  e.controller = controller_.state();
+  e.element_alpha = element_alpha_;
+}
+
+void StiffeningSimulation::applySnapshot(const SimulationState& state, const Eigen::VectorXd& modulus_factors,
+                                         const AlphaController::State& controller,
+                                         const Eigen::VectorXd& local_alpha_per_pa) {
+  checkElementAlpha(local_alpha_per_pa, mesh_.numTets());
+  sim_.restore(state);
+  sim_.elements().setModulusFactors(modulus_factors);
+  controller_.setState(controller);
+  if (local_alpha_per_pa.size() == 0) element_alpha_.setZero();
+  else element_alpha_ = local_alpha_per_pa;
+}
+
+void StiffeningSimulation::restoreSnapshot(const SimulationState& state, const Eigen::VectorXd& modulus_factors,
+                                           const AlphaController::State& controller,
+                                           const Eigen::VectorXd& local_alpha_per_pa) {
+  applySnapshot(state, modulus_factors, controller, local_alpha_per_pa);
+  resync();
+}
+
 void StiffeningSimulation::revertTo(int k) {
-  const HistoryEntry e = history(k);  // copy: the deque changes below
-  sim_.restore(e.state);
-  sim_.elements().setModulusFactors(e.modulus_factors);
-  controller_.setState(e.controller);
-  element_alpha_ = e.element_alpha;
+  {
+    const HistoryEntry& e = history(k);  // applied before the deque changes below
+    applySnapshot(e.state, e.modulus_factors, e.controller, e.element_alpha);
+  }
   history_.erase(history_.begin(), history_.begin() + k);
   refreshStress();
   last_inverted_ = countInverted();
   loadChanged();
 }
 
+void StiffeningSimulation::checkElementAlpha(const Eigen::VectorXd& alpha_per_pa, Eigen::Index elements) {
+  if (alpha_per_pa.size() != 0 && alpha_per_pa.size() != elements)
+    throw std::invalid_argument("local alphas for " + std::to_string(alpha_per_pa.size()) + " elements, the model has " +
+                                std::to_string(elements) + " (one per element, or none)");
+  for (Eigen::Index e = 0; e < alpha_per_pa.size(); ++e)
+    if (!(alpha_per_pa[e] >= 0.0) || !std::isfinite(alpha_per_pa[e]))
+      throw std::invalid_argument("the local alpha " + util::numberText(alpha_per_pa[e]) + " /Pa at element " +
+                                  std::to_string(e) + "; a local alpha is finite and >= 0");
+}
+
 void StiffeningSimulation::setElementAlpha(const Eigen::VectorXd& alpha_per_pa) {
-  if (alpha_per_pa.size() == 0) {
-    element_alpha_.setZero();
-    return;
-  }
-  if (alpha_per_pa.size() != mesh_.numTets())
-    throw std::invalid_argument("local alphas: " + std::to_string(alpha_per_pa.size()) + " values for " +
-                                std::to_string(mesh_.numTets()) + " elements (one per element, or none)");
-  for (Eigen::Index e = 0; e < alpha_per_pa.size(); ++e) {
-    if (!(alpha_per_pa[e] >= 0.0) || !std::isfinite(alpha_per_pa[e])) {
-      std::ostringstream m;
-      m.precision(17);
-      m << "local alphas: element " << e << " has " << alpha_per_pa[e] << " /Pa; a local alpha is finite and >= 0";
-      throw std::invalid_argument(m.str());
-    }
-  }
-  element_alpha_ = alpha_per_pa;
+  checkElementAlpha(alpha_per_pa, mesh_.numTets());
+  if (alpha_per_pa.size() == 0) element_alpha_.setZero();
+  else element_alpha_ = alpha_per_pa;
 }
 
 void StiffeningSimulation::setTracking(bool on) {
@@ -560,14 +579,14 @@ StiffeningStepResult StiffeningSimulation::step() {
   last_inverted_ = reversal && r.advanced && r.recovering_elements == 0 ? 0 : countInverted();
   if (r.advanced) {
     ++accepted_;
-    // Constrained nodes and external forces as the simulator has them, however they were set
-    // (through this class or on the simulator directly, e.g. sliding's moving targets).
-    const std::vector<char>& dofs = sim_.constrainedDofs();
-    for (int n = 0; n < mesh_.numNodes(); ++n) fixed_node_[n] = dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2];
-    // Node springs (implicit sliding, wall_slip.h) are loads on their nodes like external forces.
-    // (Without springs the external forces themselves, with them a kept buffer.) Tracking frames have no
-    // elastic forces at the end of the step and do not settle.
+    // The settle check; tracking frames have no elastic forces at the end of the step and do not
+    // settle. Constrained nodes and external forces as the simulator has them, however they were
+    // set (through this class or on the simulator directly, e.g. sliding's moving targets). Node
+    // springs (implicit sliding, wall_slip.h) are loads on their nodes like external forces
+    // (without springs the external forces themselves, with them a kept buffer).
     if (!tracking_) {
+      const std::vector<char>& dofs = sim_.constrainedDofs();
+      for (int n = 0; n < mesh_.numNodes(); ++n) fixed_node_[n] = dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2];
       if (!sim_.springNodes().empty()) {
         loads_ = sim_.externalForces();
         sim_.addCurrentSpringForces(loads_);

@@ -1,12 +1,12 @@
 // Snapshots of the pipeline: state(), restore() and the binary state file (saveState, loadState).
 #include <algorithm>
 #include <cmath>
-#include <sstream>
 #include <stdexcept>
 #include <string>
 
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/core/pipeline/state_file.h"
+#include "../util/number_text.h"
 #include "pipeline_internal.h"
 
 namespace breast_sim::core {
@@ -65,37 +65,23 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
                                 " skin vertices, this model pulls " + std::to_string(morphing_forces_->vertices().size()));
   // The values the model takes over: checked before anything changes (a refused restore keeps the
   // state; the morphing forces' count above is the exception when no morphing object exists yet).
-  auto firstBad = [](const Eigen::VectorXd& v, bool zero_allowed) {
-    for (Eigen::Index i = 0; i < v.size(); ++i)
-      if (!std::isfinite(v[i]) || !(zero_allowed ? v[i] >= 0.0 : v[i] > 0.0)) return i;
-    return Eigen::Index{-1};
-  };
-  auto value = [](double v) {
-    std::ostringstream m;
-    m.precision(17);
-    m << v;
-    return m.str();
-  };
-  if (const Eigen::Index e = firstBad(s.modulus_factors, false); e >= 0)
-    throw std::invalid_argument("pipeline state has the modulus factor " + value(s.modulus_factors[e]) + " at element " +
-                                std::to_string(e) + "; modulus factors are finite and > 0");
-  if (s.element_alpha_per_pa.size() != 0 && s.element_alpha_per_pa.size() != model_.mesh.numTets())
-    throw std::invalid_argument("pipeline state has local alphas for " + std::to_string(s.element_alpha_per_pa.size()) +
-                                " elements, this model has " + std::to_string(model_.mesh.numTets()));
-  if (const Eigen::Index e = firstBad(s.element_alpha_per_pa, true); e >= 0)
-    throw std::invalid_argument("pipeline state has the local alpha " + value(s.element_alpha_per_pa[e]) +
-                                " /Pa at element " + std::to_string(e) + "; local alphas are finite and >= 0");
+  for (Eigen::Index e = 0; e < s.modulus_factors.size(); ++e)
+    if (!(s.modulus_factors[e] > 0.0) || !std::isfinite(s.modulus_factors[e]))
+      throw std::invalid_argument("pipeline state has the modulus factor " + util::numberText(s.modulus_factors[e]) +
+                                  " at element " + std::to_string(e) + "; modulus factors are finite and > 0");
+  try {
+    StiffeningSimulation::checkElementAlpha(s.element_alpha_per_pa, model_.mesh.numTets());
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(std::string("pipeline state has ") + e.what());
+  }
   if (!s.gravity_load_mps2.allFinite())
     throw std::invalid_argument("pipeline state has a gravity load that is not finite (norm " +
-                                value(s.gravity_load_mps2.norm()) + " m/s²)");
-  simulator().restore(s.simulation);
+                                util::numberText(s.gravity_load_mps2.norm()) + " m/s²)");
   // Directly, not through setGravityLoad: the α controller's state below is the snapshot's, not a
   // restarted search.
   simulator().setGravity(s.gravity_load_mps2 + gravity_offset_mps2_);
-  simulator().elements().setModulusFactors(s.modulus_factors);
-  stiff_->controller().setState(s.alpha);
-  stiff_->setElementAlpha(s.element_alpha_per_pa);
-  stiff_->resync();  // the stress the next moduli come from is this state's
+  // resync() inside: the stress the next moduli come from is this state's.
+  stiff_->restoreSnapshot(s.simulation, s.modulus_factors, s.alpha, s.element_alpha_per_pa);
   if (slip_ && s.sliding_targets_m.rows() > 0) {
     slip_->setStickPoints(s.sliding_targets_m, s.sliding_slip_directions);
     slip_->attach(simulator());

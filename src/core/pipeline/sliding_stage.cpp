@@ -30,29 +30,21 @@ StiffeningStepResult ProneToSupinePipeline::stepWithSliding(int* stalls, bool* m
     // were driven back by their (constant) kinetic friction is repeated from its start with those
     // nodes sticking (wall_slip.h, stickReversed).
     // The step's start: the caller's snapshot of it, or a copy into kept buffers (no allocation per step).
-    if (!now) {
-      step_start_ = simulator().state();
-      step_start_factors_ = simulator().elements().modulusFactors();
-      step_start_local_alpha_ = stiff_->elementAlpha();
-    }
-    const SimulationState& start = now ? now->simulation : step_start_;
-    const Eigen::VectorXd& start_factors = now ? now->modulus_factors : step_start_factors_;
-    const Eigen::VectorXd& start_local_alpha = now ? now->element_alpha_per_pa : step_start_local_alpha_;
-    const AlphaController::State start_alpha = now ? now->alpha : stiff_->controller().state();
+    if (!now) stiff_->snapshot(step_start_);
+    const SimulationState& start = now ? now->simulation : step_start_.state;
+    const Eigen::VectorXd& start_factors = now ? now->modulus_factors : step_start_.modulus_factors;
+    const Eigen::VectorXd& start_local_alpha = now ? now->element_alpha_per_pa : step_start_.element_alpha;
+    const AlphaController::State start_alpha = now ? now->alpha : step_start_.controller;
     StiffeningStepResult r;
     for (int pass = 0;; ++pass) {
       slip_->beforeStep(simulator(), extra);
       r = stiff_->step();
       if (!r.advanced || pass >= kMaxFrictionPasses || slip_->stickReversed(simulator(), start.displacement_m) == 0) break;
       ++friction_repeats_;
-      // Back to the step's start, its local α's included; resync() gives the stiffening driver its
-      // stress at that state (the next moduli come from it) and drops the taken-back step from its
-      // history.
-      simulator().restore(start);
-      simulator().elements().setModulusFactors(start_factors);
-      stiff_->controller().setState(start_alpha);
-      stiff_->setElementAlpha(start_local_alpha);
-      stiff_->resync();
+      // Back to the step's start, its local α's included; the resync inside gives the stiffening
+      // driver its stress at that state (the next moduli come from it) and drops the taken-back step
+      // from its history.
+      stiff_->restoreSnapshot(start, start_factors, start_alpha, start_local_alpha);
     }
     if (r.advanced) {
       const WallSlipStats ws = slip_->afterStep(simulator());

@@ -18,18 +18,15 @@
 #include <fcntl.h>
 #include <unistd.h>
 
+#include "../util/number_text.h"
+
 namespace breast_sim::core {
 namespace {
 
 constexpr char kMagic[8] = {'B', 'S', 'S', 'T', 'A', 'T', 'E', '1'};
 constexpr int kHeaderValues = 10;
 
-std::string numberText(double v) {
-  std::ostringstream s;
-  s.precision(17);
-  s << v;
-  return s.str();
-}
+using util::numberText;
 
 /// The file's bytes with a read position; every read is checked against the end.
 class StateReader {

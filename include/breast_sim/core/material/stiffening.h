@@ -333,6 +333,15 @@ class StiffeningSimulation {
   void addNodalForces(const std::vector<int>& nodes, const Points& forces_n);
   void clearExternalForces();
 
+  /// The driver's state as an undo-history entry holds it (simulator state, modulus factors, α
+  /// controller, local α's) into `e`, reusing its storage.
+  void snapshot(HistoryEntry& e) const;
+  /// Sets a snapshot's parts (local α's empty: none), then resync(): what a restored pipeline state
+  /// and a repeated step go back to. @throws std::invalid_argument as checkElementAlpha, before any
+  /// change.
+  void restoreSnapshot(const SimulationState& state, const Eigen::VectorXd& modulus_factors,
+                       const AlphaController::State& controller, const Eigen::VectorXd& local_alpha_per_pa);
+
   /// After the simulator's state, the moduli or the controller were set from outside (a restored
   /// snapshot): recomputes what this class keeps of the current state — the von Mises stress per
   /// unit modulus that the next step's moduli come from, the elastic forces, the inversion count —
@@ -363,8 +372,11 @@ class StiffeningSimulation {
   /// comment). Part of a snapshot (PipelineState): the moduli of later steps depend on them.
   const Eigen::VectorXd& elementAlpha() const { return element_alpha_; }
   /// Sets the local α's of a restored snapshot; an empty vector clears them.
-  /// @throws std::invalid_argument for a size other than 0 or #T, or a value negative or not finite.
+  /// @throws std::invalid_argument as checkElementAlpha.
   void setElementAlpha(const Eigen::VectorXd& alpha_per_pa);
+  /// Local α's fit a model of `elements` elements: none, or one per element, each finite and ≥ 0.
+  /// @throws std::invalid_argument naming the count or the first bad value and its element.
+  static void checkElementAlpha(const Eigen::VectorXd& alpha_per_pa, Eigen::Index elements);
   /// Base-material von Mises stress at the current state [Pa], #T.
   const Eigen::VectorXd& baseStress() const { return base_stress_; }
   /// The settle criterion holds (RunStats::settled), without computing the statistics: for the
@@ -380,6 +392,8 @@ class StiffeningSimulation {
   void stressFromElements();  // base stress from the elements' last update (no update)
   void setModuli(const Eigen::VectorXd& stress);
   void pushHistory();
+  void applySnapshot(const SimulationState& state, const Eigen::VectorXd& modulus_factors,
+                     const AlphaController::State& controller, const Eigen::VectorXd& local_alpha_per_pa);
   void loadChanged();  // restarts the settle count and ends a release
   int countInverted();
   std::vector<int> invertedElements();

@@ -539,9 +539,7 @@ class ProneToSupinePipeline {
   bool coarse_running_ = false;
   // Kept buffers of the per-step copies (no allocation per step): the friction repeat's step start
   // (when the caller has no snapshot), the divergence guard's state before the step.
-  SimulationState step_start_;
-  Eigen::VectorXd step_start_factors_;
-  Eigen::VectorXd step_start_local_alpha_;
+  StiffeningSimulation::HistoryEntry step_start_;
   PipelineState guard_before_;
 };
 
