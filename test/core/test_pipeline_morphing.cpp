@@ -10,9 +10,11 @@
 #include <cstdint>
 #include <cstdio>
 #include <filesystem>
+#include <functional>
 #include <fstream>
 #include <limits>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "breast_sim/core/fem/equilibrium.h"
@@ -85,6 +87,27 @@ TEST(Pipeline, AWholeRunsStateLoadsIntoAFreshPipeline) {
   run.saveState(file);
 
   ProneToSupinePipeline fresh(p.c, p.m, s);
+  // Morphing forces that fit no model, or are not finite, are refused before any part of the state
+  // applies, though the fresh pipeline has no morphing forces to compare with yet: its wall stays
+  // fixed and its displacements zero.
+  const std::pair<const char*, std::function<void(PipelineState&)>> spoiled[] = {
+      {"this model pulls", [](PipelineState& t) { t.morphing_forces_n.conservativeResize(t.morphing_forces_n.rows() - 1, 3); }},
+      {"not finite", [](PipelineState& t) { t.morphing_forces_n(0, 1) = std::numeric_limits<double>::quiet_NaN(); }},
+  };
+  for (const auto& [says, spoil] : spoiled) {
+    SCOPED_TRACE(says);
+    PipelineState bad = run.state();
+    spoil(bad);
+    try {
+      fresh.restore(bad);
+      ADD_FAILURE() << "restored";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find(says), std::string::npos) << e.what();
+    }
+    EXPECT_EQ(fresh.simulator().state().displacement_m.norm(), 0.0);
+    EXPECT_EQ(fresh.state().sliding_targets_m.rows(), 0) << "the state's wall was attached";
+    EXPECT_EQ(fresh.state().morphing_forces_n.rows(), 0);
+  }
   fresh.loadState(file);
   EXPECT_EQ(fresh.simulator().state().displacement_m, run.simulator().state().displacement_m);
   EXPECT_EQ(fresh.state().morphing_forces_n, run.state().morphing_forces_n);

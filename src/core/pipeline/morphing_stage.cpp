@@ -18,16 +18,18 @@ using pipeline_detail::kMaxStuckCalls;
 using pipeline_detail::logFraction;
 using pipeline_detail::since;
 
+std::unique_ptr<SurfaceMorphing> ProneToSupinePipeline::makeMorphing(const std::vector<char>& fixed) const {
+  std::vector<int> constrained;
+  for (int n = 0; n < model_.mesh.numNodes(); ++n)
+    if (fixed[static_cast<size_t>(n)]) constrained.push_back(n);
+  auto morph = std::make_unique<SurfaceMorphing>(model_.mesh, field_, model_.mesh.nodeSet(node_sets::kSkin), constrained,
+                                                 settings_.morphing.forces);
+  morph->setAlongNormal(tracking_);
+  return morph;
+}
+
 SurfaceMorphing& ProneToSupinePipeline::ensureMorphing() {
-  if (!morphing_forces_) {
-    std::vector<int> constrained;
-    const std::vector<char>& dofs = simulator().constrainedDofs();
-    for (int n = 0; n < model_.mesh.numNodes(); ++n)
-      if (dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2]) constrained.push_back(n);
-    morphing_forces_ = std::make_unique<SurfaceMorphing>(model_.mesh, field_, model_.mesh.nodeSet(node_sets::kSkin),
-                                                         constrained, settings_.morphing.forces);
-    morphing_forces_->setAlongNormal(tracking_);
-  }
+  if (!morphing_forces_) morphing_forces_ = makeMorphing(pipeline_detail::constrainedNodes(simulator()));
   return *morphing_forces_;
 }
 

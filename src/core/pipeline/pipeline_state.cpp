@@ -1,8 +1,10 @@
 // Snapshots of the pipeline: state(), restore() and the binary state file (saveState, loadState).
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 #include "breast_sim/core/pipeline/state_file.h"
@@ -55,16 +57,29 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
       s.sliding_slip_directions.rows() != s.sliding_targets_m.rows())
     throw std::invalid_argument("pipeline state has " + std::to_string(s.sliding_slip_directions.rows()) +
                                 " slip directions for " + std::to_string(s.sliding_targets_m.rows()) + " sliding targets");
-  // The pulled vertices are known once the morphing forces exist; they are made below, after the
-  // state's wall is attached (its nodes are free then), and restoreForces checks them there.
-  if (s.morphing_forces_n.rows() > 0 && !field_)
-    throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
-  if (s.morphing_forces_n.rows() > 0 && morphing_forces_ &&
-      s.morphing_forces_n.rows() != static_cast<Eigen::Index>(morphing_forces_->vertices().size()))
-    throw std::invalid_argument("pipeline state has morphing forces for " + std::to_string(s.morphing_forces_n.rows()) +
-                                " skin vertices, this model pulls " + std::to_string(morphing_forces_->vertices().size()));
+  // The morphing forces pull the skin nodes that are free once the state's wall is attached: with no
+  // force generator yet, one is made here for those nodes (implicit sliding frees every node,
+  // explicit sliding adds the wall's moving constraints) and kept only if the whole state applies.
+  std::unique_ptr<SurfaceMorphing> made;
+  if (s.morphing_forces_n.rows() > 0) {
+    if (!field_) throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
+    if (!morphing_forces_) {
+      std::vector<char> fixed = pipeline_detail::constrainedNodes(simulator());
+      if (slip_ && s.sliding_targets_m.rows() > 0) std::fill(fixed.begin(), fixed.end(), 0);
+      if (sliding_ && s.sliding_targets_m.rows() > 0)
+        for (const int v : sliding_->nodes()) fixed[static_cast<size_t>(v)] = 1;
+      made = makeMorphing(fixed);
+    }
+    const size_t pulled = (made ? made : morphing_forces_)->vertices().size();
+    if (s.morphing_forces_n.rows() != static_cast<Eigen::Index>(pulled) || s.morphing_forces_n.cols() != 3)
+      throw std::invalid_argument("pipeline state has morphing forces for " + std::to_string(s.morphing_forces_n.rows()) +
+                                  " skin vertices, this model pulls " + std::to_string(pulled));
+    if (!s.morphing_forces_n.allFinite())
+      throw std::invalid_argument("pipeline state has morphing forces that are not finite; they are forces [N] on the "
+                                  "pulled skin vertices");
+  }
   // The values the model takes over: checked before anything changes (a refused restore keeps the
-  // state; the morphing forces' count above is the exception when no morphing object exists yet).
+  // state).
   for (Eigen::Index e = 0; e < s.modulus_factors.size(); ++e)
     if (!(s.modulus_factors[e] > 0.0) || !std::isfinite(s.modulus_factors[e]))
       throw std::invalid_argument("pipeline state has the modulus factor " + util::numberText(s.modulus_factors[e]) +
@@ -92,7 +107,8 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
     sliding_->setTargets(simulator(), s.sliding_targets_m);
   }
   simulator().clearExternalForces();
-  if (s.morphing_forces_n.rows() > 0) ensureMorphing().restoreForces(simulator(), s.morphing_forces_n);
+  if (made) morphing_forces_ = std::move(made);
+  if (s.morphing_forces_n.rows() > 0) morphing_forces_->restoreForces(simulator(), s.morphing_forces_n);
   last_advanced_ = true;
   coarse_ahead_ = false;  // this state is the one to go on from
   stage_ = s.stage;

@@ -465,6 +465,8 @@ class ProneToSupinePipeline {
   void attachSliding();
   void fillState(PipelineState& s) const;  // state() into s, reusing its storage
   SurfaceMorphing& ensureMorphing();  // the force generator, on first use
+  // A force generator pulling the skin nodes that `fixed` (per node) leaves free.
+  std::unique_ptr<SurfaceMorphing> makeMorphing(const std::vector<char>& fixed) const;
   /// Reversal counts since `before`, the final α and the wall time of a stage.
   void closeReport(StageReport& r, const RunStats& before, double seconds) const;
   bool slideAfter(const StiffeningStepResult& r, int* stalls);
