@@ -132,8 +132,10 @@ class DynamicSimulator {
   /// the matrix gather and the solver's set-up are about a fifth of the frame's step
   /// (docs/tracking.md, "Latency"). 1 (the default): every step assembles. A split stiffness
   /// (splitStiffness()) assembles every step: its rank-one part lives in the element formulation's
-  /// arrays, which every element update rewrites. The first step after a change of `steps`
-  /// assembles; with 1 nothing of this is recorded or checked.
+  /// arrays, which every element update rewrites, and its one-ring part holds the inversion
+  /// barrier's stiffness, which changes steeply (reused with a current rank-one part, one node of a
+  /// barrier element moved 3–14 mm in a tracking frame; docs/tracking.md, "Latency"). The first step
+  /// after a change of `steps` assembles; with 1 nothing of this is recorded or checked.
   /// @throws std::invalid_argument for steps < 1 (names the value).
   void setMatrixReuse(int steps);
   int matrixReuse() const { return matrix_reuse_; }
