@@ -90,10 +90,14 @@ TEST(Pipeline, AWholeRunsStateLoadsIntoAFreshPipeline) {
   // Morphing forces that fit no model, or are not finite, are refused before any part of the state
   // applies, though the fresh pipeline has no morphing forces to compare with yet: its wall stays
   // fixed and its displacements zero.
+  const double nan = std::numeric_limits<double>::quiet_NaN();
   const std::pair<const char*, std::function<void(PipelineState&)>> spoiled[] = {
       {"this model pulls", [](PipelineState& t) { t.morphing_forces_n.conservativeResize(t.morphing_forces_n.rows() - 1, 3); }},
-      {"not finite", [](PipelineState& t) { t.morphing_forces_n(0, 1) = std::numeric_limits<double>::quiet_NaN(); }},
+      {"morphing forces that are not finite", [&](PipelineState& t) { t.morphing_forces_n(0, 1) = nan; }},
+      {"displacements that are not finite", [&](PipelineState& t) { t.simulation.displacement_m[4] = nan; }},
+      {"sliding targets that are not finite", [&](PipelineState& t) { t.sliding_targets_m(2, 0) = nan; }},
   };
+  const std::vector<char> constrained_before = fresh.simulator().constrainedDofs();
   for (const auto& [says, spoil] : spoiled) {
     SCOPED_TRACE(says);
     PipelineState bad = run.state();
@@ -107,11 +111,20 @@ TEST(Pipeline, AWholeRunsStateLoadsIntoAFreshPipeline) {
     EXPECT_EQ(fresh.simulator().state().displacement_m.norm(), 0.0);
     EXPECT_EQ(fresh.state().sliding_targets_m.rows(), 0) << "the state's wall was attached";
     EXPECT_EQ(fresh.state().morphing_forces_n.rows(), 0);
+    EXPECT_EQ(fresh.simulator().constrainedDofs(), constrained_before);
   }
   fresh.loadState(file);
   EXPECT_EQ(fresh.simulator().state().displacement_m, run.simulator().state().displacement_m);
   EXPECT_EQ(fresh.state().morphing_forces_n, run.state().morphing_forces_n);
   EXPECT_EQ(fresh.lesionPositions(), run.lesionPositions());
+  // A state from before the morphing drops the forces accumulated since: none are reported or
+  // applied, as before the first morphing step.
+  PipelineState before_morphing = fresh.state();
+  before_morphing.morphing_forces_n.resize(0, 3);
+  fresh.restore(before_morphing);
+  EXPECT_EQ(fresh.state().morphing_forces_n.rows(), 0);
+  EXPECT_EQ(fresh.morphing(), nullptr);
+  EXPECT_EQ(fresh.simulator().externalForces().norm(), 0.0);
   std::filesystem::remove(file);
 }
 

@@ -4,6 +4,7 @@
 #include <memory>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "breast_sim/core/pipeline/prone_to_supine.h"
@@ -71,7 +72,7 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
       made = makeMorphing(fixed);
     }
     const size_t pulled = (made ? made : morphing_forces_)->vertices().size();
-    if (s.morphing_forces_n.rows() != static_cast<Eigen::Index>(pulled) || s.morphing_forces_n.cols() != 3)
+    if (s.morphing_forces_n.rows() != static_cast<Eigen::Index>(pulled))
       throw std::invalid_argument("pipeline state has morphing forces for " + std::to_string(s.morphing_forces_n.rows()) +
                                   " skin vertices, this model pulls " + std::to_string(pulled));
     if (!s.morphing_forces_n.allFinite())
@@ -92,6 +93,17 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
   if (!s.gravity_load_mps2.allFinite())
     throw std::invalid_argument("pipeline state has a gravity load that is not finite (norm " +
                                 util::numberText(s.gravity_load_mps2.norm()) + " m/s²)");
+  // Positions and the wall's points enter the springs and constraints set below, which refuse
+  // values that are not finite: refused here, before anything changed.
+  const std::pair<const char*, bool> finite[] = {
+      {"displacements that are not finite", s.simulation.displacement_m.allFinite()},
+      {"velocities that are not finite", s.simulation.velocity_mps.allFinite()},
+      {"sliding targets that are not finite", s.sliding_targets_m.allFinite()},
+      {"slip directions that are not finite", s.sliding_slip_directions.allFinite()},
+      {"an alpha that is not finite and positive",
+       std::isfinite(s.alpha.alpha_per_pa) && s.alpha.alpha_per_pa > 0.0 && std::isfinite(s.alpha.rate)}};
+  for (const auto& [what, ok] : finite)
+    if (!ok) throw std::invalid_argument(std::string("pipeline state has ") + what);
   // Directly, not through setGravityLoad: the α controller's state below is the snapshot's, not a
   // restarted search.
   simulator().setGravity(s.gravity_load_mps2 + gravity_offset_mps2_);
@@ -103,12 +115,16 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
     sliding_attached_ = true;
   }
   if (sliding_ && s.sliding_targets_m.rows() > 0) {
-    attachSliding();
+    sliding_->attach(simulator());  // not attachSliding(): the α controller's state is the snapshot's
+    sliding_attached_ = true;
     sliding_->setTargets(simulator(), s.sliding_targets_m);
   }
   simulator().clearExternalForces();
   if (made) morphing_forces_ = std::move(made);
   if (s.morphing_forces_n.rows() > 0) morphing_forces_->restoreForces(simulator(), s.morphing_forces_n);
+  // A state from before the morphing: no forces accumulated, as when the generator did not exist yet
+  // (it is made again, for the nodes then free, at the next morphing step).
+  else morphing_forces_.reset();
   last_advanced_ = true;
   coarse_ahead_ = false;  // this state is the one to go on from
   stage_ = s.stage;
