@@ -128,6 +128,34 @@ TEST(Pipeline, AWholeRunsStateLoadsIntoAFreshPipeline) {
   std::filesystem::remove(file);
 }
 
+// With the explicit (seed 2.4) sliding the wall's nodes stay constrained (moving targets): a fresh
+// pipeline restoring a state with morphing forces pulls the same vertices as the run it came from,
+// and a spoiled one is refused before its wall is attached.
+TEST(Pipeline, AnExplicitSlidingRunsStateLoadsIntoAFreshPipeline) {
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.sliding_method = PipelineSettings::SlidingMethod::kExplicit;
+  s.simulation.settle.max_steps = 40;  // the states need not be settled
+  s.morphing.max_steps = 5;
+  ProneToSupinePipeline run(p.c, p.m, s);
+  run.run();
+  const PipelineState state = run.state();
+  ASSERT_GT(state.morphing_forces_n.rows(), 0);
+  ASSERT_GT(state.sliding_targets_m.rows(), 0);
+  ProneToSupinePipeline fresh(p.c, p.m, s);
+  const std::vector<char> constrained_before = fresh.simulator().constrainedDofs();
+  PipelineState bad = state;
+  bad.morphing_forces_n.conservativeResize(bad.morphing_forces_n.rows() - 1, 3);
+  EXPECT_THROW(fresh.restore(bad), std::invalid_argument);
+  EXPECT_EQ(fresh.simulator().constrainedDofs(), constrained_before);
+  EXPECT_EQ(fresh.simulator().state().displacement_m.norm(), 0.0);
+  fresh.restore(state);
+  ASSERT_TRUE(fresh.morphing() && run.morphing());
+  EXPECT_EQ(fresh.morphing()->vertices(), run.morphing()->vertices());
+  EXPECT_EQ(fresh.state().morphing_forces_n, state.morphing_forces_n);
+  EXPECT_EQ(fresh.simulator().constrainedDofs(), run.simulator().constrainedDofs());
+}
+
 TEST(Pipeline, MorphingPullsTheSkinOntoAReachableTarget) {
   // The model's own skin stretched 8 % anteriorly away from the fixed wall (y = 0 stays, so the
   // base needs no sliding): the pulled vertices reach the tolerance, no element inverts.
