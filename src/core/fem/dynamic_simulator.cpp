@@ -110,6 +110,11 @@ void DynamicSimulator::clearConstraints() {
   std::fill(is_target_.begin(), is_target_.end(), 0);
 }
 
+void DynamicSimulator::constrainedNodes(std::vector<char>& fixed) const {
+  fixed.resize(static_cast<size_t>(num_nodes_));
+  for (size_t n = 0; n < fixed.size(); ++n) fixed[n] = constrained_[3 * n] || constrained_[3 * n + 1] || constrained_[3 * n + 2];
+}
+
 void DynamicSimulator::setNodeTargets(const std::vector<int>& nodes, const Points& targets_m) {
   if (static_cast<Eigen::Index>(nodes.size()) != targets_m.rows())
     throw std::invalid_argument("setNodeTargets: " + std::to_string(nodes.size()) + " nodes but " +

@@ -585,8 +585,7 @@ StiffeningStepResult StiffeningSimulation::step() {
     // springs (implicit sliding, wall_slip.h) are loads on their nodes like external forces
     // (without springs the external forces themselves, with them a kept buffer).
     if (!tracking_) {
-      const std::vector<char>& dofs = sim_.constrainedDofs();
-      for (int n = 0; n < mesh_.numNodes(); ++n) fixed_node_[n] = dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2];
+      sim_.constrainedNodes(fixed_node_);
       if (!sim_.springNodes().empty()) {
         loads_ = sim_.externalForces();
         sim_.addCurrentSpringForces(loads_);

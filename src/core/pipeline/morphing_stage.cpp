@@ -29,7 +29,11 @@ std::unique_ptr<SurfaceMorphing> ProneToSupinePipeline::makeMorphing(const std::
 }
 
 SurfaceMorphing& ProneToSupinePipeline::ensureMorphing() {
-  if (!morphing_forces_) morphing_forces_ = makeMorphing(pipeline_detail::constrainedNodes(simulator()));
+  if (!morphing_forces_) {
+    std::vector<char> fixed;
+    simulator().constrainedNodes(fixed);
+    morphing_forces_ = makeMorphing(fixed);
+  }
   return *morphing_forces_;
 }
 

@@ -7,7 +7,6 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
-#include <vector>
 
 #include "breast_sim/core/pipeline/prone_to_supine.h"
 
@@ -38,14 +37,6 @@ inline double meshFingerprint(const TetMesh& mesh) {
   mix(mesh.nodes().data(), sizeof(double) * static_cast<size_t>(mesh.nodes().size()));
   mix(mesh.tets().data(), sizeof(int) * static_cast<size_t>(mesh.tets().size()));
   return static_cast<double>(h & ((std::uint64_t{1} << 52) - 1)) + 1.0;  // never 0 (0: older files)
-}
-
-/// Per node of the simulator: 1 where any of its DOFs is constrained.
-inline std::vector<char> constrainedNodes(const DynamicSimulator& sim) {
-  const std::vector<char>& dofs = sim.constrainedDofs();
-  std::vector<char> fixed(static_cast<size_t>(sim.numNodes()), 0);
-  for (size_t n = 0; n < fixed.size(); ++n) fixed[n] = dofs[3 * n] || dofs[3 * n + 1] || dofs[3 * n + 2];
-  return fixed;
 }
 
 /// Wall time since t0 [s].

@@ -65,7 +65,8 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
   if (s.morphing_forces_n.rows() > 0) {
     if (!field_) throw std::invalid_argument("pipeline state has morphing forces, but no target surface is set");
     if (!morphing_forces_) {
-      std::vector<char> fixed = pipeline_detail::constrainedNodes(simulator());
+      std::vector<char> fixed;
+      simulator().constrainedNodes(fixed);
       if (slip_ && s.sliding_targets_m.rows() > 0) std::fill(fixed.begin(), fixed.end(), 0);
       if (sliding_ && s.sliding_targets_m.rows() > 0)
         for (const int v : sliding_->nodes()) fixed[static_cast<size_t>(v)] = 1;
@@ -85,11 +86,6 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
     if (!(s.modulus_factors[e] > 0.0) || !std::isfinite(s.modulus_factors[e]))
       throw std::invalid_argument("pipeline state has the modulus factor " + util::numberText(s.modulus_factors[e]) +
                                   " at element " + std::to_string(e) + "; modulus factors are finite and > 0");
-  try {
-    StiffeningSimulation::checkElementAlpha(s.element_alpha_per_pa, model_.mesh.numTets());
-  } catch (const std::invalid_argument& e) {
-    throw std::invalid_argument(std::string("pipeline state has ") + e.what());
-  }
   if (!s.gravity_load_mps2.allFinite())
     throw std::invalid_argument("pipeline state has a gravity load that is not finite (norm " +
                                 util::numberText(s.gravity_load_mps2.norm()) + " m/s²)");
@@ -104,11 +100,16 @@ void ProneToSupinePipeline::restore(const PipelineState& s) {
        std::isfinite(s.alpha.alpha_per_pa) && s.alpha.alpha_per_pa > 0.0 && std::isfinite(s.alpha.rate)}};
   for (const auto& [what, ok] : finite)
     if (!ok) throw std::invalid_argument(std::string("pipeline state has ") + what);
-  // Directly, not through setGravityLoad: the α controller's state below is the snapshot's, not a
+  // The first change: restoreSnapshot checks the local α's before it applies anything; resync()
+  // inside gives the stress the next moduli come from at this state.
+  try {
+    stiff_->restoreSnapshot(s.simulation, s.modulus_factors, s.alpha, s.element_alpha_per_pa);
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(std::string("pipeline state has ") + e.what());
+  }
+  // Directly, not through setGravityLoad: the α controller's state is the snapshot's, not a
   // restarted search.
   simulator().setGravity(s.gravity_load_mps2 + gravity_offset_mps2_);
-  // resync() inside: the stress the next moduli come from is this state's.
-  stiff_->restoreSnapshot(s.simulation, s.modulus_factors, s.alpha, s.element_alpha_per_pa);
   if (slip_ && s.sliding_targets_m.rows() > 0) {
     slip_->setStickPoints(s.sliding_targets_m, s.sliding_slip_directions);
     slip_->attach(simulator());

@@ -171,6 +171,9 @@ class DynamicSimulator {
   const Eigen::VectorXd& externalForces() const { return external_force_; }
   /// Per DOF: 1 if fixed or a target (constrained), else 0.
   const std::vector<char>& constrainedDofs() const { return constrained_; }
+  /// Per node: 1 where any of its DOFs is constrained, into `fixed` (resized to #N; no allocation
+  /// once it has that size).
+  void constrainedNodes(std::vector<char>& fixed) const;
 
  private:
   const Points rest_;

@@ -396,9 +396,9 @@ class ProneToSupinePipeline {
   PipelineState state() const;
   /// state() into `s`, reusing its storage (no allocation once `s` has the sizes).
   void copyState(PipelineState& s) const { fillState(s); }
-  /// The snapshot's sizes and values are checked before any is applied, except the count of its
-  /// morphing forces before this pipeline has made its own (that count depends on the snapshot's
-  /// wall, so it is checked once the wall is attached).
+  /// Every part is checked before any is applied (the morphing forces against the skin vertices the
+  /// snapshot's wall leaves free), so a refused snapshot leaves the state as it was. A snapshot
+  /// without morphing forces drops the force generator and what it accumulated.
   /// @throws std::invalid_argument when the snapshot does not fit this model (sizes, values).
   void restore(const PipelineState& s);
   /// Nested iteration: takes the state of a pipeline on a coarser model of the same case (another
