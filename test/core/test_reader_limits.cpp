@@ -125,14 +125,15 @@ TEST(StateFile, RoundTripsEverySection) {
   EXPECT_TRUE(g.has_rest_shape);
   EXPECT_EQ(g.rest_m, f.rest_m);
   EXPECT_EQ(g.state.element_alpha_per_pa, f.state.element_alpha_per_pa);
-  // A local alpha the reader would refuse is not written, and the file stays as it was.
+  // A local alpha the reader would refuse is not written, and the file stays as it was. (The
+  // writer checks it itself: it is built into the readers' library, without the stiffening driver.)
   StateFile bad = f;
   bad.state.element_alpha_per_pa[0] = -1.0;
   try {
     writeStateFile(dir.path("s.bin"), bad);
     ADD_FAILURE() << "written";
   } catch (const std::invalid_argument& e) {
-    EXPECT_NE(std::string(e.what()).find("the local alpha -1 /Pa at element 0"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("a local alpha is negative or not finite"), std::string::npos) << e.what();
   }
   EXPECT_EQ(readStateFile(dir.path("s.bin")).state.element_alpha_per_pa, f.state.element_alpha_per_pa);
   // No temporary is left beside the file.
