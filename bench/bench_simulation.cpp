@@ -6,7 +6,7 @@
 // same figures.
 //   bench_simulation [--targets 47895,99390,158340,313335] [--steps 25] [--baseline-steps 3]
 //                    [--tol 1e-2] [--cap K] [--settle-target 47895] [--settle-dts 0.033,0.1,0.33,1]
-//                    [--tols 1e-1,1e-2,1e-3,1e-6] [--caps 2,3,4,6] [--study-steps N]
+//                    [--tols 1e-1,1e-2,1e-3,1e-6] [--caps 2,3,4,6] [--projections 1,2,4] [--study-steps N]
 //                    [--coarse-interval 50] [--coarse-adaptive 0|1] [--no-baseline] [--no-settle]
 //                    [--element linear|anp] [--volume-term trace|determinant] [--json FILE]
 // --element / --volume-term choose the element formulation (simulation.element, .volume_term) of
@@ -19,7 +19,9 @@
 // The accuracy study (at the first size): per-step PCG tolerance (--tols) and per-step iteration caps
 // (--caps k: at most k PCG iterations, or fewer at --tol, the step used either way, as real-time
 // multigrid simulations run a fixed number of cycles per step) against step time and the error of the
-// dynamic path after 3 and after --study-steps steps (default --steps), against CHOLMOD's exact solves.
+// dynamic path after 3 and after --study-steps steps (default --steps), against CHOLMOD's exact solves;
+// --projections k: rows at --tol whose PCG starts from k vectors (PcgOptions::projection_vectors;
+// 1 = the last velocity alone), the other rows from the default.
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -148,6 +150,8 @@ int main(int argc, char** argv) {
   std::vector<double> tol_study = {1e-1, 1e-2, 1e-3, 1e-6};
   // Per-step iteration caps (at most k PCG iterations per step, at the tolerance --tol).
   std::vector<double> cap_study = {2, 3, 4, 6};
+  // Initial guesses from k vectors (PcgOptions::projection_vectors), at the tolerance --tol.
+  std::vector<double> projection_study = {1, 4};
   int study_steps = 0;  // steps of the accuracy study; 0 = --steps
   bool baseline = true, settle_study = true;
   std::string json_path;
@@ -174,6 +178,7 @@ int main(int argc, char** argv) {
     else if (k == "--tols") tol_study = parseList(value());
     else if (k == "--cap") table_cap = std::stoi(value());
     else if (k == "--caps") cap_study = parseList(value());
+    else if (k == "--projections") projection_study = parseList(value());
     else if (k == "--study-steps") study_steps = std::stoi(value());
     else if (k == "--no-baseline") baseline = false;
     else if (k == "--no-settle") settle_study = false;
@@ -190,7 +195,7 @@ int main(int argc, char** argv) {
       std::fprintf(stderr,
                    "usage: bench_simulation [--targets N,...] [--steps 25] [--baseline-steps 3] [--tol 1e-2] [--cap K]\n"
                    "         [--coarse-interval 50] [--coarse-adaptive 0|1]\n"
-                   "         [--tols 1e-1,...] [--caps 2,3,...] [--study-steps N]\n"
+                   "         [--tols 1e-1,...] [--caps 2,3,...] [--projections 1,2,...] [--study-steps N]\n"
                    "         [--settle-target 47895] [--settle-dts 0.033,...] [--no-baseline] [--no-settle]\n"
                    "         [--element linear|anp] [--volume-term trace|determinant] [--json FILE]\n");
       return 2;
@@ -344,20 +349,26 @@ int main(int argc, char** argv) {
                 model.mesh.numTets(), horizon, 1e3 * scale_end);
     std::printf("(a cap of k stops PCG after k iterations, or earlier at the tolerance %.0e; the step is used either way)\n",
                 tol);
-    std::printf("%9s %5s | %8s %6s %8s %8s %6s %6s | %14s %14s %9s\n", "tolerance", "cap", "step[ms]", "mean", "assem",
-                "solve", "iters", "capped", "err@3 steps", "err@end", "err/max");
+    std::printf("(vecs: the vectors PCG's initial guess is projected from, 1 = the last velocity alone; default %d)\n",
+                settings.solver.projection_vectors);
+    std::printf("%9s %5s %4s | %8s %6s %8s %8s %6s %6s | %14s %14s %9s\n", "tolerance", "cap", "vecs", "step[ms]", "mean",
+                "assem", "solve", "iters", "capped", "err@3 steps", "err@end", "err/max");
     nlohmann::json trows = nlohmann::json::array();
     struct Variant {
       double tolerance;
       int cap;  // 0 = the default max_iterations
+      int vectors;
     };
     std::vector<Variant> variants;
-    for (double t : tol_study) variants.push_back({t, 0});
-    for (double k : cap_study) variants.push_back({tol, static_cast<int>(k)});
+    const int default_vectors = settings.solver.projection_vectors;
+    for (double t : tol_study) variants.push_back({t, 0, default_vectors});
+    for (double k : cap_study) variants.push_back({tol, static_cast<int>(k), default_vectors});
+    for (double k : projection_study) variants.push_back({tol, 0, static_cast<int>(k)});
     for (const Variant& v : variants) {
       SimulationSettings ts = settings;
       ts.solver.relative_tolerance = v.tolerance;
       if (v.cap > 0) ts.solver.max_iterations = v.cap;
+      ts.solver.projection_vectors = v.vectors;
       SimulatorBuild tb = buildSimulator(c, model, ts);
       const StepRun a = runSteps(*tb.simulator, early);
       const double e_early = maxNodalNorm(tb.simulator->state().displacement_m - u_early);
@@ -372,13 +383,14 @@ int main(int argc, char** argv) {
       const int inverted =
           static_cast<int>(invertedTets(model.mesh.tets(), model.mesh.nodes() + tb.simulator->displacement()).size());
       const std::string cap_text = v.cap > 0 ? std::to_string(v.cap) : "-";
-      std::printf("%9.0e %5s | %8.1f %6.1f %8.1f %8.1f %6.1f %6d | %11.2e mm %11.2e mm %9.1e%s\n", v.tolerance,
-                  cap_text.c_str(), 1e3 * median(total), 1e3 * mean(total), 1e3 * median(assem), 1e3 * median(solve), mean(its), capped,
+      std::printf("%9.0e %5s %4d | %8.1f %6.1f %8.1f %8.1f %6.1f %6d | %11.2e mm %11.2e mm %9.1e%s\n", v.tolerance,
+                  cap_text.c_str(), v.vectors, 1e3 * median(total), 1e3 * mean(total), 1e3 * median(assem), 1e3 * median(solve), mean(its), capped,
                   1e3 * e_early, 1e3 * e_end, scale_end > 0 ? e_end / scale_end : 0.0,
                   inverted ? ("  (" + std::to_string(inverted) + " inverted)").c_str() : "");
       std::fflush(stdout);
       trows.push_back({{"relative_tolerance", v.tolerance},
                        {"iteration_cap", v.cap},
+                       {"projection_vectors", v.vectors},
                        {"step_ms_median", 1e3 * median(total)},
                        {"step_ms_mean", 1e3 * mean(total)},
                        {"assembly_ms_median", 1e3 * median(assem)},

@@ -262,6 +262,37 @@ struct StepSystem {
 
 }  // namespace
 
+// The projected initial guess (PcgOptions::projection_vectors) multiplies by S + R as the iterations
+// do: held to the dense Galerkin projection with the assembled matrix.
+TEST(PcgSolver, ProjectsItsInitialGuessWithTheRankOnePart) {
+  const StepSystem sys({8, 6, 6});
+  PcgOptions o;
+  o.relative_tolerance = 1e-11;
+  PcgSolver pcg(o);
+  pcg.analyzeWithRankOne(sys.S, sys.R);
+  pcg.factorizeWithRankOne(sys.S, sys.R);
+  Eigen::VectorXd x1;
+  ASSERT_TRUE(pcg.solve(sys.b, x1).converged);
+  Eigen::VectorXd b2 = randomVector(sys.A.rows(), 22), b3 = randomVector(sys.A.rows(), 23);
+  for (Eigen::Index i = 0; i < b2.size(); ++i)
+    if (sys.R.free[i] == 0.0) b2[i] = b3[i] = 0.0;
+  Eigen::VectorXd x2 = x1;
+  ASSERT_TRUE(pcg.solve(b2, x2).converged);
+  PcgOptions guess_only = o;
+  guess_only.max_iterations = 0;
+  pcg.setOptions(guess_only);
+  Eigen::VectorXd x = x2;
+  pcg.solve(b3, x);
+  // span{x2, x1}, the fixed rows (b = 0 there) zero
+  Eigen::MatrixXd W(b3.size(), 2);
+  W << x2, x1;
+  for (Eigen::Index i = 0; i < b3.size(); ++i)
+    if (sys.R.free[i] == 0.0) W.row(i).setZero();
+  const Eigen::MatrixXd A = Eigen::MatrixXd(sys.A);
+  const Eigen::VectorXd ref = W * (W.transpose() * A * W).ldlt().solve(W.transpose() * b3);
+  EXPECT_LE((x - ref).norm(), 1e-9 * ref.norm());
+}
+
 TEST(PcgSolver, SolvesTheSplitSystemAsCholmodSolvesTheAssembledOne) {
   const StepSystem sys({8, 6, 6});
   CholmodSolver direct;

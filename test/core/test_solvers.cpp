@@ -90,6 +90,154 @@ TEST(PcgSolver, WarmStartFromTheSolutionReturnsAtOnce) {
   }
 }
 
+namespace {
+
+// b with its free rows changed by a smooth and a random part (the fixed rows keep their values).
+Eigen::VectorXd perturbedLoad(const Fixture& f, double scale, unsigned seed) {
+  std::vector<char> fixed_row(static_cast<size_t>(f.b.size()), 0);
+  for (int v : f.fixed)
+    for (int i = 0; i < 3; ++i) fixed_row[static_cast<size_t>(3 * v + i)] = 1;
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  Eigen::VectorXd b = f.b;
+  const double size = f.b.cwiseAbs().maxCoeff();
+  for (Eigen::Index i = 0; i < b.size(); ++i)
+    if (!fixed_row[static_cast<size_t>(i)]) b[i] = scale * b[i] + 0.3 * size * u(rng);
+  return b;
+}
+
+// The slow reference of the projected guess: x_fixed + W c with (WᵀAW) c = Wᵀb, W the spanning
+// vectors with their fixed rows zeroed (dense, from the matrix itself).
+Eigen::VectorXd galerkinGuess(const Fixture& f, const std::vector<Eigen::VectorXd>& span, const Eigen::VectorXd& b) {
+  Eigen::MatrixXd W(b.size(), static_cast<Eigen::Index>(span.size()));
+  for (size_t j = 0; j < span.size(); ++j) W.col(static_cast<Eigen::Index>(j)) = span[j];
+  Eigen::VectorXd x = Eigen::VectorXd::Zero(b.size());
+  for (int v : f.fixed)
+    for (int i = 0; i < 3; ++i) {
+      W.row(3 * v + i).setZero();
+      x[3 * v + i] = b[3 * v + i] / f.A.coeff(3 * v + i, 3 * v + i);
+    }
+  const Eigen::MatrixXd AW = f.A * W;
+  const Eigen::VectorXd c = (W.transpose() * AW).ldlt().solve(W.transpose() * b);
+  return x + W * c;
+}
+
+double energyNormError(const SparseMatrix& A, const Eigen::VectorXd& x, const Eigen::VectorXd& exact) {
+  const Eigen::VectorXd e = x - exact;
+  return std::sqrt(e.dot(A * e));
+}
+
+}  // namespace
+
+// PcgOptions::projection_vectors: the solve starts from the combination of the caller's guess and
+// the kept solutions that is nearest the solution in the A-norm. Held to a dense Galerkin projection
+// built from the matrix, on the phantom's step matrix with its fixed chest-wall rows.
+TEST(PcgSolver, StartsFromTheANormBestCombinationOfItsGuessAndItsLastSolutions) {
+  const Fixture& f = fixture();
+  PcgOptions o;
+  o.relative_tolerance = 1e-11;
+  o.max_iterations = 20000;
+  o.projection_vectors = 3;
+  PcgSolver pcg(o);
+  pcg.analyzePattern(f.A);
+  pcg.factorize(f.A);
+  Eigen::VectorXd x1 = Eigen::VectorXd::Zero(f.b.size());
+  ASSERT_TRUE(pcg.solve(f.b, x1).converged);
+  Eigen::VectorXd x2 = x1;
+  const Eigen::VectorXd b2 = perturbedLoad(f, 1.3, 2);
+  ASSERT_TRUE(pcg.solve(b2, x2).converged);
+  ASSERT_EQ(pcg.keptSolutions(), 2);
+
+  const Eigen::VectorXd b3 = perturbedLoad(f, 1.5, 3);
+  const Eigen::VectorXd exact = Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>{Eigen::SparseMatrix<double>(f.A)}.solve(b3);
+  PcgOptions guess_only = o;
+  guess_only.max_iterations = 0;  // returns the initial guess
+  struct Case {
+    const char* what;
+    Eigen::VectorXd guess;
+    std::vector<Eigen::VectorXd> span;  // what the guess is projected onto
+  };
+  // A time step's guess is the newest solution itself: it is not counted twice. A zero guess adds
+  // nothing to the span.
+  const std::vector<Case> cases = {{"guess = newest solution", x2, {x2, x1}},
+                                   {"zero guess", Eigen::VectorXd::Zero(f.b.size()), {x2, x1}},
+                                   {"another guess", 0.5 * x1, {0.5 * x1, x2, x1}}};
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.what);
+    PcgSolver p(o);
+    p.analyzePattern(f.A);
+    p.factorize(f.A);
+    Eigen::VectorXd y1 = Eigen::VectorXd::Zero(f.b.size());
+    p.solve(f.b, y1);
+    Eigen::VectorXd y2 = y1;
+    p.solve(b2, y2);
+    ASSERT_EQ(y2, x2);
+    p.setOptions(guess_only);
+    Eigen::VectorXd x = c.guess;
+    const SolveStats st = p.solve(b3, x);
+    EXPECT_EQ(st.iterations, 0);
+    const Eigen::VectorXd ref = galerkinGuess(f, c.span, b3);
+    EXPECT_LE((x - ref).norm(), 1e-9 * ref.norm());
+    for (int v : f.fixed)
+      for (int i = 0; i < 3; ++i) ASSERT_EQ(x[3 * v + i], b3[3 * v + i] / f.A.coeff(3 * v + i, 3 * v + i));
+    // Never farther from the solution in the A-norm than the caller's guess, fixed rows solved.
+    Eigen::VectorXd plain = c.guess;
+    for (int v : f.fixed)
+      for (int i = 0; i < 3; ++i) plain[3 * v + i] = b3[3 * v + i] / f.A.coeff(3 * v + i, 3 * v + i);
+    EXPECT_LT(energyNormError(f.A, x, exact), energyNormError(f.A, plain, exact));
+    // The residual the solve reported is that of the projected guess.
+    EXPECT_NEAR(st.relative_residual, (b3 - f.A * x).norm() / b3.norm(), 1e-9 * st.relative_residual);
+  }
+}
+
+TEST(PcgSolver, ASolutionInTheSpanOfItsLastSolutionsReturnsAtOnce) {
+  const Fixture& f = fixture();
+  PcgOptions o;
+  o.relative_tolerance = 1e-9;
+  o.max_iterations = 20000;
+  PcgSolver pcg(o);
+  ASSERT_EQ(o.projection_vectors, 2);  // the default
+  pcg.analyzePattern(f.A);
+  pcg.factorize(f.A);
+  Eigen::VectorXd x = Eigen::VectorXd::Zero(f.b.size());
+  const SolveStats first = pcg.solve(f.b, x);
+  ASSERT_TRUE(first.converged);
+  ASSERT_GT(first.iterations, 10);
+  // Twice the load on the free rows, the fixed rows kept: 2 x on the free rows, from a zero guess.
+  Eigen::VectorXd b = 2.0 * f.b;
+  for (int v : f.fixed)
+    for (int i = 0; i < 3; ++i) b[3 * v + i] = f.b[3 * v + i];
+  Eigen::VectorXd y = Eigen::VectorXd::Zero(f.b.size());
+  const SolveStats s = pcg.solve(b, y);
+  EXPECT_TRUE(s.converged);
+  EXPECT_EQ(s.iterations, 0);
+  // Without the kept solutions it iterates as the first solve did.
+  pcg.forgetSolutions();
+  EXPECT_EQ(pcg.keptSolutions(), 0);
+  Eigen::VectorXd z = Eigen::VectorXd::Zero(f.b.size());
+  EXPECT_GT(pcg.solve(b, z).iterations, 10);
+  // A new analysis drops them too.
+  EXPECT_EQ(pcg.keptSolutions(), 1);
+  pcg.analyzePattern(f.A);
+  EXPECT_EQ(pcg.keptSolutions(), 0);
+}
+
+TEST(PcgSolver, ProjectionVectorsOutsideTheirRangeAreRefusedByName) {
+  for (int k : {0, -1, kMaxProjectionVectors + 1}) {
+    PcgOptions o;
+    o.projection_vectors = k;
+    try {
+      PcgSolver pcg(o);
+      ADD_FAILURE() << k << " accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("projection_vectors " + std::to_string(k)), std::string::npos) << e.what();
+    }
+    PcgSolver pcg;
+    EXPECT_THROW(pcg.setOptions(o), std::invalid_argument);
+    EXPECT_EQ(pcg.options().projection_vectors, PcgOptions{}.projection_vectors);
+  }
+}
+
 TEST(PcgSolver, ZeroRightHandSideGivesZeroAtOnce) {
   const Fixture& f = fixture();
   PcgSolver pcg;

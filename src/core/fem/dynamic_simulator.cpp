@@ -426,6 +426,7 @@ void DynamicSimulator::restore(const SimulationState& s) {
                                 " DOFs, the model " + std::to_string(3 * num_nodes_));
   state_ = s;
   matrix_age_ = 0;
+  solver_->forgetSolutions();  // the steps after a restore depend on the state alone
 }
 
 bool DynamicSimulator::springsAsAssembled() const {

@@ -61,6 +61,10 @@ void SimulationSettings::validate() const {
   if (!(solver.relative_tolerance > 0 && solver.relative_tolerance < 1))
     invalid("solver.relative_tolerance", solver.relative_tolerance, "a value in (0, 1), e.g. 1e-3");
   if (solver.max_iterations < 1) invalid("solver.max_iterations", solver.max_iterations, "≥ 1");
+  if (solver.projection_vectors < 1 || solver.projection_vectors > kMaxProjectionVectors)
+    invalid("solver.projection_vectors", solver.projection_vectors,
+            "1 .. 8 (1 = the warm start alone)");
+  static_assert(kMaxProjectionVectors == 8, "the message above names the limit");
   if (solver.multigrid.pre_smoothing_steps < 1 || solver.multigrid.post_smoothing_steps < 1)
     invalid("solver.multigrid smoothing steps", solver.multigrid.pre_smoothing_steps, "≥ 1");
   if (solver.multigrid.coarse_update_interval < 1)
@@ -225,6 +229,7 @@ SimulatorBuild build(const TetMesh& mesh, const SimulationSettings& settings, st
   PcgOptions pcg;
   pcg.relative_tolerance = settings.solver.relative_tolerance;
   pcg.max_iterations = settings.solver.max_iterations;
+  pcg.projection_vectors = settings.solver.projection_vectors;
   std::unique_ptr<LinearSolver> solver;
   const auto t0 = std::chrono::steady_clock::now();
   switch (settings.solver.kind) {

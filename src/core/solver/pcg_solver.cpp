@@ -1,10 +1,13 @@
 #include "breast_sim/core/solver/pcg_solver.h"
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
+
+#include <Eigen/Eigenvalues>
 
 #include "breast_sim/core/solver/block_kernels.h"
 #include "../util/ordered_sum.h"
@@ -215,8 +218,20 @@ void JacobiPreconditioner::apply(const Eigen::VectorXd& r, Eigen::VectorXd& z) {
 // ---------------------------------------------------------------------------------------------------
 
 PcgSolver::PcgSolver(PcgOptions options, std::unique_ptr<Preconditioner> preconditioner)
-    : options_(options), preconditioner_(std::move(preconditioner)) {
+    : preconditioner_(std::move(preconditioner)) {
   if (!preconditioner_) preconditioner_ = std::make_unique<JacobiPreconditioner>();
+  setOptions(options);
+}
+
+void PcgSolver::setOptions(const PcgOptions& options) {
+  if (options.projection_vectors < 1 || options.projection_vectors > kMaxProjectionVectors) {
+    std::ostringstream s;
+    s << name() << ": projection_vectors " << options.projection_vectors << " is not in 1 .. "
+      << kMaxProjectionVectors << "; 1 starts every solve from the caller's guess alone";
+    throw std::invalid_argument(s.str());
+  }
+  options_ = options;
+  if (kept_solutions_ > options_.projection_vectors) kept_solutions_ = options_.projection_vectors;
 }
 
 void PcgSolver::setRelativeTolerance(double tolerance) {
@@ -258,6 +273,7 @@ void PcgSolver::analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R) {
 
 void PcgSolver::analyzeCommon(const SparseMatrix& A) {
   const Eigen::Index n = A.rows();
+  kept_solutions_ = 0;
   decoupled_flag_.assign(static_cast<size_t>(n), 0);
   decoupled_.clear();
   decoupled_.reserve(static_cast<size_t>(n));
@@ -335,6 +351,107 @@ void PcgSolver::checkAndScan(const SparseMatrix& A) {
     if (decoupled_flag_[i]) decoupled_.push_back(static_cast<int>(i));
 }
 
+double PcgSolver::multiply(const Eigen::VectorXd& p, Eigen::VectorXd& q) {
+  const SparseMatrix& A = *A_;
+  double pq = !block_start_.empty()
+                  ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(), nullptr,
+                                 p.data(), q.data(), static_cast<int>(block_start_.size()) - 1, false,
+                                 options_.simd_kernels, A.rows() > kParallelMin)
+                  : multiplyDot(A, p, q);
+  if (rank_one_) pq += addRankOneProduct(R_, p.data(), 1.0, q.data(), rank_one_work_.data());
+  return pq;
+}
+
+double PcgSolver::projectInitialGuess(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
+  constexpr int K = kMaxProjectionVectors;
+  if (options_.projection_vectors < 2 || kept_solutions_ == 0) return -1.0;
+  const Eigen::Index n = n_;
+  // What spans it: the caller's guess, then the kept solutions newest first, without a first one
+  // equal to the guess (a time step starts from its last solution).
+  std::array<const Eigen::VectorXd*, K> list{};
+  int m = 0;
+  list[m++] = &x;
+  const int first = solutions_[0] == x ? 1 : 0;
+  for (int k = first; k < kept_solutions_ && m < options_.projection_vectors; ++k) list[m++] = &solutions_[k];
+  if (m < 2) return -1.0;
+  if (static_cast<int>(basis_.size()) < m) {
+    basis_.resize(static_cast<size_t>(m));
+    basis_products_.resize(static_cast<size_t>(m));
+  }
+  // The basis: the guess and the differences of neighbours in the list (the same span; successive
+  // solutions are nearly parallel, their differences are not), zero on the decoupled rows, whose
+  // values are known. Its Gram matrix G = WᵀAW and g = Wᵀb (Wᵀ A x_decoupled = 0).
+  Eigen::Matrix<double, K, K> G = Eigen::Matrix<double, K, K>::Zero();
+  Eigen::Matrix<double, K, 1> g = Eigen::Matrix<double, K, 1>::Zero();
+  const bool parallel = n > kParallelMinVector;
+  const unsigned char* fixed = decoupled_flag_.data();
+  for (int j = 0; j < m; ++j) {
+    Eigen::VectorXd& w = basis_[static_cast<size_t>(j)];
+    Eigen::VectorXd& q = basis_products_[static_cast<size_t>(j)];
+    w.resize(n);
+    q.resize(n);
+    const double* a = list[j]->data();
+    const double* before = j > 0 ? list[j - 1]->data() : nullptr;
+#pragma omp parallel for schedule(static) if (parallel)
+    for (Eigen::Index i = 0; i < n; ++i) w[i] = fixed[i] ? 0.0 : (before ? before[i] - a[i] : a[i]);
+    multiply(w, q);
+    const std::array<double, K + 1> sums = util::orderedSums<K + 1>(n, parallel, [&](long i) {
+      std::array<double, K + 1> t{};
+      for (int l = 0; l <= j; ++l) t[l] = basis_[static_cast<size_t>(l)][i] * q[i];
+      t[K] = w[i] * b[i];
+      return t;
+    });
+    for (int l = 0; l <= j; ++l) G(l, j) = G(j, l) = sums[l];
+    g[j] = sums[K];
+  }
+  // c = G⁺ g on the directions G resolves: scaled to a unit diagonal, eigenvalues below 1e-12 of
+  // the largest dropped (a zero or repeated basis vector).
+  Eigen::VectorXd scale(m);
+  for (int j = 0; j < m; ++j) scale[j] = G(j, j) > 0.0 ? 1.0 / std::sqrt(G(j, j)) : 0.0;
+  const Eigen::MatrixXd Gs = scale.asDiagonal() * G.topLeftCorner(m, m) * scale.asDiagonal();
+  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(Gs);
+  if (eig.info() != Eigen::Success) return -1.0;
+  const double largest = eig.eigenvalues().maxCoeff();
+  if (!(largest > 0.0)) return -1.0;
+  const Eigen::VectorXd gs = scale.cwiseProduct(g.head(m));
+  Eigen::VectorXd c = Eigen::VectorXd::Zero(m);
+  for (int e = 0; e < m; ++e) {
+    const double lambda = eig.eigenvalues()[e];
+    if (lambda > 1e-12 * largest) c += eig.eigenvectors().col(e) * (eig.eigenvectors().col(e).dot(gs) / lambda);
+  }
+  c = scale.cwiseProduct(c);
+  if (!c.allFinite()) return -1.0;
+  // x = x_decoupled + W c and r = b − A x = b − (AW) c (zero on the decoupled rows).
+  return util::orderedSum(n, parallel, [&](long i) {
+    if (fixed[i]) {
+      r_[i] = 0.0;
+      return 0.0;
+    }
+    double xi = 0.0, ri = b[i];
+    for (int l = 0; l < m; ++l) {
+      xi += c[l] * basis_[static_cast<size_t>(l)][i];
+      ri -= c[l] * basis_products_[static_cast<size_t>(l)][i];
+    }
+    x[i] = xi;
+    r_[i] = ri;
+    return ri * ri;
+  });
+}
+
+void PcgSolver::keepSolution(const Eigen::VectorXd& x) {
+  const int keep = options_.projection_vectors;
+  if (keep < 2) {
+    kept_solutions_ = 0;
+    return;
+  }
+  if (static_cast<int>(solutions_.size()) < keep) solutions_.resize(static_cast<size_t>(keep));
+  // The oldest slot becomes the newest (its storage reused).
+  std::rotate(solutions_.begin(), solutions_.begin() + (keep - 1), solutions_.begin() + keep);
+  solutions_[0].resize(x.size());
+  copy(x, solutions_[0]);
+  kept_solutions_ = std::min(kept_solutions_ + 1, keep);
+}
+
 SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   const auto t0 = std::chrono::steady_clock::now();
   if (!A_) throw std::logic_error(name() + ": solve() called without a successful factorize()");
@@ -374,10 +491,17 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
     addRankOneProduct(R_, x.data(), -1.0, r_.data(), rank_one_work_.data());
     return dot(r_, r_);
   };
-  double rr = trueResidual();
+  double rr = projectInitialGuess(b, x);
+  const bool projected = rr >= 0.0;
+  if (!projected) rr = trueResidual();
   if (std::sqrt(rr) <= tol) {
-    stats.converged = true;
-    return finish(rr, bnorm);
+    // A projected guess is confirmed with the true residual (its residual was formed from products).
+    if (projected) rr = trueResidual();
+    if (std::sqrt(rr) <= tol) {
+      stats.converged = true;
+      keepSolution(x);
+      return finish(rr, bnorm);
+    }
   }
   const double rr_initial = rr;
 
@@ -397,10 +521,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
         << ")";
       throw std::runtime_error(s.str());
     }
-    double pq = blocks ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(),
-                                      nullptr, p_.data(), q_.data(), nodes, false, options_.simd_kernels, parallel)
-                       : multiplyDot(A, p_, q_);
-    if (rank_one_) pq += addRankOneProduct(R_, p_.data(), 1.0, q_.data(), rank_one_work_.data());
+    const double pq = multiply(p_, q_);
     if (!(pq > 0.0)) {
       std::ostringstream s;
       s << name() << ": the matrix is not positive definite (pᵀAp = " << pq << " at iteration " << it
@@ -432,6 +553,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   // iterations it can drift below the true one, which is then recomputed.
   if (!stats.converged && it > kRecursiveResidualMaxIterations) rr = trueResidual();
   if (it > 0) preconditioner_->reportConvergence(it, std::sqrt(rr / rr_initial));
+  keepSolution(x);
   return finish(rr, bnorm);
 }
 

@@ -147,7 +147,9 @@ class DynamicSimulator {
   const SimulationState& state() const { return state_; }
   /// Every step() since construction, summed; restore() does not undo it.
   const StepTotals& totals() const { return totals_; }
-  /// Restores a saved state exactly (constraints and external forces are not part of it).
+  /// Restores a saved state exactly (constraints and external forces are not part of it). The
+  /// solver forgets its past solutions (LinearSolver::forgetSolutions), so the steps that follow
+  /// depend on the state, not on what ran before.
   /// @throws std::invalid_argument if its size does not match the mesh.
   void restore(const SimulationState& s);
   /// #N×3 displacement [m].

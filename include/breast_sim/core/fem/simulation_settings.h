@@ -40,6 +40,9 @@ struct SolverSettings {
   /// so a loose per-step tolerance still converges to the exact equilibrium; docs/benchmarks.md).
   double relative_tolerance = 1e-2;
   int max_iterations = 200;  ///< per step; a step that hits it is used anyway and counted
+  /// PCG's initial guess from this many vectors: the step's warm start and the last solutions
+  /// (PcgOptions::projection_vectors); 1 = the warm start alone.
+  int projection_vectors = PcgOptions{}.projection_vectors;
   /// The geometric multigrid; its coarse operators are renewed when the PCG iterations lost to their
   /// age are worth a renewal, at least every 50th step (docs/benchmarks.md, "Renewing the coarse operators").
   MultigridOptions multigrid = [] {

@@ -49,6 +49,10 @@ class LinearSolver {
   /// precomputation; a direct solver ignores it.
   /// @throws std::invalid_argument unless 0 < tolerance < 1 (iterative solvers).
   virtual void setRelativeTolerance(double tolerance) { (void)tolerance; }
+  /// Drops what the solver kept from earlier solves for its initial guesses (PcgSolver: the last
+  /// solutions), so that the next solves depend only on their own inputs, e.g. after the caller's
+  /// state was replaced. Nothing to drop by default.
+  virtual void forgetSolutions() {}
 
   /// Whether the solver takes A = S + R with R a rank-one sum applied without a matrix
   /// (solver/rank_one_sum.h): PCG with its Jacobi or multigrid preconditioner (Jacobi or Chebyshev
