@@ -81,8 +81,9 @@ struct PcgOptions {
   /// of vectors spanning it, the caller's guess included, in 1 .. kMaxProjectionVectors; 1 = the
   /// caller's guess alone. With 2 a time step starts from the best multiple of its last velocity
   /// and of that velocity's last change: 48.8k elements, 25 dynamic steps to 1e-2, 15.4 PCG
-  /// iterations per step fall to 7.2 (4 vectors: 6.0), the main job's steps at 20.8k from 15.9 to
-  /// 12.2 (4 vectors: 14.0) (docs/benchmarks.md, "The initial guess").
+  /// iterations per step fall to 7.2 (4 vectors: 6.0); the main job's solves at 20.8k take 12.2
+  /// instead of 15.9 (4 vectors: 14.0), its sliding stage gains nothing (docs/benchmarks.md, "The
+  /// initial guess").
   int projection_vectors = 2;
 };
 
