@@ -63,8 +63,7 @@ void SimulationSettings::validate() const {
   if (solver.max_iterations < 1) invalid("solver.max_iterations", solver.max_iterations, "≥ 1");
   if (solver.projection_vectors < 1 || solver.projection_vectors > kMaxProjectionVectors)
     invalid("solver.projection_vectors", solver.projection_vectors,
-            "1 .. 8 (1 = the warm start alone)");
-  static_assert(kMaxProjectionVectors == 8, "the message above names the limit");
+            ("1 .. " + std::to_string(kMaxProjectionVectors) + " (1 = the warm start alone)").c_str());
   if (solver.multigrid.pre_smoothing_steps < 1 || solver.multigrid.post_smoothing_steps < 1)
     invalid("solver.multigrid smoothing steps", solver.multigrid.pre_smoothing_steps, "≥ 1");
   if (solver.multigrid.coarse_update_interval < 1)

@@ -351,15 +351,20 @@ void PcgSolver::checkAndScan(const SparseMatrix& A) {
     if (decoupled_flag_[i]) decoupled_.push_back(static_cast<int>(i));
 }
 
-double PcgSolver::multiply(const Eigen::VectorXd& p, Eigen::VectorXd& q) {
+double PcgSolver::applyMatrix(const Eigen::VectorXd* b, const Eigen::VectorXd& x, Eigen::VectorXd& y) {
   const SparseMatrix& A = *A_;
-  double pq = !block_start_.empty()
-                  ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(), nullptr,
-                                 p.data(), q.data(), static_cast<int>(block_start_.size()) - 1, false,
-                                 options_.simd_kernels, A.rows() > kParallelMin)
-                  : multiplyDot(A, p, q);
-  if (rank_one_) pq += addRankOneProduct(R_, p.data(), 1.0, q.data(), rank_one_work_.data());
-  return pq;
+  // Block layout: the products block by block (solver/block_kernels.h): one column index per block
+  // instead of nine, x_J read once for three rows, the nine multiply-adds of a block independent.
+  const double s = !block_start_.empty()
+                       ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(),
+                                      b ? b->data() : nullptr, x.data(), y.data(),
+                                      static_cast<int>(block_start_.size()) - 1, b != nullptr, options_.simd_kernels,
+                                      A.rows() > kParallelMin)
+                   : (b ? residual(A, *b, x, y) : multiplyDot(A, x, y));
+  if (!rank_one_) return s;
+  if (!b) return s + addRankOneProduct(R_, x.data(), 1.0, y.data(), rank_one_work_.data());
+  addRankOneProduct(R_, x.data(), -1.0, y.data(), rank_one_work_.data());
+  return dot(y, y);
 }
 
 double PcgSolver::projectInitialGuess(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
@@ -394,7 +399,7 @@ double PcgSolver::projectInitialGuess(const Eigen::VectorXd& b, Eigen::VectorXd&
     const double* before = j > 0 ? list[j - 1]->data() : nullptr;
 #pragma omp parallel for schedule(static) if (parallel)
     for (Eigen::Index i = 0; i < n; ++i) w[i] = fixed[i] ? 0.0 : (before ? before[i] - a[i] : a[i]);
-    multiply(w, q);
+    applyMatrix(nullptr, w, q);
     const std::array<double, K + 1> sums = util::orderedSums<K + 1>(n, parallel, [&](long i) {
       std::array<double, K + 1> t{};
       for (int l = 0; l <= j; ++l) t[l] = basis_[static_cast<size_t>(l)][i] * q[i];
@@ -405,16 +410,18 @@ double PcgSolver::projectInitialGuess(const Eigen::VectorXd& b, Eigen::VectorXd&
     g[j] = sums[K];
   }
   // c = G⁺ g on the directions G resolves: scaled to a unit diagonal, eigenvalues below 1e-12 of
-  // the largest dropped (a zero or repeated basis vector).
-  Eigen::VectorXd scale(m);
+  // the largest dropped (a zero or repeated basis vector). Sizes up to K on the stack: no allocation.
+  using SmallMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, K, K>;
+  using SmallVector = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, K, 1>;
+  SmallVector scale(m);
   for (int j = 0; j < m; ++j) scale[j] = G(j, j) > 0.0 ? 1.0 / std::sqrt(G(j, j)) : 0.0;
-  const Eigen::MatrixXd Gs = scale.asDiagonal() * G.topLeftCorner(m, m) * scale.asDiagonal();
-  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(Gs);
+  const SmallMatrix Gs = scale.asDiagonal() * G.topLeftCorner(m, m) * scale.asDiagonal();
+  const Eigen::SelfAdjointEigenSolver<SmallMatrix> eig(Gs);
   if (eig.info() != Eigen::Success) return -1.0;
   const double largest = eig.eigenvalues().maxCoeff();
   if (!(largest > 0.0)) return -1.0;
-  const Eigen::VectorXd gs = scale.cwiseProduct(g.head(m));
-  Eigen::VectorXd c = Eigen::VectorXd::Zero(m);
+  const SmallVector gs = scale.cwiseProduct(g.head(m));
+  SmallVector c = SmallVector::Zero(m);
   for (int e = 0; e < m; ++e) {
     const double lambda = eig.eigenvalues()[e];
     if (lambda > 1e-12 * largest) c += eig.eigenvectors().col(e) * (eig.eigenvectors().col(e).dot(gs) / lambda);
@@ -478,19 +485,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   const double* val = A.valuePtr();
   for (int i : decoupled_) x[i] = b[i] / val[diagonal_position_[i]];
   const double tol = options_.relative_tolerance * bnorm;
-  const bool blocks = !block_start_.empty();
-  // Block layout: the products block by block (solver/block_kernels.h): one column index per block
-  // instead of nine, x_J read once for three rows, the nine multiply-adds of a block independent.
-  const int nodes = static_cast<int>(block_start_.size()) - 1;
-  const bool parallel = A.rows() > kParallelMin;
-  auto trueResidual = [&]() {
-    const double rr_s = blocks ? blockProduct(A.outerIndexPtr(), A.valuePtr(), block_start_.data(), block_col_.data(),
-                                              b.data(), x.data(), r_.data(), nodes, true, options_.simd_kernels, parallel)
-                               : residual(A, b, x, r_);
-    if (!rank_one_) return rr_s;
-    addRankOneProduct(R_, x.data(), -1.0, r_.data(), rank_one_work_.data());
-    return dot(r_, r_);
-  };
+  auto trueResidual = [&]() { return applyMatrix(&b, x, r_); };
   double rr = projectInitialGuess(b, x);
   const bool projected = rr >= 0.0;
   if (!projected) rr = trueResidual();
@@ -521,7 +516,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
         << ")";
       throw std::runtime_error(s.str());
     }
-    const double pq = multiply(p_, q_);
+    const double pq = applyMatrix(nullptr, p_, q_);
     if (!(pq > 0.0)) {
       std::ostringstream s;
       s << name() << ": the matrix is not positive definite (pᵀAp = " << pq << " at iteration " << it

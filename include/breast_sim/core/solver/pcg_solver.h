@@ -155,7 +155,8 @@ class PcgSolver : public LinearSolver {
   // returns rᵀr, or −1 (x unchanged) when there is nothing to project.
   double projectInitialGuess(const Eigen::VectorXd& b, Eigen::VectorXd& x);
   void keepSolution(const Eigen::VectorXd& x);
-  double multiply(const Eigen::VectorXd& p, Eigen::VectorXd& q);  // q = A p (with R); returns pᵀq
+  // A = S + R when analysed with R. b null: y = A x, returns xᵀy; else y = b − A x, returns yᵀy.
+  double applyMatrix(const Eigen::VectorXd* b, const Eigen::VectorXd& x, Eigen::VectorXd& y);
   PcgOptions options_;
   std::unique_ptr<Preconditioner> preconditioner_;
   const SparseMatrix* A_ = nullptr;
