@@ -208,6 +208,31 @@ TEST(MultigridPreconditioner, DenseCoarsestSolveEqualsCholmods) {
   EXPECT_THROW(MultigridPreconditioner(f.hierarchy, bad), std::invalid_argument);
 }
 
+// The float copy of the fine matrix PCG iterates with (Preconditioner::floatBlocks): the caller's
+// matrix entry by entry, rounded to float, and none with a single level or before factorize().
+TEST(MultigridPreconditioner, OffersTheFineMatrixRoundedToFloatBlocks) {
+  const Fixture& f = fixture();
+  MultigridPreconditioner mg(f.hierarchy);
+  mg.analyzePattern(f.A);
+  EXPECT_EQ(mg.floatBlocks().val, nullptr);
+  mg.factorize(f.A);
+  const Preconditioner::FloatBlocks b = mg.floatBlocks();
+  ASSERT_NE(b.val, nullptr);
+  ASSERT_EQ(3 * static_cast<Eigen::Index>(b.nodes), f.A.rows());
+  long entries = 0;
+  for (int i = 0; i < b.nodes; ++i)
+    for (int k = b.start[i]; k < b.start[i + 1]; ++k)
+      for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c, ++entries)
+          ASSERT_EQ(b.val[9 * k + 3 * r + c], static_cast<float>(f.A.coeff(3 * i + r, 3 * b.col[k] + c)))
+              << "node " << i << " block " << k;
+  EXPECT_EQ(entries, f.A.nonZeros());
+  MultigridPreconditioner single(std::vector<NodeProlongation>{});
+  single.analyzePattern(f.A);
+  single.factorize(f.A);
+  EXPECT_EQ(single.floatBlocks().val, nullptr);
+}
+
 TEST(MultigridPreconditioner, RejectsAMatrixNotInBlockLayout) {
   const Fixture& f = fixture();
   SparseMatrix A(f.A.rows(), f.A.cols());

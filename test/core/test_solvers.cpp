@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <memory>
 #include <random>
 #include <string>
@@ -440,12 +441,114 @@ TEST(BlockKernels, SimdEqualsScalar) {
       EXPECT_NEAR(ss, sv, 1e-12 * std::abs(ss));
     }
   }
+  // PCG's product with the float blocks: the residual kernel's sums (y = −(0 − A x), bit for bit,
+  // on each instruction set) and, against a double product of the rounded values, to round-off.
+  SparseMatrix Af = f.A;
+  for (Eigen::Index k = 0; k < Af.nonZeros(); ++k)
+    Af.valuePtr()[k] = static_cast<double>(static_cast<float>(Af.valuePtr()[k]));
+  const Eigen::VectorXd Afx = Af * x;
+  const Eigen::VectorXd zero = Eigen::VectorXd::Zero(x.size());
+  for (const bool simd : {false, true}) {
+    Eigen::VectorXd yf(x.size()), t(x.size());
+    const double xAfx = floatBlockProductRows(blocks.data(), col.data(), start.data(), x.data(), yf.data(), 0, nodes, simd);
+    blockResidualRows(blocks.data(), col.data(), start.data(), zero.data(), x.data(), t.data(), 0, nodes, simd);
+    for (Eigen::Index r = 0; r < x.size(); ++r) ASSERT_EQ(yf[r], -t[r]) << "row " << r << (simd ? " simd" : " scalar");
+    EXPECT_LE((yf - Afx).norm(), 1e-12 * Afx.norm());
+    EXPECT_NEAR(xAfx, x.dot(Afx), 1e-10 * std::abs(x.dot(Afx)));
+    // The whole product over chunks, on the team: the same sum as one range.
+    Eigen::VectorXd yp(x.size());
+    EXPECT_EQ(floatBlockProduct(blocks.data(), col.data(), start.data(), x.data(), yp.data(), nodes, simd, true),
+              floatBlockProduct(blocks.data(), col.data(), start.data(), x.data(), yf.data(), nodes, simd, false));
+    EXPECT_EQ((yp - yf).norm(), 0.0);
+  }
+
   // The double product against Eigen's (slow reference), over all rows.
   Eigen::VectorXd y(x.size());
   const double xAx = blockProductRows(outer, val, start.data(), col.data(), nullptr, x.data(), y.data(), 0, nodes, false, true);
   const Eigen::VectorXd Ax = f.A * x;
   EXPECT_LE((y - Ax).norm(), 1e-12 * Ax.norm());
   EXPECT_NEAR(xAx, x.dot(Ax), 1e-10 * std::abs(x.dot(Ax)));
+}
+
+namespace {
+// Jacobi that also offers PCG a float copy of the matrix, made from its values times `scale` (1 =
+// the matrix rounded, as the multigrid keeps it); NaN values for a copy that must not be read.
+class FloatCopyJacobi : public JacobiPreconditioner {
+ public:
+  explicit FloatCopyJacobi(double scale) : scale_(scale) {}
+  void factorize(const SparseMatrix& A) override {
+    JacobiPreconditioner::factorize(A);
+    const int* outer = A.outerIndexPtr();
+    const int* inner = A.innerIndexPtr();
+    const double* val = A.valuePtr();
+    nodes_ = static_cast<int>(A.rows() / 3);
+    start_.assign(1, 0);
+    col_.clear();
+    val_.clear();
+    for (int i = 0; i < nodes_; ++i) {
+      const int len = outer[3 * i + 1] - outer[3 * i];
+      for (int m = 0; m < len; m += 3) {
+        col_.push_back(inner[outer[3 * i] + m] / 3);
+        for (int r = 0; r < 3; ++r)
+          for (int c = 0; c < 3; ++c) val_.push_back(static_cast<float>(scale_ * val[outer[3 * i + r] + m + c]));
+      }
+      start_.push_back(static_cast<int>(col_.size()));
+    }
+  }
+  FloatBlocks floatBlocks() const override { return {val_.data(), col_.data(), start_.data(), nodes_}; }
+
+ private:
+  double scale_;
+  int nodes_ = 0;
+  std::vector<int> start_, col_;
+  std::vector<float> val_;
+};
+
+struct FloatCopySolve {
+  SolveStats stats;
+  Eigen::VectorXd x;
+};
+
+FloatCopySolve solveWithFloatCopy(const Fixture& f, double tolerance, std::unique_ptr<Preconditioner> pre) {
+  PcgOptions o;
+  o.relative_tolerance = tolerance;
+  PcgSolver pcg(o, std::move(pre));
+  pcg.analyzePattern(f.A);
+  pcg.factorize(f.A);
+  FloatCopySolve s;
+  s.x = Eigen::VectorXd::Zero(f.b.size());
+  s.stats = pcg.solve(f.b, s.x);
+  return s;
+}
+}  // namespace
+
+// PCG iterates with the preconditioner's float copy of A at tolerances of at least
+// kFloatProductMinTolerance, and declares convergence on the double matrix's residual alone: the
+// rounded copy follows the double iteration (the slow reference), a wrong copy (5 % too stiff) still
+// ends within the tolerance of the double matrix, and below that tolerance the copy is not read.
+TEST(PcgSolver, IteratesWithTheFloatCopyAndConvergesOnTheDoubleMatrix) {
+  const Fixture& f = fixture();
+  const double tol = 1e-3;
+  ASSERT_GE(tol, kFloatProductMinTolerance);
+  const FloatCopySolve exact = solveWithFloatCopy(f, tol, std::make_unique<JacobiPreconditioner>());
+  const FloatCopySolve rounded = solveWithFloatCopy(f, tol, std::make_unique<FloatCopyJacobi>(1.0));
+  const FloatCopySolve wrong = solveWithFloatCopy(f, tol, std::make_unique<FloatCopyJacobi>(1.05));
+  for (const FloatCopySolve* s : {&exact, &rounded, &wrong}) {
+    ASSERT_TRUE(s->stats.converged);
+    const double true_residual = (f.b - f.A * s->x).norm() / f.b.norm();
+    EXPECT_LE(true_residual, tol);
+    EXPECT_NEAR(s->stats.relative_residual, true_residual, 1e-9 * true_residual);
+  }
+  EXPECT_EQ(rounded.stats.iterations, exact.stats.iterations);
+  EXPECT_LE((rounded.x - exact.x).norm(), 1e-4 * exact.x.norm());
+  // The wrong copy's iterate was read: it converged to (1.05 A)⁻¹ b first, which the double residual
+  // refused, and the solve went on from there with the double matrix.
+  EXPECT_GT(wrong.stats.iterations, exact.stats.iterations);
+
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  const FloatCopySolve tight = solveWithFloatCopy(f, kFloatProductMinTolerance / 10, std::make_unique<FloatCopyJacobi>(nan));
+  EXPECT_TRUE(tight.stats.converged);
+  EXPECT_TRUE(tight.x.allFinite());
 }
 
 // The tolerance can be changed between solves (the node loosens it for tracking frames): a looser

@@ -20,6 +20,20 @@ void residualScalar(const float* val, const int* col, const int* start, const do
   for (int i = i0; i < i1; ++i) blockRowResidual(val, col, start[i], start[i + 1], b + 3 * i, x, t + 3 * i);
 }
 
+double floatProductScalar(const float* val, const int* col, const int* start, const double* x, double* y, int i0,
+                          int i1) {
+  static const double zero[3] = {0.0, 0.0, 0.0};
+  double sum = 0.0;
+  for (int i = i0; i < i1; ++i) {
+    double t[3];
+    blockRowResidual(val, col, start[i], start[i + 1], zero, x, t);
+    const double y0 = -t[0], y1 = -t[1], y2 = -t[2];
+    sum += x[3 * i] * y0 + x[3 * i + 1] * y1 + x[3 * i + 2] * y2;
+    y[3 * i] = y0, y[3 * i + 1] = y1, y[3 * i + 2] = y2;
+  }
+  return sum;
+}
+
 // A node row's three sums s into y (PCG's products): b − s and Σ y² for a residual, s and Σ x·s
 // otherwise, added to `sum`.
 inline void finishProductRow(double s0, double s1, double s2, bool residual, const double* b, const double* x,
@@ -79,14 +93,22 @@ inline void finishResidualRow(const double s[8], double a22, const double* b, do
   t[3 * i + 2] = b[3 * i + 2] - ((s[6] + s[7]) + a22);
 }
 
+// The end of a product row (y_i = A_i x, Σ x·y added to `sum`), the sums as finishResidualRow's.
+inline void finishFloatProductRow(const double s[8], double a22, const double* x, double* y, int i, double& sum) {
+  const double y0 = (s[0] + s[1]) + s[2], y1 = (s[3] + s[4]) + s[5], y2 = (s[6] + s[7]) + a22;
+  sum += x[3 * i] * y0 + x[3 * i + 1] * y1 + x[3 * i + 2] * y2;
+  y[3 * i] = y0, y[3 * i + 1] = y1, y[3 * i + 2] = y2;
+}
+
 // The residual rows t_i = b_i − A_i x with the block kernel K (Avx2Blocks, Avx512Blocks): two
 // blocks per iteration into two sets of accumulators (even and odd blocks), added at the end, so the
 // multiply-adds of consecutive blocks do not wait for each other. Inlined into each kernel's entry
 // point (residualAvx2, residualAvx512), whose instruction set the kernel's members then inline into.
-template <class K>
-__attribute__((always_inline)) inline void residualRowsWith(const K& kernel, const float* val, const int* col,
-                                                           const int* start, const double* b, const double* x,
-                                                           double* t, int i0, int i1) {
+template <class K, bool kProduct = false>
+__attribute__((always_inline)) inline double residualRowsWith(const K& kernel, const float* val, const int* col,
+                                                             const int* start, const double* b, const double* x,
+                                                             double* t, int i0, int i1) {
+  double sum = 0.0;
   for (int i = i0; i < i1; ++i) {
     typename K::Acc acc0 = kernel.zero(), acc1 = kernel.zero();
     double a22_0 = 0.0, a22_1 = 0.0;
@@ -99,8 +121,12 @@ __attribute__((always_inline)) inline void residualRowsWith(const K& kernel, con
     if (k < k1) kernel.block(val, col, x, k, acc0, a22_0);
     alignas(64) double s[8];
     kernel.store(s, acc0, acc1);
-    finishResidualRow(s, a22_0 + a22_1, b, t, i);
+    if constexpr (kProduct)
+      finishFloatProductRow(s, a22_0 + a22_1, x, t, i, sum);
+    else
+      finishResidualRow(s, a22_0 + a22_1, b, t, i);
   }
+  return sum;
 }
 
 // The members carry their instruction set but not always_inline: residualRowsWith, which calls
@@ -125,6 +151,11 @@ struct Avx2Blocks {
 __attribute__((target("avx2,fma"))) void residualAvx2(const float* val, const int* col, const int* start,
                                                        const double* b, const double* x, double* t, int i0, int i1) {
   residualRowsWith(Avx2Blocks{}, val, col, start, b, x, t, i0, i1);
+}
+
+__attribute__((target("avx2,fma"))) double floatProductAvx2(const float* val, const int* col, const int* start,
+                                                             const double* x, double* y, int i0, int i1) {
+  return residualRowsWith<Avx2Blocks, true>(Avx2Blocks{}, val, col, start, nullptr, x, y, i0, i1);
 }
 
 // GCC 12's AVX-512 headers leave the unused upper half of a conversion or permutation "undefined"
@@ -159,6 +190,12 @@ __attribute__((target("avx512f,avx2,fma"))) void residualAvx512(const float* val
                                                                  const double* b, const double* x, double* t, int i0,
                                                                  int i1) {
   residualRowsWith(Avx512Blocks{}, val, col, start, b, x, t, i0, i1);
+}
+
+__attribute__((target("avx512f,avx2,fma"))) double floatProductAvx512(const float* val, const int* col,
+                                                                       const int* start, const double* x, double* y,
+                                                                       int i0, int i1) {
+  return residualRowsWith<Avx512Blocks, true>(Avx512Blocks{}, val, col, start, nullptr, x, y, i0, i1);
 }
 #pragma GCC diagnostic pop
 
@@ -245,6 +282,15 @@ void blockResidualRows(const float* val, const int* col, const int* start, const
   residualScalar(val, col, start, b, x, t, i0, i1);
 }
 
+double floatBlockProductRows(const float* val, const int* col, const int* start, const double* x, double* y, int i0,
+                             int i1, bool simd) {
+#ifdef BREAST_SIM_X86_SIMD
+  if (simd && blockResidualHasAvx512()) return floatProductAvx512(val, col, start, x, y, i0, i1);
+  if (simd && blockKernelsHaveSimd()) return floatProductAvx2(val, col, start, x, y, i0, i1);
+#endif
+  return floatProductScalar(val, col, start, x, y, i0, i1);
+}
+
 double blockProductRows(const int* outer, const double* val, const int* start, const int* col, const double* b,
                         const double* x, double* y, int i0, int i1, bool residual, bool simd) {
 #ifdef BREAST_SIM_X86_SIMD
@@ -267,21 +313,35 @@ void blockResidual(const float* val, const int* col, const int* start, const dou
   }
 }
 
-double blockProduct(const int* outer, const double* val, const int* start, const int* col, const double* b,
-                    const double* x, double* y, int nodes, bool residual, bool simd, bool parallel) {
-  // The dot product over fixed chunks of rows, added in chunk order: the same bits on any number of
-  // threads (an OpenMP reduction adds per-thread shares, whose bounds move with the thread count).
+namespace {
+// rows(i0, i1) over fixed chunks of node rows, its sums added in chunk order: the same bits on any
+// number of threads (an OpenMP reduction adds per-thread shares, whose bounds move with the thread count).
+template <class Rows>
+double chunkedRowSum(int nodes, bool parallel, const Rows& rows) {
   constexpr int kChunk = 256;
   const int chunks = (nodes + kChunk - 1) / kChunk;
   thread_local std::vector<double> partial;
   if (static_cast<int>(partial.size()) < chunks) partial.resize(static_cast<size_t>(chunks));
   double* const part = partial.data();
 #pragma omp parallel for schedule(static) if (parallel && chunks > 1)
-  for (int c = 0; c < chunks; ++c)
-    part[c] = blockProductRows(outer, val, start, col, b, x, y, c * kChunk, std::min(nodes, (c + 1) * kChunk), residual, simd);
+  for (int c = 0; c < chunks; ++c) part[c] = rows(c * kChunk, std::min(nodes, (c + 1) * kChunk));
   double sum = 0.0;
   for (int c = 0; c < chunks; ++c) sum += part[c];
   return sum;
+}
+}  // namespace
+
+double blockProduct(const int* outer, const double* val, const int* start, const int* col, const double* b,
+                    const double* x, double* y, int nodes, bool residual, bool simd, bool parallel) {
+  return chunkedRowSum(nodes, parallel, [&](int i0, int i1) {
+    return blockProductRows(outer, val, start, col, b, x, y, i0, i1, residual, simd);
+  });
+}
+
+double floatBlockProduct(const float* val, const int* col, const int* start, const double* x, double* y, int nodes,
+                         bool simd, bool parallel) {
+  return chunkedRowSum(nodes, parallel,
+                       [&](int i0, int i1) { return floatBlockProductRows(val, col, start, x, y, i0, i1, simd); });
 }
 
 }  // namespace breast_sim::core

@@ -285,6 +285,12 @@ void MultigridPreconditioner::factorizeLevels(const SparseMatrix& A) {
   factorized_ = true;
 }
 
+Preconditioner::FloatBlocks MultigridPreconditioner::floatBlocks() const {
+  if (!factorized_ || numLevels() < 2) return {};
+  const Level& lv = *levels_[0];
+  return {lv.block_val.data(), lv.block_col.data(), lv.block_start.data(), lv.nodes};
+}
+
 void MultigridPreconditioner::reportConvergence(int iterations, double residual_reduction) {
   if (!options_.coarse_update_adaptive || iterations < 1 || numLevels() == 1) return;
   if (!std::isfinite(residual_reduction)) {  // a broken solve: start afresh

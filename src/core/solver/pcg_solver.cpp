@@ -285,6 +285,7 @@ void PcgSolver::analyzeCommon(const SparseMatrix& A) {
   n_ = n;
   nnz_ = A.nonZeros();
   A_ = nullptr;
+  float_blocks_ = {};
 }
 
 void PcgSolver::factorize(const SparseMatrix& A) {
@@ -293,6 +294,7 @@ void PcgSolver::factorize(const SparseMatrix& A) {
   checkAndScan(A);
   preconditioner_->factorize(A);
   A_ = &A;
+  takeFloatBlocks();
 }
 
 void PcgSolver::factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R) {
@@ -310,6 +312,17 @@ void PcgSolver::factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R)
   R_ = withMaskApplied(R, rank_one_masked_);
   preconditioner_->factorizeWithRankOne(S, R_);
   A_ = &S;
+  takeFloatBlocks();
+}
+
+void PcgSolver::takeFloatBlocks() {
+  float_blocks_ = preconditioner_->floatBlocks();
+  if (float_blocks_.val && 3 * static_cast<Eigen::Index>(float_blocks_.nodes) != n_) {
+    std::ostringstream s;
+    s << name() << ": the preconditioner's float copy of the matrix has " << float_blocks_.nodes << " node rows, the matrix "
+      << n_ << " rows";
+    throw std::logic_error(s.str());
+  }
 }
 
 void PcgSolver::checkAndScan(const SparseMatrix& A) {
@@ -326,6 +339,7 @@ void PcgSolver::checkAndScan(const SparseMatrix& A) {
   if (!std::equal(analysed_outer_.begin(), analysed_outer_.end(), A.outerIndexPtr()))
     throw std::logic_error(name() + ": the matrix's row lengths changed since analyzePattern(); call it again");
   A_ = nullptr;
+  float_blocks_ = {};
   const int* outer = A.outerIndexPtr();
   const double* val = A.valuePtr();
   Eigen::Index bad = -1;
@@ -353,6 +367,12 @@ void PcgSolver::checkAndScan(const SparseMatrix& A) {
 
 double PcgSolver::applyMatrix(const Eigen::VectorXd* b, const Eigen::VectorXd& x, Eigen::VectorXd& y) {
   const SparseMatrix& A = *A_;
+  if (!b && float_products_) {
+    const Preconditioner::FloatBlocks& f = float_blocks_;
+    const double s = floatBlockProduct(f.val, f.col, f.start, x.data(), y.data(), f.nodes, options_.simd_kernels,
+                                       A.rows() > kParallelMin);
+    return rank_one_ ? s + addRankOneProduct(R_, x.data(), 1.0, y.data(), rank_one_work_.data()) : s;
+  }
   // Block layout: the products block by block (solver/block_kernels.h): one column index per block
   // instead of nine, x_J read once for three rows, the nine multiply-adds of a block independent.
   const double s = !block_start_.empty()
@@ -485,6 +505,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   const double* val = A.valuePtr();
   for (int i : decoupled_) x[i] = b[i] / val[diagonal_position_[i]];
   const double tol = options_.relative_tolerance * bnorm;
+  float_products_ = float_blocks_.val != nullptr && options_.relative_tolerance >= kFloatProductMinTolerance;
   auto trueResidual = [&]() { return applyMatrix(&b, x, r_); };
   double rr = projectInitialGuess(b, x);
   const bool projected = rr >= 0.0;
@@ -497,6 +518,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
       keepSolution(x);
       return finish(rr, bnorm);
     }
+    float_products_ = false;
   }
   const double rr_initial = rr;
 
@@ -527,12 +549,14 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
     rr = update(alpha, p_, q_, x, r_);
     ++it;
     if (std::sqrt(rr) <= tol) {
-      // The recursive residual drifts from b − A x; confirm with the true one.
+      // The recursive residual drifts from b − A x (and is the float operator's while
+      // float_products_); confirm with the true one, and go on from it in double.
       rr = trueResidual();
       if (std::sqrt(rr) <= tol) {
         stats.converged = true;
         break;
       }
+      float_products_ = false;
       restart = true;
       continue;
     }

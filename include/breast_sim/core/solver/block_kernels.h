@@ -62,11 +62,19 @@ void blockResidualRowsAvx2(const float* val, const int* col, const int* start, c
 double blockProductRows(const int* outer, const double* val, const int* start, const int* col, const double* b,
                         const double* x, double* y, int i0, int i1, bool residual, bool simd);
 
+/// y = A x over node rows [i0, i1) of a matrix in float block storage (as blockResidualRows), returns
+/// Σ x_r y_r over them: PCG's iteration product with the float copy a preconditioner keeps. The
+/// residual kernel's sums (simd as there): y is −(0 − A x) of blockResidualRows, bit for bit.
+double floatBlockProductRows(const float* val, const int* col, const int* start, const double* x, double* y, int i0,
+                             int i1, bool simd);
+
 /// The same over all `nodes` node rows, split into one contiguous range per OpenMP thread (the
 /// static schedule's split) when `parallel`; blockProduct returns the whole sum.
 void blockResidual(const float* val, const int* col, const int* start, const double* b, const double* x, double* t,
                    int nodes, bool simd, bool parallel);
 double blockProduct(const int* outer, const double* val, const int* start, const int* col, const double* b,
                     const double* x, double* y, int nodes, bool residual, bool simd, bool parallel);
+double floatBlockProduct(const float* val, const int* col, const int* start, const double* x, double* y, int nodes,
+                         bool simd, bool parallel);
 
 }  // namespace breast_sim::core

@@ -236,8 +236,9 @@ struct MultigridOptions {
 /// fewer bytes than the CSR matrix. The sweeps are then bound by instructions rather than memory, so
 /// their residuals run in the AVX2/FMA kernel of solver/block_kernels.h (the measurements:
 /// docs/benchmarks.md). The preconditioner stays a fixed symmetric linear operator (the values are
-/// rounded once, the arithmetic is in double); PCG itself multiplies by the caller's double matrix,
-/// so the solution is as exact as with the double operator.
+/// rounded once, the arithmetic is in double). PCG iterates with the fine level's float blocks at
+/// loose tolerances (floatBlocks(), kFloatProductMinTolerance) but declares convergence on the
+/// caller's double matrix, so the solution is as exact as with the double operator.
 ///
 /// Fixed DOFs are found in every factorize() as the decoupled rows (no nonzero off the diagonal) of
 /// each level; their prolongation rows are zero, so a coarse correction never moves them, and a
@@ -273,6 +274,8 @@ class MultigridPreconditioner : public Preconditioner {
   void analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R) override;
   /// @throws as factorize(); std::logic_error for an R of another structure than analysed.
   void factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R) override;
+  /// The fine level's float blocks (with two or more levels, after factorize()).
+  FloatBlocks floatBlocks() const override;
 
   int numLevels() const { return static_cast<int>(levels_.size()); }
   /// How many factorize() calls renewed the coarse operators (the first one included).

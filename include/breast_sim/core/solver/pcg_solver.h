@@ -44,6 +44,18 @@ class Preconditioner {
   /// factorizeWithRankOne say what may change between calls). The default throws std::logic_error.
   virtual void analyzeWithRankOne(const SparseMatrix& S, const RankOneSum& R);
   virtual void factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R);
+
+  /// The matrix of the last factorize() (S of a rank-one sum) rounded to float, in 3×3 blocks (node
+  /// rows: blocks start[i] .. start[i+1] − 1, column node col[k], nine row-major values val[9k ..]),
+  /// when the preconditioner keeps such a copy; val is null otherwise. Valid until the next
+  /// analyzePattern() or factorize().
+  struct FloatBlocks {
+    const float* val = nullptr;
+    const int* col = nullptr;
+    const int* start = nullptr;
+    int nodes = 0;
+  };
+  virtual FloatBlocks floatBlocks() const { return {}; }
 };
 
 /// Point Jacobi: M = diag(A).
@@ -90,6 +102,12 @@ struct PcgOptions {
 /// Largest PcgOptions::projection_vectors.
 inline constexpr int kMaxProjectionVectors = 8;
 
+/// The tightest relative tolerance at which PCG's iteration products use the preconditioner's float
+/// copy of A (Preconditioner::floatBlocks). Below it the float operator's rounding (about 1e-7 of
+/// each entry) would hold the residual up: at 48.8k elements, 1e-4 takes 18.4 iterations either
+/// way, 1e-5 27.4 instead of 23.9 (docs/benchmarks.md, "The iteration's product").
+inline constexpr double kFloatProductMinTolerance = 1e-4;
+
 /// Conjugate gradients with a preconditioner, for symmetric positive definite A [Saad, Iterative
 /// Methods for Sparse Linear Systems, alg. 9.1]. All vector work and the sparse matrix–vector
 /// product run in parallel over rows (OpenMP); solve() does not allocate once x has A's size.
@@ -103,6 +121,12 @@ inline constexpr int kMaxProjectionVectors = 8;
 /// rows. At the iteration limit the preconditioner is not applied for the iteration that would
 /// follow, and after at most 8 iterations the reported residual is the recursive one
 /// (SolveStats::relative_residual; beyond that the true one is recomputed).
+///
+/// When the preconditioner keeps A rounded to float blocks (the multigrid's fine level) and the
+/// tolerance is at least kFloatProductMinTolerance, the iteration's products (and the projected
+/// guess's) read those: half the bytes of the double matrix, the arithmetic in double. Convergence
+/// is still declared on the double matrix's true residual; a confirmation that fails switches the
+/// rest of the solve to the double products.
 /// \note factorize() keeps a pointer to A: A must stay alive and unchanged until the last solve()
 /// before the next factorize(). A must be compressed CSR with sorted columns (Eigen's default).
 /// \note Indefiniteness is only detected when met: factorize() throws on a diagonal entry ≤ 0,
@@ -151,11 +175,13 @@ class PcgSolver : public LinearSolver {
  private:
   void analyzeCommon(const SparseMatrix& A);  // analyzePattern() after the preconditioner's
   void checkAndScan(const SparseMatrix& A);   // factorize() without the preconditioner's
+  void takeFloatBlocks();                     // after the preconditioner's factorize()
   // The projected initial guess (PcgOptions::projection_vectors) into x and its residual into r_;
   // returns rᵀr, or −1 (x unchanged) when there is nothing to project.
   double projectInitialGuess(const Eigen::VectorXd& b, Eigen::VectorXd& x);
   void keepSolution(const Eigen::VectorXd& x);
-  // A = S + R when analysed with R. b null: y = A x, returns xᵀy; else y = b − A x, returns yᵀy.
+  // A = S + R when analysed with R. b null: y = A x, returns xᵀy, from the float blocks while
+  // float_products_; else y = b − A x from the double matrix, returns yᵀy.
   double applyMatrix(const Eigen::VectorXd* b, const Eigen::VectorXd& x, Eigen::VectorXd& y);
   PcgOptions options_;
   std::unique_ptr<Preconditioner> preconditioner_;
@@ -167,6 +193,8 @@ class PcgSolver : public LinearSolver {
   std::vector<int> decoupled_;
   std::vector<int> block_start_, block_col_;  // node columns of A's 3×3 blocks (empty: no block layout)
   std::vector<int> analysed_outer_;           // A's row starts at analyzePattern()
+  Preconditioner::FloatBlocks float_blocks_;  // of the last factorize (val null: none)
+  bool float_products_ = false;               // this solve's products from float_blocks_
   Eigen::VectorXd r_, z_, p_, q_;
   // A = S + R when analysed with a rank-one sum: the view of the last factorize, its structure
   // from analyzeWithRankOne (terms, entries), and the per-term workspace of its products.
