@@ -100,10 +100,11 @@ inline void finishFloatProductRow(const double s[8], double a22, const double* x
   y[3 * i] = y0, y[3 * i + 1] = y1, y[3 * i + 2] = y2;
 }
 
-// The residual rows t_i = b_i − A_i x with the block kernel K (Avx2Blocks, Avx512Blocks): two
-// blocks per iteration into two sets of accumulators (even and odd blocks), added at the end, so the
-// multiply-adds of consecutive blocks do not wait for each other. Inlined into each kernel's entry
-// point (residualAvx2, residualAvx512), whose instruction set the kernel's members then inline into.
+// The residual rows t_i = b_i − A_i x with the block kernel K (Avx2Blocks, Avx512Blocks), or with
+// kProduct the product rows t_i = A_i x and the returned Σ x_i·t_i: two blocks per iteration into
+// two sets of accumulators (even and odd blocks), added at the end, so the multiply-adds of
+// consecutive blocks do not wait for each other. Inlined into each kernel's entry point
+// (residualAvx2, floatProductAvx512, …), whose instruction set the kernel's members then inline into.
 template <class K, bool kProduct = false>
 __attribute__((always_inline)) inline double residualRowsWith(const K& kernel, const float* val, const int* col,
                                                              const int* start, const double* b, const double* x,
