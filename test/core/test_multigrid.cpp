@@ -209,24 +209,33 @@ TEST(MultigridPreconditioner, DenseCoarsestSolveEqualsCholmods) {
 }
 
 // The float copy of the fine matrix PCG iterates with (Preconditioner::floatBlocks): the caller's
-// matrix entry by entry, rounded to float, and none with a single level or before factorize().
+// matrix entry by entry, rounded to float, after every factorize() (also one that keeps the coarse
+// operators), and none with a single level or before factorize().
 TEST(MultigridPreconditioner, OffersTheFineMatrixRoundedToFloatBlocks) {
   const Fixture& f = fixture();
-  MultigridPreconditioner mg(f.hierarchy);
+  MultigridOptions keep_coarse;
+  keep_coarse.coarse_update_interval = 5;
+  MultigridPreconditioner mg(f.hierarchy, keep_coarse);
   mg.analyzePattern(f.A);
   EXPECT_EQ(mg.floatBlocks().val, nullptr);
-  mg.factorize(f.A);
-  const Preconditioner::FloatBlocks b = mg.floatBlocks();
-  ASSERT_NE(b.val, nullptr);
-  ASSERT_EQ(3 * static_cast<Eigen::Index>(b.nodes), f.A.rows());
-  long entries = 0;
-  for (int i = 0; i < b.nodes; ++i)
-    for (int k = b.start[i]; k < b.start[i + 1]; ++k)
-      for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c, ++entries)
-          ASSERT_EQ(b.val[9 * k + 3 * r + c], static_cast<float>(f.A.coeff(3 * i + r, 3 * b.col[k] + c)))
-              << "node " << i << " block " << k;
-  EXPECT_EQ(entries, f.A.nonZeros());
+  SparseMatrix A2 = f.A;
+  A2 *= 1.5;
+  for (const SparseMatrix* A : {&f.A, static_cast<const SparseMatrix*>(&A2)}) {
+    const long renewals = mg.coarseRenewals();
+    mg.factorize(*A);
+    EXPECT_EQ(mg.coarseRenewals(), A == &f.A ? renewals + 1 : renewals);
+    const Preconditioner::FloatBlocks b = mg.floatBlocks();
+    ASSERT_NE(b.val, nullptr);
+    ASSERT_EQ(3 * static_cast<Eigen::Index>(b.nodes), A->rows());
+    long entries = 0;
+    for (int i = 0; i < b.nodes; ++i)
+      for (int k = b.start[i]; k < b.start[i + 1]; ++k)
+        for (int r = 0; r < 3; ++r)
+          for (int c = 0; c < 3; ++c, ++entries)
+            ASSERT_EQ(b.val[9 * k + 3 * r + c], static_cast<float>(A->coeff(3 * i + r, 3 * b.col[k] + c)))
+                << "node " << i << " block " << k;
+    EXPECT_EQ(entries, A->nonZeros());
+  }
   MultigridPreconditioner single(std::vector<NodeProlongation>{});
   single.analyzePattern(f.A);
   single.factorize(f.A);

@@ -472,10 +472,11 @@ TEST(BlockKernels, SimdEqualsScalar) {
 
 namespace {
 // Jacobi that also offers PCG a float copy of the matrix, made from its values times `scale` (1 =
-// the matrix rounded, as the multigrid keeps it); NaN values for a copy that must not be read.
+// the matrix rounded, as the multigrid keeps it); NaN values for a copy that must not be read; a
+// node count off by `extra_nodes` for a copy of the wrong size.
 class FloatCopyJacobi : public JacobiPreconditioner {
  public:
-  explicit FloatCopyJacobi(double scale) : scale_(scale) {}
+  explicit FloatCopyJacobi(double scale, int extra_nodes = 0) : scale_(scale), extra_nodes_(extra_nodes) {}
   void factorize(const SparseMatrix& A) override {
     JacobiPreconditioner::factorize(A);
     const int* outer = A.outerIndexPtr();
@@ -495,10 +496,11 @@ class FloatCopyJacobi : public JacobiPreconditioner {
       start_.push_back(static_cast<int>(col_.size()));
     }
   }
-  FloatBlocks floatBlocks() const override { return {val_.data(), col_.data(), start_.data(), nodes_}; }
+  FloatBlocks floatBlocks() const override { return {val_.data(), col_.data(), start_.data(), nodes_ + extra_nodes_}; }
 
  private:
   double scale_;
+  int extra_nodes_;
   int nodes_ = 0;
   std::vector<int> start_, col_;
   std::vector<float> val_;
@@ -524,16 +526,19 @@ FloatCopySolve solveWithFloatCopy(const Fixture& f, double tolerance, std::uniqu
 
 // PCG iterates with the preconditioner's float copy of A at tolerances of at least
 // kFloatProductMinTolerance, and declares convergence on the double matrix's residual alone: the
-// rounded copy follows the double iteration (the slow reference), a wrong copy (5 % too stiff) still
-// ends within the tolerance of the double matrix, and below that tolerance the copy is not read.
+// rounded copy follows the double iteration (the slow reference); a wrong copy (100× too stiff, or
+// negative definite) still ends within the tolerance of the double matrix, because a refused
+// confirmation or a pᵀAp ≤ 0 of the copy switches to the double products; below that tolerance the
+// copy is not read; a copy of the wrong size is refused by factorize().
 TEST(PcgSolver, IteratesWithTheFloatCopyAndConvergesOnTheDoubleMatrix) {
   const Fixture& f = fixture();
   const double tol = 1e-3;
   ASSERT_GE(tol, kFloatProductMinTolerance);
   const FloatCopySolve exact = solveWithFloatCopy(f, tol, std::make_unique<JacobiPreconditioner>());
   const FloatCopySolve rounded = solveWithFloatCopy(f, tol, std::make_unique<FloatCopyJacobi>(1.0));
-  const FloatCopySolve wrong = solveWithFloatCopy(f, tol, std::make_unique<FloatCopyJacobi>(1.05));
-  for (const FloatCopySolve* s : {&exact, &rounded, &wrong}) {
+  const FloatCopySolve wrong = solveWithFloatCopy(f, tol, std::make_unique<FloatCopyJacobi>(100.0));
+  const FloatCopySolve negative = solveWithFloatCopy(f, tol, std::make_unique<FloatCopyJacobi>(-1.0));
+  for (const FloatCopySolve* s : {&exact, &rounded, &wrong, &negative}) {
     ASSERT_TRUE(s->stats.converged);
     const double true_residual = (f.b - f.A * s->x).norm() / f.b.norm();
     EXPECT_LE(true_residual, tol);
@@ -541,9 +546,18 @@ TEST(PcgSolver, IteratesWithTheFloatCopyAndConvergesOnTheDoubleMatrix) {
   }
   EXPECT_EQ(rounded.stats.iterations, exact.stats.iterations);
   EXPECT_LE((rounded.x - exact.x).norm(), 1e-4 * exact.x.norm());
-  // The wrong copy's iterate was read: it converged to (1.05 A)⁻¹ b first, which the double residual
-  // refused, and the solve went on from there with the double matrix.
+  // The wrong copy's iterate was read: it converged to (100 A)⁻¹ b first, which the double residual
+  // refused, and the solve went on from there with the double matrix (iterating with the copy again
+  // would take each restart only 1 % nearer).
   EXPECT_GT(wrong.stats.iterations, exact.stats.iterations);
+  EXPECT_LE(wrong.stats.iterations, 3 * exact.stats.iterations);
+  EXPECT_LE(negative.stats.iterations, exact.stats.iterations + 1);
+
+  PcgSolver sized(PcgOptions{}, std::make_unique<FloatCopyJacobi>(1.0, 1));
+  sized.analyzePattern(f.A);
+  EXPECT_THROW(sized.factorize(f.A), std::logic_error);
+  Eigen::VectorXd x;
+  EXPECT_THROW(sized.solve(f.b, x), std::logic_error);
 
   const double nan = std::numeric_limits<double>::quiet_NaN();
   const FloatCopySolve tight = solveWithFloatCopy(f, kFloatProductMinTolerance / 10, std::make_unique<FloatCopyJacobi>(nan));

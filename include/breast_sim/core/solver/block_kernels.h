@@ -68,8 +68,10 @@ double blockProductRows(const int* outer, const double* val, const int* start, c
 double floatBlockProductRows(const float* val, const int* col, const int* start, const double* x, double* y, int i0,
                              int i1, bool simd);
 
-/// The same over all `nodes` node rows, split into one contiguous range per OpenMP thread (the
-/// static schedule's split) when `parallel`; blockProduct returns the whole sum.
+/// The same over all `nodes` node rows when `parallel` on the OpenMP team: blockResidual in one
+/// contiguous range per thread (the static schedule's split); blockProduct and floatBlockProduct in
+/// fixed chunks of 256 node rows whose sums are added in chunk order, so the returned sum has the
+/// same bits on any number of threads.
 void blockResidual(const float* val, const int* col, const int* start, const double* b, const double* x, double* t,
                    int nodes, bool simd, bool parallel);
 double blockProduct(const int* outer, const double* val, const int* start, const int* col, const double* b,

@@ -19,7 +19,8 @@ using SparseMatrix = Eigen::SparseMatrix<double, Eigen::RowMajor, int>;
 struct SolveStats {
   int iterations = 0;             ///< Krylov iterations (0 for a direct solve)
   /// ‖b − A x‖ / ‖b‖ at return (PCG stopped by its iteration limit after at most 8 iterations: the
-  /// recursive residual, equal to it up to round-off that far)
+  /// recursive residual, equal to it up to round-off that far, or up to the float copy's rounding
+  /// when PCG multiplied by it, about 1e-5 of it)
   double relative_residual = 0.0;
   bool converged = false;
   double seconds = 0.0;           ///< wall time of solve() [s]

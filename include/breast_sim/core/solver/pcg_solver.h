@@ -47,8 +47,8 @@ class Preconditioner {
 
   /// The matrix of the last factorize() (S of a rank-one sum) rounded to float, in 3×3 blocks (node
   /// rows: blocks start[i] .. start[i+1] − 1, column node col[k], nine row-major values val[9k ..]),
-  /// when the preconditioner keeps such a copy; val is null otherwise. Valid until the next
-  /// analyzePattern() or factorize().
+  /// when the preconditioner keeps such a copy; val is null otherwise (and after a factorize that
+  /// failed). Valid until the next analyzePattern(), factorize() or their rank-one forms.
   struct FloatBlocks {
     const float* val = nullptr;
     const int* col = nullptr;
@@ -125,8 +125,9 @@ inline constexpr double kFloatProductMinTolerance = 1e-4;
 /// When the preconditioner keeps A rounded to float blocks (the multigrid's fine level) and the
 /// tolerance is at least kFloatProductMinTolerance, the iteration's products (and the projected
 /// guess's) read those: half the bytes of the double matrix, the arithmetic in double. Convergence
-/// is still declared on the double matrix's true residual; a confirmation that fails switches the
-/// rest of the solve to the double products.
+/// is still declared on the double matrix's true residual; a confirmation that fails, or a pᵀAp ≤ 0
+/// of the copy, switches the rest of the solve to the double products. A copy whose size differs
+/// from A's is a std::logic_error of factorize().
 /// \note factorize() keeps a pointer to A: A must stay alive and unchanged until the last solve()
 /// before the next factorize(). A must be compressed CSR with sorted columns (Eigen's default).
 /// \note Indefiniteness is only detected when met: factorize() throws on a diagonal entry ≤ 0,
