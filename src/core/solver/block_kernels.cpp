@@ -1,10 +1,12 @@
 #include "breast_sim/core/solver/block_kernels.h"
 
 #include <algorithm>
+#include <array>
 #include <cstddef>
-#include <vector>
 
 #include <omp.h>
+
+#include "../util/ordered_sum.h"
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #include <immintrin.h>
@@ -315,33 +317,28 @@ void blockResidual(const float* val, const int* col, const int* start, const dou
 }
 
 namespace {
-// rows(i0, i1) over fixed chunks of node rows, its sums added in chunk order: the same bits on any
-// number of threads (an OpenMP reduction adds per-thread shares, whose bounds move with the thread count).
+// The products' sums over fixed chunks of node rows, added in chunk order (util/ordered_sum.h): the
+// same bits on any number of threads.
+constexpr long kProductChunkRows = 256;
+
 template <class Rows>
-double chunkedRowSum(int nodes, bool parallel, const Rows& rows) {
-  constexpr int kChunk = 256;
-  const int chunks = (nodes + kChunk - 1) / kChunk;
-  thread_local std::vector<double> partial;
-  if (static_cast<int>(partial.size()) < chunks) partial.resize(static_cast<size_t>(chunks));
-  double* const part = partial.data();
-#pragma omp parallel for schedule(static) if (parallel && chunks > 1)
-  for (int c = 0; c < chunks; ++c) part[c] = rows(c * kChunk, std::min(nodes, (c + 1) * kChunk));
-  double sum = 0.0;
-  for (int c = 0; c < chunks; ++c) sum += part[c];
-  return sum;
+double orderedRowSum(int nodes, bool parallel, const Rows& rows) {
+  return util::orderedRangeSums<1>(nodes, kProductChunkRows, parallel, [&](long i0, long i1) {
+    return std::array<double, 1>{rows(static_cast<int>(i0), static_cast<int>(i1))};
+  })[0];
 }
 }  // namespace
 
 double blockProduct(const int* outer, const double* val, const int* start, const int* col, const double* b,
                     const double* x, double* y, int nodes, bool residual, bool simd, bool parallel) {
-  return chunkedRowSum(nodes, parallel, [&](int i0, int i1) {
+  return orderedRowSum(nodes, parallel, [&](int i0, int i1) {
     return blockProductRows(outer, val, start, col, b, x, y, i0, i1, residual, simd);
   });
 }
 
 double floatBlockProduct(const float* val, const int* col, const int* start, const double* x, double* y, int nodes,
                          bool simd, bool parallel) {
-  return chunkedRowSum(nodes, parallel,
+  return orderedRowSum(nodes, parallel,
                        [&](int i0, int i1) { return floatBlockProductRows(val, col, start, x, y, i0, i1, simd); });
 }
 
