@@ -476,7 +476,8 @@ int main(int argc, char** argv) {
       const Eigen::Vector3d g_load = pipe->supineGravityLoad();
       // The rest shape: the unloaded one's recovery (residual of X0 re-loaded prone, its distance to prone).
       const UnloadedStateResult& un = pipe->unloadedState();
-      const bool unloaded = settings.simulation.reference_state == SimulationSettings::ReferenceState::kUnloaded;
+      const bool unloaded =
+          pipe->settings().simulation.reference_state == SimulationSettings::ReferenceState::kUnloaded;
       nlohmann::json reference = {{"shape", unloaded ? "unloaded" : "prone"}};
       if (unloaded) {
         const Eigen::VectorXd gap = (pipe->model().mesh.nodes() - m.mesh.nodes()).rowwise().norm();

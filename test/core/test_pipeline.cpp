@@ -698,6 +698,44 @@ TEST(Pipeline, AnUnloadedReferenceStartsProneStaysProneUnderProneGravityAndLoads
   EXPECT_EQ(pipe.gravityLoad(), pipe.supineGravityLoad());  // the API's load is g_now − g_prone either way
 }
 
+// The rest shape by default: the unloaded one for a patient's label image (the VICTRE image here),
+// the prone one for the software phantom, whose scenario needs it (SimulationSettings::ReferenceState).
+// A case may set either.
+TEST(Pipeline, TheRestShapeIsUnloadedForAnImageAndProneForThePhantomUnlessTheCaseSetsIt) {
+  using RS = SimulationSettings::ReferenceState;
+  const SmallPhantom& p = phantom();
+  PipelineSettings s;
+  s.morphing.enabled = false;
+  ASSERT_EQ(s.simulation.reference_state, RS::kCaseDefault);
+  const ProneToSupinePipeline phantom_default(p.c, p.m, s);
+  EXPECT_EQ(phantom_default.settings().simulation.reference_state, RS::kProne);
+  EXPECT_EQ(phantom_default.unloadedState().iterations, 0);
+  EXPECT_EQ(&phantom_default.model(), &p.m);
+
+  ModelCase c = loadModelCase(kConfigDir + "victre_case.yaml");
+  c.meshing.target_elements = 2500;
+  const SimulationModel m = buildSimulationModel(c);
+  PipelineSettings image_settings = s;
+  image_settings.simulation.sliding = false;
+  const ProneToSupinePipeline image_default(c, m, image_settings);
+  EXPECT_EQ(image_default.settings().simulation.reference_state, RS::kUnloaded);
+  ASSERT_TRUE(image_default.unloadedState().converged) << image_default.unloadedState().failure;
+  const double x0_gap = (image_default.model().mesh.nodes() - m.mesh.nodes()).rowwise().norm().maxCoeff();
+  std::printf("[ measure  ] VICTRE %d tets: X0 in %d loadings, up to %.2f mm from prone\n", m.mesh.numTets(),
+              image_default.unloadedState().iterations, 1e3 * x0_gap);
+  EXPECT_GT(x0_gap, 1e-3);  // the breast hangs by millimetres prone
+
+  image_settings.simulation.reference_state = RS::kProne;
+  const ProneToSupinePipeline image_prone(c, m, image_settings);
+  EXPECT_EQ(image_prone.settings().simulation.reference_state, RS::kProne);
+  EXPECT_EQ(image_prone.unloadedState().iterations, 0);
+  s.simulation.reference_state = RS::kUnloaded;
+  s.simulation.sliding = false;
+  const ProneToSupinePipeline phantom_unloaded(p.c, p.m, s);
+  EXPECT_EQ(phantom_unloaded.settings().simulation.reference_state, RS::kUnloaded);
+  EXPECT_TRUE(phantom_unloaded.unloadedState().converged);
+}
+
 // Snapshots carry their rest shape: a state of the other reference state is refused, naming it.
 TEST(Pipeline, AStateFileOfAnotherRestShapeIsRefused) {
   const SmallPhantom& p = phantom();

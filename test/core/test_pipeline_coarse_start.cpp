@@ -63,6 +63,30 @@ TEST(CoarseStart, FromTheSameModelTheStateIsCarriedOverExactly) {
   }
 }
 
+TEST(CoarseStart, WithUnloadedRestShapesTheModelsMeetInTheProneShape) {
+  // Each model's rest shape is its own X0, and a stiffer coarse model sags less: the two X0 differ.
+  // A material point is where the prone shape has it, so the state carried between two models of one
+  // mesh whose X0 differ (moduli 2 and 4 kPa) puts every node where the other model has it.
+  const SmallPhantom& p = phantom();
+  PipelineSettings s = loadPipelineSettings(kPhantomCase);
+  s.simulation.reference_state = SimulationSettings::ReferenceState::kUnloaded;
+  s.simulation.sliding = false;
+  s.morphing.enabled = false;
+  PipelineSettings stiffer = s;
+  stiffer.simulation.material.youngs_modulus_pa *= 2.0;
+  ProneToSupinePipeline soft(p.c, p.m, s), stiff(p.c, p.m, stiffer);
+  ASSERT_TRUE(soft.unloadedState().converged && stiff.unloadedState().converged);
+  const double x0_gap = (soft.model().mesh.nodes() - stiff.model().mesh.nodes()).rowwise().norm().maxCoeff();
+  ASSERT_TRUE(stiff.runGravity().converged);
+  soft.startFrom(stiff);
+  const double gap = (soft.positions() - stiff.positions()).rowwise().norm().maxCoeff();
+  std::printf("[ measure  ] X0 of 2 and 4 kPa up to %.2f mm apart; carried positions %.2e mm apart\n", 1e3 * x0_gap,
+              1e3 * gap);
+  ASSERT_GT(x0_gap, 1e-3);  // else the check below could not tell the shapes apart
+  EXPECT_LT(gap, 1e-12);
+  EXPECT_LT((soft.displacement() - stiff.displacement()).cwiseAbs().maxCoeff(), 1e-12);  // both from prone
+}
+
 TEST(CoarseStart, AnAffineDisplacementIsCarriedExactlyToAnotherMeshAndTheForcesKeepTheirTotal) {
   const SmallPhantom& coarse = phantom();  // 2000 elements
   const SmallPhantom fine(5000);

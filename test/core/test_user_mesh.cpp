@@ -373,6 +373,9 @@ TEST(UserMesh, TheWholePipelineMorphsAMeshCaseToATargetFile) {
   PipelineSettings s = loadPipelineSettings(test_fixtures::kPhantomCase);
   s.morphing.target = t.dir.path("target.obj");
   s.morphing.target_length_unit_m = 1.0;  // the file is in metres
+  // The phantom's target was made for its prone reference (SimulationSettings::ReferenceState);
+  // its image and its mesh are not the phantom, whose default that is.
+  s.simulation.reference_state = SimulationSettings::ReferenceState::kProne;
   ProneToSupinePipeline reference(t.image_case, t.image_model, s), pipe(t.c, t.m, s);
   ASSERT_TRUE(pipe.hasTarget());
   reference.run();

@@ -147,7 +147,7 @@ YAML::Node meshingMap(const MeshingOptions& o, double lesion_snap_tolerance_m) {
   return m.yaml();
 }
 
-YAML::Node simulationMap(const SimulationSettings& s) {
+YAML::Node simulationMap(const SimulationSettings& s, bool software_phantom) {
   const MultigridOptions& mg = s.solver.multigrid;
   const char* smoother = mg.smoother == MultigridOptions::Smoother::kJacobi        ? "jacobi"
                          : mg.smoother == MultigridOptions::Smoother::kGaussSeidel ? "gauss-seidel"
@@ -189,7 +189,9 @@ YAML::Node simulationMap(const SimulationSettings& s) {
       .s("fixed_node_set", s.fixed_node_set)
       .b("stiffening", s.stiffening)
       .b("sliding", s.sliding)
-      .s("reference_state", s.reference_state == SimulationSettings::ReferenceState::kProne ? "prone" : "unloaded")
+      .s("reference_state", s.resolvedReferenceState(software_phantom) == SimulationSettings::ReferenceState::kProne
+                                ? "prone"
+                                : "unloaded")
       .n("settle_time_step_s", s.settle.time_step_s)
       .n("settle_increment_tolerance_mm", mm(s.settle.increment_tolerance_m))
       .i("settle_max_steps", s.settle.max_steps);
@@ -321,7 +323,7 @@ std::string effectiveCaseYaml(const std::string& case_path, const MeshingOptions
   }
   if (root["lesions"]) out["lesions"] = YAML::Clone(root["lesions"]);
   out["meshing"] = meshingMap(meshing, lesion_snap_tolerance_m);
-  out["simulation"] = simulationMap(settings.simulation);
+  out["simulation"] = simulationMap(settings.simulation, source == "phantom");
   out["stiffening"] = stiffeningMap(settings.stiffening);
   out["sliding"] = slidingMap(settings);
   out["morphing"] = morphingMap(settings.morphing);

@@ -27,21 +27,28 @@ void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, doubl
                                 (unloaded_model_ ? "unloaded" : "prone") + "); use the same settings for both");
   if (coarse.morphing_forces_ && !field_)
     throw std::invalid_argument("startFrom: the coarse run has morphing forces, but this model has no target surface (setTarget first)");
-  const TetMesh& cm = coarse.model_.mesh;
+  // The two models meet in the prone domain, the shape both mesh: a material point is where the
+  // MRI shows it. With reference_state unloaded each rest shape is its own model's X0, and the
+  // coarser model sags less (on the phantom X0 lies 2.3 mm mean from prone at 4.8k elements, 3.1 mm
+  // at 48.8k), so the two X0 are not one shape. With the prone reference the prone meshes are the
+  // rest meshes.
+  const TetMesh& cm = coarse.prone_model_.mesh;
+  const Points& prone = prone_model_.mesh.nodes();
   const Points& rest = model_.mesh.nodes();
-  // Rest nodes and element centroids of this model in the coarse rest mesh (everything is
+  const Points& crest = coarse.model_.mesh.nodes();
+  // Prone nodes and element centroids of this model in the coarse prone mesh (everything is
   // validated before this pipeline changes).
-  // They depend on the two rest meshes alone: kept for the next start from the same coarse mesh
+  // They depend on the two prone meshes alone: kept for the next start from the same coarse mesh
   // (runGravity and runMorphing both start from the coarse model).
   const double fingerprint = meshFingerprint(cm);
   if (!coarse_embedding_ || coarse_embedding_->fingerprint != fingerprint ||
       coarse_embedding_->snap_tolerance_m != snap_tolerance_m) {
     auto e = std::make_unique<CoarseEmbedding>();
-    e->nodes = PointEmbedding(cm, rest, {}, snap_tolerance_m);
+    e->nodes = PointEmbedding(cm, prone, {}, snap_tolerance_m);
     Points centroids(model_.mesh.numTets(), 3);
     const Tets& T = model_.mesh.tets();
     for (int t = 0; t < model_.mesh.numTets(); ++t)
-      centroids.row(t) = 0.25 * (rest.row(T(t, 0)) + rest.row(T(t, 1)) + rest.row(T(t, 2)) + rest.row(T(t, 3)));
+      centroids.row(t) = 0.25 * (prone.row(T(t, 0)) + prone.row(T(t, 1)) + prone.row(T(t, 2)) + prone.row(T(t, 3)));
     e->centroids = PointEmbedding(cm, centroids, {}, snap_tolerance_m);
     e->fingerprint = fingerprint;
     e->snap_tolerance_m = snap_tolerance_m;
@@ -56,7 +63,12 @@ void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, doubl
   };
   auto asVector = [](const Points& p) { return Eigen::VectorXd(Eigen::Map<const Eigen::VectorXd>(p.data(), p.size())); };
   PipelineState s;
-  const Points u = at_nodes.interpolate(asPoints(cs.displacement_m));
+  // The coarse move from prone, interpolated, is this model's move from prone; displacements are
+  // from each model's rest shape (the same as the prone one with the prone reference).
+  Points coarse_move = asPoints(cs.displacement_m);
+  if (coarse.unloaded_model_) coarse_move += crest - cm.nodes();
+  Points u = at_nodes.interpolate(coarse_move);
+  if (unloaded_model_) u += prone - rest;
   s.simulation.displacement_m = asVector(u);
   s.simulation.velocity_mps = asVector(at_nodes.interpolate(asPoints(cs.velocity_mps)));
   s.simulation.time_s = cs.time_s;
@@ -74,7 +86,7 @@ void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, doubl
   s.alpha = coarse.stiff_->controller().state();
   s.stage = coarse.stage_;
   if (coarse.sliding_attached_) {
-    // Each wall node takes the friction state of the nearest coarse wall node (rest positions): its
+    // Each wall node takes the friction state of the nearest coarse wall node (prone positions): its
     // stick point's (or explicit target's) offset from where that node is now, and its slip direction.
     const std::vector<int>& wall = slip_ ? slip_->nodes() : sliding_->nodes();
     const std::vector<int>& cwall = slip_ ? coarse.slip_->nodes() : coarse.sliding_->nodes();
@@ -88,13 +100,13 @@ void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, doubl
       size_t nearest = 0;
       double best = std::numeric_limits<double>::infinity();
       for (size_t j = 0; j < cwall.size(); ++j) {
-        const double d2 = (cm.nodes().row(cwall[j]) - rest.row(wall[i])).squaredNorm();
+        const double d2 = (cm.nodes().row(cwall[j]) - prone.row(wall[i])).squaredNorm();
         if (d2 < best) best = d2, nearest = j;
       }
       const Eigen::Index crow = static_cast<Eigen::Index>(nearest);
       // Stick points are positions, explicit targets displacements.
       Eigen::RowVector3d cnow = cu.row(cwall[nearest]), now = u.row(wall[i]);
-      if (slip_) cnow += cm.nodes().row(cwall[nearest]), now += rest.row(wall[i]);
+      if (slip_) cnow += crest.row(cwall[nearest]), now += rest.row(wall[i]);
       s.sliding_targets_m.row(row) = now + (ctargets.row(crow) - cnow);
       if (slip_) s.sliding_slip_directions.row(row) = cdirections.row(crow);
     }
@@ -116,7 +128,7 @@ void ProneToSupinePipeline::startFrom(const ProneToSupinePipeline& coarse, doubl
   constexpr int kNearest = 4;
   std::vector<std::pair<double, int>> d2(cv.size());
   for (size_t j = 0; j < fv.size(); ++j) {
-    const Eigen::RowVector3d p = rest.row(fv[j]);
+    const Eigen::RowVector3d p = prone.row(fv[j]);
     for (size_t i = 0; i < cv.size(); ++i) d2[i] = {(cm.nodes().row(cv[i]) - p).squaredNorm(), static_cast<int>(i)};
     const size_t k = std::min<size_t>(kNearest, d2.size());
     std::partial_sort(d2.begin(), d2.begin() + static_cast<std::ptrdiff_t>(k), d2.end());

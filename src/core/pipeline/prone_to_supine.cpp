@@ -75,8 +75,11 @@ std::vector<TetMesh> coarseMeshesOfRest(const ModelCase& model_case, const Simul
   }
 }
 
-PipelineSettings validated(const PipelineSettings& settings) {
+/// The settings validated, with the reference state resolved for the case.
+PipelineSettings validated(const ModelCase& model_case, PipelineSettings settings) {
   settings.validate();
+  SimulationSettings& s = settings.simulation;
+  s.reference_state = s.resolvedReferenceState(model_case.phantom != nullptr);
   return settings;
 }
 
@@ -114,7 +117,7 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
                                              const PipelineSettings& settings,
                                              std::optional<std::vector<TetMesh>> coarse_meshes)
     : case_(model_case),
-      settings_(validated(settings)),
+      settings_(validated(model_case, settings)),
       prone_model_(model),
       coarse_meshes_(coarseLevels(model_case, model, settings_, std::move(coarse_meshes), coarse_meshing_s_)),
       unloaded_model_(unloadedModel(model_case, model, settings_, coarse_meshes_, unloaded_)),

@@ -117,9 +117,18 @@ struct SimulationSettings {
   /// shape X0 recovered from the prone shape (fem/unloaded_state.h), loaded with supine gravity
   /// itself; the wall then carries the supine weight only, half the superposition's normal load, so
   /// free sliding (sliding.tether_stiffness 0) needs friction above the wall's slope
-  /// (docs/unloaded_state.md). buildSimulator does not read it.
-  enum class ReferenceState { kUnloaded, kProne };
-  ReferenceState reference_state = ReferenceState::kProne;
+  /// (docs/unloaded_state.md). kCaseDefault (not set): kUnloaded for a patient's label image, MRI
+  /// or mesh, kProne for the software phantom, whose supine gravity tilts 10° along its wall, beyond
+  /// the kinetic friction angle, and whose analytic supine target was made for the superposition
+  /// (resolvedReferenceState). buildSimulator does not read it.
+  enum class ReferenceState { kUnloaded, kProne, kCaseDefault };
+  ReferenceState reference_state = ReferenceState::kCaseDefault;
+  /// reference_state with kCaseDefault resolved for a case that is (`software_phantom`) or is not
+  /// the software phantom.
+  ReferenceState resolvedReferenceState(bool software_phantom) const {
+    if (reference_state != ReferenceState::kCaseDefault) return reference_state;
+    return software_phantom ? ReferenceState::kProne : ReferenceState::kUnloaded;
+  }
   /// Young's modulus per tissue [Pa], keyed by the elements' region label (the tissue class of
   /// model/tissue_labels.h: 1 fat, 2 fibroglandular, 3 skin, 4 lesion), e.g. {4: 20000}: a lesion
   /// ten times stiffer than 2 kPa tissue. Regions not listed take material.youngs_modulus_pa (E0).

@@ -2,10 +2,11 @@
 /// @file prone_to_supine.h
 /// The combined prone-to-supine pipeline (seed paper, section 2.6 and Figure 2).
 ///
-/// The rest shape (simulation.reference_state): by default the prone shape, taken as stress-free and
-/// loaded with g_supine − g_prone. With `unloaded` it is the shape X0 recovered at construction from
-/// the prone shape (fem/unloaded_state.h), so that X0 loaded with prone gravity is the prone shape;
-/// the run starts at the prone shape (displacement prone − X0) and loads supine gravity itself.
+/// The rest shape (simulation.reference_state): by default, for a patient's image, MRI or mesh, the
+/// shape X0 recovered at construction from the prone shape (fem/unloaded_state.h), so that X0 loaded
+/// with prone gravity is the prone shape; the run starts at the prone shape (displacement prone − X0)
+/// and loads supine gravity itself. With `prone` (the software phantom's default) the prone shape is
+/// taken as stress-free and loaded with g_supine − g_prone (SimulationSettings::ReferenceState).
 /// Either way the gravity *load* the API speaks of is g_now − g_prone, and
 /// displacements are measured from the prone shape.
 ///
@@ -318,7 +319,8 @@ Eigen::Vector3d proneGravity(const ModelCase& model_case, const SimulationSettin
 
 class ProneToSupinePipeline {
  public:
-  /// With reference_state unloaded, first recovers X0 (recoverUnloadedShape with the run's element,
+  /// Resolves the default reference_state for the case (settings().simulation has kUnloaded or
+  /// kProne). With reference_state unloaded, first recovers X0 (recoverUnloadedShape with the run's element,
   /// stiffening, fixed wall and solver; the multigrid's coarse levels are meshed of the prone domain
   /// and moved by the interpolated X0 − prone). Then builds the
   /// simulator (solver, multigrid levels) on the rest shape, the stiffening driver and, with sliding
@@ -404,19 +406,21 @@ class ProneToSupinePipeline {
   /// Nested iteration: takes the state of a pipeline on a coarser model of the same case (another
   /// mesh of the same tissue, not nested in this one) onto this model, so that only the last steps
   /// run on the fine mesh. Carried over, each by its own rule:
-  ///  - displacement and velocity: interpolated at this model's rest nodes (barycentric in the
-  ///    coarse rest mesh; a node outside it, the two meshes' surfaces differ by up to a facet
-  ///    distance, takes the value at the closest point of the coarse surface);
+  ///  - displacement and velocity: interpolated at this model's prone nodes (barycentric in the
+  ///    coarse prone mesh; a node outside it, the two meshes' surfaces differ by up to a facet
+  ///    distance, takes the value at the closest point of the coarse surface). The models meet in
+  ///    the prone shape, which both mesh: with reference_state unloaded each has its own X0, so the
+  ///    move from prone is carried and each model's displacement is from its own X0;
   ///  - modulus factors: of the coarse element holding each element's centroid;
   ///  - α controller state, gravity load, stage, simulated time;
   ///  - sliding (when the coarse wall was released): each wall node takes the friction state of the
-  ///    nearest coarse wall node (rest positions): its stick point's (explicit method: its target's)
+  ///    nearest coarse wall node (prone positions): its stick point's (explicit method: its target's)
   ///    offset from that node's current position, and its slip direction;
   ///  - morphing forces: as tractions (force / vertex area [Pa]), inverse-square-distance weighted
-  ///    from the four nearest coarse pulled vertices (rest positions; a coincident one gives its
+  ///    from the four nearest coarse pulled vertices (prone positions; a coincident one gives its
   ///    own), times this model's vertex areas.
   /// Nothing else of the coarse run is kept (its reports stay its own).
-  /// @param snap_tolerance_m  a rest node this far outside the coarse mesh at most [m]
+  /// @param snap_tolerance_m  a prone node this far outside the coarse prone mesh at most [m]
   /// @throws std::invalid_argument when the two pipelines differ in sliding (on / off, method) or
   ///         morphing (forces without a target here), or a node lies farther outside.
   void startFrom(const ProneToSupinePipeline& coarse, double snap_tolerance_m = 5e-3);
@@ -529,8 +533,8 @@ class ProneToSupinePipeline {
   std::unique_ptr<ModelCase> coarse_case_;
   std::unique_ptr<SimulationModel> coarse_model_;
   std::unique_ptr<ProneToSupinePipeline> coarse_;
-  /// startFrom(): this model's rest nodes and element centroids in a coarse rest mesh, kept for the
-  /// next start from the same mesh (meshFingerprint) and snap tolerance.
+  /// startFrom(): this model's prone nodes and element centroids in a coarse prone mesh, kept for
+  /// the next start from the same mesh (meshFingerprint) and snap tolerance.
   struct CoarseEmbedding {
     double fingerprint = 0.0;
     double snap_tolerance_m = 0.0;
