@@ -136,8 +136,8 @@ int main(int argc, char** argv) {
     const GravityLoading today = loadWithGravity(model.mesh, s, g_supine - g_prone, o.stiffening, Points(), o.coarse_meshes);
     // The unloaded reference: X0 takes g_supine.
     const TetMesh rest = withNodes(model.mesh, r.unloaded_nodes_m);
-    const GravityLoading unloaded = loadWithGravity(rest, s, g_supine, o.stiffening, Points(),
-                                                    CoarseLevelMover(model.mesh, o.coarse_meshes).moved(rest.nodes() - model.mesh.nodes()));
+    const GravityLoading unloaded = loadWithGravity(rest, s, g_supine, o.stiffening, Points(), o.coarse_meshes,
+                                                    o.coarse_meshes.empty() ? Points() : model.mesh.nodes());
     std::printf("\nsupine, prone + (g_supine - g_prone): %s, %d steps, %.1f s\n",
                 today.settled ? "settled" : today.failure.c_str(), today.steps, today.seconds);
     std::printf("supine, X0 + g_supine:               %s, %d steps, %.1f s\n",

@@ -8,6 +8,7 @@
 
 #include "breast_sim/core/fem/anp_tet_fem.h"
 #include "breast_sim/core/fem/corotated_tet_fem.h"
+#include "breast_sim/core/fem/unloaded_state.h"
 #include "breast_sim/core/model/model_case.h"
 #include "breast_sim/core/model/tissue_labels.h"
 #include "breast_sim/core/solver/aggregation_multigrid.h"
@@ -211,7 +212,7 @@ std::vector<int> fixedNodes(const TetMesh& mesh, const SimulationSettings& setti
 // The one build of both overloads. `coarse_from_case`: the coarse meshes were meshed from a case
 // (possibly none: the fine mesh is small enough), `meshing_seconds` what that took.
 SimulatorBuild build(const TetMesh& mesh, const SimulationSettings& settings, std::vector<TetMesh> coarse_meshes,
-                     bool coarse_from_case, double meshing_seconds, const char* owner) {
+                     const Points& meshed_nodes_m, bool coarse_from_case, double meshing_seconds, const char* owner) {
   settings.validate();
   const bool multigrid = settings.solver.kind == SolverSettings::Kind::kMultigrid;
   if (!multigrid && !coarse_meshes.empty())
@@ -246,7 +247,15 @@ SimulatorBuild build(const TetMesh& mesh, const SimulationSettings& settings, st
     case SolverSettings::Kind::kMultigrid: {
       std::vector<TetMesh> meshes;
       meshes.reserve(coarse_meshes.size() + 1);
-      meshes.push_back(mesh);
+      if (meshed_nodes_m.size() == 0) {
+        meshes.push_back(mesh);
+      } else {
+        try {
+          meshes.push_back(withNodes(mesh, meshed_nodes_m));
+        } catch (const std::invalid_argument& e) {
+          throw std::invalid_argument(std::string("buildSimulator: meshed_nodes_m: ") + e.what());
+        }
+      }
       for (TetMesh& m : coarse_meshes) meshes.push_back(std::move(m));
       const MeshHierarchy h(std::move(meshes));
       b.multigrid_levels = h.numLevels();
@@ -284,12 +293,13 @@ SimulatorBuild build(const TetMesh& mesh, const SimulationSettings& settings, st
 }  // namespace
 
 SimulatorBuild buildSimulator(const TetMesh& mesh, const SimulationSettings& settings,
-                              std::vector<TetMesh> coarse_meshes) {
-  return build(mesh, settings, std::move(coarse_meshes), false, 0.0, "mesh");
+                              std::vector<TetMesh> coarse_meshes, const Points& meshed_nodes_m) {
+  return build(mesh, settings, std::move(coarse_meshes), meshed_nodes_m, false, 0.0, "mesh");
 }
 
 SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel& model,
-                              const SimulationSettings& settings, std::optional<std::vector<TetMesh>> coarse_meshes) {
+                              const SimulationSettings& settings, std::optional<std::vector<TetMesh>> coarse_meshes,
+                              const Points& meshed_nodes_m) {
   // Invalid settings and a missing node set are reported before the (slow) coarse meshing.
   settings.validate();
   fixedNodes(model.mesh, settings, "model");
@@ -302,7 +312,7 @@ SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel
     coarse = buildCoarseMeshes(model_case, model, settings.solver.coarsening);
     meshing_seconds = since(t);
   }
-  return build(model.mesh, settings, std::move(coarse), true, meshing_seconds, "model");
+  return build(model.mesh, settings, std::move(coarse), meshed_nodes_m, true, meshing_seconds, "model");
 }
 
 }  // namespace breast_sim::core

@@ -120,36 +120,6 @@ void UnloadedStateOptions::validate() const {
   }
 }
 
-CoarseLevelMover::CoarseLevelMover(const TetMesh& fine, std::vector<TetMesh> levels) : levels_(std::move(levels)) {
-  if (levels_.empty()) return;
-  // Anywhere: a coarse node outside the fine mesh (coarse boundaries cut corners) snaps to it.
-  const double anywhere_m = (fine.nodes().colwise().maxCoeff() - fine.nodes().colwise().minCoeff()).norm();
-  for (const TetMesh& level : levels_) at_.emplace_back(fine, level.nodes(), std::vector<std::string>{}, anywhere_m);
-}
-
-int CoarseLevelMover::invertedElements(const Points& fine_move_m) const {
-  size_t n = 0;
-  for (size_t level = 0; level < levels_.size(); ++level) {
-    const Points x = levels_[level].nodes() + at_[level].interpolate(fine_move_m);
-    n += invertedTets(levels_[level].tets(), x).size();
-  }
-  return static_cast<int>(n);
-}
-
-std::vector<TetMesh> CoarseLevelMover::moved(const Points& fine_move_m) const {
-  std::vector<TetMesh> out;
-  out.reserve(levels_.size());
-  for (size_t level = 0; level < levels_.size(); ++level) {
-    const TetMesh& c = levels_[level];
-    try {
-      out.push_back(withNodes(c, c.nodes() + at_[level].interpolate(fine_move_m)));
-    } catch (const std::invalid_argument& e) {
-      throw std::invalid_argument("coarse multigrid level " + std::to_string(level + 1) + ": " + e.what());
-    }
-  }
-  return out;
-}
-
 TetMesh withNodes(const TetMesh& mesh, const Points& nodes_m) {
   if (nodes_m.rows() != mesh.numNodes())
     throw std::invalid_argument("withNodes: " + std::to_string(nodes_m.rows()) + " node rows for a mesh of " +
@@ -166,7 +136,8 @@ TetMesh withNodes(const TetMesh& mesh, const Points& nodes_m) {
 
 GravityLoading loadWithGravity(const TetMesh& rest, const SimulationSettings& settings,
                                const Eigen::Vector3d& gravity_mps2, const StiffeningParams& stiffening,
-                               const Points& initial_displacement_m, std::vector<TetMesh> coarse_meshes) {
+                               const Points& initial_displacement_m, std::vector<TetMesh> coarse_meshes,
+                               const Points& meshed_nodes_m) {
   const auto t0 = Clock::now();
   if (initial_displacement_m.size() > 0 && initial_displacement_m.rows() != rest.numNodes())
     throw std::invalid_argument("loadWithGravity: initial_displacement_m has " +
@@ -176,7 +147,7 @@ GravityLoading loadWithGravity(const TetMesh& rest, const SimulationSettings& se
   SimulationSettings s = settings;
   s.dynamics.gravity_mps2 = gravity_mps2;
   const SettleOptions& so = s.settle;
-  SimulatorBuild b = buildSimulator(rest, s, std::move(coarse_meshes));
+  SimulatorBuild b = buildSimulator(rest, s, std::move(coarse_meshes), meshed_nodes_m);
   DynamicSimulator& sim = *b.simulator;
   const bool displaced = initial_displacement_m.size() > 0 && initial_displacement_m.cwiseAbs().maxCoeff() > 0.0;
   if (displaced) {
@@ -315,9 +286,6 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
   forward.settle.increment_tolerance_m =
       std::min(s.settle.increment_tolerance_m, kSettleToleranceShare * options.tolerance_m);
 
-  // The coarse levels' nodes in the loaded mesh, once: each loading moves them by X0 − loaded there.
-  const CoarseLevelMover coarse_levels(loaded, options.coarse_meshes);  // none unless multigrid (checked above)
-
   UnloadedStateResult res;
   res.unloaded_nodes_m = unflat(x0);
   double best = std::numeric_limits<double>::infinity();
@@ -335,15 +303,9 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
   for (int k = 1; k <= options.max_iterations; ++k) {
     res.iterations = k;
     const TetMesh rest = withNodes(loaded, unflat(x0));  // x0 was checked for inverted elements
-    std::vector<TetMesh> coarse;
-    try {
-      coarse = coarse_levels.moved(unflat(x0 - target));
-    } catch (const std::invalid_argument& e) {
-      return fail(k, std::string("the multigrid's coarse levels moved to this X0: ") + e.what() +
-                         " (the solver 'aggregation', simulation.solver: aggregation, has no coarse meshes)");
-    }
-    const GravityLoading l =
-        loadWithGravity(rest, forward, gravity_mps2, options.stiffening, unflat(target - x0), std::move(coarse));
+    // The multigrid's levels mesh the loaded shape's domain: its prolongations are the loaded shape's.
+    const GravityLoading l = loadWithGravity(rest, forward, gravity_mps2, options.stiffening, unflat(target - x0),
+                                             options.coarse_meshes, multigrid ? loaded.nodes() : Points());
     if (!l.settled) {
       res.inverted_elements = l.inverted_elements;
       return fail(k, "the forward " + l.failure.substr(4));  // "the loading …" → "the forward loading …"
@@ -381,11 +343,8 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
     if (k == options.max_iterations) break;
     Eigen::VectorXd next = anderson.next(x0, f, accelerated);
     holdFixed(next);
-    // A candidate must leave every element valid, of the mesh and of the coarse levels moved with it.
-    auto invertedAt = [&](const Eigen::VectorXd& x) {
-      return invertedTets(loaded.tets(), unflat(x)).size() +
-             static_cast<size_t>(coarse_levels.invertedElements(unflat(x - target)));
-    };
+    // A candidate must leave every element valid.
+    auto invertedAt = [&](const Eigen::VectorXd& x) { return invertedTets(loaded.tets(), unflat(x)).size(); };
     size_t inv = invertedAt(next);
     step = 1.0;
     if (inv > 0) {

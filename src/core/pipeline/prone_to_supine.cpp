@@ -63,18 +63,6 @@ std::unique_ptr<SimulationModel> unloadedModel(const ModelCase& model_case, cons
   return model;
 }
 
-/// The multigrid's coarse levels `coarse` of the prone model's domain moved to the rest shape `rest`
-/// by the displacement rest − prone interpolated at their nodes.
-std::vector<TetMesh> coarseMeshesOfRest(const ModelCase& model_case, const SimulationModel& prone, const TetMesh& rest,
-                                        const std::vector<TetMesh>& coarse) {
-  try {
-    return CoarseLevelMover(prone.mesh, coarse).moved(rest.nodes() - prone.mesh.nodes());
-  } catch (const std::invalid_argument& e) {
-    throw std::runtime_error("case '" + model_case.name + "': the multigrid's coarse levels moved to the unloaded shape: " +
-                             e.what() + " (choose simulation.solver: aggregation)");
-  }
-}
-
 /// The settings validated, with the reference state resolved for the case.
 PipelineSettings validated(const ModelCase& model_case, PipelineSettings settings) {
   settings.validate();
@@ -125,9 +113,10 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
   if (unloaded_model_) gravity_offset_mps2_ = proneGravity(case_, settings_.simulation);
   settings_.simulation.dynamics.gravity_mps2 = supineGravityLoad() + gravity_offset_mps2_;
   std::optional<std::vector<TetMesh>> coarse;
-  if (settings_.simulation.solver.kind == SolverSettings::Kind::kMultigrid)
-    coarse = unloaded_model_ ? coarseMeshesOfRest(case_, prone_model_, model_.mesh, coarse_meshes_) : coarse_meshes_;
-  build_ = buildSimulator(case_, model_, settings_.simulation, std::move(coarse));  // fixes the fixed node set
+  if (settings_.simulation.solver.kind == SolverSettings::Kind::kMultigrid) coarse = coarse_meshes_;
+  // The levels mesh the prone domain: the multigrid on X0 takes the prone shape's prolongations.
+  build_ = buildSimulator(case_, model_, settings_.simulation, std::move(coarse),
+                          unloaded_model_ ? prone_model_.mesh.nodes() : Points());  // fixes the fixed node set
   build_.hierarchy_seconds += coarse_meshing_s_;
   if (unloaded_model_) {
     // The run starts at the prone shape, X0's equilibrium under prone gravity.

@@ -178,12 +178,17 @@ struct SimulatorBuild {
 ///        each coarser than the one before (coarsest last); every node of a level must lie in the next
 ///        coarser mesh (within its mean boundary edge length). The hierarchy is
 ///        MeshHierarchy({mesh, coarse_meshes...}).
+/// @param meshed_nodes_m  solver 'multigrid': the mesh's nodes in the shape the coarse meshes mesh,
+///        #N×3 [m] (empty: the mesh's own). A rest shape other than the meshed domain (the unloaded
+///        X0 of a prone image) takes the prolongations of that domain: a coarse level then spans the
+///        same tissue however far X0 lies from it, and no level has to be moved along.
 /// @throws std::invalid_argument for invalid settings; a fixed_node_set the mesh lacks (naming the sets
 ///         it has and a near match, TetMesh::nearestNodeSetName); solver 'multigrid' without coarse
 ///         meshes (naming the alternatives 'aggregation' and 'cholmod'); coarse meshes with another
-///         solver; or a level that does not fit in the next coarser one (MeshHierarchy).
+///         solver; a level that does not fit in the next coarser one (MeshHierarchy); meshed
+///         nodes of another count than the mesh's or that invert an element.
 SimulatorBuild buildSimulator(const TetMesh& mesh, const SimulationSettings& settings,
-                              std::vector<TetMesh> coarse_meshes = {});
+                              std::vector<TetMesh> coarse_meshes = {}, const Points& meshed_nodes_m = Points());
 
 /// buildSimulator(model.mesh, settings, coarse meshes) for a case's model: for solver 'multigrid' the
 /// coarse meshes are meshed from the case's label image (buildCoarseMeshes with
@@ -196,8 +201,11 @@ SimulatorBuild buildSimulator(const TetMesh& mesh, const SimulationSettings& set
 /// @throws std::invalid_argument for invalid settings or a missing node set (names it and the sets
 ///         the model has), coarse meshes that do not nest (MeshHierarchy); std::runtime_error as
 ///         meshing the coarse levels does.
+/// @param meshed_nodes_m  as in the overload above: the model's nodes in the case's own (prone) shape
+///        when the model's rest shape is another (empty: the model's own)
 SimulatorBuild buildSimulator(const ModelCase& model_case, const SimulationModel& model,
                               const SimulationSettings& settings,
-                              std::optional<std::vector<TetMesh>> coarse_meshes = std::nullopt);
+                              std::optional<std::vector<TetMesh>> coarse_meshes = std::nullopt,
+                              const Points& meshed_nodes_m = Points());
 
 }  // namespace breast_sim::core

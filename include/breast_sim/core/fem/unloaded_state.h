@@ -31,8 +31,9 @@ struct UnloadedStateOptions {
   /// from the loaded shape whatever is given here.
   Points initial_unloaded_nodes_m;
   /// Solver 'multigrid': its coarse levels, meshes of the loaded shape's domain as buildSimulator
-  /// takes them (coarsest last). Each loading moves them to its X0 by the displacement X0 − loaded
-  /// interpolated at their nodes (a preconditioner: the answer does not depend on them).
+  /// takes them (coarsest last). Each loading's multigrid takes its prolongations from the loaded
+  /// shape (buildSimulator's meshed_nodes_m), whatever its X0 (a preconditioner: the answer does not
+  /// depend on them).
   std::vector<TetMesh> coarse_meshes;
   /// @throws std::invalid_argument naming the field, its value and the accepted range.
   void validate() const;
@@ -80,9 +81,8 @@ struct UnloadedStateResult {
 /// increment tolerance is capped at options.tolerance_m / 4 (a looser forward settle would stall
 /// the iteration).
 ///
-/// A candidate X0 with inverted elements (of the mesh, or with the multigrid of its coarse levels
-/// moved to it) is replaced by the plain step, halved until no element is inverted (down to 1/64
-/// of it), and the mixing starts again. A forward loading that does not
+/// A candidate X0 with inverted elements is replaced by the plain step, halved until no element is
+/// inverted (down to 1/64 of it), and the mixing starts again. A forward loading that does not
 /// settle or whose solver fails, a candidate X0 still inverted then, a loading that inverts
 /// elements, a residual that grew options.max_growing_iterations times in a row or the iteration
 /// limit end the run with converged = false and `failure` naming the iteration and the reason;
@@ -116,35 +116,15 @@ struct GravityLoading {
 /// steps (the α search starts at its floor), else by settle(). Never
 /// throws for a loading that fails (a solver failure, no settling, inverted elements): `failure`
 /// says what happened.
-/// @param coarse_meshes  solver 'multigrid': its coarse levels, of rest's domain (buildSimulator)
+/// @param coarse_meshes, meshed_nodes_m  solver 'multigrid': its coarse levels and rest's nodes in
+///        the shape they mesh (empty: rest's own), as buildSimulator takes them
 /// @throws std::invalid_argument as buildSimulator (settings, solver 'multigrid' without coarse
-///         meshes, a missing node set) and for an initial displacement of the wrong size.
+///         meshes, a missing node set, meshed nodes of another count) and for an initial
+///         displacement of the wrong size.
 GravityLoading loadWithGravity(const TetMesh& rest, const SimulationSettings& settings,
                                const Eigen::Vector3d& gravity_mps2, const StiffeningParams& stiffening = {},
                                const Points& initial_displacement_m = Points(),
-                               std::vector<TetMesh> coarse_meshes = {});
-
-/// The coarse levels of a multigrid built on `fine`'s domain, moved with the fine mesh: each level's
-/// nodes are displaced by a per-node displacement of `fine` interpolated at them (a node outside
-/// the fine mesh takes the value at its closest point). Locates the levels' nodes once, on
-/// construction (O(#T + #P) per level), so that each move costs an interpolation.
-class CoarseLevelMover {
- public:
-  /// @param fine    the mesh the levels were built for (not kept)
-  /// @param levels  coarse meshes of fine's domain, coarsest last (copied)
-  CoarseLevelMover(const TetMesh& fine, std::vector<TetMesh> levels);
-  /// The levels with their nodes moved by `fine_move_m` (#N×3 [m], per node of the fine mesh).
-  /// @throws std::invalid_argument naming the level (1 = the finest coarse level) when a moved level
-  ///         has inverted elements, or for a displacement of the wrong size.
-  std::vector<TetMesh> moved(const Points& fine_move_m) const;
-  /// Inverted or degenerate elements of the levels moved by `fine_move_m`, over all levels.
-  int invertedElements(const Points& fine_move_m) const;
-  const std::vector<TetMesh>& levels() const { return levels_; }
-
- private:
-  std::vector<TetMesh> levels_;
-  std::vector<PointEmbedding> at_;  // per level: its nodes in the fine mesh
-};
+                               std::vector<TetMesh> coarse_meshes = {}, const Points& meshed_nodes_m = Points());
 
 /// `mesh` with its nodes replaced by `nodes_m` (#N×3 [m]): the same elements, region labels and node
 /// sets. @throws std::invalid_argument for a row count that differs, or for elements that are inverted
