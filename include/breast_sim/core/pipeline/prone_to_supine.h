@@ -321,8 +321,8 @@ class ProneToSupinePipeline {
  public:
   /// Resolves the default reference_state for the case (settings().simulation has kUnloaded or
   /// kProne). With reference_state unloaded, first recovers X0 (recoverUnloadedShape with the run's element,
-  /// stiffening, fixed wall and solver; the multigrid's coarse levels are meshed of the prone domain
-  /// and moved by the interpolated X0 − prone). Then builds the
+  /// stiffening, fixed wall and solver; the multigrid's coarse levels are meshed of the prone domain,
+  /// its prolongations the prone shape's). Then builds the
   /// simulator (solver, multigrid levels) on the rest shape, the stiffening driver and, with sliding
   /// on, the chest-wall surface. `model_case` and `model` (the prone model) are kept by reference and
   /// must outlive this. The target of settings.morphing.target is read here ("phantom" needs a
