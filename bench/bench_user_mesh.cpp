@@ -64,6 +64,8 @@ int main(int argc, char** argv) {
     const SimulationModel model = buildSimulationModel(c);
     const double load_s = bench::since(t0);
     PipelineSettings base = loadPipelineSettings(case_path);
+    // CalculiX loads the prone shape as stress-free with g_supine − g_prone: so does our run here.
+    base.simulation.reference_state = SimulationSettings::ReferenceState::kProne;
     base.simulation.sliding = false;
     base.simulation.stiffening = false;
     base.morphing.enabled = false;
