@@ -132,54 +132,54 @@ int main(int argc, char** argv) {
                         {"unloaded_vs_prone_max_mm", x0.max_mm}};
 
   if (supine && r.converged) {
-    // Today's reference: the prone shape is stress-free and takes g_supine − g_prone.
-    const GravityLoading today = loadWithGravity(model.mesh, s, g_supine - g_prone, o.stiffening, Points(), o.coarse_meshes);
+    // The superposition: the prone shape is stress-free and takes g_supine − g_prone.
+    const GravityLoading superposed = loadWithGravity(model.mesh, s, g_supine - g_prone, o.stiffening, Points(), o.coarse_meshes);
     // The unloaded reference: X0 takes g_supine.
     const TetMesh rest = withNodes(model.mesh, r.unloaded_nodes_m);
     const GravityLoading unloaded = loadWithGravity(rest, s, g_supine, o.stiffening, Points(), o.coarse_meshes,
                                                     o.coarse_meshes.empty() ? Points() : model.mesh.nodes());
     std::printf("\nsupine, prone + (g_supine - g_prone): %s, %d steps, %.1f s\n",
-                today.settled ? "settled" : today.failure.c_str(), today.steps, today.seconds);
+                superposed.settled ? "settled" : superposed.failure.c_str(), superposed.steps, superposed.seconds);
     std::printf("supine, X0 + g_supine:               %s, %d steps, %.1f s\n",
                 unloaded.settled ? "settled" : unloaded.failure.c_str(), unloaded.steps, unloaded.seconds);
-    out["supine_today_settled"] = today.settled;
+    out["supine_superposed_settled"] = superposed.settled;
     out["supine_unloaded_settled"] = unloaded.settled;
-    out["supine_today_seconds"] = today.seconds;
+    out["supine_superposed_seconds"] = superposed.seconds;
     out["supine_unloaded_seconds"] = unloaded.seconds;
-    if (today.settled && unloaded.settled) {
-      const Points x_today = model.mesh.nodes() + today.displacement_m;
+    if (superposed.settled && unloaded.settled) {
+      const Points x_superposed = model.mesh.nodes() + superposed.displacement_m;
       const Points x_unloaded = r.unloaded_nodes_m + unloaded.displacement_m;
-      const Distances d = distances(x_unloaded, x_today);
-      const Distances sag_today = distances(x_today, model.mesh.nodes());
+      const Distances d = distances(x_unloaded, x_superposed);
+      const Distances sag_superposed = distances(x_superposed, model.mesh.nodes());
       const Distances sag_unloaded = distances(x_unloaded, model.mesh.nodes());
-      std::printf("supine node positions, unloaded vs today: mean %.3f mm, max %.3f mm\n", d.mean_mm, d.max_mm);
-      std::printf("supine displacement from prone: today mean %.2f max %.2f mm; unloaded mean %.2f max %.2f mm\n",
-                  sag_today.mean_mm, sag_today.max_mm, sag_unloaded.mean_mm, sag_unloaded.max_mm);
-      out["supine_nodes_unloaded_vs_today_mean_mm"] = d.mean_mm;
-      out["supine_nodes_unloaded_vs_today_max_mm"] = d.max_mm;
-      out["supine_displacement_today_mean_mm"] = sag_today.mean_mm;
-      out["supine_displacement_today_max_mm"] = sag_today.max_mm;
+      std::printf("supine node positions, unloaded vs superposed: mean %.3f mm, max %.3f mm\n", d.mean_mm, d.max_mm);
+      std::printf("supine displacement from prone: superposed mean %.2f max %.2f mm; unloaded mean %.2f max %.2f mm\n",
+                  sag_superposed.mean_mm, sag_superposed.max_mm, sag_unloaded.mean_mm, sag_unloaded.max_mm);
+      out["supine_nodes_unloaded_vs_superposed_mean_mm"] = d.mean_mm;
+      out["supine_nodes_unloaded_vs_superposed_max_mm"] = d.max_mm;
+      out["supine_displacement_superposed_mean_mm"] = sag_superposed.mean_mm;
+      out["supine_displacement_superposed_max_mm"] = sag_superposed.max_mm;
       out["supine_displacement_unloaded_mean_mm"] = sag_unloaded.mean_mm;
       out["supine_displacement_unloaded_max_mm"] = sag_unloaded.max_mm;
       const Points l_prone = model.lesion_embedding.positions(model.mesh.nodes());
-      const Points l_today = model.lesion_embedding.positions(x_today);
+      const Points l_superposed = model.lesion_embedding.positions(x_superposed);
       const Points l_unloaded = model.lesion_embedding.positions(x_unloaded);
       const Points l_x0 = model.lesion_embedding.positions(r.unloaded_nodes_m);
-      std::printf("\n%-14s %-14s %-16s %-18s %s\n", "lesion", "X0-prone mm", "today move mm", "unloaded move mm",
-                  "unloaded-today mm");
+      std::printf("\n%-14s %-14s %-20s %-18s %s\n", "lesion", "X0-prone mm", "superposed move mm", "unloaded move mm",
+                  "unloaded-superposed mm");
       nlohmann::json les = nlohmann::json::array();
       for (int i = 0; i < model.lesion_embedding.size(); ++i) {
         const double in_x0 = (l_x0.row(i) - l_prone.row(i)).norm() * 1e3;
-        const double mt = (l_today.row(i) - l_prone.row(i)).norm() * 1e3;
+        const double mt = (l_superposed.row(i) - l_prone.row(i)).norm() * 1e3;
         const double mu = (l_unloaded.row(i) - l_prone.row(i)).norm() * 1e3;
-        const double du = (l_unloaded.row(i) - l_today.row(i)).norm() * 1e3;
+        const double du = (l_unloaded.row(i) - l_superposed.row(i)).norm() * 1e3;
         const std::string name = i < static_cast<int>(model.lesions.size()) ? model.lesions[i].name : std::to_string(i);
-        std::printf("%-14s %-14.2f %-16.2f %-18.2f %.2f\n", name.c_str(), in_x0, mt, mu, du);
+        std::printf("%-14s %-14.2f %-20.2f %-18.2f %.2f\n", name.c_str(), in_x0, mt, mu, du);
         les.push_back({{"name", name},
                        {"unloaded_vs_prone_mm", in_x0},
-                       {"supine_move_today_mm", mt},
+                       {"supine_move_superposed_mm", mt},
                        {"supine_move_unloaded_mm", mu},
-                       {"supine_unloaded_vs_today_mm", du}});
+                       {"supine_unloaded_vs_superposed_mm", du}});
       }
       out["lesions"] = les;
     }
