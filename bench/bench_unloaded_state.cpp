@@ -8,7 +8,8 @@
 //                        [--max-iterations 30] [--no-supine] [--json FILE]
 // The case's `simulation:` map gives the material, elements and settle options (defaults: E 2 kPa,
 // ν 0.48, the default element, stiffening on); --solver replaces its solver ('multigrid': the coarse
-// levels are meshed of the prone domain and moved to each X0, as the pipeline does).
+// levels are meshed of the prone domain, and each simulator on an X0 takes the prone shape's
+// prolongations, as the pipeline's do).
 #include <cstdio>
 #include <fstream>
 #include <string>

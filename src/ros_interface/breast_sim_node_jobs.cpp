@@ -94,7 +94,7 @@ void BreastSimNode::loadCaseJob(const std::string& case_file, int target_element
         {"reading", "reading the case and its image"},
         {"segmentation", "segmenting the prone MRI"},
         {"meshing", "meshing the model"},
-        {"setup", "setting up the solver, the multigrid levels and the chest wall"}};
+        {"setup", "setting up the solver, the multigrid levels, the rest shape and the chest wall"}};
     {
       std::lock_guard<std::mutex> sl(state_mutex_);
       state_.stage = name;
@@ -145,7 +145,15 @@ void BreastSimNode::loadCaseJob(const std::string& case_file, int target_element
     s.precision(6);
   }
   s << e->model->mesh.numTets() << " tetrahedra, " << e->model->mesh.numNodes() << " nodes, " << e->model->lesions.size()
-    << " lesions, built in " << seconds(Clock::now() - t0) << " s";
+    << " lesions, built in " << seconds(Clock::now() - t0) << " s; rest shape: ";
+  // Which rest shape the lesions are simulated from (simulation.reference_state): it moves them.
+  if (e->pipeline->settings().simulation.reference_state == core::SimulationSettings::ReferenceState::kUnloaded) {
+    const core::UnloadedStateResult& u = e->pipeline->unloadedState();
+    s << "unloaded (gravity-free, recovered in " << u.iterations << " loadings, " << u.seconds
+      << " s, re-loaded within " << 1e3 * u.max_residual_m << " mm of the prone shape)";
+  } else {
+    s << "prone (taken as stress-free)";
+  }
   *message = s.str();
   *ok = true;
   {

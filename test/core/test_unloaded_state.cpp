@@ -108,6 +108,19 @@ TEST(UnloadedState, RecoversTheKnownRestShape) {
   EXPECT_LT(r.history.back().settle_steps, r.history.front().settle_steps);
 }
 
+// On the multigrid: its level meshes the loaded (sagged) shape, from which the rest shape lies up to
+// 22 mm away, farther than a level's snap tolerance (its mean boundary edge, 8 mm): every loading
+// takes the loaded shape's prolongations (a hierarchy on X0's own nodes would be refused).
+TEST(UnloadedState, RecoversTheKnownRestShapeOnTheMultigridOfTheLoadedShape) {
+  UnloadedStateOptions o;
+  o.coarse_meshes = {loadedCube()};
+  SimulationSettings mg = settings(false);
+  mg.solver.kind = SolverSettings::Kind::kMultigrid;
+  const UnloadedStateResult r = recoverUnloadedShape(loadedCube(), mg, kGravity, o);
+  expectRecovered(r, o);
+  EXPECT_LE(r.iterations, 12);
+}
+
 TEST(UnloadedState, RecoversTheKnownRestShapeWithStiffening) {
   const UnloadedStateOptions o;
   const UnloadedStateResult r = recoverUnloadedShape(loadedCube(), settings(true), kGravity, o);

@@ -25,9 +25,9 @@ inline constexpr int kMaxFrictionPasses = 3;
 /// (DynamicSimulator::setMatrixReuse; measured in docs/tracking.md, "Latency").
 inline constexpr int kTrackingMatrixReuse = 10;
 
-/// FNV-1a hash of the rest mesh (node coordinates and connectivity), cut to 52 bits so that a double
-/// holds it exactly (never 0): which mesh a saved state (its nodes must be numbered the same way) or
-/// a kept embedding belongs to.
+/// FNV-1a hash of a mesh (node coordinates and connectivity; the callers give a prone mesh), cut to
+/// 52 bits so that a double holds it exactly (never 0): which mesh a saved state (its nodes must be
+/// numbered the same way) or a kept embedding belongs to.
 inline double meshFingerprint(const TetMesh& mesh) {
   std::uint64_t h = 1469598103934665603ULL;
   auto mix = [&](const void* data, size_t bytes) {

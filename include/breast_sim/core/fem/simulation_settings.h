@@ -181,12 +181,12 @@ struct SimulatorBuild {
 /// @param meshed_nodes_m  solver 'multigrid': the mesh's nodes in the shape the coarse meshes mesh,
 ///        #N×3 [m] (empty: the mesh's own). A rest shape other than the meshed domain (the unloaded
 ///        X0 of a prone image) takes the prolongations of that domain: a coarse level then spans the
-///        same tissue however far X0 lies from it, and no level has to be moved along.
+///        same tissue however far X0 lies from it. Other solvers do not read it.
 /// @throws std::invalid_argument for invalid settings; a fixed_node_set the mesh lacks (naming the sets
 ///         it has and a near match, TetMesh::nearestNodeSetName); solver 'multigrid' without coarse
 ///         meshes (naming the alternatives 'aggregation' and 'cholmod'); coarse meshes with another
-///         solver; a level that does not fit in the next coarser one (MeshHierarchy); meshed
-///         nodes of another count than the mesh's or that invert an element.
+///         solver; a level that does not fit in the next coarser one (MeshHierarchy); with solver
+///         'multigrid', meshed nodes of another count than the mesh's or that invert an element.
 SimulatorBuild buildSimulator(const TetMesh& mesh, const SimulationSettings& settings,
                               std::vector<TetMesh> coarse_meshes = {}, const Points& meshed_nodes_m = Points());
 

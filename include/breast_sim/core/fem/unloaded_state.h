@@ -119,7 +119,7 @@ struct GravityLoading {
 /// @param coarse_meshes, meshed_nodes_m  solver 'multigrid': its coarse levels and rest's nodes in
 ///        the shape they mesh (empty: rest's own), as buildSimulator takes them
 /// @throws std::invalid_argument as buildSimulator (settings, solver 'multigrid' without coarse
-///         meshes, a missing node set, meshed nodes of another count) and for an initial
+///         meshes, a missing node set, with it meshed nodes of another count) and for an initial
 ///         displacement of the wrong size.
 GravityLoading loadWithGravity(const TetMesh& rest, const SimulationSettings& settings,
                                const Eigen::Vector3d& gravity_mps2, const StiffeningParams& stiffening = {},

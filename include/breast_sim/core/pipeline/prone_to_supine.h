@@ -132,7 +132,7 @@ struct CoarseStartSettings {
   /// stage is enabled and a target is set; otherwise the model runs alone (a case file serves models
   /// of any size).
   int elements = 0;
-  /// How far outside the coarse rest mesh a rest node or element centroid of the model may lie [m],
+  /// How far outside the coarse prone mesh a prone node or element centroid of the model may lie [m],
   /// in (0, 0.1]; such a point takes the value at the closest point of the coarse mesh. The two
   /// meshes' surfaces differ by up to the meshing's facet distance.
   double snap_tolerance_m = 5e-3;
