@@ -1,7 +1,8 @@
 // BreastSimNode's checkpoints: the state written to ~state_folder after each precomputation, after a
 // loaded state and periodically while tracking, and read back on start, so that a node restarted
 // after a crash (the launch file respawns it) tracks again without precomputing; and the multigrid's
-// coarse levels kept beside them, so that it does not mesh them again either.
+// coarse levels and a patient case's unloaded rest shape kept beside them, so that it neither meshes
+// the levels again nor recovers the shape anew (it confirms it in one loading).
 #include "breast_sim/ros_interface/breast_sim_node.h"
 
 #include "breast_sim/core/pipeline/case_file.h"
@@ -28,28 +29,61 @@ void BreastSimNode::fingerprintEngine(Engine& e) const {
 void BreastSimNode::buildPipeline(Engine& e) const {
   const bool multigrid = e.settings.simulation.solver.kind == core::SolverSettings::Kind::kMultigrid;
   std::optional<std::vector<core::TetMesh>> kept;
-  if (multigrid && e.fingerprint != 0) {
+  core::Points start;  // X0 kept by an earlier start of this case (reference_state unloaded)
+  if (e.fingerprint != 0) {
+    if (multigrid) {
+      try {
+        kept = readMultigridLevels(*state_folder_, e.fingerprint);
+      } catch (const std::exception& ex) {
+        ROS_WARN_STREAM("breast_sim: " << ex.what() << "; the multigrid levels are meshed again");
+      }
+    }
     try {
-      kept = readMultigridLevels(*state_folder_, e.fingerprint);
+      if (std::optional<core::Points> x0 = readUnloadedShape(*state_folder_, e.fingerprint)) start = std::move(*x0);
     } catch (const std::exception& ex) {
-      ROS_WARN_STREAM("breast_sim: " << ex.what() << "; the multigrid levels are meshed again");
+      ROS_WARN_STREAM("breast_sim: " << ex.what() << "; the unloaded shape is recovered anew");
     }
   }
+  bool had_start = start.size() > 0;
+  auto keepUnloadedShape = [&] {
+    // A recovered X0 (one confirmed from the kept file is that file's).
+    if (e.fingerprint == 0 || had_start ||
+        e.pipeline->settings().simulation.reference_state != core::SimulationSettings::ReferenceState::kUnloaded)
+      return;
+    try {
+      writeUnloadedShape(*state_folder_, e.fingerprint, e.pipeline->model().mesh);
+    } catch (const std::exception& ex) {
+      ROS_WARN_STREAM("breast_sim: the unloaded shape could not be kept (" << ex.what()
+                      << "); a restarted node recovers it again");
+    }
+  };
   if (kept) {
     const auto t0 = Clock::now();
     const size_t levels = kept->size();
     try {
-      e.pipeline = std::make_unique<core::ProneToSupinePipeline>(*e.model_case, *e.model, e.settings, std::move(kept));
+      e.pipeline =
+          std::make_unique<core::ProneToSupinePipeline>(*e.model_case, *e.model, e.settings, std::move(kept), start);
       e.levels_read = static_cast<int>(levels);
       ROS_INFO_STREAM("breast_sim: case '" << e.model_case->name << "': " << levels << " multigrid levels read from "
-                      << state_folder_->root() << ", built in " << seconds(Clock::now() - t0) << " s");
+                      << state_folder_->root() << (had_start ? ", its unloaded shape confirmed" : "") << ", built in "
+                      << seconds(Clock::now() - t0) << " s");
+      keepUnloadedShape();
       return;
     } catch (const std::invalid_argument& ex) {
       ROS_WARN_STREAM("breast_sim: the multigrid levels kept in " << state_folder_->root()
                       << " do not fit the model (" << ex.what() << "); they are meshed again");
     }
   }
-  e.pipeline = std::make_unique<core::ProneToSupinePipeline>(*e.model_case, *e.model, e.settings);
+  try {
+    e.pipeline = std::make_unique<core::ProneToSupinePipeline>(*e.model_case, *e.model, e.settings, std::nullopt, start);
+  } catch (const std::invalid_argument& ex) {
+    if (!had_start) throw;
+    ROS_WARN_STREAM("breast_sim: the unloaded shape kept in " << state_folder_->root() << " does not fit the model ("
+                    << ex.what() << "); it is recovered anew");
+    had_start = false;
+    e.pipeline = std::make_unique<core::ProneToSupinePipeline>(*e.model_case, *e.model, e.settings);
+  }
+  keepUnloadedShape();
   if (!multigrid || e.fingerprint == 0 || e.pipeline->coarseMeshes().empty()) return;
   try {
     writeMultigridLevels(*state_folder_, e.fingerprint, e.pipeline->coarseMeshes());

@@ -362,8 +362,17 @@ void BreastSimNode::resetJob() {
     return;
   }
   try {
-    // The new pipeline is built beside the old one and replaces it only when complete.
-    auto pipeline = std::make_unique<core::ProneToSupinePipeline>(*engine_->model_case, *engine_->model, engine_->settings);
+    // The new pipeline is built beside the old one and replaces it only when complete. It takes the
+    // old one's multigrid levels and unloaded rest shape (the same case, model and settings): no
+    // meshing, and X0 confirmed in one loading.
+    const core::ProneToSupinePipeline& old = *engine_->pipeline;
+    std::optional<std::vector<core::TetMesh>> levels;
+    if (engine_->settings.simulation.solver.kind == core::SolverSettings::Kind::kMultigrid) levels = old.coarseMeshes();
+    const bool unloaded =
+        old.settings().simulation.reference_state == core::SimulationSettings::ReferenceState::kUnloaded;
+    auto pipeline = std::make_unique<core::ProneToSupinePipeline>(
+        *engine_->model_case, *engine_->model, engine_->settings, std::move(levels),
+        unloaded ? old.model().mesh.nodes() : core::Points());
     engine_->pipeline = std::move(pipeline);
     engine_->precomputed = false;
     engine_->regions.clear();

@@ -55,6 +55,27 @@ void writeMultigridLevels(const ConfinedFolder& folder, std::uint64_t fingerprin
                      [&](const std::string& temp) { core::writeGmsh(temp, levels[static_cast<size_t>(l)], binary); });
 }
 
+std::string unloadedShapeName(std::uint64_t fingerprint) { return "unloaded-" + hex16(fingerprint) + ".msh"; }
+
+void writeUnloadedShape(const ConfinedFolder& folder, std::uint64_t fingerprint, const core::TetMesh& mesh) {
+  core::GmshOptions binary;
+  binary.binary = true;
+  folder.writeFile(unloadedShapeName(fingerprint), true,
+                   [&](const std::string& temp) { core::writeGmsh(temp, mesh, binary); });
+}
+
+std::optional<core::Points> readUnloadedShape(const ConfinedFolder& folder, std::uint64_t fingerprint) {
+  const std::string name = unloadedShapeName(fingerprint);
+  if (folder.newestFirst(name.substr(0, name.size() - 4), ".msh").empty()) return std::nullopt;
+  std::string path;
+  try {
+    path = folder.existingFile(name);
+    return core::readGmsh(path).nodes();
+  } catch (const std::exception& e) {
+    throw std::runtime_error("the unloaded shape kept in " + (path.empty() ? name : path) + " does not read: " + e.what());
+  }
+}
+
 std::optional<std::vector<core::TetMesh>> readMultigridLevels(const ConfinedFolder& folder, std::uint64_t fingerprint) {
   const std::string prefix = "multigrid-" + hex16(fingerprint) + "-";
   const std::vector<std::string> files = folder.newestFirst(prefix, ".msh");

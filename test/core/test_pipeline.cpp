@@ -759,6 +759,21 @@ TEST(Pipeline, TheMultigridOnTheUnloadedShapeTakesTheProneShapesProlongations) {
   EXPECT_LE(t.iterations, t.steps);
 }
 
+// A restart gives the recovery the X0 of an earlier pipeline of the same case and settings: it is
+// confirmed in one loading and kept as it is; a start of the wrong size is refused.
+TEST(Pipeline, AnUnloadedShapeGivenAsTheStartIsConfirmedInOneLoading) {
+  const SmallPhantom& p = phantom();
+  const PipelineSettings s = unloadedFixedWall(false);
+  const ProneToSupinePipeline first(p.c, p.m, s);
+  ASSERT_TRUE(first.unloadedState().converged) << first.unloadedState().failure;
+  EXPECT_GT(first.unloadedState().iterations, 1);
+  const ProneToSupinePipeline again(p.c, p.m, s, first.coarseMeshes(), first.model().mesh.nodes());
+  EXPECT_TRUE(again.unloadedState().converged);
+  EXPECT_EQ(again.unloadedState().iterations, 1);
+  EXPECT_EQ(again.model().mesh.nodes(), first.model().mesh.nodes());
+  EXPECT_THROW(ProneToSupinePipeline(p.c, p.m, s, std::nullopt, Points::Zero(3, 3)), std::invalid_argument);
+}
+
 // Snapshots carry their rest shape: a state of the other reference state is refused, naming it.
 TEST(Pipeline, AStateFileOfAnotherRestShapeIsRefused) {
   const SmallPhantom& p = phantom();

@@ -105,6 +105,26 @@ TEST_F(LevelFolder, MultigridLevelsReadBackToTheBit) {
   EXPECT_NO_THROW(writeMultigridLevels(*folder_, 7, levels));
 }
 
+TEST_F(LevelFolder, TheUnloadedShapeReadsBackToTheBit) {
+  EXPECT_EQ(unloadedShapeName(0xabcULL), "unloaded-0000000000000abc.msh");
+  EXPECT_FALSE(readUnloadedShape(*folder_, 7).has_value());
+  const TetMesh x0 = twoLevels()[0];
+  writeUnloadedShape(*folder_, 7, x0);
+  writeUnloadedShape(*folder_, 8, twoLevels()[1]);  // another case's beside it
+  const std::optional<Points> read = readUnloadedShape(*folder_, 7);
+  ASSERT_TRUE(read.has_value());
+  EXPECT_EQ(*read, x0.nodes());
+  EXPECT_NO_THROW(writeUnloadedShape(*folder_, 7, x0));  // the same case again: replaced
+  std::ofstream(base_ / unloadedShapeName(7)) << "$MeshFormat\n2.2 1 8\n";  // cut short
+  try {
+    readUnloadedShape(*folder_, 7);
+    FAIL() << "a damaged shape was read";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("does not read"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(unloadedShapeName(7)), std::string::npos) << e.what();
+  }
+}
+
 TEST_F(LevelFolder, AnIncompleteOrDamagedSetIsAnErrorNamingTheFile) {
   writeMultigridLevels(*folder_, 7, twoLevels());
   std::filesystem::remove(base_ / multigridLevelName(7, 2, 2));

@@ -47,4 +47,19 @@ void writeMultigridLevels(const ConfinedFolder& folder, std::uint64_t fingerprin
 ///         (the caller then meshes the levels again).
 std::optional<std::vector<core::TetMesh>> readMultigridLevels(const ConfinedFolder& folder, std::uint64_t fingerprint);
 
+/// The file of the unloaded (gravity-free) rest shape X0 of a case (reference_state unloaded):
+/// "unloaded-" + 16 hex digits of the fingerprint + ".msh", the model's mesh with X0's nodes as a
+/// Gmsh 2.2 binary file (its doubles exact). A restarted node starts the recovery of X0 there and
+/// confirms it in one loading.
+std::string unloadedShapeName(std::uint64_t fingerprint);
+
+/// Writes `mesh` (the model's elements at X0's nodes) into `folder` atomically, replacing an older
+/// file of the same name.
+/// @throws as ConfinedFolder::writeFile.
+void writeUnloadedShape(const ConfinedFolder& folder, std::uint64_t fingerprint, const core::TetMesh& mesh);
+
+/// X0's nodes (#N×3 [m]) kept for `fingerprint` in `folder`; nullopt when there are none.
+/// @throws std::runtime_error naming the file when it does not read (the caller recovers X0 anew).
+std::optional<core::Points> readUnloadedShape(const ConfinedFolder& folder, std::uint64_t fingerprint);
+
 }  // namespace breast_sim::ros_interface
