@@ -149,8 +149,8 @@ void BreastSimNode::loadCaseJob(const std::string& case_file, int target_element
   // Which rest shape the lesions are simulated from (simulation.reference_state): it moves them.
   if (e->pipeline->settings().simulation.reference_state == core::SimulationSettings::ReferenceState::kUnloaded) {
     const core::UnloadedStateResult& u = e->pipeline->unloadedState();
-    s << "unloaded (gravity-free, recovered in " << u.iterations << " loadings, " << u.seconds
-      << " s, re-loaded within " << 1e3 * u.max_residual_m << " mm of the prone shape)";
+    s << "unloaded (gravity-free; loadings " << u.iterations << ", " << u.seconds << " s, re-loaded within "
+      << 1e3 * u.max_residual_m << " mm of the prone shape)";
   } else {
     s << "prone (taken as stress-free)";
   }

@@ -24,6 +24,13 @@ std::uint64_t fnv1a(const void* data, std::size_t bytes, std::uint64_t h) {
   return h;
 }
 
+// `mesh` as a Gmsh 2.2 binary file (its doubles exact) named `name` in `folder`, atomically.
+void writeExactMesh(const ConfinedFolder& folder, const std::string& name, const core::TetMesh& mesh) {
+  core::GmshOptions binary;
+  binary.binary = true;
+  folder.writeFile(name, true, [&](const std::string& temp) { core::writeGmsh(temp, mesh, binary); });
+}
+
 }  // namespace
 
 std::uint64_t caseFingerprint(const core::TetMesh& mesh, const std::string& effective_settings) {
@@ -47,21 +54,14 @@ std::string multigridLevelName(std::uint64_t fingerprint, int level, int levels)
 
 void writeMultigridLevels(const ConfinedFolder& folder, std::uint64_t fingerprint,
                           const std::vector<core::TetMesh>& levels) {
-  core::GmshOptions binary;
-  binary.binary = true;
   const int n = static_cast<int>(levels.size());
-  for (int l = 0; l < n; ++l)
-    folder.writeFile(multigridLevelName(fingerprint, l + 1, n), true,
-                     [&](const std::string& temp) { core::writeGmsh(temp, levels[static_cast<size_t>(l)], binary); });
+  for (int l = 0; l < n; ++l) writeExactMesh(folder, multigridLevelName(fingerprint, l + 1, n), levels[static_cast<size_t>(l)]);
 }
 
 std::string unloadedShapeName(std::uint64_t fingerprint) { return "unloaded-" + hex16(fingerprint) + ".msh"; }
 
 void writeUnloadedShape(const ConfinedFolder& folder, std::uint64_t fingerprint, const core::TetMesh& mesh) {
-  core::GmshOptions binary;
-  binary.binary = true;
-  folder.writeFile(unloadedShapeName(fingerprint), true,
-                   [&](const std::string& temp) { core::writeGmsh(temp, mesh, binary); });
+  writeExactMesh(folder, unloadedShapeName(fingerprint), mesh);
 }
 
 std::optional<core::Points> readUnloadedShape(const ConfinedFolder& folder, std::uint64_t fingerprint) {
