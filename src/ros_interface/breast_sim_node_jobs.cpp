@@ -334,7 +334,8 @@ std::string BreastSimNode::lesionRegionsJob(Engine& e) {
   try {
     const core::Points nominal = e.model->lesion_embedding.positions(e.pipeline->positions());
     const core::LesionUncertainty u =
-        core::estimateLesionUncertainty(*e.model_case, *e.model, e.settings, nominal, progress, &cancel_);
+        core::estimateLesionUncertainty(*e.model_case, *e.model, e.settings, nominal, progress, &cancel_, 1,
+                                        e.pipeline.get());
     if (u.valid) {
       e.regions = u.lesions;
       double largest = 0;

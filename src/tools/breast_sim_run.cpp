@@ -537,12 +537,13 @@ int main(int argc, char** argv) {
           if (args.quiet || i == shown) return;
           shown = i;
           std::fprintf(stderr, "  uncertainty: sample %d of %d\n", i + 1, n);
-        });
+        }, nullptr, 1, pipe.get());
         nlohmann::json js = nlohmann::json::array();
         for (const UncertaintySample& u : uncertainty->samples)
           js.push_back({{"youngs_modulus_factor", u.params.youngs_modulus_factor}, {"poisson_ratio", u.params.poisson_ratio},
                         {"time_step_factor", u.params.time_step_factor}, {"completed", u.completed},
-                        {"failure", u.failure}, {"note", u.note}, {"seconds", u.seconds}});
+                        {"failure", u.failure}, {"note", u.note}, {"unloaded_loadings", u.unloaded_loadings},
+                        {"seconds", u.seconds}});
         const double single = metrics["seconds"]["compute"].get<double>();
         metrics["uncertainty"] = {{"valid", uncertainty->valid}, {"failure", uncertainty->failure},
                                   {"samples_requested", count}, {"samples", js}, {"seconds", uncertainty->seconds},

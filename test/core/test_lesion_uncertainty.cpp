@@ -283,5 +283,45 @@ TEST(LesionUncertainty, AFailedSampleOrACancelLeavesNoRegion) {
   EXPECT_THROW(estimateLesionUncertainty(phantom().c, phantom().m, gravityOnly(), Points::Zero(5, 3)), std::invalid_argument);
 }
 
+// With the unloaded rest shape every sample recovers its own X0. Given the nominal run, a sample
+// takes its multigrid levels and starts from the nominal X0 scaled to the sample's modulus; the slow
+// reference beside it is the same ensemble without the nominal run (levels meshed again, each
+// recovery started at the prone shape). Both recover X0 to the recovery's tolerance, so the lesions
+// agree to within what that tolerance leaves, and the scaled start needs fewer loadings.
+TEST(LesionUncertainty, SamplesGivenTheNominalRunStartFromItsUnloadedShapeAndLevels) {
+  PipelineSettings s = gravityOnly();
+  s.simulation.reference_state = SimulationSettings::ReferenceState::kUnloaded;
+  ProneToSupinePipeline nominal(phantom().c, phantom().m, s);
+  ASSERT_TRUE(nominal.unloadedState().converged) << nominal.unloadedState().failure;
+  nominal.run();
+  const Points p0 = nominal.lesionPositions();
+  const LesionUncertainty fresh = estimateLesionUncertainty(phantom().c, phantom().m, s, p0);
+  const LesionUncertainty reused = estimateLesionUncertainty(phantom().c, phantom().m, s, p0, {}, nullptr, 1, &nominal);
+  ASSERT_TRUE(fresh.valid) << fresh.failure;
+  ASSERT_TRUE(reused.valid) << reused.failure;
+  int fresh_loadings = 0, reused_loadings = 0;
+  double gap = 0.0;
+  for (size_t k = 0; k < fresh.samples.size(); ++k) {
+    const UncertaintySample &a = fresh.samples[k], &b = reused.samples[k];
+    EXPECT_GT(a.unloaded_loadings, 0);
+    EXPECT_GT(b.unloaded_loadings, 0);
+    fresh_loadings += a.unloaded_loadings;
+    reused_loadings += b.unloaded_loadings;
+    gap = std::max(gap, (a.lesions_m - b.lesions_m).rowwise().norm().maxCoeff());
+    std::printf("[ measure  ] sample %zu (E x %.2f): X0 in %d loadings from prone, %d from the nominal X0\n", k + 1,
+                a.params.youngs_modulus_factor, a.unloaded_loadings, b.unloaded_loadings);
+  }
+  std::printf("[ measure  ] lesions of the two ensembles within %.4f mm; %.2f s against %.2f s\n", 1e3 * gap,
+              reused.seconds, fresh.seconds);
+  EXPECT_LT(gap, 0.05e-3);
+  EXPECT_LT(reused_loadings, fresh_loadings);
+
+  PipelineSettings other = s;
+  other.simulation.solver.kind = SolverSettings::Kind::kCholmod;
+  EXPECT_THROW(estimateLesionUncertainty(phantom().c, phantom().m, other, p0, {}, nullptr, 1, &nominal), std::invalid_argument);
+  const SimulationModel copy = phantom().m;
+  EXPECT_THROW(estimateLesionUncertainty(phantom().c, copy, s, p0, {}, nullptr, 1, &nominal), std::invalid_argument);
+}
+
 }  // namespace
 }  // namespace breast_sim::core

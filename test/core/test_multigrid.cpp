@@ -286,6 +286,57 @@ TEST(MultigridPreconditioner, StaysSymmetricPositiveDefiniteWithStaleCoarseOpera
   EXPECT_GT((Eigen::MatrixXd(solver.multigrid().levelMatrix(1)) - coarse_before).cwiseAbs().maxCoeff(), 0.0);
 }
 
+// The fine level's damping estimated (fine_eigenvalue_bound 0, as for the average-nodal-pressure
+// element) on a matrix whose diagonal blocks dominate (λ_max(D⁻¹A) near 1: ω = 1) and kept, with
+// the coarse operators, for the step matrix itself (λ_max near 3): ω λ_max > 2, the smoother
+// diverges and the V-cycle is indefinite. PCG renews the preconditioner from the new matrix once
+// (Preconditioner::renew) and converges to the direct solution; right after a renewal there is
+// nothing to renew.
+TEST(MultigridPreconditioner, RenewsItselfInTheSolveWhenWhatItKeptLeavesItIndefinite) {
+  const Fixture& f = fixture();
+  const SparseMatrix& stiff = f.A;
+  SparseMatrix soft = stiff;  // the same pattern, diagonal blocks × 100
+  for (int c = 0; c < soft.outerSize(); ++c)
+    for (SparseMatrix::InnerIterator it(soft, c); it; ++it)
+      if (it.row() / 3 == it.col() / 3) it.valueRef() *= 100.0;
+  PcgOptions pcg;
+  pcg.relative_tolerance = 1e-8;
+  MultigridOptions o;
+  o.fine_eigenvalue_bound = 0.0;
+  o.coarse_update_interval = 100;
+  MultigridPcgSolver solver(f.hierarchy, pcg, o);
+  solver.analyzePattern(soft);
+  solver.factorize(soft);
+  const double omega_soft = solver.multigrid().jacobiDamping(0);
+  EXPECT_GT(omega_soft, 0.9);
+  solver.factorize(stiff);  // fine level only: ω and the coarse operators are the soft matrix's
+  EXPECT_EQ(solver.multigrid().jacobiDamping(0), omega_soft);
+  std::mt19937 rng(11);
+  std::normal_distribution<double> g;
+  Eigen::VectorXd u(f.b.size()), Mu(f.b.size());
+  double smallest = 1.0;
+  for (int k = 0; k < 20; ++k) {
+    for (Eigen::Index i = 0; i < u.size(); ++i) u[i] = g(rng);
+    solver.multigrid().apply(u, Mu);
+    smallest = std::min(smallest, u.dot(Mu) / u.squaredNorm());
+  }
+  const long renewals = solver.multigrid().coarseRenewals();
+  Eigen::VectorXd x;
+  const SolveStats st = solver.solve(f.b, x);
+  std::printf("[ measure  ] omega %.3f kept from the soft matrix: smallest u^T M^-1 u / u^T u of 20 random u %.3g; "
+              "the solve renewed: %d, omega then %.3f, %d iterations\n",
+              omega_soft, smallest, st.preconditioner_renewed, solver.multigrid().jacobiDamping(0), st.iterations);
+  EXPECT_TRUE(st.preconditioner_renewed);
+  EXPECT_EQ(solver.multigrid().coarseRenewals(), renewals + 1);
+  EXPECT_LT(solver.multigrid().jacobiDamping(0), 0.6 * omega_soft);
+  ASSERT_TRUE(st.converged);
+  const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt{Eigen::SparseMatrix<double>(stiff)};
+  EXPECT_LE(relativeDifference(x, ldlt.solve(f.b)), 1e-6);
+  EXPECT_FALSE(solver.multigrid().renew());  // just renewed: nothing kept from an earlier matrix
+  const SolveStats again = solver.solve(f.b, x);
+  EXPECT_FALSE(again.preconditioner_renewed);
+}
+
 TEST(MultigridPreconditioner, AutomaticJacobiDampingKeepsEverySmootherConvergent) {
   // ω λ_max(D⁻¹A) < 2 on every smoothed level, λ_max from a long power iteration (slow reference).
   const Fixture& f = fixture();

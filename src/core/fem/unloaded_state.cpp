@@ -289,8 +289,8 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
   UnloadedStateResult res;
   res.unloaded_nodes_m = unflat(x0);
   double best = std::numeric_limits<double>::infinity();
-  double previous_max = std::numeric_limits<double>::infinity();
-  int growing = 0;
+  Eigen::VectorXd best_x0 = x0, best_f;  // the best X0 so far and its −residual
+  int growing = 0;                        // loadings in a row that found no better X0
   Anderson anderson(kAndersonDepth);
   bool accelerated = false;
   double step = 1.0;  // the share of the plain step that gave x0
@@ -311,7 +311,7 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
       return fail(k, "the forward " + l.failure.substr(4));  // "the loading …" → "the forward loading …"
     }
     const Eigen::VectorXd u = flat(l.displacement_m);
-    const Eigen::VectorXd f = target - (x0 + u);  // −residual
+    Eigen::VectorXd f = target - (x0 + u);  // −residual
     UnloadedIteration it;
     nodalNorms(f, it.max_residual_m, it.mean_residual_m);
     it.settle_steps = l.steps;
@@ -319,8 +319,11 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
     it.accelerated = accelerated;
     it.step_fraction = step;
     res.history.push_back(it);
-    if (it.max_residual_m < best) {
+    const bool better = it.max_residual_m < best;
+    if (better) {
       best = it.max_residual_m;
+      best_x0 = x0;
+      best_f = f;
       res.unloaded_nodes_m = unflat(x0);
       res.reloaded_nodes_m = unflat(x0 + u);
       res.max_residual_m = it.max_residual_m;
@@ -331,22 +334,32 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
       res.seconds = since(t0);
       return res;
     }
-    if (it.max_residual_m > previous_max) {
-      if (++growing >= options.max_growing_iterations)
-        return fail(k, "the largest residual grew " + std::to_string(growing) + " iterations in a row, to " +
-                           mm(it.max_residual_m) + " (smallest " + mm(best) + ")");
-      anderson.reset();  // a step that made things worse: start the mixing again from here
-    } else {
-      growing = 0;
-    }
-    previous_max = it.max_residual_m;
+    growing = better ? 0 : growing + 1;
+    if (growing >= options.max_growing_iterations)
+      return fail(k, "no better shape in " + std::to_string(growing) + " loadings in a row (the last re-loads to " +
+                         mm(it.max_residual_m) + ", the best to " + mm(best) + ")");
     if (k == options.max_iterations) break;
-    Eigen::VectorXd next = anderson.next(x0, f, accelerated);
+    Eigen::VectorXd next;
+    double plain = 1.0;  // the share of the plain step the fallback below starts from
+    if (better) {
+      next = anderson.next(x0, f, accelerated);
+    } else {
+      // A step that made things worse: back to the best X0, whose plain step is shortened by half
+      // per loading in a row that found none better (where a few nodes' fixed-point map does not
+      // contract, the full step overshoots them), and the mixing starts again from there.
+      anderson.reset();
+      anderson.next(best_x0, best_f, accelerated);  // records the best as the start of the new history
+      accelerated = false;
+      plain = std::ldexp(1.0, -growing);
+      x0 = best_x0;
+      f = best_f;
+      next = x0 + plain * f;
+    }
     holdFixed(next);
     // A candidate must leave every element valid.
     auto invertedAt = [&](const Eigen::VectorXd& x) { return invertedTets(loaded.tets(), unflat(x)).size(); };
     size_t inv = invertedAt(next);
-    step = 1.0;
+    step = plain;
     if (inv > 0) {
       // The step folds elements: take the plain step, shortened until none folds, and start the
       // mixing again from here (the shortened step is a valid secant pair for it).

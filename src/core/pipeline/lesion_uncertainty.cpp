@@ -2,6 +2,7 @@
 #include "breast_sim/core/pipeline/lesion_uncertainty.h"
 
 #include <chrono>
+#include <optional>
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
@@ -31,6 +32,18 @@ std::string describe(const UncertaintySampleParams& p) {
   s.precision(3);
   s << "E x " << p.youngs_modulus_factor << ", nu " << p.poisson_ratio << ", time steps x " << p.time_step_factor;
   return s.str();
+}
+
+/// Where a sample of modulus factor f starts its recovery of X0 (see estimateLesionUncertainty's
+/// nominal_run): the nominal X0's move from the prone shape divided by f, or the nominal X0 where
+/// that would invert an element. Empty when the nominal run has the prone rest shape.
+Points unloadedStart(const ProneToSupinePipeline& nominal, double f) {
+  if (nominal.unloadedState().iterations == 0) return {};
+  const Points& prone = nominal.proneModel().mesh.nodes();
+  const Points& x0 = nominal.model().mesh.nodes();
+  Points start = prone + (x0 - prone) / f;
+  if (qualityStats(nominal.model().mesh.tets(), start).num_inverted > 0) return x0;
+  return start;
 }
 
 }  // namespace
@@ -119,7 +132,7 @@ LesionRegion lesionRegion(const Eigen::Vector3d& centre_m, const std::vector<Eig
 LesionUncertainty estimateLesionUncertainty(const ModelCase& model_case, const SimulationModel& model,
                                             const PipelineSettings& settings, const Points& nominal_lesions_m,
                                             const UncertaintyProgressFn& progress, const std::atomic<bool>* cancel,
-                                            int first_index) {
+                                            int first_index, const ProneToSupinePipeline* nominal_run) {
   using Clock = std::chrono::steady_clock;
   const auto since = [](Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); };
   const Eigen::Index lesions = static_cast<Eigen::Index>(model.lesions.size());
@@ -128,6 +141,10 @@ LesionUncertainty estimateLesionUncertainty(const ModelCase& model_case, const S
                                 std::to_string(nominal_lesions_m.cols()) + " nominal positions for " +
                                 std::to_string(lesions) + " lesions (expected #lesions x 3)");
   settings.uncertainty.validate();
+  if (nominal_run && (&nominal_run->proneModel() != &model ||
+                      nominal_run->settings().simulation.solver.kind != settings.simulation.solver.kind))
+    throw std::invalid_argument("estimateLesionUncertainty: the nominal run given ran another model or solver; give the "
+                                "pipeline that ran these settings on this model, or none");
   const auto t0 = Clock::now();
   LesionUncertainty out;
   const std::vector<UncertaintySampleParams> design =
@@ -142,7 +159,14 @@ LesionUncertainty estimateLesionUncertainty(const ModelCase& model_case, const S
     sample.params = design[static_cast<size_t>(i)];
     const auto ts = Clock::now();
     try {
-      ProneToSupinePipeline pipe(model_case, model, sampleSettings(settings, sample.params));
+      std::optional<std::vector<TetMesh>> levels;
+      Points start;
+      if (nominal_run) {
+        if (settings.simulation.solver.kind == SolverSettings::Kind::kMultigrid) levels = nominal_run->coarseMeshes();
+        start = unloadedStart(*nominal_run, sample.params.youngs_modulus_factor);
+      }
+      ProneToSupinePipeline pipe(model_case, model, sampleSettings(settings, sample.params), std::move(levels), start);
+      sample.unloaded_loadings = pipe.unloadedState().iterations;
       pipe.run([&](const PipelineProgress& p) { if (progress) progress(i, count, p); }, cancel);
       if (cancel && cancel->load() && pipe.stage() != PipelineStage::kDone) {
         out.cancelled = true;

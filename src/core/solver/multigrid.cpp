@@ -198,6 +198,14 @@ void MultigridPreconditioner::factorize(const SparseMatrix& A) {
   factorizeLevels(A);
 }
 
+bool MultigridPreconditioner::renew() {
+  if (!factorized_ || numLevels() == 1 || fine_only_ == 0) return false;
+  for (auto& lv : levels_) lv->eigenvector.resize(0);  // estimateDamping() starts cold
+  renew_requested_ = true;
+  factorizeLevels(*levels_[0]->A);
+  return true;
+}
+
 void MultigridPreconditioner::factorizeWithRankOne(const SparseMatrix& S, const RankOneSum& R) {
   if (!rank_one_) throw std::logic_error("multigrid: factorizeWithRankOne() called without analyzeWithRankOne()");
   if (R.terms != rank_one_terms_ || R.entries() != rank_one_entries_ || 3 * static_cast<Eigen::Index>(R.nodes) != S.rows())

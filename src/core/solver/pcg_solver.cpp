@@ -534,6 +534,18 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
       copy(z_, p_);
       restart = false;
     }
+    if (!(rz > 0.0) && !stats.preconditioner_renewed) {
+      // Parts of M kept from an earlier matrix can leave it indefinite for this one
+      // (Preconditioner::renew): set them up from this matrix, once, and go on from x.
+      if (preconditioner_->renew()) {
+        stats.preconditioner_renewed = true;
+        takeFloatBlocks();
+        float_products_ = float_blocks_.val != nullptr && options_.relative_tolerance >= kFloatProductMinTolerance;
+        rr = trueResidual();
+        restart = true;
+        continue;
+      }
+    }
     if (!(rz > 0.0)) {
       std::ostringstream s;
       s << name() << ": the preconditioner is not positive definite (rᵀM⁻¹r = " << rz << " at iteration " << it

@@ -22,7 +22,8 @@ struct UnloadedStateOptions {
   int max_iterations = 30;   ///< forward loadings at most, ≥ 1
   /// Converged when every node of the re-loaded shape x(X0) is within this of the loaded shape [m], > 0.
   double tolerance_m = 1e-5;
-  /// Stops (converged = false) when the largest residual grew this many iterations in a row, ≥ 1.
+  /// Stops (converged = false) after this many loadings in a row that found no X0 with a smaller
+  /// largest residual than the best so far, ≥ 1.
   int max_growing_iterations = 3;
   /// The stiffening driver of the forward loadings when settings.stiffening is set (the pipeline's
   /// `stiffening:` map); unused otherwise.
@@ -45,8 +46,9 @@ struct UnloadedIteration {
   double mean_residual_m = 0.0;  ///< its mean over all nodes [m]
   int settle_steps = 0;          ///< accepted time steps of the forward settle
   bool accelerated = false;      ///< this X0 came from the Anderson step (else the plain fixed-point step)
-  /// The plain step's length as a share of the residual: 1, or less where the full step would have
-  /// inverted elements of X0 (halved until none is).
+  /// The plain step's length as a share of the residual: 1; 1/2^g when this X0 is the best one's
+  /// step after g loadings in a row that found none better; halved further until no element of X0
+  /// is inverted.
   double step_fraction = 1.0;
   double seconds = 0.0;          ///< wall time of the loading, simulator build included [s]
 };
@@ -81,12 +83,15 @@ struct UnloadedStateResult {
 /// increment tolerance is capped at options.tolerance_m / 4 (a looser forward settle would stall
 /// the iteration).
 ///
-/// A candidate X0 with inverted elements is replaced by the plain step, halved until no element is
+/// A loading whose largest residual is not below the best one's sends the iteration back to the
+/// best X0, whose plain step it takes halved once per such loading in a row, and the mixing starts
+/// again there (where the map does not contract at a few nodes, a full step overshoots them). A
+/// candidate X0 with inverted elements is replaced by the plain step, halved until no element is
 /// inverted (down to 1/64 of it), and the mixing starts again. A forward loading that does not
 /// settle or whose solver fails, a candidate X0 still inverted then, a loading that inverts
-/// elements, a residual that grew options.max_growing_iterations times in a row or the iteration
-/// limit end the run with converged = false and `failure` naming the iteration and the reason;
-/// none of them throws.
+/// elements, options.max_growing_iterations loadings in a row that found no better X0 or the
+/// iteration limit end the run with converged = false and `failure` naming the iteration and the
+/// reason; none of them throws.
 /// @param loaded  the loaded shape with the node set settings.fixed_node_set (unless that is "")
 /// @param settings  material, elements, solver ('multigrid' with options.coarse_meshes,
 ///        'aggregation', 'cholmod' or 'jacobi-pcg'), settle options, fixed node set;

@@ -77,6 +77,7 @@ struct UncertaintySample {
   std::string failure;      ///< why not completed (empty when completed)
   std::string note;         ///< a tolerance missed by a completed sample (empty when none)
   Points lesions_m;         ///< #lesions×3 at the run's end [m]
+  int unloaded_loadings = 0;  ///< forward loadings of its X0 recovery (0 with the prone rest shape)
   double seconds = 0.0;
 };
 
@@ -102,10 +103,19 @@ using UncertaintyProgressFn = std::function<void(int index, int count, const Pip
 /// short of the 95th-percentile one (a few skin vertices the stiffer sample cannot bring to the
 /// target) still counts: its lesions lie where such a fit puts them, and the note says so.
 /// @param first_index  the Halton index of the first sample (1 for a case's ensemble)
-/// @throws std::invalid_argument when the nominal positions do not match the model's lesions.
+/// @param nominal_run  the pipeline that ran `settings` on this case and model, or null. Given, every
+///        sample takes its multigrid levels (ProneToSupinePipeline::coarseMeshes) instead of meshing
+///        them, and with the unloaded rest shape starts its recovery of X0 from the nominal X0 with
+///        the move from the prone shape divided by the sample's modulus factor f (a linear material
+///        hangs 1/f as far; where that start would invert an element, from the nominal X0 itself).
+///        Each sample still recovers its own X0 to the recovery's tolerance: the start saves
+///        loadings, not accuracy.
+/// @throws std::invalid_argument when the nominal positions do not match the model's lesions, or
+///         nominal_run ran another model or solver.
 LesionUncertainty estimateLesionUncertainty(const ModelCase& model_case, const SimulationModel& model,
                                             const PipelineSettings& settings, const Points& nominal_lesions_m,
                                             const UncertaintyProgressFn& progress = {},
-                                            const std::atomic<bool>* cancel = nullptr, int first_index = 1);
+                                            const std::atomic<bool>* cancel = nullptr, int first_index = 1,
+                                            const ProneToSupinePipeline* nominal_run = nullptr);
 
 }  // namespace breast_sim::core

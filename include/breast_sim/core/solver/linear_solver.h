@@ -23,6 +23,8 @@ struct SolveStats {
   /// when PCG multiplied by it, about 1e-5 of it)
   double relative_residual = 0.0;
   bool converged = false;
+  /// PCG: the preconditioner was set up again from this matrix during the solve (Preconditioner::renew)
+  bool preconditioner_renewed = false;
   double seconds = 0.0;           ///< wall time of solve() [s]
 };
 

@@ -202,8 +202,10 @@ struct MultigridOptions {
   /// this-many-th factorize() since the last renewal (1 = every one; coarse_update_adaptive may
   /// renew earlier); in between only the fine level takes the new matrix. The V-cycle
   /// stays symmetric positive definite with older coarse operators (Galerkin operators of an earlier
-  /// SPD matrix); it converges somewhat slower when the matrix has changed much since (large
-  /// rotations of the co-rotated elements).
+  /// SPD matrix) as long as the fine smoother converges; it converges somewhat slower when the
+  /// matrix has changed much since (large rotations of the co-rotated elements). An estimated fine
+  /// damping (fine_eigenvalue_bound 0) is kept too, and can be too large for a matrix that changed
+  /// much: PCG then finds the V-cycle indefinite and renews it (renew()).
   int coarse_update_interval = 1;
   /// Adaptive renewal within that interval: the coarse operators are renewed early, at the next
   /// factorize(), once the PCG iterations lost to their age since the last renewal are worth a
@@ -262,6 +264,15 @@ class MultigridPreconditioner : public Preconditioner {
   std::string name() const override { return "multigrid"; }
   /// Records PCG's convergence for the adaptive coarse renewal (MultigridOptions::coarse_update_adaptive).
   void reportConvergence(int iterations, double residual_reduction) override;
+  /// Renews the coarse operators of the last factorize()'s matrix and estimates every estimated
+  /// damping again from a cold start (the warm start's vector may miss a mode the new matrix
+  /// grew). Between renewals the Galerkin operators and the dampings of an earlier matrix stay; a
+  /// damping estimated for it (the fine level's too with fine_eigenvalue_bound 0, as for the
+  /// average-nodal-pressure element) can be too large for a matrix that has changed much since
+  /// (the moduli of a stiffened step, the wall released onto its sliding springs), and then the
+  /// smoother and the V-cycle are not convergent. False when nothing is kept from an earlier matrix
+  /// (the last factorize() renewed, or a single level).
+  bool renew() override;
 
   /// A = S + R with R a rank-one sum (solver/rank_one_sum.h), e.g. the average-nodal-pressure
   /// element's volumetric stiffness: the fine level's smoother and residuals add R's products (in

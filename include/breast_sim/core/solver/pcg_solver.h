@@ -37,6 +37,12 @@ class Preconditioner {
     (void)iterations;
     (void)residual_reduction;
   }
+  /// Sets up again, from the matrix of the last factorize(), every part that an earlier matrix left
+  /// in place (the multigrid's coarse operators and smoother dampings between its renewals), for PCG
+  /// to call when M⁻¹ turned out not positive definite for this matrix. Returns false when nothing
+  /// was kept from an earlier matrix, so that a renewal would change nothing (the default).
+  /// @throws as factorize().
+  virtual bool renew() { return false; }
   /// Whether it approximates A = S + R with R a rank-one sum (solver/rank_one_sum.h); the
   /// default does not.
   virtual bool acceptsRankOneSum() const { return false; }
