@@ -333,7 +333,10 @@ TEST(MultigridPreconditioner, RenewsItselfInTheSolveWhenWhatItKeptLeavesItIndefi
   const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt{Eigen::SparseMatrix<double>(stiff)};
   EXPECT_LE(relativeDifference(x, ldlt.solve(f.b)), 1e-6);
   EXPECT_FALSE(solver.multigrid().renew());  // just renewed: nothing kept from an earlier matrix
+  x.setZero();
+  solver.forgetSolutions();  // no projected initial guess: the solve iterates
   const SolveStats again = solver.solve(f.b, x);
+  EXPECT_GT(again.iterations, 0);
   EXPECT_FALSE(again.preconditioner_renewed);
 }
 

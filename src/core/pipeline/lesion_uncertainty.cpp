@@ -42,7 +42,7 @@ Points unloadedStart(const ProneToSupinePipeline& nominal, double f) {
   const Points& prone = nominal.proneModel().mesh.nodes();
   const Points& x0 = nominal.model().mesh.nodes();
   Points start = prone + (x0 - prone) / f;
-  if (qualityStats(nominal.model().mesh.tets(), start).num_inverted > 0) return x0;
+  if (!invertedTets(nominal.model().mesh.tets(), start).empty()) return x0;
   return start;
 }
 

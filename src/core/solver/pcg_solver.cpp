@@ -522,7 +522,8 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
     }
     float_products_ = false;
   }
-  const double rr_initial = rr;
+  double rr_initial = rr;  // of the reported solve: from the start, or from a renewal of M
+  int it_initial = 0;
 
   bool restart = true;
   double rz = 0.0;
@@ -540,8 +541,11 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
       if (preconditioner_->renew()) {
         stats.preconditioner_renewed = true;
         takeFloatBlocks();
-        float_products_ = float_blocks_.val != nullptr && options_.relative_tolerance >= kFloatProductMinTolerance;
+        float_products_ = float_products_ && float_blocks_.val != nullptr;
         rr = trueResidual();
+        // The renewed M's convergence is what the preconditioner hears (its reference rate).
+        rr_initial = rr;
+        it_initial = it;
         restart = true;
         continue;
       }
@@ -593,7 +597,7 @@ SolveStats PcgSolver::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   // float copy's rounding with float products (about 1e-5 of it at 48.8k elements). Over many
   // iterations it can drift below the true one, which is then recomputed.
   if (!stats.converged && it > kRecursiveResidualMaxIterations) rr = trueResidual();
-  if (it > 0) preconditioner_->reportConvergence(it, std::sqrt(rr / rr_initial));
+  if (it > it_initial) preconditioner_->reportConvergence(it - it_initial, std::sqrt(rr / rr_initial));
   keepSolution(x);
   return finish(rr, bnorm);
 }

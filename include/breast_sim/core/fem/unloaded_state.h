@@ -88,7 +88,7 @@ struct UnloadedStateResult {
 /// again there, its later steps shortened as much (where the map does not contract at a few nodes,
 /// a full step overshoots them). A
 /// candidate X0 with inverted elements is replaced by the plain step, halved until no element is
-/// inverted (down to 1/64 of it), and the mixing starts again. A forward loading that does not
+/// inverted (down to 1/64 of the residual), and the mixing starts again. A forward loading that does not
 /// settle or whose solver fails, a candidate X0 still inverted then, a loading that inverts
 /// elements, options.max_growing_iterations loadings in a row that found no better X0 or the
 /// iteration limit end the run with converged = false and `failure` naming the iteration and the

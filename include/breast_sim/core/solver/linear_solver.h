@@ -23,9 +23,9 @@ struct SolveStats {
   /// when PCG multiplied by it, about 1e-5 of it)
   double relative_residual = 0.0;
   bool converged = false;
+  double seconds = 0.0;           ///< wall time of solve() [s]
   /// PCG: the preconditioner was set up again from this matrix during the solve (Preconditioner::renew)
   bool preconditioner_renewed = false;
-  double seconds = 0.0;           ///< wall time of solve() [s]
 };
 
 /// Solves A x = b for symmetric positive definite A whose sparsity pattern stays fixed over many
