@@ -355,7 +355,11 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
       anderson.reset();
       anderson.next(best_x0, best_f, accelerated);  // records the best as the start of the new history
       accelerated = false;
-      plain = std::max(std::ldexp(1.0, -growing), kMinStepFraction);
+      // Every step starts at the best X0: after a plain one (shortened where it would invert
+      // elements), a shorter one, or it would load the same X0 again.
+      plain = std::ldexp(1.0, -growing);
+      if (!it.accelerated) plain = std::min(plain, 0.5 * it.step_fraction);
+      plain = std::max(plain, kMinStepFraction);
       mixing = std::min(mixing, plain);
       x0 = best_x0;
       f = best_f;
