@@ -543,6 +543,7 @@ int main(int argc, char** argv) {
           js.push_back({{"youngs_modulus_factor", u.params.youngs_modulus_factor}, {"poisson_ratio", u.params.poisson_ratio},
                         {"time_step_factor", u.params.time_step_factor}, {"completed", u.completed},
                         {"failure", u.failure}, {"note", u.note}, {"unloaded_loadings", u.unloaded_loadings},
+                        {"unloaded_residual_mm", u.unloaded_residual_m * 1e3},
                         {"seconds", u.seconds}});
         const double single = metrics["seconds"]["compute"].get<double>();
         metrics["uncertainty"] = {{"valid", uncertainty->valid}, {"failure", uncertainty->failure},

@@ -165,8 +165,10 @@ LesionUncertainty estimateLesionUncertainty(const ModelCase& model_case, const S
         if (settings.simulation.solver.kind == SolverSettings::Kind::kMultigrid) levels = nominal_run->coarseMeshes();
         start = unloadedStart(*nominal_run, sample.params.youngs_modulus_factor);
       }
-      ProneToSupinePipeline pipe(model_case, model, sampleSettings(settings, sample.params), std::move(levels), start);
+      ProneToSupinePipeline pipe(model_case, model, sampleSettings(settings, sample.params), std::move(levels), start,
+                                 kSampleUnloadedTolerance);
       sample.unloaded_loadings = pipe.unloadedState().iterations;
+      sample.unloaded_residual_m = pipe.unloadedState().max_residual_m;
       pipe.run([&](const PipelineProgress& p) { if (progress) progress(i, count, p); }, cancel);
       if (cancel && cancel->load() && pipe.stage() != PipelineStage::kDone) {
         out.cancelled = true;

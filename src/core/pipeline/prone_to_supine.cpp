@@ -41,13 +41,14 @@ std::vector<TetMesh> coarseLevels(const ModelCase& model_case, const SimulationM
 /// fixed wall and solver (the multigrid on `coarse`, the levels of the prone domain).
 std::unique_ptr<SimulationModel> unloadedModel(const ModelCase& model_case, const SimulationModel& prone,
                                                const PipelineSettings& settings, const std::vector<TetMesh>& coarse,
-                                               const Points& start, UnloadedStateResult& result) {
+                                               const Points& start, double tolerance_m, UnloadedStateResult& result) {
   if (settings.simulation.reference_state != SimulationSettings::ReferenceState::kUnloaded) return nullptr;
   const SimulationSettings& s = settings.simulation;
   UnloadedStateOptions options;
   options.stiffening = settings.stiffening;
   options.coarse_meshes = coarse;
   options.initial_unloaded_nodes_m = start;
+  options.tolerance_m = tolerance_m;
   result = recoverUnloadedShape(prone.mesh, s, proneGravity(model_case, settings.simulation), options);
   if (!result.converged) {
     char best[160] = "";
@@ -105,12 +106,13 @@ const char* stageName(PipelineStage stage) {
 ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model,
                                              const PipelineSettings& settings,
                                              std::optional<std::vector<TetMesh>> coarse_meshes,
-                                             const Points& unloaded_start_m)
+                                             const Points& unloaded_start_m, double unloaded_tolerance_m)
     : case_(model_case),
       settings_(validated(model_case, settings)),
       prone_model_(model),
       coarse_meshes_(coarseLevels(model_case, model, settings_, std::move(coarse_meshes), coarse_meshing_s_)),
-      unloaded_model_(unloadedModel(model_case, model, settings_, coarse_meshes_, unloaded_start_m, unloaded_)),
+      unloaded_model_(unloadedModel(model_case, model, settings_, coarse_meshes_, unloaded_start_m, unloaded_tolerance_m,
+                                    unloaded_)),
       model_(unloaded_model_ ? *unloaded_model_ : model) {
   if (unloaded_model_) gravity_offset_mps2_ = proneGravity(case_, settings_.simulation);
   settings_.simulation.dynamics.gravity_mps2 = supineGravityLoad() + gravity_offset_mps2_;

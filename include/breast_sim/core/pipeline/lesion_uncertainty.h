@@ -27,6 +27,14 @@
 
 namespace breast_sim::core {
 
+/// How close a sample's X0 loaded with prone gravity must come to the prone shape at every node [m]
+/// (the nominal run: UnloadedStateOptions' 0.01 mm). A sample is one draw of parameters whose lesion
+/// spread is millimetres; its X0 off by this at its worst node moves its lesion by about as much,
+/// within the scatter the stick/slip path gives two ensembles of the same parameters (0.19 mm on the
+/// VICTRE image's case), and soft samples of an MRI case reach it where 0.01 mm takes the recovery
+/// over 30 loadings or stalls (docs/uncertainty.md, "A patient's image").
+inline constexpr double kSampleUnloadedTolerance = 0.25e-3;
+
 /// One ensemble member's parameters.
 struct UncertaintySampleParams {
   double youngs_modulus_factor = 1.0;  ///< every tissue's E × this
@@ -78,6 +86,7 @@ struct UncertaintySample {
   std::string note;         ///< a tolerance missed by a completed sample (empty when none)
   Points lesions_m;         ///< #lesions×3 at the run's end [m]
   int unloaded_loadings = 0;  ///< forward loadings of its X0 recovery (0 with the prone rest shape)
+  double unloaded_residual_m = 0.0;  ///< its X0 loaded with prone gravity: largest distance to the prone shape [m]
   double seconds = 0.0;
 };
 
@@ -108,8 +117,8 @@ using UncertaintyProgressFn = std::function<void(int index, int count, const Pip
 ///        them, and with the unloaded rest shape starts its recovery of X0 from the nominal X0 with
 ///        the move from the prone shape divided by the sample's modulus factor f (a linear material
 ///        hangs 1/f as far; where that start would invert an element, from the nominal X0 itself).
-///        Each sample still recovers its own X0 to the recovery's tolerance: the start saves
-///        loadings, not accuracy.
+///        The start saves loadings, not accuracy.
+/// With the unloaded rest shape each sample recovers its own X0 to kSampleUnloadedTolerance.
 /// @throws std::invalid_argument when the nominal positions do not match the model's lesions, or
 ///         nominal_run ran another model or solver.
 LesionUncertainty estimateLesionUncertainty(const ModelCase& model_case, const SimulationModel& model,

@@ -334,13 +334,16 @@ class ProneToSupinePipeline {
   /// @param unloaded_start_m  reference_state unloaded: where the recovery of X0 starts, #N×3 [m]
   ///        (the X0 of an earlier pipeline of the same case, model and settings, kept so that a
   ///        restart confirms it in one loading instead of recovering it again); empty = the prone shape.
+  /// @param unloaded_tolerance_m  reference_state unloaded: how close X0 loaded with prone gravity must
+  ///        come to the prone shape at every node (UnloadedStateOptions::tolerance_m) [m], > 0
   /// @throws std::invalid_argument / std::runtime_error for bad settings or a missing target;
   ///         std::invalid_argument for a start of the wrong size or with inverted elements;
   ///         std::runtime_error when X0 is not found (the recovery's reason, its residual, and the
   ///         way out: reference_state prone, or a stiffer material).
   ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model, const PipelineSettings& settings,
                         std::optional<std::vector<TetMesh>> coarse_meshes = std::nullopt,
-                        const Points& unloaded_start_m = Points());
+                        const Points& unloaded_start_m = Points(),
+                        double unloaded_tolerance_m = UnloadedStateOptions().tolerance_m);
   ~ProneToSupinePipeline();
 
   /// Both stages in order (the morphing stage only with a target and morphing enabled); a cancelled
