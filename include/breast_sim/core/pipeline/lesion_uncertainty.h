@@ -31,8 +31,8 @@ namespace breast_sim::core {
 /// (the nominal run: UnloadedStateOptions' 0.01 mm). A sample is one draw of parameters whose lesion
 /// spread is millimetres; its X0 off by this at its worst node moves its lesion by about as much,
 /// within the scatter the stick/slip path gives two ensembles of the same parameters (0.19 mm on the
-/// VICTRE image's case), and soft samples of an MRI case reach it where 0.01 mm takes the recovery
-/// over 30 loadings or stalls (docs/uncertainty.md, "A patient's image").
+/// VICTRE image's case with every X0 to 0.01 mm), and soft samples of an MRI case reach it where
+/// 0.01 mm takes the recovery 30 loadings or stalls (docs/uncertainty.md, "A patient's image").
 inline constexpr double kSampleUnloadedTolerance = 0.25e-3;
 
 /// One ensemble member's parameters.
