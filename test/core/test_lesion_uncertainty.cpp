@@ -322,6 +322,8 @@ TEST(LesionUncertainty, SamplesGivenTheNominalRunStartFromItsUnloadedShapeAndLev
   PipelineSettings other = s;
   other.simulation.solver.kind = SolverSettings::Kind::kCholmod;
   EXPECT_THROW(estimateLesionUncertainty(phantom().c, phantom().m, other, p0, {}, nullptr, 1, &nominal), std::invalid_argument);
+  for (double bad : {0.0, -1e-5, std::nan("")})
+    EXPECT_THROW(ProneToSupinePipeline(phantom().c, phantom().m, s, std::nullopt, Points(), bad), std::invalid_argument) << bad;
   const SimulationModel copy = phantom().m;
   EXPECT_THROW(estimateLesionUncertainty(phantom().c, copy, s, p0, {}, nullptr, 1, &nominal), std::invalid_argument);
 }

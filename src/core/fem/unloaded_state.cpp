@@ -340,6 +340,10 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
     if (growing >= options.max_growing_iterations)
       return fail(k, "no better shape in " + std::to_string(growing) + " loadings in a row (the last re-loads to " +
                          mm(it.max_residual_m) + ", the best to " + mm(best) + ")");
+    if (!better && !it.accelerated && it.step_fraction <= kMinStepFraction)
+      return fail(k, "no better shape with the step from the best one shortened to " + std::to_string(it.step_fraction) +
+                         " of its residual (the last re-loads to " + mm(it.max_residual_m) + ", the best to " +
+                         mm(best) + ")");
     if (k == options.max_iterations) break;
     Eigen::VectorXd next;
     double plain = 1.0;  // the share of the plain step the fallback below starts from
@@ -350,8 +354,8 @@ UnloadedStateResult recoverUnloadedShape(const TetMesh& loaded, const Simulation
       // A step that made things worse: back to the best X0, whose plain step is shortened by half
       // per loading in a row that found none better (where a few nodes' fixed-point map does not
       // contract, the full step overshoots them), and the mixing starts again from there with the
-      // shortened share of f for the rest of the run (on four soft samples of the VICTRE image's
-      // lesion ensemble 14–22 loadings, against 18–24 with full mixing steps after the step back).
+      // shortened share of f for its mixing steps (on four soft samples of the VICTRE image's
+      // lesion ensemble 14–22 loadings; 18–24 with full mixing steps after the step back).
       anderson.reset();
       anderson.next(best_x0, best_f, accelerated);  // records the best as the start of the new history
       accelerated = false;

@@ -66,8 +66,11 @@ std::unique_ptr<SimulationModel> unloadedModel(const ModelCase& model_case, cons
 }
 
 /// The settings validated, with the reference state resolved for the case.
-PipelineSettings validated(const ModelCase& model_case, PipelineSettings settings) {
+PipelineSettings validated(const ModelCase& model_case, PipelineSettings settings, double unloaded_tolerance_m) {
   settings.validate();
+  if (!(unloaded_tolerance_m > 0.0) || !std::isfinite(unloaded_tolerance_m))
+    throw std::invalid_argument("ProneToSupinePipeline: unloaded_tolerance_m = " + std::to_string(unloaded_tolerance_m) +
+                                " is invalid: expected a finite length > 0 [m], e.g. 1e-5");
   SimulationSettings& s = settings.simulation;
   s.reference_state = s.resolvedReferenceState(model_case.phantom != nullptr);
   return settings;
@@ -108,9 +111,10 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
                                              std::optional<std::vector<TetMesh>> coarse_meshes,
                                              const Points& unloaded_start_m, double unloaded_tolerance_m)
     : case_(model_case),
-      settings_(validated(model_case, settings)),
+      settings_(validated(model_case, settings, unloaded_tolerance_m)),
       prone_model_(model),
       coarse_meshes_(coarseLevels(model_case, model, settings_, std::move(coarse_meshes), coarse_meshing_s_)),
+      unloaded_tolerance_m_(unloaded_tolerance_m),
       unloaded_model_(unloadedModel(model_case, model, settings_, coarse_meshes_, unloaded_start_m, unloaded_tolerance_m,
                                     unloaded_)),
       model_(unloaded_model_ ? *unloaded_model_ : model) {
@@ -176,7 +180,8 @@ ProneToSupinePipeline::ProneToSupinePipeline(const ModelCase& model_case, const 
     coarse_model_ = std::make_unique<SimulationModel>(buildSimulationModel(*coarse_case_));
     PipelineSettings cs = settings_;
     cs.coarse_start.elements = 0;
-    coarse_ = std::make_unique<ProneToSupinePipeline>(*coarse_case_, *coarse_model_, cs);
+    coarse_ = std::make_unique<ProneToSupinePipeline>(*coarse_case_, *coarse_model_, cs, std::nullopt, Points(),
+                                                      unloaded_tolerance_m_);
   }
 }
 

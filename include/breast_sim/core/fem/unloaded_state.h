@@ -46,9 +46,10 @@ struct UnloadedIteration {
   double mean_residual_m = 0.0;  ///< its mean over all nodes [m]
   int settle_steps = 0;          ///< accepted time steps of the forward settle
   bool accelerated = false;      ///< this X0 came from the Anderson step (else the plain fixed-point step)
-  /// The share of the residual in the step that gave this X0: 1; 1/2^g for the best X0's plain step
-  /// after g loadings in a row that found none better, and from then on the smallest such share for
-  /// every step (the mixing's too); halved further until no element of X0 is inverted.
+  /// The share of the residual in the step that gave this X0: 1; for the best X0's plain step after
+  /// g loadings in a row that found none better 1/2^g, and less than half of the last plain step's
+  /// share when that one started at the best X0 too; for a mixing step the smallest share of the
+  /// step backs so far; halved further until no element of X0 is inverted.
   double step_fraction = 1.0;
   double seconds = 0.0;          ///< wall time of the loading, simulator build included [s]
 };
@@ -84,9 +85,10 @@ struct UnloadedStateResult {
 /// the iteration).
 ///
 /// A loading whose largest residual is not below the best one's sends the iteration back to the
-/// best X0, whose plain step it takes halved once per such loading in a row, and the mixing starts
-/// again there, its later steps shortened as much (where the map does not contract at a few nodes,
-/// a full step overshoots them). A
+/// best X0, whose plain step it takes halved once per such loading in a row (and at most half the
+/// last plain step from the best X0, so that no X0 is loaded twice), and the mixing starts again
+/// there, its later steps shortened as much (where the map does not contract at a few nodes, a full
+/// step overshoots them). A
 /// candidate X0 with inverted elements is replaced by the plain step, halved until no element is
 /// inverted (down to 1/64 of the residual), and the mixing starts again. A forward loading that does not
 /// settle or whose solver fails, a candidate X0 still inverted then, a loading that inverts

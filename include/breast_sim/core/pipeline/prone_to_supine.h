@@ -337,7 +337,8 @@ class ProneToSupinePipeline {
   /// @param unloaded_tolerance_m  reference_state unloaded: how close X0 loaded with prone gravity must
   ///        come to the prone shape at every node (UnloadedStateOptions::tolerance_m) [m], > 0
   /// @throws std::invalid_argument / std::runtime_error for bad settings or a missing target;
-  ///         std::invalid_argument for a start of the wrong size or with inverted elements;
+  ///         std::invalid_argument for a start of the wrong size or with inverted elements, or an
+  ///         unloaded_tolerance_m that is not a finite length > 0;
   ///         std::runtime_error when X0 is not found (the recovery's reason, its residual, and the
   ///         way out: reference_state prone, or a stiffer material).
   ProneToSupinePipeline(const ModelCase& model_case, const SimulationModel& model, const PipelineSettings& settings,
@@ -509,6 +510,7 @@ class ProneToSupinePipeline {
   double coarse_meshing_s_ = 0.0;       // meshing the coarse levels [s] (0 when they were given)
   std::vector<TetMesh> coarse_meshes_;  // the multigrid's coarse levels of the prone domain (before X0: it uses them)
   UnloadedStateResult unloaded_;
+  double unloaded_tolerance_m_;  // the recovery's tolerance (the coarse start's model takes it too)
   std::unique_ptr<SimulationModel> unloaded_model_;  // prone_model_ with the nodes of X0 (reference_state unloaded)
   const SimulationModel& model_;                    // the rest model: *unloaded_model_ or prone_model_
   /// Gravity the rest shape feels besides the load (g_prone with reference_state unloaded, else 0)
